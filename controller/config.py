@@ -1,0 +1,496 @@
+"""Rig configuration: one TOML format for the controller, the emulated rig and the service.
+
+Every quantity is SI inside (m, s, N, kg, Pa) unless the key name says otherwise
+(``_mm``, ``_hz``...).  The defaults are those of ``../shared/reference/NOTES.md``.
+
+Loading validates every key: an unknown key, a wrong type or a value outside its
+allowed range raises :class:`ConfigError` naming the dotted key, the value and the
+allowed range.  Nothing is silently clamped.
+
+Usage::
+
+    cfg = load_config("rig.toml")      # or default_config()
+    cfg.vehicle.sprung_mass_kg
+    config_hash(cfg)                   # stable sha256 of the canonical content
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar, get_args, get_origin, get_type_hints
+
+__all__ = [
+    "ActuatorConfig",
+    "CanConfig",
+    "ConfigError",
+    "DesignConfig",
+    "ForceLoopConfig",
+    "FuzzyConfig",
+    "MovingBankConfig",
+    "NoiseConfig",
+    "RecordingConfig",
+    "RigConfig",
+    "SafetyConfig",
+    "SensorConfig",
+    "TelemetryConfig",
+    "TireConfig",
+    "VehicleConfig",
+    "config_hash",
+    "config_to_dict",
+    "config_to_toml",
+    "default_config",
+    "load_config",
+    "parse_config",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown, of the wrong type or out of range."""
+
+    def __init__(self, key: str, value: object, allowed: str) -> None:
+        self.key = key
+        self.value = value
+        self.allowed = allowed
+        super().__init__(f"config key '{key}' = {value!r} is invalid: allowed {allowed}")
+
+
+def _rng(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+         hi_open: bool = False, choices: tuple[object, ...] | None = None,
+         doc: str = "") -> dict[str, Any]:
+    """Field metadata: numeric range (closed unless *_open) or a set of choices."""
+    return {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open,
+            "choices": choices, "doc": doc}
+
+
+def _f(default: Any, **kw: Any) -> Any:
+    meta = _rng(**kw)
+    if isinstance(default, list | dict):
+        frozen_default = json.dumps(default)
+
+        def factory() -> Any:
+            return json.loads(frozen_default)
+
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+# ---------------------------------------------------------------------------- sections
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Quarter car (thesis Ch. I).  K and C are the equivalent wheel-rate values."""
+
+    sprung_mass_kg: float = _f(500.0, lo=1.0, hi=5000.0, doc="M, body mass")
+    unsprung_mass_kg: float = _f(60.0, lo=1.0, hi=1000.0, doc="m, wheel and axle mass")
+    suspension_stiffness_n_per_m: float = _f(27.4e3, lo=100.0, hi=1e7, doc="K (27.4 N/mm)")
+    suspension_damping_ns_per_m: float = _f(1.65e3, lo=0.0, hi=1e6, doc="C (1.65 Ns/mm)")
+    gravity_mps2: float = _f(9.80665, lo=0.0, hi=20.0)
+    rattlespace_travel_m: float = _f(0.08, lo=0.005, hi=1.0, lo_open=True,
+                                     doc="free travel either side of static before bump stops")
+    bump_stop_stiffness_n_per_m: float = _f(1.0e6, lo=0.0, hi=1e9)
+
+
+@dataclass(frozen=True)
+class TireConfig:
+    """Tire law f_k = k' x2^e (x2 in mm, N); Ct = c2 x2^2 + c3 x2^3 (Ns/mm, x2 in mm)."""
+
+    stiffness_coefficient: float = _f(85.0, lo=0.0, hi=1e5, lo_open=True, doc="k' in N/mm^e")
+    stiffness_exponent: float = _f(1.3, lo=1.0, hi=3.0)
+    damping_c2: float = _f(1.5e-3, lo=-1.0, hi=1.0)
+    damping_c3: float = _f(-2.66e-5, lo=-1.0, hi=1.0)
+    damping_saturation_mm: float = _f(38.0, lo=0.0, hi=1000.0, lo_open=True,
+                                      doc="Ct held constant above this deflection")
+
+
+@dataclass(frozen=True)
+class DesignConfig:
+    """Offline design of the bank (thesis Ch. II, V)."""
+
+    sample_rate_hz: float = _f(1000.0, lo=50.0, hi=20000.0)
+    linearisation_deflections_m: list[float] = _f([0.04, 0.025, 0.01], lo=0.0, hi=0.2,
+                                                  lo_open=True)
+    include_airborne_model: bool = _f(True)
+    tire_damping_scales: list[float] = _f([1.0], lo=0.0, hi=10.0,
+                                          doc="grid factor on Ct (1 = nominal only)")
+    weight_set: int = _f(1, lo=1, hi=16, doc="index into weight_sets (1-based)")
+    weight_sets: list[list[float]] = _f([[1.0, 1e2, 1e-8, 1.0], [1e1, 1e-1, 1e-8, 1.0]],
+                                        lo=0.0, hi=1e12,
+                                        doc="[rho1, rho2, rho3, rho4] per set, Eq. 2.5")
+    human_filter_num: list[float] = _f([12.0, 0.0], lo=-1e9, hi=1e9, doc="F(s) numerator")
+    human_filter_den: list[float] = _f([1.0, 30.02, 901.3], lo=-1e9, hi=1e9,
+                                       doc="F(s) denominator")
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Noise levels seen by the Kalman filters (and, by default, by the emulated sensors).
+
+    The road process noise is white road velocity.  For an ISO 8608 road its two-sided
+    intensity is 2 pi^2 n0^2 Gd(n0) V  [m^2/s]; the bank tabulates filter gains over
+    ``speeds_mps`` x ``road_roughness_gd`` (Gd(n0) in m^3).
+    """
+
+    rattlespace_std_m: float = _f(5e-5, lo=0.0, hi=0.1, lo_open=True)
+    accel_std_mps2: float = _f(0.05, lo=0.0, hi=100.0, lo_open=True)
+    force_std_n: float = _f(5.0, lo=0.0, hi=1e4)
+    speeds_mps: list[float] = _f([5.0, 11.176, 20.0, 30.0], lo=0.1, hi=100.0)
+    road_roughness_gd: list[float] = _f([16e-6, 64e-6, 256e-6, 1024e-6, 4096e-6],
+                                        lo=1e-9, hi=1.0, doc="Gd(n0), m^3")
+    nominal_speed_mps: float = _f(11.176, lo=0.1, hi=100.0, doc="25 mph")
+    nominal_roughness_gd: float = _f(1024e-6, lo=1e-9, hi=1.0)
+
+
+@dataclass(frozen=True)
+class FuzzyConfig:
+    """Appendix A: four trapezoid input terms on q, rule outputs on (0, 1)."""
+
+    universe: list[float] = _f([0.0, 10.0], lo=0.0, hi=1e6)
+    sml: list[float] = _f([0.0, 0.0, 1.0, 3.0], lo=0.0, hi=1e6, doc="trapezoid a<=b<=c<=d")
+    med: list[float] = _f([1.0, 3.0, 4.0, 6.0], lo=0.0, hi=1e6)
+    lrg: list[float] = _f([4.0, 6.0, 7.0, 9.0], lo=0.0, hi=1e6)
+    v_lrg: list[float] = _f([7.0, 9.0, 10.0, 10.0], lo=0.0, hi=1e6)
+    out_high: float = _f(1.0, lo=0.0, hi=1.0, doc="HIGH singleton")
+    out_med: list[float] = _f([0.25, 0.5, 0.75], lo=0.0, hi=1.0, doc="triangle a, peak, c")
+    out_low: list[float] = _f([0.0, 0.25, 0.5], lo=0.0, hi=1.0, doc="triangle a, peak, c")
+    out_zero: float = _f(0.0, lo=0.0, hi=1.0, doc="ZERO singleton")
+    singleton_area: float = _f(0.25, lo=0.0, hi=1.0, lo_open=True,
+                               doc="area a fully fired singleton carries in centre of area")
+    no_fire_fallback: str = _f("passive", choices=("passive", "best_model"))
+
+
+@dataclass(frozen=True)
+class MovingBankConfig:
+    """Ch. VI: on-ground / airborne sets switched on residual thresholds, with hysteresis."""
+
+    active_models: int = _f(3, lo=1, hi=64, doc="k, size of the moving subset")
+    threshold_quantile: float = _f(0.999, lo=0.5, hi=1.0, hi_open=True,
+                                   doc="quantile of learnt q history used as threshold")
+    history_window_s: float = _f(2.0, lo=0.01, hi=600.0)
+    smoothing_time_s: float = _f(0.005, lo=0.0, hi=1.0)
+    hysteresis_ratio: float = _f(0.5, lo=0.0, hi=1.0, hi_open=True,
+                                 doc="switch back when below ratio x threshold")
+    dwell_time_s: float = _f(0.01, lo=0.0, hi=10.0, doc="minimum time between switches")
+
+
+@dataclass(frozen=True)
+class ForceLoopConfig:
+    """PI force inner loop for the servo valve (output: normalised spool command)."""
+
+    kp_per_n: float = _f(2.0e-4, lo=0.0, hi=1.0)
+    ki_per_ns: float = _f(0.05, lo=0.0, hi=1e3)
+    output_limit: float = _f(1.0, lo=0.0, hi=1.0, lo_open=True)
+    force_limit_n: float = _f(8000.0, lo=0.0, hi=1e6, lo_open=True,
+                              doc="force reference saturation")
+
+
+@dataclass(frozen=True)
+class ActuatorConfig:
+    """Servo-hydraulic actuator (Alleyne & Hedrick form), sized for the 500 kg body."""
+
+    piston_area_m2: float = _f(1.0e-3, lo=1e-6, hi=1.0)
+    supply_pressure_pa: float = _f(10.3425e6, lo=1e5, hi=1e8)
+    alpha_n_per_m5: float = _f(4.515e13, lo=1e6, hi=1e16, doc="4 beta_e / Vt")
+    leakage_beta_per_s: float = _f(1.0, lo=0.0, hi=1e4)
+    valve_gamma: float = _f(4.6e9, lo=0.0, hi=1e13, lo_open=True,
+                            doc="flow gain; 1.545e9 x area ratio to A&H piston")
+    spool_time_constant_s: float = _f(0.003, lo=1e-5, hi=1.0)
+    bypass_time_constant_s: float = _f(0.002, lo=1e-5, hi=1.0,
+                                       doc="load-pressure decay when the bypass is open")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The rig's sensors as the emulator models them (and the ranges the service checks)."""
+
+    lvdt_range_m: float = _f(0.1, lo=0.001, hi=1.0, doc="+/- range about static")
+    lvdt_resolution_m: float = _f(5e-6, lo=0.0, hi=1e-2)
+    load_cell_range_n: float = _f(15000.0, lo=1.0, hi=1e6)
+    load_cell_offset_n: float = _f(0.0, lo=-1e4, hi=1e4)
+    accel_range_mps2: float = _f(150.0, lo=1.0, hi=1e4)
+    accel_bias_mps2: float = _f(0.0, lo=-100.0, hi=100.0)
+    accel_bandwidth_hz: float = _f(300.0, lo=1.0, hi=1e5)
+    seed: int = _f(12345, lo=0, hi=2**63 - 1)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    stale_ticks: int = _f(2, lo=1, hi=1000, doc="sensor frame missing for more ticks = fault")
+    overrun_streak: int = _f(5, lo=1, hi=100000)
+    overrun_threshold_s: float = _f(0.0005, lo=0.0, hi=1.0, lo_open=True,
+                                    doc="a tick later than this counts as overrun")
+    estimator_divergence_q: float = _f(1e4, lo=1.0, hi=1e12,
+                                       doc="min q over active models above this = divergence")
+    divergence_ticks: int = _f(50, lo=1, hi=100000)
+    force_range_n: float = _f(15000.0, lo=1.0, hi=1e6)
+    heartbeat_hz: float = _f(10.0, lo=0.1, hi=1000.0)
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    interface: str = _f("virtual", choices=("socketcan", "virtual"))
+    channel: str = _f("vcan0")
+    bitrate: int = _f(1_000_000, lo=10_000, hi=8_000_000)
+    fd: bool = _f(False)
+
+
+@dataclass(frozen=True)
+class TelemetryConfig:
+    enabled: bool = _f(True)
+    endpoints: list[str] = _f(["tcp/127.0.0.1:7447"])
+    mode: str = _f("peer", choices=("peer", "client", "router"))
+    listen: bool = _f(True, doc="listen on endpoints (else connect to them)")
+    multicast_scouting: bool = _f(False)
+    key_prefix: str = _f("rig")
+    rate_hz: float = _f(50.0, lo=0.1, hi=1000.0)
+    queue_size: int = _f(256, lo=1, hi=1_000_000)
+    commands_enabled: bool = _f(False)
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    enabled: bool = _f(True)
+    directory: str = _f("runs")
+    rotate_bytes: int = _f(512 * 1024 * 1024, lo=1024, hi=2**40)
+    rotate_seconds: float = _f(3600.0, lo=1.0, hi=1e7)
+    chunk_bytes: int = _f(256 * 1024, lo=1024, hi=2**30)
+    queue_size: int = _f(65536, lo=16, hi=10_000_000)
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    tire: TireConfig = field(default_factory=TireConfig)
+    design: DesignConfig = field(default_factory=DesignConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
+    moving_bank: MovingBankConfig = field(default_factory=MovingBankConfig)
+    force_loop: ForceLoopConfig = field(default_factory=ForceLoopConfig)
+    actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
+    sensors: SensorConfig = field(default_factory=SensorConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    can: CanConfig = field(default_factory=CanConfig)
+    telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+
+    @property
+    def sample_time_s(self) -> float:
+        return 1.0 / self.design.sample_rate_hz
+
+    @property
+    def weights(self) -> tuple[float, float, float, float]:
+        """The selected [rho1, rho2, rho3, rho4]."""
+        w = self.design.weight_sets[self.design.weight_set - 1]
+        return (w[0], w[1], w[2], w[3])
+
+    def replace(self, **sections: Any) -> RigConfig:
+        """Copy with some sections replaced, re-validated.  ``cfg.replace(design={...})``
+        merges a dict into that section; a section object replaces it whole."""
+        data = config_to_dict(self)
+        for name, value in sections.items():
+            if name not in data:
+                raise ConfigError(name, value, f"one of {sorted(data)}")
+            if isinstance(value, Mapping):
+                data[name].update(value)
+            else:
+                data[name] = config_to_dict(value) if dataclasses.is_dataclass(value) else value
+        return parse_config(data)
+
+
+# ---------------------------------------------------------------------------- validation
+
+T = TypeVar("T")
+
+
+def _describe(meta: Mapping[str, Any]) -> str:
+    if meta.get("choices"):
+        return "one of " + ", ".join(repr(c) for c in meta["choices"])
+    lo, hi = meta.get("lo"), meta.get("hi")
+    left = "(" if meta.get("lo_open") else "["
+    right = ")" if meta.get("hi_open") else "]"
+    lo_s = "-inf" if lo is None else repr(lo)
+    hi_s = "inf" if hi is None else repr(hi)
+    if lo is None and hi is None:
+        return "any value of the right type"
+    return f"{left}{lo_s}, {hi_s}{right}"
+
+
+def _check_scalar(key: str, value: Any, typ: type, meta: Mapping[str, Any]) -> Any:
+    allowed = _describe(meta)
+    if typ is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(key, value, "true or false")
+        return value
+    if typ is str:
+        if not isinstance(value, str):
+            raise ConfigError(key, value, f"a string, {allowed}")
+        if meta.get("choices") and value not in meta["choices"]:
+            raise ConfigError(key, value, allowed)
+        return value
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(key, value, f"an integer in {allowed}")
+    elif typ is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(key, value, f"a number in {allowed}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(key, value, f"a finite number in {allowed}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if lo is not None and (value < lo or (meta.get("lo_open") and value == lo)):
+        raise ConfigError(key, value, allowed)
+    if hi is not None and (value > hi or (meta.get("hi_open") and value == hi)):
+        raise ConfigError(key, value, allowed)
+    return value
+
+
+def _check_value(key: str, value: Any, typ: Any, meta: Mapping[str, Any]) -> Any:
+    if get_origin(typ) is list:
+        (inner,) = get_args(typ)
+        if not isinstance(value, list) or not value:
+            raise ConfigError(key, value, f"a non-empty list, elements in {_describe(meta)}")
+        return [_check_value(f"{key}[{i}]", v, inner, meta) for i, v in enumerate(value)]
+    return _check_scalar(key, value, typ, meta)
+
+
+def _build(cls: type[T], data: Mapping[str, Any], prefix: str) -> T:
+    if not isinstance(data, Mapping):
+        raise ConfigError(prefix, data, "a table")
+    hints = get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    for key in data:
+        if key not in names:
+            raise ConfigError(f"{prefix}.{key}" if prefix else key, data[key],
+                              f"a known key: {', '.join(sorted(names))}")
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        if f.name not in data:
+            continue
+        key = f"{prefix}.{f.name}" if prefix else f.name
+        typ = hints[f.name]
+        if dataclasses.is_dataclass(typ):
+            kwargs[f.name] = _build(typ, data[f.name], key)  # type: ignore[arg-type]
+        else:
+            kwargs[f.name] = _check_value(key, data[f.name], typ, f.metadata)
+    return cls(**kwargs)
+
+
+def _trapezoid_ok(key: str, t: list[float], universe: list[float]) -> None:
+    if len(t) != 4 or not (t[0] <= t[1] <= t[2] <= t[3]):
+        raise ConfigError(key, t, "4 numbers a <= b <= c <= d")
+    if t[0] < universe[0] or t[3] > universe[1]:
+        raise ConfigError(key, t, f"within the universe {universe}")
+
+
+def _cross_checks(cfg: RigConfig) -> None:
+    d = cfg.design
+    if cfg.design.weight_set > len(d.weight_sets):
+        raise ConfigError("design.weight_set", d.weight_set, f"[1, {len(d.weight_sets)}]")
+    for i, w in enumerate(d.weight_sets):
+        if len(w) != 4:
+            raise ConfigError(f"design.weight_sets[{i}]", w, "4 numbers [rho1, rho2, rho3, rho4]")
+        if w[2] <= 0.0:
+            raise ConfigError(f"design.weight_sets[{i}][2]", w[2], "rho3 > 0 (control weight)")
+    pts = d.linearisation_deflections_m
+    if len(set(pts)) != len(pts):
+        raise ConfigError("design.linearisation_deflections_m", pts, "distinct values")
+    if len(d.human_filter_den) != 3 or len(d.human_filter_num) > 2:
+        raise ConfigError("design.human_filter_den", d.human_filter_den,
+                          "a 2nd-order denominator [1, a1, a0] and numerator of order <= 1")
+    if not all(c > 0 for c in d.human_filter_den):
+        raise ConfigError("design.human_filter_den", d.human_filter_den,
+                          "positive coefficients (a stable filter)")
+    fz = cfg.fuzzy
+    if len(fz.universe) != 2 or fz.universe[0] >= fz.universe[1]:
+        raise ConfigError("fuzzy.universe", fz.universe, "[lo, hi] with lo < hi")
+    for name in ("sml", "med", "lrg", "v_lrg"):
+        _trapezoid_ok(f"fuzzy.{name}", getattr(fz, name), fz.universe)
+    for name in ("out_med", "out_low"):
+        t = getattr(fz, name)
+        if len(t) != 3 or not (t[0] <= t[1] <= t[2]) or t[0] == t[2]:
+            raise ConfigError(f"fuzzy.{name}", t, "3 numbers a <= peak <= c with a < c")
+    n_models = len(pts) * len(d.tire_damping_scales) + int(d.include_airborne_model)
+    if cfg.moving_bank.active_models > n_models:
+        raise ConfigError("moving_bank.active_models", cfg.moving_bank.active_models,
+                          f"[1, {n_models}] (the number of models in the grid)")
+    if cfg.noise.nominal_speed_mps < min(cfg.noise.speeds_mps) or \
+            cfg.noise.nominal_speed_mps > max(cfg.noise.speeds_mps):
+        raise ConfigError("noise.nominal_speed_mps", cfg.noise.nominal_speed_mps,
+                          f"within noise.speeds_mps [{min(cfg.noise.speeds_mps)}, "
+                          f"{max(cfg.noise.speeds_mps)}]")
+    if sorted(cfg.noise.speeds_mps) != cfg.noise.speeds_mps:
+        raise ConfigError("noise.speeds_mps", cfg.noise.speeds_mps, "increasing values")
+    if sorted(cfg.noise.road_roughness_gd) != cfg.noise.road_roughness_gd:
+        raise ConfigError("noise.road_roughness_gd", cfg.noise.road_roughness_gd,
+                          "increasing values")
+
+
+def parse_config(data: Mapping[str, Any]) -> RigConfig:
+    """Build and validate a :class:`RigConfig` from a (TOML-shaped) mapping.
+
+    Missing keys take their defaults; unknown keys are errors.
+    """
+    cfg = _build(RigConfig, data, "")
+    _cross_checks(cfg)
+    return cfg
+
+
+def load_config(path: str | Path | None = None) -> RigConfig:
+    """Load ``path`` (TOML), or the built-in defaults when ``path`` is None."""
+    if path is None:
+        return default_config()
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError("<file>", str(p), f"a readable TOML file ({exc.strerror})") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("<file>", str(p), f"valid TOML ({exc})") from exc
+    return parse_config(data)
+
+
+def default_config() -> RigConfig:
+    cfg = RigConfig()
+    _cross_checks(cfg)
+    return cfg
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(type(v))
+
+
+def config_to_toml(cfg: RigConfig) -> str:
+    """The canonical TOML text of ``cfg`` (round-trips through :func:`load_config`)."""
+    lines: list[str] = []
+    for section, values in config_to_dict(cfg).items():
+        lines.append(f"[{section}]")
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in values.items())
+        lines.append("")
+    return "\n".join(lines)
+
+
+def config_hash(cfg: RigConfig) -> str:
+    """sha256 of the canonical JSON of the configuration (stable across key order)."""
+    blob = json.dumps(config_to_dict(cfg), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()

@@ -1,0 +1,1 @@
+"""The emulated test rig (hardware in the loop)."""

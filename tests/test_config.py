@@ -1,0 +1,76 @@
+"""Configuration: defaults from NOTES.md, validation errors name key, value and range."""
+
+from __future__ import annotations
+
+import pytest
+
+from controller.config import (
+    ConfigError,
+    config_hash,
+    config_to_toml,
+    default_config,
+    load_config,
+    parse_config,
+)
+
+
+def test_defaults_match_notes() -> None:
+    cfg = default_config()
+    assert cfg.vehicle.sprung_mass_kg == 500.0
+    assert cfg.vehicle.unsprung_mass_kg == 60.0
+    assert cfg.vehicle.suspension_stiffness_n_per_m == pytest.approx(27.4e3)
+    assert cfg.vehicle.suspension_damping_ns_per_m == pytest.approx(1.65e3)
+    assert cfg.design.sample_rate_hz == 1000.0
+    assert cfg.design.linearisation_deflections_m == [0.04, 0.025, 0.01]
+    assert cfg.design.weight_sets == [[1.0, 1e2, 1e-8, 1.0], [1e1, 1e-1, 1e-8, 1.0]]
+    assert cfg.weights == (1.0, 1e2, 1e-8, 1.0)
+
+
+def test_toml_round_trip(tmp_path) -> None:
+    cfg = default_config().replace(vehicle={"sprung_mass_kg": 420.0}, design={"weight_set": 2})
+    path = tmp_path / "rig.toml"
+    path.write_text(config_to_toml(cfg))
+    back = load_config(path)
+    assert back == cfg
+    assert config_hash(back) == config_hash(cfg) != config_hash(default_config())
+
+
+@pytest.mark.parametrize(
+    ("data", "key", "fragment"),
+    [
+        ({"vehicle": {"sprung_mass_kg": -3}}, "vehicle.sprung_mass_kg", "[1.0, 5000.0]"),
+        ({"vehicle": {"sprung_mass_kg": "heavy"}}, "vehicle.sprung_mass_kg", "a number"),
+        ({"vehicle": {"sprung_mas_kg": 3}}, "vehicle.sprung_mas_kg", "a known key"),
+        ({"design": {"sample_rate_hz": 10}}, "design.sample_rate_hz", "[50.0, 20000.0]"),
+        ({"design": {"weight_set": 3}}, "design.weight_set", "[1, 2]"),
+        ({"design": {"linearisation_deflections_m": []}}, "design.linearisation_deflections_m",
+         "non-empty list"),
+        ({"design": {"linearisation_deflections_m": [0.01, -0.02]}},
+         "design.linearisation_deflections_m[1]", "(0.0, 0.2]"),
+        ({"fuzzy": {"med": [3, 1, 4, 6]}}, "fuzzy.med", "a <= b <= c <= d"),
+        ({"can": {"interface": "carrier-pigeon"}}, "can.interface", "'socketcan'"),
+        ({"safety": {"stale_ticks": 1.5}}, "safety.stale_ticks", "an integer"),
+        ({"telemetry": {"enabled": 1}}, "telemetry.enabled", "true or false"),
+        ({"moving_bank": {"active_models": 9}}, "moving_bank.active_models", "[1, 4]"),
+        ({"vehicle": 5}, "vehicle", "a table"),
+    ],
+)
+def test_bad_values_are_named(data: dict, key: str, fragment: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(data)
+    assert info.value.key == key
+    assert fragment in str(info.value)
+
+
+def test_nan_rejected() -> None:
+    with pytest.raises(ConfigError, match="finite"):
+        parse_config({"vehicle": {"sprung_mass_kg": float("nan")}})
+
+
+def test_bad_file_is_a_config_error(tmp_path) -> None:
+    p = tmp_path / "bad.toml"
+    p.write_text("[vehicle\nsprung_mass_kg = 1")
+    with pytest.raises(ConfigError, match="valid TOML"):
+        load_config(p)
+    with pytest.raises(ConfigError, match="readable"):
+        load_config(tmp_path / "missing.toml")
