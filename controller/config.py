@@ -127,6 +127,16 @@ class DesignConfig:
     human_filter_num: list[float] = _f([12.0, 0.0], lo=-1e9, hi=1e9, doc="F(s) numerator")
     human_filter_den: list[float] = _f([1.0, 30.02, 901.3], lo=-1e9, hi=1e9,
                                        doc="F(s) denominator")
+    airborne_filter_com_hz: float = _f(0.2, lo=0.0, hi=100.0, lo_open=True,
+                                       doc="airborne Kalman filter only: pseudo natural "
+                                           "frequency given to the undetectable centre-of-"
+                                           "mass modes (docs/design.md)")
+    airborne_filter_com_damping: float = _f(0.7, lo=0.0, hi=10.0, lo_open=True,
+                                            doc="airborne filter only: pseudo damping ratio")
+    filter_velocity_leak_hz: float = _f(0.1, lo=0.0, hi=10.0,
+                                        doc="on-ground Kalman filters only: pseudo leak on "
+                                            "the mass-weighted velocity (0 = pure white-road "
+                                            "model; see docs/design.md, bias sensitivity)")
 
 
 @dataclass(frozen=True)
@@ -197,13 +207,19 @@ class ActuatorConfig:
 
     piston_area_m2: float = _f(1.0e-3, lo=1e-6, hi=1.0)
     supply_pressure_pa: float = _f(10.3425e6, lo=1e5, hi=1e8)
-    alpha_n_per_m5: float = _f(4.515e13, lo=1e6, hi=1e16, doc="4 beta_e / Vt")
+    alpha_n_per_m5: float = _f(4.515e11, lo=1e6, hi=1e16,
+                               doc="4 beta_e / Vt; A&H's 4.515e13 softened 100x by "
+                                   "chamber accumulators so a 1 kHz PI force loop can track "
+                                   "(docs/hil.md)")
     leakage_beta_per_s: float = _f(1.0, lo=0.0, hi=1e4)
     valve_gamma: float = _f(4.6e9, lo=0.0, hi=1e13, lo_open=True,
                             doc="flow gain; 1.545e9 x area ratio to A&H piston")
     spool_time_constant_s: float = _f(0.003, lo=1e-5, hi=1.0)
     bypass_time_constant_s: float = _f(0.002, lo=1e-5, hi=1.0,
                                        doc="load-pressure decay when the bypass is open")
+    spool_stroke_m: float = _f(1.0e-4, lo=1e-9, hi=0.1,
+                               doc="spool opening at normalised command 1 (x_s = stroke x_v);"
+                                   " 3.3 m/s no-load velocity with the defaults")
 
 
 @dataclass(frozen=True)
@@ -252,6 +268,8 @@ class TelemetryConfig:
     rate_hz: float = _f(50.0, lo=0.1, hi=1000.0)
     queue_size: int = _f(256, lo=1, hi=1_000_000)
     commands_enabled: bool = _f(False)
+    zenoh_config_file: str = _f("", doc="json5 file merged first (TLS, access_control); "
+                                "mode/endpoints/scouting above override it")
 
 
 @dataclass(frozen=True)

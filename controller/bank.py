@@ -1,0 +1,702 @@
+"""Runtime step of the LQG bank (thesis Ch. III, IV, VI, App. A): one numba call per tick.
+
+Per tick, with y = [rattlespace + M g / K, accel] and u = the measured actuator force:
+
+    r_j  = y - C_j x⁻_j - D_j u - y_offset                (3.9)
+    q_j  = r_j' F_j^-1 r_j                                (4.8, the likelihood quotient)
+    x⁺_j = x⁻_j + L_j r_j                                 (3.5, steady-state gain)
+    x⁻_j <- A_j x⁻_j + By_j y + Bu_j u + b_j              (fused 3.5 + 3.7, selected noise entry)
+    u_j  = -K_w,j [x⁺_j - x̄_j; x_f]                       (zero for the airborne model)
+    x_f  <- Ad x_f + Bd accel                             (F(s); u_j uses x_f before the update)
+
+then the model forces are blended: FUZZY -- firing weight f_j = tabulated App. A curve at
+q_j, normalised over the contributing models (if none fires: ``no_fire_fallback``,
+"passive" = 0 N or "best_model" = min q, and ``StepFlag.NO_RULE_FIRED``); BAYES -- MMAE
+probabilities (:mod:`controller.bayes`); MOVING -- fuzzy within the moving subset
+(:mod:`controller.moving_bank`); SINGLE -- one model, the plain LQG.
+
+Bayesian probabilities, raw firing weights and smoothed q are kept for every running
+filter in every mode (telemetry; a switch of blending starts warm).
+
+Faults (never raised): a non-finite input returns 0.0 with NONFINITE_INPUT and leaves
+the state untouched.  A filter whose q, estimate or force becomes non-finite (huge
+inputs can overflow) is reset to the blended next prior of the healthy filters (or its
+equilibrium) and NONFINITE_STATE is set; a non-finite blended force returns 0.0.
+min q over the contributing models above ``safety.estimator_divergence_q`` for
+``safety.divergence_ticks`` ticks sets DIVERGED.  q is clamped to ``Q_MAX``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from typing import Any
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.artifact import Design
+from controller.bayes import bayes_update, log_likelihood_constant
+from controller.config import RigConfig, default_config, parse_config
+from controller.kernels import (
+    F_ALPHA,
+    F_DIVQ,
+    F_FORGET,
+    F_HAD,
+    F_HBD,
+    F_HINC,
+    F_HLO,
+    F_HTOT,
+    F_HWIDTH,
+    F_HYST,
+    F_OUT,
+    F_PFLOOR,
+    F_QUANT,
+    F_RECENTRE,
+    F_SCR,
+    F_SIGNAL,
+    F_STATIC,
+    F_TFLOOR,
+    F_THRESH,
+    F_XF,
+    F_XHAT,
+    F_XHATM,
+    F_XINIT,
+    F_YOFF,
+    FALLBACK_BEST,
+    FALLBACK_PASSIVE,
+    FV_HEAD,
+    I_AIR,
+    I_BLEND,
+    I_CENTRE,
+    I_DIVCNT,
+    I_DIVTICKS,
+    I_DWELL,
+    I_FALLBACK,
+    I_FLAGS,
+    I_G,
+    I_HIST,
+    I_J,
+    I_K,
+    I_MINLEARN,
+    I_MODE,
+    I_NB,
+    I_NG,
+    I_NLEARN,
+    I_NPROBE,
+    I_NRECENTRE,
+    I_NSWITCH,
+    I_NUPD,
+    I_PROBE,
+    I_PROBE_CNT,
+    I_PROBE_PTR,
+    I_QGRID,
+    I_RECOMP,
+    I_SENTINEL,
+    I_SINCE_RECENTRE,
+    I_SINCE_SWITCH,
+    I_SINGLE,
+    I_TICK,
+    I_WCURVE,
+    IV_LEN,
+    M_A,
+    M_B,
+    M_BU,
+    M_BY,
+    M_CT,
+    M_KX,
+    M_L,
+    M_XBAR,
+    MAT_COLS,
+    MEAS_DIM,
+    MODE_AIR,
+    MODE_GROUND,
+    Q_MAX,
+    QS_INIT,
+    S_BAD,
+    S_CONTRIB,
+    S_F,
+    S_P,
+    S_Q,
+    S_QS,
+    S_U,
+    S_W,
+    S_XPOST,
+    S_XPRIOR,
+    ST_COLS,
+    V_AIR,
+    V_D,
+    V_FINV,
+    V_KF,
+    V_LLC,
+    V_LOGDET,
+    VEC_COLS,
+    Blending,
+    StepFlag,
+    activate,
+    deactivate,
+    firing_weight,
+)
+from controller.moving_bank import (
+    HIST_BINS,
+    HIST_HI_LOG10,
+    HIST_LO_LOG10,
+    HIST_RECOMPUTE_TICKS,
+    MAX_PROBE_CANDIDATES,
+    RECENTRE_RATIO,
+    chi2_threshold_floor,
+    enter_moving,
+    neighbour_table,
+    supervise,
+)
+from controller.plant import static_tire_deflection_m
+from controller.road_noise import nearest_noise_entry
+
+__all__ = ["BankRuntime", "Blending", "StepFlag", "config_of", "default_single_model"]
+
+FloatArray = NDArray[np.float64]
+
+_FUZZY = int(Blending.FUZZY)
+_BAYES = int(Blending.BAYES)
+_MOVING = int(Blending.MOVING)
+_SINGLE = int(Blending.SINGLE)
+_NONFINITE_INPUT = int(StepFlag.NONFINITE_INPUT)
+_NONFINITE_STATE = int(StepFlag.NONFINITE_STATE)
+_NO_RULE_FIRED = int(StepFlag.NO_RULE_FIRED)
+_DIVERGED = int(StepFlag.DIVERGED)
+
+_SIG_STEP = nb.float64(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
+                       nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1],
+                       nb.float64, nb.float64, nb.float64)
+_SIG_CFG = nb.void(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
+                   nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1], nb.int64)
+
+
+# ============================================================================ kernels
+
+
+@nb.njit(_SIG_STEP, cache=True, nogil=True)
+def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+              fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, rattlespace_m: float,
+              accel_mps2: float, force_meas_n: float) -> float:
+    """One tick of the bank (see the module docstring).  Allocation-free, never raises."""
+    if not (math.isfinite(rattlespace_m) and math.isfinite(accel_mps2)
+            and math.isfinite(force_meas_n)):
+        iv[I_FLAGS] = _NONFINITE_INPUT
+        return 0.0
+    flags = 0
+    J = st.shape[0]
+    blend = iv[I_BLEND]
+    sentinel = -1
+    if blend == _MOVING and iv[I_MODE] == MODE_AIR:
+        sentinel = iv[I_SENTINEL]
+    u_in = force_meas_n
+    y0 = rattlespace_m + fv[F_STATIC]
+    y1 = accel_mps2
+    e0 = y0 - fv[F_YOFF]
+    e1 = y1 - fv[F_YOFF + 1]
+    xf0 = fv[F_XF]
+    xf1 = fv[F_XF + 1]
+    alpha = fv[F_ALPHA]
+    nupd = 0
+    for j in range(J):
+        st[j, S_CONTRIB] = 0.0
+        st[j, S_BAD] = 0.0
+        if not active[j]:
+            continue
+        nupd += 1
+        r0 = e0 - vec[j, V_D] * u_in
+        r1 = e1 - vec[j, V_D + 1] * u_in
+        for i in range(4):
+            xm = st[j, S_XPRIOR + i]
+            r0 -= mat[j, i, M_CT] * xm
+            r1 -= mat[j, i, M_CT + 1] * xm
+        q = r0 * (vec[j, V_FINV] * r0 + vec[j, V_FINV + 1] * r1) \
+            + r1 * (vec[j, V_FINV + 2] * r0 + vec[j, V_FINV + 3] * r1)
+        ok = not math.isnan(q)
+        for i in range(4):
+            acc = mat[j, i, M_BY] * y0 + mat[j, i, M_BY + 1] * y1 + mat[j, i, M_BU] * u_in \
+                + mat[j, i, M_B]
+            for k in range(4):
+                acc += mat[j, i, M_A + k] * st[j, S_XPRIOR + k]
+            xp = st[j, S_XPRIOR + i] + mat[j, i, M_L] * r0 + mat[j, i, M_L + 1] * r1
+            fv[F_SCR + i] = xp
+            fv[F_SCR + 4 + i] = acc
+            if not (math.isfinite(xp) and math.isfinite(acc)):
+                ok = False
+        u = 0.0
+        if vec[j, V_AIR] == 0.0:
+            u = -(vec[j, V_KF] * xf0 + vec[j, V_KF + 1] * xf1)
+            for i in range(4):
+                u -= mat[j, i, M_KX] * (fv[F_SCR + i] - mat[j, i, M_XBAR])
+            if not math.isfinite(u):
+                ok = False
+        if ok:
+            qc = q if q < Q_MAX else Q_MAX
+            for i in range(4):
+                st[j, S_XPOST + i] = fv[F_SCR + i]
+                st[j, S_XPRIOR + i] = fv[F_SCR + 4 + i]
+            st[j, S_Q] = qc
+            st[j, S_U] = u
+            st[j, S_QS] += alpha * (qc - st[j, S_QS])
+            if j != sentinel:
+                st[j, S_CONTRIB] = 1.0
+        else:
+            st[j, S_BAD] = 1.0
+            st[j, S_Q] = Q_MAX
+            st[j, S_U] = 0.0
+            flags |= _NONFINITE_STATE
+
+    # ---- blending weights
+    bayes_update(st, S_P, S_Q, S_CONTRIB, vec, V_LLC, fv[F_PFLOOR])
+    G = iv[I_G]
+    og = iv[I_QGRID]
+    oc = iv[I_WCURVE]
+    total = 0.0
+    best = -1
+    qmin = np.inf
+    for j in range(J):
+        if st[j, S_CONTRIB] != 0.0:
+            qj = st[j, S_Q]
+            if qj < qmin:
+                qmin = qj
+                best = j
+            f = firing_weight(qj, fv, og, oc, G)
+            st[j, S_F] = f
+            if blend == _BAYES:
+                w = st[j, S_P]
+            elif blend == _SINGLE:
+                w = 1.0
+            else:
+                w = f
+            st[j, S_W] = w
+            total += w
+        else:
+            st[j, S_F] = 0.0
+            st[j, S_W] = 0.0
+    if total > 0.0:
+        for j in range(J):
+            st[j, S_W] = st[j, S_W] / total
+    else:
+        if best >= 0:          # there are contributing models but none fired
+            flags |= _NO_RULE_FIRED
+            if iv[I_FALLBACK] == FALLBACK_BEST:
+                st[best, S_W] = 1.0
+    out = 0.0
+    for i in range(8):
+        fv[F_SCR + i] = 0.0
+    wsum = 0.0
+    for j in range(J):
+        w = st[j, S_W]
+        if w != 0.0:
+            out += w * st[j, S_U]
+            wsum += w
+            for i in range(4):
+                fv[F_SCR + i] += w * st[j, S_XPOST + i]
+                fv[F_SCR + 4 + i] += w * st[j, S_XPRIOR + i]
+    if wsum == 0.0 and best >= 0:          # passive fallback: the estimate is still the best
+        for i in range(4):
+            fv[F_SCR + i] = st[best, S_XPOST + i]
+            fv[F_SCR + 4 + i] = st[best, S_XPRIOR + i]
+        wsum = 1.0
+    if wsum > 0.0:
+        for i in range(4):
+            fv[F_XHAT + i] = fv[F_SCR + i]
+            fv[F_XHATM + i] = fv[F_SCR + 4 + i]
+    # ---- recover the filters that went non-finite
+    if flags & _NONFINITE_STATE:
+        for j in range(J):
+            if st[j, S_BAD] != 0.0:
+                for i in range(4):
+                    x = fv[F_XHATM + i] if wsum > 0.0 else mat[j, i, M_XBAR]
+                    st[j, S_XPRIOR + i] = x
+                    st[j, S_XPOST + i] = x
+    # ---- divergence
+    if qmin > fv[F_DIVQ]:
+        iv[I_DIVCNT] += 1
+    else:
+        iv[I_DIVCNT] = 0
+    if iv[I_DIVCNT] >= iv[I_DIVTICKS]:
+        flags |= _DIVERGED
+    # ---- human-body filter states from the measured acceleration
+    n0 = fv[F_HAD] * xf0 + fv[F_HAD + 1] * xf1 + fv[F_HBD] * accel_mps2
+    n1 = fv[F_HAD + 2] * xf0 + fv[F_HAD + 3] * xf1 + fv[F_HBD + 1] * accel_mps2
+    if math.isfinite(n0) and math.isfinite(n1):
+        fv[F_XF] = n0
+        fv[F_XF + 1] = n1
+    else:
+        fv[F_XF] = 0.0
+        fv[F_XF + 1] = 0.0
+        flags |= _NONFINITE_STATE
+    if not math.isfinite(out):
+        out = 0.0
+        flags |= _NONFINITE_STATE
+    if blend == _MOVING:
+        supervise(st, active, fv, iv, nbr, vec)
+    iv[I_NUPD] = nupd
+    iv[I_TICK] += 1
+    iv[I_FLAGS] = flags
+    fv[F_OUT] = out
+    return out
+
+
+@nb.njit(_SIG_CFG, cache=True, nogil=True)
+def bank_configure(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+                   fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, blend: int) -> None:
+    """Switch the blending mode: set the running filters (new ones start bumpless)."""
+    J = st.shape[0]
+    iv[I_BLEND] = blend
+    iv[I_MODE] = MODE_GROUND
+    iv[I_SENTINEL] = -1
+    single = iv[I_SINGLE]
+    if blend == _SINGLE:
+        for j in range(J):
+            if active[j] and j != single:
+                deactivate(j, st, active)
+        if not active[single]:
+            activate(single, st, active, fv, QS_INIT, 1.0)
+    elif blend == _MOVING:
+        centre = -1
+        qbest = np.inf
+        for j in range(J):
+            if active[j] and vec[j, V_AIR] == 0.0 and st[j, S_QS] < qbest:
+                qbest = st[j, S_QS]
+                centre = j
+        if centre < 0:
+            centre = single
+        enter_moving(st, active, fv, iv, nbr, vec, centre)
+    else:
+        for j in range(J):
+            if not active[j]:
+                activate(j, st, active, fv, QS_INIT, 1.0 / J)
+    total = 0.0
+    for j in range(J):
+        if active[j]:
+            total += st[j, S_P]
+    for j in range(J):
+        if active[j]:
+            st[j, S_P] = st[j, S_P] / total if total > 0.0 else 1.0
+
+
+@nb.njit(_SIG_CFG, cache=True, nogil=True)
+def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+               fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, blend: int) -> None:
+    """Initial state: every filter at its equilibrium, p uniform, history cleared."""
+    J = st.shape[0]
+    for j in range(J):
+        active[j] = False
+        for c in range(st.shape[1]):
+            st[j, c] = 0.0
+        st[j, S_QS] = QS_INIT
+    fv[F_XF] = 0.0
+    fv[F_XF + 1] = 0.0
+    for i in range(4):
+        fv[F_XHAT + i] = fv[F_XINIT + i]
+        fv[F_XHATM + i] = fv[F_XINIT + i]
+    fv[F_THRESH] = fv[F_TFLOOR]
+    fv[F_SIGNAL] = 0.0
+    fv[F_HINC] = 1.0
+    fv[F_HTOT] = 0.0
+    fv[F_OUT] = 0.0
+    for b in range(iv[I_NB]):
+        fv[iv[I_HIST] + b] = 0.0
+    for idx in (I_MODE, I_SINCE_SWITCH, I_SINCE_RECENTRE, I_PROBE_PTR, I_PROBE_CNT, I_DIVCNT,
+                I_FLAGS, I_NUPD, I_NSWITCH, I_NLEARN, I_NRECENTRE, I_TICK):
+        iv[idx] = 0
+    iv[I_SENTINEL] = -1
+    iv[I_CENTRE] = iv[I_SINGLE]
+    bank_configure(mat, vec, st, active, fv, iv, nbr, blend)
+    n = 0
+    for j in range(J):
+        if active[j]:
+            n += 1
+    for j in range(J):
+        for i in range(4):
+            st[j, S_XPRIOR + i] = mat[j, i, M_XBAR]
+            st[j, S_XPOST + i] = mat[j, i, M_XBAR]
+        st[j, S_P] = 1.0 / n if active[j] else 0.0
+        st[j, S_QS] = QS_INIT
+
+
+@nb.njit(cache=True, nogil=True)
+def _select(dst_mat: np.ndarray, dst_vec: np.ndarray, all_mat: np.ndarray,
+            all_vec: np.ndarray, s: int, w: int) -> None:
+    """Copy the packed tables of noise entry s and weight set w into place (no allocation)."""
+    dst_mat[:, :, :] = all_mat[s, w]
+    dst_vec[:, :] = all_vec[s, w]
+
+
+# ============================================================================ Python side
+
+
+def config_of(design: Design) -> RigConfig:
+    """The configuration recorded in the artifact (``metadata['config_toml']``)."""
+    text = design.metadata.get("config_toml") if isinstance(design.metadata, dict) else None
+    if not text:
+        return default_config()
+    return parse_config(tomllib.loads(str(text)))
+
+
+def default_single_model(design: Design, cfg: RigConfig) -> int:
+    """The on-ground model whose linearisation deflection is nearest the static tire
+    deflection (ties: damping scale nearest 1)."""
+    x2s = static_tire_deflection_m(cfg)
+    defl = cfg.design.linearisation_deflections_m
+    scales = cfg.design.tire_damping_scales
+    best, key_best = -1, (math.inf, math.inf)
+    for j in range(design.n_models):
+        if design.airborne[j]:
+            continue
+        di, si = int(design.grid_index[j, 0]), int(design.grid_index[j, 1])
+        key = (abs(defl[di] - x2s), abs(scales[si] - 1.0))
+        if key < key_best:
+            best, key_best = j, key
+    if best < 0:
+        raise ValueError("the design has no on-ground model")
+    return best
+
+
+def _pack(design: Design) -> tuple[FloatArray, FloatArray]:
+    """Packed per-model tables for every (noise entry, weight set): (S, W, J, 4, MAT_COLS)
+    and (S, W, J, VEC_COLS)."""
+    J, S, W = design.n_models, design.n_noise, design.n_weight_sets
+    mat = np.zeros((S, W, J, 4, MAT_COLS))
+    vec = np.zeros((S, W, J, VEC_COLS))
+    for s in range(S):
+        for w in range(W):
+            m = mat[s, w]
+            v = vec[s, w]
+            m[:, :, M_A:M_A + 4] = design.filter_A[:, s]
+            m[:, :, M_BY:M_BY + 2] = design.filter_By[:, s]
+            m[:, :, M_BU] = design.filter_Bu[:, s]
+            m[:, :, M_B] = design.filter_b[:, s]
+            m[:, :, M_L:M_L + 2] = design.kalman_gain[:, s]
+            m[:, :, M_CT:M_CT + 2] = np.transpose(design.C_meas, (0, 2, 1))
+            m[:, :, M_KX] = design.lq_gain[w, :, :4]
+            v[:, V_D:V_D + 2] = design.D_meas
+            v[:, V_FINV:V_FINV + 4] = design.innovation_cov_inv[:, s].reshape(J, 4)
+            v[:, V_LOGDET] = design.innovation_logdet[:, s]
+            v[:, V_KF:V_KF + 2] = design.lq_gain[w, :, 4:6]
+            v[:, V_AIR] = design.airborne.astype(float)
+            v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
+                           for ld in design.innovation_logdet[:, s]]
+    return mat, vec
+
+
+class BankRuntime:
+    """The controller bank at run time (API in docs/architecture.md "Runtime step").
+
+    ``step()`` is one numba call on preallocated buffers; the kernels are compiled (or
+    loaded from numba's cache) at import and exercised once in ``__init__``.
+
+    Public (J,) views, updated in place by every step: ``q`` (likelihood quotients,
+    clamped to Q_MAX), ``firing_weight`` (the normalised blending weights actually used:
+    fuzzy firing weights, or the probabilities in BAYES mode; sum 1 unless nothing
+    fired), ``raw_firing_weight`` (the App. A curve at q, before normalisation),
+    ``probability`` (MMAE p_j, kept in every mode), ``u_model`` (each model's LQ force),
+    ``q_smoothed``, ``active`` (the filters that ran).  ``x_post`` (J, 4), ``x_prior``
+    (J, 4), ``xf`` (2,), ``x_blend`` (4,), absolute states (positions from the unloaded
+    springs).  Inactive filters read 0 in q/weights/forces.
+    """
+
+    def __init__(self, design: Design, blending: Blending | int = Blending.FUZZY,
+                 weight_set: int = 1, single_model: int | None = None, *,
+                 cfg: RigConfig | None = None, no_fire_fallback: str | None = None,
+                 prob_floor: float = 1e-4, probe_period_s: float = 0.05) -> None:
+        design.validate()
+        self.design = design
+        self.cfg = cfg if cfg is not None else config_of(design)
+        cfg_ = self.cfg
+        J = design.n_models
+        self.n_models = J
+        dt = float(design.dt_s)
+        fallback = no_fire_fallback or cfg_.fuzzy.no_fire_fallback
+        if fallback not in ("passive", "best_model"):
+            raise ValueError(f"no_fire_fallback {fallback!r}: allowed 'passive', 'best_model'")
+        if not (0.0 < prob_floor < 1.0 / J):
+            raise ValueError(f"prob_floor {prob_floor!r}: allowed (0, 1/J = {1.0 / J:g})")
+        if single_model is None:
+            single_model = default_single_model(design, cfg_)
+        if not (0 <= int(single_model) < J) or bool(design.airborne[int(single_model)]):
+            raise ValueError(f"single_model {single_model!r}: must be an on-ground model "
+                             f"index in [0, {J})")
+        self.single_model = int(single_model)
+        self._all_mat, self._all_vec = _pack(design)
+        ground = np.flatnonzero(~design.airborne)
+        air = np.flatnonzero(design.airborne)
+        self._nbr = neighbour_table(design.grid_index, design.airborne)
+        n_ground = int(ground.shape[0])
+        mb = cfg_.moving_bank
+        k = min(int(mb.active_models), n_ground)
+
+        x_init = np.asarray(design.equilibrium[self.single_model], dtype=float)
+        G = int(design.fuzzy_q_grid.shape[0])
+        off_grid = FV_HEAD
+        off_curve = off_grid + G
+        off_hist = off_curve + G
+        fv = np.zeros(off_hist + HIST_BINS)
+        fv[F_YOFF:F_YOFF + 2] = design.y_offset
+        fv[F_HAD:F_HAD + 4] = np.asarray(design.human_filter_Ad).reshape(4)
+        fv[F_HBD:F_HBD + 2] = design.human_filter_Bd
+        fv[F_STATIC] = design.static_rattlespace_m
+        tau = mb.smoothing_time_s
+        fv[F_ALPHA] = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
+        fv[F_PFLOOR] = prob_floor
+        fv[F_DIVQ] = cfg_.safety.estimator_divergence_q
+        fv[F_TFLOOR] = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
+        fv[F_HYST] = mb.hysteresis_ratio
+        fv[F_QUANT] = mb.threshold_quantile
+        n_window = max(2.0, mb.history_window_s / dt)
+        fv[F_FORGET] = 1.0 / (1.0 - 1.0 / n_window)
+        fv[F_RECENTRE] = RECENTRE_RATIO
+        fv[F_HLO] = HIST_LO_LOG10
+        fv[F_HWIDTH] = (HIST_HI_LOG10 - HIST_LO_LOG10) / HIST_BINS
+        fv[F_XINIT:F_XINIT + 4] = x_init
+        fv[off_grid:off_grid + G] = design.fuzzy_q_grid
+        fv[off_curve:off_curve + G] = design.fuzzy_weight_curve
+        iv = np.zeros(IV_LEN, dtype=np.int64)
+        iv[I_J] = J
+        iv[I_G] = G
+        iv[I_SINGLE] = self.single_model
+        iv[I_AIR] = int(air[0]) if air.size else -1
+        iv[I_NG] = n_ground
+        iv[I_K] = k
+        iv[I_DWELL] = max(1, round(mb.dwell_time_s / dt))
+        iv[I_PROBE] = max(1, round(probe_period_s / dt))
+        iv[I_DIVTICKS] = cfg_.safety.divergence_ticks
+        iv[I_FALLBACK] = FALLBACK_BEST if fallback == "best_model" else FALLBACK_PASSIVE
+        iv[I_QGRID] = off_grid
+        iv[I_WCURVE] = off_curve
+        iv[I_HIST] = off_hist
+        iv[I_NB] = HIST_BINS
+        iv[I_MINLEARN] = max(1, int(n_window // 4))
+        iv[I_RECOMP] = HIST_RECOMPUTE_TICKS
+        iv[I_NPROBE] = max(0, min(n_ground - k, MAX_PROBE_CANDIDATES))
+        self.no_fire_fallback = fallback
+        self.prob_floor = float(prob_floor)
+        self.active_models_k = k
+
+        self._fv = fv
+        self._iv = iv
+        self._mat = np.zeros((J, 4, MAT_COLS))
+        self._vec = np.zeros((J, VEC_COLS))
+        self._st = np.zeros((J, ST_COLS))
+        self._active = np.zeros(J, dtype=np.bool_)
+        # reset state of each filter: its equilibrium (the airborne one: the nominal state)
+        xbar = np.where(np.isfinite(design.equilibrium), design.equilibrium, x_init[None, :])
+        self._all_mat[:, :, :, :, M_XBAR] = xbar[None, None, :, :]
+        self.noise_index = design.noise_index(0, 0)
+        self.weight_set = 1
+        self.blending = Blending(int(blending))
+        self.set_road(cfg_.noise.nominal_speed_mps, cfg_.noise.nominal_roughness_gd)
+        self.set_weight_set(weight_set)
+
+        st = self._st
+        self.q = st[:, S_Q]
+        self.firing_weight = st[:, S_W]
+        self.raw_firing_weight = st[:, S_F]
+        self.probability = st[:, S_P]
+        self.u_model = st[:, S_U]
+        self.q_smoothed = st[:, S_QS]
+        self.active = self._active
+        self.x_post = st[:, S_XPOST:S_XPOST + 4]
+        self.x_prior = st[:, S_XPRIOR:S_XPRIOR + 4]
+        self.xf = fv[F_XF:F_XF + 2]
+        self.x_blend = fv[F_XHAT:F_XHAT + 4]
+        self._warm_up()
+        self.reset()
+
+    # ------------------------------------------------------------------ control
+    def _warm_up(self) -> None:
+        """Run every code path once on scratch copies so that no compile or first-call
+        cost lands in a real tick."""
+        for b in Blending:
+            st, act = self._st.copy(), self._active.copy()
+            fv, iv = self._fv.copy(), self._iv.copy()
+            bank_reset(self._mat, self._vec, st, act, fv, iv, self._nbr, int(b))
+            for _ in range(3):
+                bank_step(self._mat, self._vec, st, act, fv, iv, self._nbr, 0.0, 0.0, 0.0)
+            bank_step(self._mat, self._vec, st, act, fv, iv, self._nbr, math.nan, 0.0, 0.0)
+        _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index,
+                self.weight_set - 1)
+
+    def reset(self) -> None:
+        """Initial state: filters at equilibrium, p uniform, human filter at rest."""
+        bank_reset(self._mat, self._vec, self._st, self._active, self._fv, self._iv,
+                   self._nbr, int(self.blending))
+
+    def set_blending(self, blending: Blending | int) -> None:
+        """Switch the blending mode (newly running filters start from the blended estimate)."""
+        b = Blending(int(blending))
+        self.blending = b
+        bank_configure(self._mat, self._vec, self._st, self._active, self._fv, self._iv,
+                       self._nbr, int(b))
+
+    def set_weight_set(self, weight_set: int) -> None:
+        """Select the LQ weight set (1-based, as ``design.weight_set``)."""
+        w = int(weight_set)
+        if not 1 <= w <= self.design.n_weight_sets:
+            raise ValueError(f"weight_set {weight_set!r}: allowed 1..{self.design.n_weight_sets}")
+        self.weight_set = w
+        _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index, w - 1)
+
+    def set_road(self, speed_mps: float, roughness_gd: float) -> int:
+        """Use the noise-table entry nearest (speed, Gd(n0)); returns its flat index."""
+        s = nearest_noise_entry(self.design.noise_speeds_mps, self.design.noise_roughness_gd,
+                                float(speed_mps), float(roughness_gd))
+        self.noise_index = s
+        _select(self._mat, self._vec, self._all_mat, self._all_vec, s, self.weight_set - 1)
+        return s
+
+    # ------------------------------------------------------------------ the tick
+    def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float:
+        """One controller tick: the actuator force reference [N].  Never raises."""
+        try:
+            return bank_step(self._mat, self._vec, self._st, self._active, self._fv,
+                             self._iv, self._nbr, rattlespace_m, accel_mps2, force_meas_n)
+        except (TypeError, ValueError, OverflowError):
+            self._iv[I_FLAGS] = _NONFINITE_INPUT
+            return 0.0
+
+    # ------------------------------------------------------------------ read-outs
+    @property
+    def flags(self) -> StepFlag:
+        return StepFlag(int(self._iv[I_FLAGS]))
+
+    @property
+    def filter_updates(self) -> int:
+        """Kalman filter updates done in the last tick (the work done)."""
+        return int(self._iv[I_NUPD])
+
+    @property
+    def airborne_mode(self) -> bool:
+        """Moving bank: the airborne set is running."""
+        return bool(self._iv[I_MODE] == MODE_AIR)
+
+    @property
+    def centre(self) -> int:
+        return int(self._iv[I_CENTRE])
+
+    @property
+    def residual_threshold(self) -> float:
+        """The learnt switching threshold T on the smoothed likelihood quotient."""
+        return float(self._fv[F_THRESH])
+
+    @property
+    def switching_signal(self) -> float:
+        return float(self._fv[F_SIGNAL])
+
+    def counters(self) -> dict[str, int]:
+        iv = self._iv
+        return {"ticks": int(iv[I_TICK]), "set_switches": int(iv[I_NSWITCH]),
+                "recentres": int(iv[I_NRECENTRE]), "history_samples": int(iv[I_NLEARN]),
+                "divergence_ticks": int(iv[I_DIVCNT])}
+
+    def snapshot(self) -> dict[str, Any]:
+        """Copies of the state (for tests and telemetry; allocates)."""
+        return {"q": self.q.copy(), "w": self.firing_weight.copy(),
+                "p": self.probability.copy(), "u": self.u_model.copy(),
+                "active": self.active.copy(), "x_post": self.x_post.copy(),
+                "x_prior": self.x_prior.copy(), "xf": self.xf.copy(),
+                "flags": self.flags, "out": float(self._fv[F_OUT])}

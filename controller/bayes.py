@@ -1,0 +1,96 @@
+"""Bayesian multiple-model blending (Magill MMAE; thesis Eq. 4.2 and 4.6).
+
+For the contributing models j, with likelihood quotient q_j = r_j' F_j^-1 r_j:
+
+    f_j = exp(-q_j / 2) / ((2π)^{m/2} |F_j|^{1/2})          (4.6, m = measurement dim)
+    p_j = f_j p_j(prev) / Σ_k f_k p_k(prev)                    (4.2)
+
+computed in log space (log-sum-exp) so that no exp underflows to 0/0.  Afterwards every
+probability is raised to at least ``floor`` and the set renormalised, so that no model
+is locked out for ever (a model at p = 0 could never come back).  If no likelihood is
+usable (all log-likelihoods -inf or NaN) the probabilities fall back to uniform.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["bayes_update", "bayes_update_numpy", "log_likelihood_constant"]
+
+
+def log_likelihood_constant(logdet_f: float, meas_dim: int) -> float:
+    """log of 1 / ((2π)^{m/2} |F|^{1/2})."""
+    return -0.5 * meas_dim * math.log(2.0 * math.pi) - 0.5 * logdet_f
+
+
+@nb.njit(cache=True, nogil=True)
+def bayes_update(st: np.ndarray, col_p: int, col_q: int, col_contrib: int, vec: np.ndarray,
+                 col_llc: int, floor: float) -> None:
+    """In-place MMAE update of st[:, col_p] over the rows with st[:, col_contrib] != 0.
+
+    ``vec[:, col_llc]`` holds log_likelihood_constant per model.  Rows that do not
+    contribute get p = 0.  Allocation-free.
+    """
+    J = st.shape[0]
+    lmax = -np.inf
+    n = 0
+    for j in range(J):
+        if st[j, col_contrib] == 0.0:
+            st[j, col_p] = 0.0
+        else:
+            n += 1
+            pj = st[j, col_p]
+            lp = math.log(pj) if pj > 0.0 else -745.0
+            lj = lp + vec[j, col_llc] - 0.5 * st[j, col_q]
+            st[j, col_p] = lj          # hold the log value for now
+            if lj > lmax:
+                lmax = lj
+    if n == 0:
+        return
+    if not (lmax > -np.inf):           # no usable likelihood: uniform
+        for j in range(J):
+            if st[j, col_contrib] != 0.0:
+                st[j, col_p] = 1.0 / n
+        return
+    total = 0.0
+    for j in range(J):
+        if st[j, col_contrib] != 0.0:
+            e = math.exp(st[j, col_p] - lmax)
+            st[j, col_p] = e
+            total += e
+    total2 = 0.0
+    for j in range(J):
+        if st[j, col_contrib] != 0.0:
+            pj = st[j, col_p] / total
+            if pj < floor:
+                pj = floor
+            st[j, col_p] = pj
+            total2 += pj
+    for j in range(J):
+        if st[j, col_contrib] != 0.0:
+            st[j, col_p] = st[j, col_p] / total2
+
+
+def bayes_update_numpy(p_prev: NDArray[np.float64], q: NDArray[np.float64],
+                       logdet_f: NDArray[np.float64], meas_dim: int,
+                       floor: float) -> NDArray[np.float64]:
+    """The same update written directly from Eq. 4.2/4.6 (for tests and offline use).
+
+    Uses the densities themselves where they do not underflow, so it is an independent
+    check of the log-space kernel.
+    """
+    dens = np.exp(-0.5 * q) / ((2.0 * np.pi) ** (meas_dim / 2.0) * np.sqrt(np.exp(logdet_f)))
+    num = dens * p_prev
+    total = float(np.sum(num))
+    if not total > 1e-200:             # densities underflow: use logs (p_prev floor-free)
+        logs = np.log(np.maximum(p_prev, 1e-300)) - 0.5 * q - 0.5 * logdet_f
+        logs -= np.max(logs)
+        num = np.exp(logs)
+        total = float(np.sum(num))
+    p = num / total
+    p = np.maximum(p, floor)
+    return np.asarray(p / np.sum(p), dtype=np.float64)

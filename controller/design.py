@@ -1,0 +1,146 @@
+"""Offline design of the controller bank -> :class:`controller.artifact.Design`.
+
+For every model j of :func:`controller.plant.model_family` (deflection grid x tire
+damping scales, then the airborne model):
+- the ZOH discretisation of the absolute-coordinate filter model (Phi, Gamma_u, Gamma_g),
+- a steady-state Kalman filter for every (speed, roughness) entry of the noise table,
+- an LQ gain on the augmented plant (plant + human filter) for every weight set,
+plus the discretised human-body filter and the tabulated fuzzy firing-weight curve.
+Derivations: docs/design.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.artifact import Design, build_metadata
+from controller.config import RigConfig
+from controller.fuzzy import firing_weight_curve
+from controller.human_filter import HumanFilter, human_filter
+from controller.kalman import (
+    DiscreteFilterModel,
+    FilterModel,
+    discretize_filter_model,
+    filter_model,
+    fused_prior_update,
+    steady_state_kalman,
+)
+from controller.lq import lq_gain
+from controller.plant import LinearModel, model_family
+from controller.road_noise import noise_table_entries
+
+__all__ = ["FUZZY_GRID_POINTS", "ModelDesign", "design_bank", "design_models",
+           "measurement_noise_cov"]
+
+FloatArray = NDArray[np.float64]
+
+#: Points of the tabulated firing-weight curve over the universe of q.
+FUZZY_GRID_POINTS = 2001
+
+
+@dataclass(frozen=True)
+class ModelDesign:
+    """Intermediate per-model results (used by the design, the analysis and the CLI)."""
+
+    model: LinearModel
+    fm: FilterModel
+    dfm: DiscreteFilterModel
+
+
+def measurement_noise_cov(cfg: RigConfig) -> FloatArray:
+    """R = diag(rattlespace_std^2, accel_std^2) [m^2, (m/s^2)^2] per sample."""
+    return np.diag([cfg.noise.rattlespace_std_m**2, cfg.noise.accel_std_mps2**2])
+
+
+def design_models(cfg: RigConfig) -> list[ModelDesign]:
+    out = []
+    for model in model_family(cfg):
+        fm = filter_model(model, cfg)
+        out.append(ModelDesign(model, fm, discretize_filter_model(fm, cfg.sample_time_s)))
+    return out
+
+
+def _grid_index(cfg: RigConfig, j: int, airborne: bool) -> tuple[int, int]:
+    if airborne:
+        return (-1, -1)
+    n_scale = len(cfg.design.tire_damping_scales)
+    return (j // n_scale, j % n_scale)
+
+
+def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Design:
+    """Design every filter and gain of the bank for ``cfg`` (raises ValueError if a
+    Riccati equation has no stabilising solution)."""
+    dt = cfg.sample_time_s
+    g = cfg.vehicle.gravity_mps2
+    hf: HumanFilter = human_filter(cfg.design, dt)
+    mds = design_models(cfg)
+    J = len(mds)
+    entries = noise_table_entries(cfg.noise)
+    S = len(entries)
+    W = len(cfg.design.weight_sets)
+    R = measurement_noise_cov(cfg)
+
+    kalman_gain = np.zeros((J, S, 4, 2))
+    f_cov = np.zeros((J, S, 2, 2))
+    f_inv = np.zeros((J, S, 2, 2))
+    f_logdet = np.zeros((J, S))
+    fA = np.zeros((J, S, 4, 4))
+    fBy = np.zeros((J, S, 4, 2))
+    fBu = np.zeros((J, S, 4))
+    fb = np.zeros((J, S, 4))
+    gains = np.zeros((W, J, 6))
+    eq = np.full((J, 4), np.nan)
+    for j, md in enumerate(mds):
+        if md.model.equilibrium is not None:
+            eq[j] = md.model.equilibrium
+        for s, (_v, _gd, w_int) in enumerate(entries):
+            kf = steady_state_kalman(md.dfm.Phi, md.fm.C, md.dfm.Qd_unit * w_int, R)
+            fused = fused_prior_update(md.dfm.Phi, md.dfm.Gamma_u, md.dfm.Gamma_g, g,
+                                       md.fm.C, md.fm.D, md.fm.y_offset, kf.L)
+            kalman_gain[j, s] = kf.L
+            f_cov[j, s] = kf.F
+            f_inv[j, s] = kf.F_inv
+            f_logdet[j, s] = kf.logdet_F
+            fA[j, s], fBy[j, s], fBu[j, s], fb[j, s] = fused.A, fused.By, fused.Bu, fused.b
+        for w, weights in enumerate(cfg.design.weight_sets):
+            gains[w, j] = lq_gain(md.model, hf, weights)
+
+    q_grid, w_curve = firing_weight_curve(cfg.fuzzy, fuzzy_points)
+    v = cfg.vehicle
+    design = Design(
+        dt_s=dt,
+        model_names=np.array([md.model.name for md in mds], dtype=np.str_),
+        airborne=np.array([md.model.airborne for md in mds], dtype=bool),
+        grid_index=np.array([_grid_index(cfg, j, md.model.airborne)
+                             for j, md in enumerate(mds)], dtype=np.int64).reshape(J, 2),
+        equilibrium=eq,
+        Phi=np.stack([md.dfm.Phi for md in mds]),
+        Gamma_u=np.stack([md.dfm.Gamma_u for md in mds]),
+        Gamma_g=np.stack([md.dfm.Gamma_g for md in mds]),
+        C_meas=np.stack([md.fm.C for md in mds]),
+        D_meas=np.stack([md.fm.D for md in mds]),
+        y_offset=np.array([0.0, -g]),
+        kalman_gain=kalman_gain,
+        innovation_cov=f_cov,
+        innovation_cov_inv=f_inv,
+        innovation_logdet=f_logdet,
+        filter_A=fA,
+        filter_By=fBy,
+        filter_Bu=fBu,
+        filter_b=fb,
+        noise_speeds_mps=np.array(cfg.noise.speeds_mps, dtype=float),
+        noise_roughness_gd=np.array(cfg.noise.road_roughness_gd, dtype=float),
+        lq_gain=gains,
+        human_filter_Ad=hf.Ad.copy(),
+        human_filter_Bd=hf.Bd.copy(),
+        human_filter_Cd=hf.Cd.copy(),
+        fuzzy_q_grid=q_grid,
+        fuzzy_weight_curve=w_curve,
+        static_rattlespace_m=v.sprung_mass_kg * g / v.suspension_stiffness_n_per_m,
+        metadata=build_metadata(cfg),
+    )
+    design.validate()
+    return design

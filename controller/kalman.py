@@ -1,0 +1,191 @@
+"""Steady-state Kalman filters of the bank (thesis Ch. III, Eq. 3.3-3.8).
+
+Each filter works in *absolute* coordinates (positions from the unloaded springs) with
+gravity as a known input and the load-cell force u as a known input:
+
+    x' = A x + B2 u + B1 w' + G g                        (w' white road velocity)
+    y  = [rattlespace_abs, accel] = C x + D u + y_offset + v,    y_offset = [0, -g]
+
+ZOH discretisation: x[k+1] = Phi x[k] + Gamma_u u[k] + Gamma_g g + w[k] with the
+process-noise covariance Qd = int_0^dt e^{As} B1 W B1' e^{A's} ds (Van Loan).  The
+steady-state prior covariance P solves the filter DARE; then (measurement-update form)
+
+    F = C P C' + R,    L = P C' F^-1,    x+ = x- + L r,    r = y - C x- - D u - y_offset
+    x-[k+1] = Phi x+ + Gamma_u u + Gamma_g g
+
+which fuses into x-[k+1] = filter_A x- + filter_By y + filter_Bu u + filter_b with
+
+    filter_A = Phi (I - L C),  filter_By = Phi L,  filter_Bu = Gamma_u - Phi L D,
+    filter_b = Gamma_g g - Phi L y_offset.
+
+Airborne model: with Kt = Ct = 0 the centre-of-mass modes (position and velocity of the
+mass-weighted coordinate M x1 + m x2) are two integrators that neither rattlespace nor
+acceleration sees, so the filter DARE has no stabilising solution.  The airborne *filter*
+model therefore gives those modes a pseudo spring/damper (frequency and damping ratio
+from cfg.design.airborne_filter_com_*) acting on the centre of mass only (force split in
+proportion to the masses, pre-loaded with the weight so gravity cancels): the relative
+dynamics, the measurement equation and hence the residuals are exactly those of the true
+airborne model; only the (unobservable) centre-of-mass estimate becomes bounded.
+
+On-ground models: white road velocity has no low-frequency roll-off, and the transfer
+from w' to both measurements has a zero at s = 0, so the exact filter has a pole at
+~0.999998 (time constant ~10 min) along the common body/wheel velocity and a huge DC gain
+from a rattlespace bias to the velocity estimate (~1e8 N of LQ force per metre of bias).
+The filter model therefore gets a pseudo leak of rate 2 pi cfg.design.filter_velocity_leak_hz
+on the mass-weighted velocity (both accelerations alike, so relative dynamics and the
+static equilibrium are unchanged); 0 switches it off (docs/design.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import NDArray
+
+from controller.config import RigConfig
+from controller.human_filter import discretize_zoh
+from controller.plant import GRAVITY_INPUT, LinearModel
+
+__all__ = [
+    "DiscreteFilterModel",
+    "FilterModel",
+    "FusedFilter",
+    "SteadyStateKalman",
+    "discretize_filter_model",
+    "filter_model",
+    "fused_prior_update",
+    "process_noise_cov",
+    "steady_state_kalman",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FilterModel:
+    """Continuous model the filter of model j is built on (regularised if airborne)."""
+
+    A: FloatArray       # (4, 4)
+    B2: FloatArray      # (4,)
+    B1: FloatArray      # (4,)
+    G: FloatArray       # (4,) multiplies g
+    C: FloatArray       # (2, 4)
+    D: FloatArray       # (2,)
+    y_offset: FloatArray  # (2,) = [0, -g]
+    gravity_mps2: float
+
+
+@dataclass(frozen=True)
+class DiscreteFilterModel:
+    Phi: FloatArray       # (4, 4)
+    Gamma_u: FloatArray   # (4,)
+    Gamma_g: FloatArray   # (4,) multiplies g
+    Qd_unit: FloatArray   # (4, 4) process-noise covariance for W = 1 m^2/s
+
+
+@dataclass(frozen=True)
+class SteadyStateKalman:
+    P_prior: FloatArray   # (4, 4)
+    L: FloatArray         # (4, 2)
+    F: FloatArray         # (2, 2)
+    F_inv: FloatArray     # (2, 2)
+    logdet_F: float
+
+
+@dataclass(frozen=True)
+class FusedFilter:
+    A: FloatArray   # (4, 4)
+    By: FloatArray  # (4, 2)
+    Bu: FloatArray  # (4,)
+    b: FloatArray   # (4,)
+
+
+def filter_model(model: LinearModel, cfg: RigConfig) -> FilterModel:
+    """The filter model of ``model``; airborne gets the centre-of-mass regularisation."""
+    g = cfg.vehicle.gravity_mps2
+    A = model.A.copy()
+    G = GRAVITY_INPUT.copy()
+    if model.airborne:
+        M, m = cfg.vehicle.sprung_mass_kg, cfg.vehicle.unsprung_mass_kg
+        wn = 2.0 * math.pi * cfg.design.airborne_filter_com_hz
+        zeta = cfg.design.airborne_filter_com_damping
+        # pseudo force per total mass: wn^2 e - 2 zeta wn h',  e = (M x1 + m x2)/(M+m),
+        # h' = (M x3 + m x4)/(M+m); it accelerates body and wheel alike (relative
+        # dynamics untouched) and carries the weight (so G g cancels).
+        mass_w = np.array([M, m]) / (M + m)
+        row = np.concatenate([wn**2 * mass_w, -2.0 * zeta * wn * mass_w])
+        A[2] += row
+        A[3] += row
+        G = np.zeros(4)
+    elif cfg.design.filter_velocity_leak_hz > 0.0:
+        M, m = cfg.vehicle.sprung_mass_kg, cfg.vehicle.unsprung_mass_kg
+        lam = 2.0 * math.pi * cfg.design.filter_velocity_leak_hz
+        # pseudo leak -lam (M x3 + m x4)/(M+m) on both accelerations: relative dynamics
+        # and the static equilibrium are untouched; bounds the common-velocity estimate
+        row = -lam * np.array([0.0, 0.0, M, m]) / (M + m)
+        A[2] += row
+        A[3] += row
+    C = model.C_meas.copy()
+    return FilterModel(A, model.B2.copy(), model.B1.copy(), G, C, model.D_meas.copy(),
+                       np.array([0.0, -g]), g)
+
+
+def process_noise_cov(A: FloatArray, B1: FloatArray, W: float, dt_s: float) -> FloatArray:
+    """Qd = int_0^dt e^{As} B1 W B1' e^{A's} ds (Van Loan 1978).
+
+    expm([[-A, B1 W B1'], [0, A']] dt) = [[., E12], [0, E22]] with E22 = Phi' and
+    Qd = E22' E12.
+    """
+    n = A.shape[0]
+    Bm = B1.reshape(n, -1)
+    Wm = np.atleast_2d(W)
+    blk = np.zeros((2 * n, 2 * n))
+    blk[:n, :n] = -A
+    blk[:n, n:] = Bm @ Wm @ Bm.T
+    blk[n:, n:] = A.T
+    E = scipy.linalg.expm(blk * dt_s)
+    Qd = E[n:, n:].T @ E[:n, n:]
+    return 0.5 * (Qd + Qd.T)
+
+
+def discretize_filter_model(fm: FilterModel, dt_s: float) -> DiscreteFilterModel:
+    Phi, Gam = discretize_zoh(fm.A, np.column_stack([fm.B2, fm.G]), dt_s)
+    return DiscreteFilterModel(Phi, Gam[:, 0].copy(), Gam[:, 1].copy(),
+                               process_noise_cov(fm.A, fm.B1, 1.0, dt_s))
+
+
+def steady_state_kalman(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
+                        R: FloatArray) -> SteadyStateKalman:
+    """Steady-state prior covariance (filter DARE) and the measurement-update gain.
+
+    Raises ``ValueError`` if the DARE has no stabilising solution.
+    """
+    try:
+        P = scipy.linalg.solve_discrete_are(Phi.T, C.T, Qd, R)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise ValueError(f"Kalman filter DARE has no stabilising solution ({exc})") from exc
+    P = 0.5 * (P + P.T)
+    F = C @ P @ C.T + R
+    F = 0.5 * (F + F.T)
+    F_inv = np.linalg.inv(F)
+    F_inv = 0.5 * (F_inv + F_inv.T)
+    L = P @ C.T @ F_inv
+    sign, logdet = np.linalg.slogdet(F)
+    if sign <= 0:
+        raise ValueError("innovation covariance is not positive definite")
+    return SteadyStateKalman(P, L, F, F_inv, float(logdet))
+
+
+def fused_prior_update(Phi: FloatArray, Gamma_u: FloatArray, Gamma_g: FloatArray,
+                       g: float, C: FloatArray, D: FloatArray, y_offset: FloatArray,
+                       L: FloatArray) -> FusedFilter:
+    """x-[k+1] = A x- + By y + Bu u + b (the update then the propagation, fused)."""
+    n = Phi.shape[0]
+    A = Phi @ (np.eye(n) - L @ C)
+    By = Phi @ L
+    Bu = Gamma_u - Phi @ L @ D
+    b = Gamma_g * g - Phi @ L @ y_offset
+    return FusedFilter(A, By, Bu, b)

@@ -1,0 +1,177 @@
+"""Shared pieces of the runtime bank kernel: enums, the packed-buffer layout, small helpers.
+
+The per-tick step is one numba call.  A numba call pays ~40 ns per array argument, so
+the runtime packs its data into six buffers instead of ~30 named arrays:
+
+``mat`` (J, 4, MAT_COLS) float, per model, for the *selected* noise entry and weight set:
+    [:, :, 0:4] filter_A, [4:6] filter_By, [6] filter_Bu, [7] filter_b,
+    [8:10] kalman_gain L, [10:12] C_meas transposed, [12] state part of the LQ gain,
+    [13] x̄_j (equilibrium; for the airborne model the nominal static state, used to
+    reset it -- its LQ gain is zero).
+``vec`` (J, VEC_COLS) float: [0:2] D_meas, [2:6] F^-1 row major, [6] log|F|,
+    [7:9] human-filter part of the LQ gain, [9] airborne (1.0/0.0),
+    [10] log-likelihood constant -(m/2) log 2π - ½ log|F|.
+``st`` (J, ST_COLS) float, per-model state (the public (J,) views point into it).
+``active`` (J,) bool: the filters that run this tick.
+``fv`` float: scalar parameters, then scalar state, then the fuzzy table and the
+    residual-history histogram at offsets stored in ``iv``.
+``iv`` int64: integer parameters, then integer state (mode, centre, counters, flags).
+``nbr`` (J, n_ground) int64: for on-ground model c, the on-ground models by grid
+    distance from c (nbr[c, 0] == c); rows of airborne models are -1.
+
+Everything the kernels touch is preallocated here; the kernels allocate nothing.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum, IntFlag
+
+import numba as nb
+import numpy as np
+
+__all__ = ["Blending", "StepFlag"]
+
+
+class Blending(IntEnum):
+    """How the bank's model forces are combined (values == DBC ``Blending``)."""
+
+    FUZZY = 0
+    BAYES = 1
+    MOVING = 2
+    SINGLE = 3
+
+
+class StepFlag(IntFlag):
+    """Bits of ``BankRuntime.flags`` after a step (NONFINITE_* and DIVERGED are faults)."""
+
+    NONFINITE_INPUT = 1
+    NONFINITE_STATE = 2
+    NO_RULE_FIRED = 4
+    DIVERGED = 8
+
+
+MEAS_DIM = 2            # m, measurement dimension [rattlespace_abs, accel]
+Q_MAX = 1.0e12          # likelihood quotients are clamped here (keeps smoothing finite)
+QS_INIT = float(MEAS_DIM)   # smoothed q starts at E[q] of a matched filter
+
+# --- mat columns
+M_A, M_BY, M_BU, M_B, M_L, M_CT, M_KX, M_XBAR = 0, 4, 6, 7, 8, 10, 12, 13
+MAT_COLS = 14
+# --- vec columns
+V_D, V_FINV, V_LOGDET, V_KF, V_AIR, V_LLC = 0, 2, 6, 7, 9, 10
+VEC_COLS = 11
+# --- st columns
+S_XPRIOR, S_XPOST, S_Q, S_W, S_P, S_U, S_QS, S_F, S_CONTRIB, S_BAD = 0, 4, 8, 9, 10, 11, 12, 13, 14, 15
+ST_COLS = 16
+
+# --- fv: scalar parameters
+F_YOFF = 0          # (2) y_offset
+F_HAD = 2           # (4) human filter Ad, row major
+F_HBD = 6           # (2) human filter Bd
+F_STATIC = 8        # static rattlespace M g / K [m]
+F_ALPHA = 9         # smoothing factor of q (1 - exp(-dt / tau))
+F_PFLOOR = 10       # Bayesian probability floor
+F_DIVQ = 11         # divergence threshold on min q
+F_TFLOOR = 12       # lowest residual threshold (chi-square quantile)
+F_HYST = 13         # hysteresis ratio
+F_QUANT = 14        # threshold quantile
+F_FORGET = 15       # 1 / (1 - 1/N) growth of the history increment (exponential window)
+F_RECENTRE = 16     # re-centre when qs[best] < ratio * qs[centre]
+F_HLO = 17          # histogram lower edge, log10 q
+F_HWIDTH = 18       # histogram bin width, decades
+# --- fv: scalar state
+F_XF = 20           # (2) human-filter states
+F_XHAT = 22         # (4) blended posterior (absolute) state estimate
+F_XHATM = 26        # (4) blended next prior
+F_XINIT = 30        # (4) nominal static state (reset fallback)
+F_THRESH = 34       # learnt residual threshold
+F_SIGNAL = 35       # smoothed min q of the on-ground set (moving bank)
+F_HINC = 36         # current history increment
+F_HTOT = 37         # total history weight
+F_OUT = 38          # last force reference [N]
+F_SCR = 40          # (4) scratch
+FV_HEAD = 48        # the fuzzy table starts here
+
+# --- iv: parameters
+I_J, I_G, I_BLEND, I_SINGLE, I_AIR, I_NG, I_K, I_DWELL, I_PROBE, I_DIVTICKS = range(10)
+I_FALLBACK, I_QGRID, I_WCURVE, I_HIST, I_NB, I_MINLEARN, I_RECOMP, I_NPROBE = range(10, 18)
+# --- iv: state
+I_MODE = 20         # 0 on ground, 1 airborne (moving bank)
+I_CENTRE = 21       # centre of the moving subset
+I_SENTINEL = 22     # on-ground filter kept running (zero weight) while airborne
+I_SINCE_SWITCH = 23
+I_SINCE_RECENTRE = 24
+I_PROBE_PTR = 25
+I_PROBE_CNT = 26
+I_DIVCNT = 27
+I_FLAGS = 28
+I_NUPD = 29         # filter updates in the last tick
+I_NSWITCH = 30      # set switches since reset
+I_NLEARN = 31       # history samples learnt
+I_NRECENTRE = 32    # re-centres since reset
+I_TICK = 33
+IV_LEN = 40
+
+MODE_GROUND = 0
+MODE_AIR = 1
+
+FALLBACK_PASSIVE = 0
+FALLBACK_BEST = 1
+
+_JIT = {"cache": True, "nogil": True}
+
+
+@nb.njit(**_JIT)
+def firing_weight(q: float, fv: np.ndarray, off_grid: int, off_curve: int, G: int) -> float:
+    """Tabulated firing weight at q (linear interpolation, clamped to the universe);
+    NaN in the table (no rule fired there) reads as 0."""
+    if q <= fv[off_grid]:
+        v = fv[off_curve]
+    elif q >= fv[off_grid + G - 1]:
+        v = fv[off_curve + G - 1]
+    else:
+        lo = 0
+        hi = G - 1
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if fv[off_grid + mid] <= q:
+                lo = mid
+            else:
+                hi = mid
+        x0 = fv[off_grid + lo]
+        x1 = fv[off_grid + hi]
+        y0 = fv[off_curve + lo]
+        y1 = fv[off_curve + hi]
+        v = y0 + (y1 - y0) * (q - x0) / (x1 - x0)
+    if not (v > 0.0):       # NaN or <= 0
+        return 0.0
+    return min(v, 1.0)
+
+
+@nb.njit(**_JIT)
+def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, qs0: float,
+             p0: float) -> None:
+    """Switch filter j on, bumpless: its prior is the current blended next prior."""
+    active[j] = True
+    for i in range(4):
+        st[j, S_XPRIOR + i] = fv[F_XHATM + i]
+        st[j, S_XPOST + i] = fv[F_XHAT + i]
+    st[j, S_QS] = qs0
+    st[j, S_P] = p0
+    st[j, S_Q] = 0.0
+    st[j, S_W] = 0.0
+    st[j, S_U] = 0.0
+    st[j, S_F] = 0.0
+    st[j, S_BAD] = 0.0
+
+
+@nb.njit(**_JIT)
+def deactivate(j: int, st: np.ndarray, active: np.ndarray) -> None:
+    """Switch filter j off: it does no work and contributes zero."""
+    active[j] = False
+    st[j, S_Q] = 0.0
+    st[j, S_W] = 0.0
+    st[j, S_P] = 0.0
+    st[j, S_U] = 0.0
+    st[j, S_F] = 0.0
+    st[j, S_CONTRIB] = 0.0

@@ -1,0 +1,165 @@
+"""LQ gains of the bank on the discrete controller rate (thesis Ch. II, Eq. 2.5, 2.9).
+
+Augmented plant per model j (deviations from the model's static equilibrium, where
+gravity cancels): z = [x (4 plant states); xf (2 human-filter states)],
+
+    x'  = A x + B2 u + B1 w'
+    xf' = Af xf + Bf a,       a = A[2] x + u / M    (sprung acceleration, feedthrough of u)
+
+Cost (Eq. 2.5, built here; the printed Eq. 2.6-2.8 are garbled):
+
+    J = int rho4 y_f^2 + rho1 x2^2 + rho2 (x1 - x2)^2 + rho3 u^2 dt,     y_f = Cf xf
+
+i.e. z' Qc z + rho3 u^2 with no continuous cross term (y_f is strictly proper).  The
+controller runs at dt with a zero-order-hold force, so the cost is integrated exactly
+over one sample (Van Loan, :func:`discretize_cost`), which yields discrete Qd, Rd and a
+cross term Nd, and the gain solves the DARE with that cross term:
+
+    u_k = -K z_k,    K = (Rd + Bd' P Bd)^-1 (Bd' P Ad + Nd').
+
+The airborne model (Kt = Ct = 0) gets K = 0: in the thesis's Ch. VI the airborne
+controller's output is zero, and its centre-of-mass modes (two integrators) are
+uncontrollable by an internal force, so its DARE has no stabilising solution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import NDArray
+
+from controller.human_filter import HumanFilter, discretize_zoh
+from controller.plant import LinearModel
+
+__all__ = [
+    "AugmentedPlant",
+    "DiscreteLQProblem",
+    "augmented_plant",
+    "discretize_cost",
+    "dlqr_cross",
+    "lq_gain",
+    "lq_problem",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class AugmentedPlant:
+    """Continuous augmented plant z' = A z + B u + B1 w' and cost z'Qc z + Rc u^2."""
+
+    A: FloatArray   # (6, 6)
+    B: FloatArray   # (6,)
+    B1: FloatArray  # (6,)
+    Qc: FloatArray  # (6, 6)
+    Rc: float
+    Cf: FloatArray  # (2,) y_f = Cf xf
+    inv_mass: float  # 1 / M, the feedthrough of u into the acceleration
+
+
+@dataclass(frozen=True)
+class DiscreteLQProblem:
+    """The LQ problem on the sample grid: z+ = Ad z + Bd u, stage cost z'Qd z + 2 z'Nd u + Rd u^2."""
+
+    Ad: FloatArray
+    Bd: FloatArray
+    Qd: FloatArray
+    Rd: float
+    Nd: FloatArray
+    dt_s: float
+
+
+def augmented_plant(model: LinearModel, hf: HumanFilter,
+                    weights: tuple[float, float, float, float] | list[float]) -> AugmentedPlant:
+    """Augment model j with F(s) and build the Eq. 2.5 cost for [rho1, rho2, rho3, rho4]."""
+    rho1, rho2, rho3, rho4 = (float(w) for w in weights)
+    if rho3 <= 0.0 or min(rho1, rho2, rho4) < 0.0:
+        raise ValueError(f"weights {list(weights)}: need rho3 > 0 and rho1, rho2, rho4 >= 0")
+    inv_m = float(model.B2[2])  # 1/M
+    A = np.zeros((6, 6))
+    A[:4, :4] = model.A
+    A[4:, :4] = np.outer(hf.Bf, model.A[2])
+    A[4:, 4:] = hf.Af
+    B = np.concatenate([model.B2, hf.Bf * inv_m])
+    B1 = np.concatenate([model.B1, hf.Bf * model.B1[2]])
+    e_rattle = np.array([1.0, -1.0, 0.0, 0.0, 0.0, 0.0])
+    e_tire = np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.0])
+    c_f = np.concatenate([np.zeros(4), hf.Cf])
+    Qc = rho1 * np.outer(e_tire, e_tire) + rho2 * np.outer(e_rattle, e_rattle) \
+        + rho4 * np.outer(c_f, c_f)
+    return AugmentedPlant(A, B, B1, Qc, rho3, hf.Cf.copy(), inv_m)
+
+
+def discretize_cost(A: FloatArray, B: FloatArray, Qc: FloatArray, Rc: float,
+                    dt_s: float, Nc: FloatArray | None = None) -> DiscreteLQProblem:
+    """Exact sampled-data LQ problem for a ZOH input (Van Loan 1978).
+
+    With xi = [z; u], xi' = Ahat xi (u held), the cost over one sample is
+    xi_k' (int_0^dt e^{Ahat' t} Qhat e^{Ahat t} dt) xi_k, Qhat = [[Qc, Nc], [Nc', Rc]].
+    Van Loan: expm([[-Ahat', Qhat], [0, Ahat]] dt) = [[., E12], [0, E22]] and the
+    integral is E22' E12.
+    """
+    n = A.shape[0]
+    Bm = B.reshape(n, 1)
+    Ahat = np.zeros((n + 1, n + 1))
+    Ahat[:n, :n] = A
+    Ahat[:n, n:] = Bm
+    Qhat = np.zeros((n + 1, n + 1))
+    Qhat[:n, :n] = Qc
+    Qhat[n, n] = Rc
+    if Nc is not None:
+        Qhat[:n, n] = Nc
+        Qhat[n, :n] = Nc
+    k = n + 1
+    blk = np.zeros((2 * k, 2 * k))
+    blk[:k, :k] = -Ahat.T
+    blk[:k, k:] = Qhat
+    blk[k:, k:] = Ahat
+    E = scipy.linalg.expm(blk * dt_s)
+    Qint = E[k:, k:].T @ E[:k, k:]
+    Qint = 0.5 * (Qint + Qint.T)
+    Ad, Bd = discretize_zoh(A, B, dt_s)
+    return DiscreteLQProblem(Ad, Bd, Qint[:n, :n], float(Qint[n, n]), Qint[:n, n].copy(),
+                             float(dt_s))
+
+
+def dlqr_cross(Ad: FloatArray, Bd: FloatArray, Qd: FloatArray, Rd: float,
+               Nd: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Discrete LQR with cross term: (K (n,), P (n, n)) for u = -K z.
+
+    The input is rescaled to unit cost weight before the DARE (rho3 = 1e-8 makes Rd tiny
+    next to Qd in SI units); the gain is scaled back.  Raises ``ValueError`` if the DARE
+    has no stabilising solution.
+    """
+    n = Ad.shape[0]
+    scale = 1.0 / np.sqrt(Rd)  # u = scale * v  ->  cost weight on v is 1
+    Bv = Bd.reshape(n, 1) * scale
+    Nv = Nd.reshape(n, 1) * scale
+    try:
+        P = scipy.linalg.solve_discrete_are(Ad, Bv, Qd, np.array([[1.0]]), s=Nv)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise ValueError(f"LQ DARE has no stabilising solution ({exc})") from exc
+    Kv = np.linalg.solve(np.array([[1.0]]) + Bv.T @ P @ Bv, Bv.T @ P @ Ad + Nv.T)
+    K = (Kv * scale).reshape(n)
+    rho = float(np.max(np.abs(np.linalg.eigvals(Ad - np.outer(Bd, K)))))
+    if not rho < 1.0:
+        raise ValueError(f"LQ closed loop not stable (spectral radius {rho:.6f})")
+    return K, P
+
+
+def lq_problem(model: LinearModel, hf: HumanFilter,
+               weights: tuple[float, float, float, float] | list[float]) -> DiscreteLQProblem:
+    aug = augmented_plant(model, hf, weights)
+    return discretize_cost(aug.A, aug.B, aug.Qc, aug.Rc, hf.dt_s)
+
+
+def lq_gain(model: LinearModel, hf: HumanFilter,
+            weights: tuple[float, float, float, float] | list[float]) -> FloatArray:
+    """The (6,) gain of model j for one weight set; zeros for the airborne model."""
+    if model.airborne:
+        return np.zeros(6)
+    prob = lq_problem(model, hf, weights)
+    K, _ = dlqr_cross(prob.Ad, prob.Bd, prob.Qd, prob.Rd, prob.Nd)
+    return K

@@ -1,0 +1,345 @@
+"""A plain-numpy second implementation of the bank step, for tests (slow, allocates).
+
+Written straight from the thesis equations rather than from the fused kernel:
+
+    F_j = innovation_cov (3.3), inverted here with ``np.linalg.inv``
+    r_j = y - C_j x⁻_j - D_j u - y_offset                      (3.9)
+    q_j = r_j' F_j^-1 r_j                                      (4.8)
+    x⁺_j = x⁻_j + L_j r_j                                      (3.5)
+    x⁻_j(next) = Φ_j x⁺_j + Γu_j u + Γg_j g                    (3.7)
+    u_j = -K_j [x⁺_j - x̄_j; x_f]                               (LQ, App. A per model)
+    p_j: densities of Eq. 4.6 into Eq. 4.2 (:func:`controller.bayes.bayes_update_numpy`)
+    f_j: ``np.interp`` on the App. A firing-weight table
+
+and the moving-bank rules of :mod:`controller.moving_bank` re-implemented with Python
+lists and a decaying numpy histogram.  Semantics (flags, fallbacks, bumpless starts)
+follow docs/architecture.md "Runtime step" and :mod:`controller.bank`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.artifact import Design
+from controller.bayes import bayes_update_numpy
+from controller.config import RigConfig
+from controller.kernels import MEAS_DIM, Q_MAX, QS_INIT, Blending, StepFlag
+from controller.moving_bank import (
+    HIST_BINS,
+    HIST_HI_LOG10,
+    HIST_LO_LOG10,
+    HIST_RECOMPUTE_TICKS,
+    MAX_PROBE_CANDIDATES,
+    RECENTRE_RATIO,
+    chi2_threshold_floor,
+)
+from controller.road_noise import nearest_noise_entry
+
+__all__ = ["ReferenceBank"]
+
+FloatArray = NDArray[np.float64]
+
+
+class ReferenceBank:
+    """Same constructor and ``step`` contract as :class:`controller.bank.BankRuntime`."""
+
+    def __init__(self, design: Design, blending: Blending | int = Blending.FUZZY,
+                 weight_set: int = 1, single_model: int | None = None, *,
+                 cfg: RigConfig | None = None, no_fire_fallback: str | None = None,
+                 prob_floor: float = 1e-4, probe_period_s: float = 0.05) -> None:
+        from controller.bank import config_of, default_single_model
+
+        d = design
+        self.d = d
+        self.cfg = cfg if cfg is not None else config_of(d)
+        c = self.cfg
+        self.J = d.n_models
+        dt = d.dt_s
+        self.g = -float(d.y_offset[1])
+        self.fallback = no_fire_fallback or c.fuzzy.no_fire_fallback
+        self.floor = prob_floor
+        self.single = default_single_model(d, c) if single_model is None else int(single_model)
+        self.xinit = d.equilibrium[self.single].copy()
+        self.xbar = np.where(np.isfinite(d.equilibrium), d.equilibrium, self.xinit[None, :])
+        self.ground = [j for j in range(self.J) if not d.airborne[j]]
+        airs = [j for j in range(self.J) if d.airborne[j]]
+        self.air = airs[0] if airs else -1
+        mb = c.moving_bank
+        self.k = min(mb.active_models, len(self.ground))
+        tau = mb.smoothing_time_s
+        self.alpha = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
+        self.div_q = c.safety.estimator_divergence_q
+        self.div_ticks = c.safety.divergence_ticks
+        self.t_floor = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
+        self.hyst = mb.hysteresis_ratio
+        self.quant = mb.threshold_quantile
+        n_window = max(2.0, mb.history_window_s / dt)
+        self.lam = 1.0 - 1.0 / n_window
+        self.min_learn = max(1, int(n_window // 4))
+        self.dwell = max(1, round(mb.dwell_time_s / dt))
+        self.probe_ticks = max(1, round(probe_period_s / dt))
+        self.nprobe = max(0, min(len(self.ground) - self.k, MAX_PROBE_CANDIDATES))
+        self.width = (HIST_HI_LOG10 - HIST_LO_LOG10) / HIST_BINS
+        self.order = self._neighbours()
+        self.s = nearest_noise_entry(d.noise_speeds_mps, d.noise_roughness_gd,
+                                     c.noise.nominal_speed_mps, c.noise.nominal_roughness_gd)
+        self.w = int(weight_set)
+        self.blending = Blending(int(blending))
+        self.reset()
+
+    def _neighbours(self) -> dict[int, list[int]]:
+        gi = self.d.grid_index
+        out = {}
+        for c in self.ground:
+            out[c] = sorted(self.ground, key=lambda j, c=c: (
+                (gi[j, 0] - gi[c, 0]) ** 2 + (gi[j, 1] - gi[c, 1]) ** 2,
+                abs(gi[j, 1] - gi[c, 1]), j))
+        return out
+
+    # ------------------------------------------------------------------ state handling
+    def reset(self) -> None:
+        J = self.J
+        self.x_prior = self.xbar.copy()
+        self.x_post = self.xbar.copy()
+        self.q = np.zeros(J)
+        self.wt = np.zeros(J)
+        self.f = np.zeros(J)
+        self.p = np.zeros(J)
+        self.u = np.zeros(J)
+        self.qs = np.full(J, QS_INIT)
+        self.active = np.zeros(J, dtype=bool)
+        self.xf = np.zeros(2)
+        self.xhat = self.xinit.copy()
+        self.xhatm = self.xinit.copy()
+        self.thresh = self.t_floor
+        self.hist = np.zeros(HIST_BINS)
+        self.nlearn = 0
+        self.mode_air = False
+        self.sentinel = -1
+        self.centre = self.single
+        self.since_switch = self.since_recentre = 0
+        self.probe_ptr = self.probe_cnt = 0
+        self.divcnt = 0
+        self.flags = StepFlag(0)
+        self.n_updates = 0
+        self.set_blending(self.blending)
+        self.x_prior = self.xbar.copy()
+        self.x_post = self.xbar.copy()
+        n = int(self.active.sum())
+        self.p = np.where(self.active, 1.0 / n, 0.0)
+        self.qs = np.full(J, QS_INIT)
+
+    def _activate(self, j: int, qs0: float, p0: float) -> None:
+        self.active[j] = True
+        self.x_prior[j] = self.xhatm
+        self.x_post[j] = self.xhat
+        self.qs[j] = qs0
+        self.p[j] = p0
+        self.q[j] = self.wt[j] = self.u[j] = self.f[j] = 0.0
+
+    def _deactivate(self, j: int) -> None:
+        self.active[j] = False
+        self.q[j] = self.wt[j] = self.p[j] = self.u[j] = self.f[j] = 0.0
+
+    def set_blending(self, blending: Blending | int) -> None:
+        b = Blending(int(blending))
+        self.blending = b
+        self.mode_air = False
+        self.sentinel = -1
+        if b == Blending.SINGLE:
+            for j in range(self.J):
+                if self.active[j] and j != self.single:
+                    self._deactivate(j)
+            if not self.active[self.single]:
+                self._activate(self.single, QS_INIT, 1.0)
+        elif b == Blending.MOVING:
+            running = [j for j in self.ground if self.active[j]]
+            centre = min(running, key=lambda j: self.qs[j]) if running else self.single
+            self.since_switch = 0
+            self._move_to(centre)
+        else:
+            for j in range(self.J):
+                if not self.active[j]:
+                    self._activate(j, QS_INIT, 1.0 / self.J)
+        tot = self.p[self.active].sum()
+        self.p[self.active] = self.p[self.active] / tot if tot > 0 else 1.0
+
+    def set_road(self, speed_mps: float, roughness_gd: float) -> None:
+        self.s = nearest_noise_entry(self.d.noise_speeds_mps, self.d.noise_roughness_gd,
+                                     speed_mps, roughness_gd)
+
+    def set_weight_set(self, w: int) -> None:
+        self.w = int(w)
+
+    # ------------------------------------------------------------------ the tick
+    def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float:
+        d, s = self.d, self.s
+        if not all(math.isfinite(v) for v in (rattlespace_m, accel_mps2, force_meas_n)):
+            self.flags = StepFlag.NONFINITE_INPUT
+            return 0.0
+        flags = StepFlag(0)
+        y = np.array([rattlespace_m + d.static_rattlespace_m, accel_mps2])
+        u_in = force_meas_n
+        moving = self.blending == Blending.MOVING
+        sentinel = self.sentinel if (moving and self.mode_air) else -1
+        contrib = np.zeros(self.J, dtype=bool)
+        bad = np.zeros(self.J, dtype=bool)
+        K = d.lq_gain[self.w - 1]
+        self.n_updates = int(self.active.sum())
+        with np.errstate(all="ignore"):
+            for j in np.flatnonzero(self.active):
+                Finv = np.linalg.inv(d.innovation_cov[j, s])
+                r = y - d.C_meas[j] @ self.x_prior[j] - d.D_meas[j] * u_in - d.y_offset
+                q = float(r @ Finv @ r)
+                xp = self.x_prior[j] + d.kalman_gain[j, s] @ r
+                xn = d.Phi[j] @ xp + d.Gamma_u[j] * u_in + d.Gamma_g[j] * self.g
+                uj = 0.0 if d.airborne[j] else float(
+                    -K[j] @ np.concatenate([xp - self.xbar[j], self.xf]))
+                if math.isnan(q) or not (np.all(np.isfinite(xp)) and np.all(np.isfinite(xn))
+                                         and math.isfinite(uj)):
+                    bad[j] = True
+                    self.q[j] = Q_MAX
+                    self.u[j] = 0.0
+                    flags |= StepFlag.NONFINITE_STATE
+                    continue
+                qc = min(q, Q_MAX)
+                self.x_post[j], self.x_prior[j] = xp, xn
+                self.q[j], self.u[j] = qc, uj
+                self.qs[j] += self.alpha * (qc - self.qs[j])
+                contrib[j] = j != sentinel
+        # probabilities (Eq. 4.2 / 4.6), kept in every mode
+        if contrib.any():
+            self.p[contrib] = bayes_update_numpy(self.p[contrib], self.q[contrib],
+                                                 d.innovation_logdet[contrib, s], MEAS_DIM,
+                                                 self.floor)
+        self.p[~contrib] = 0.0
+        f = np.interp(self.q, d.fuzzy_q_grid, d.fuzzy_weight_curve)
+        f = np.where(np.isfinite(f), np.clip(f, 0.0, 1.0), 0.0)
+        self.f = np.where(contrib, f, 0.0)
+        if self.blending == Blending.BAYES:
+            w = self.p.copy()
+        elif self.blending == Blending.SINGLE:
+            w = contrib.astype(float)
+        else:
+            w = self.f.copy()
+        w[~contrib] = 0.0
+        best = int(np.argmin(np.where(contrib, self.q, np.inf))) if contrib.any() else -1
+        if w.sum() > 0.0:
+            w = w / w.sum()
+        elif best >= 0:
+            flags |= StepFlag.NO_RULE_FIRED
+            if self.fallback == "best_model":
+                w[best] = 1.0
+        self.wt = w
+        out = float(w @ self.u)
+        if w.sum() > 0.0:
+            self.xhat, self.xhatm = w @ self.x_post, w @ self.x_prior
+        elif best >= 0:
+            self.xhat, self.xhatm = self.x_post[best].copy(), self.x_prior[best].copy()
+        have_blend = w.sum() > 0.0 or best >= 0
+        for j in np.flatnonzero(bad):
+            x = self.xhatm if have_blend else self.xbar[j]
+            self.x_prior[j] = x
+            self.x_post[j] = x
+        qmin = float(np.min(self.q[contrib])) if contrib.any() else math.inf
+        self.divcnt = self.divcnt + 1 if qmin > self.div_q else 0
+        if self.divcnt >= self.div_ticks:
+            flags |= StepFlag.DIVERGED
+        with np.errstate(all="ignore"):
+            xf = d.human_filter_Ad @ self.xf + d.human_filter_Bd * accel_mps2
+        if np.all(np.isfinite(xf)):
+            self.xf = xf
+        else:
+            self.xf = np.zeros(2)
+            flags |= StepFlag.NONFINITE_STATE
+        if not math.isfinite(out):
+            out = 0.0
+            flags |= StepFlag.NONFINITE_STATE
+        if moving:
+            self._supervise()
+        self.flags = flags
+        return out
+
+    # ------------------------------------------------------------------ moving bank
+    def _move_to(self, centre: int) -> None:
+        keep = self.order[centre][: self.k]
+        qs0 = self.qs[centre]
+        for j in range(self.J):
+            if self.active[j] and j not in keep:
+                self._deactivate(j)
+        for j in keep:
+            if not self.active[j]:
+                self._activate(j, qs0, 1.0 / self.k)
+        self.centre = centre
+        self.since_recentre = 0
+        self.probe_ptr = self.probe_cnt = 0
+
+    def _quantile(self) -> float:
+        tot = self.hist.sum()
+        target = self.quant * tot
+        cum = np.cumsum(self.hist)
+        before = cum - self.hist
+        ok = np.flatnonzero((self.hist > 0) & (cum >= target))
+        if ok.size == 0:
+            return float(10.0 ** HIST_HI_LOG10)
+        b = int(ok[0])
+        frac = (target - before[b]) / self.hist[b]
+        return float(10.0 ** (HIST_LO_LOG10 + (b + frac) * self.width))
+
+    def _supervise(self) -> None:
+        self.since_switch += 1
+        self.since_recentre += 1
+        if not self.mode_air:
+            running = [j for j in range(self.J) if self.active[j] and not self.d.airborne[j]]
+            best = min(running, key=lambda j: self.qs[j])
+            sig = float(self.qs[best])
+            settled = self.since_switch >= self.dwell
+            if settled:
+                b = int((math.log10(sig) - HIST_LO_LOG10) / self.width) if sig > 0 else 0
+                self.hist *= self.lam
+                self.hist[min(max(b, 0), HIST_BINS - 1)] += 1.0
+                self.nlearn += 1
+                if self.nlearn >= self.min_learn and self.nlearn % HIST_RECOMPUTE_TICKS == 0:
+                    self.thresh = max(self._quantile(), self.t_floor)
+            if self.air >= 0 and settled and sig > self.thresh:
+                for j in range(self.J):
+                    if self.active[j] and j != self.centre:
+                        self._deactivate(j)
+                self._activate(self.air, self.qs[self.centre], 1.0)
+                self.p[self.centre] = 0.0
+                self.wt[self.centre] = 0.0
+                self.sentinel = self.centre
+                self.mode_air = True
+                self.since_switch = 0
+                return
+            if best != self.centre and self.since_recentre >= self.dwell \
+                    and self.qs[best] < RECENTRE_RATIO * self.qs[self.centre]:
+                self._move_to(best)
+                return
+            if self.nprobe > 0 and self.k >= 2:
+                self.probe_cnt += 1
+                if self.probe_cnt >= self.probe_ticks:
+                    self.probe_cnt = 0
+                    for _ in range(self.nprobe):
+                        cand = self.order[self.centre][self.k + self.probe_ptr % self.nprobe]
+                        self.probe_ptr += 1
+                        if not self.active[cand]:
+                            others = [j for j in range(self.J)
+                                      if self.active[j] and j != self.centre]
+                            if others:
+                                worst = max(others, key=lambda j: self.qs[j])
+                                self._deactivate(worst)
+                                self._activate(cand, self.qs[self.centre], 1.0 / self.k)
+                            break
+        else:
+            sig = float(self.qs[self.sentinel])
+            if self.since_switch >= self.dwell and sig < self.hyst * self.thresh:
+                self._deactivate(self.air)
+                self.mode_air = False
+                centre = self.sentinel
+                self.sentinel = -1
+                self.since_switch = 0
+                self._move_to(centre)

@@ -1,0 +1,92 @@
+"""``rig design``: design the LQG bank and write the versioned artifact (.npz)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+from controller.artifact import Design, save_design
+from controller.config import RigConfig, load_config
+from controller.design import design_bank, design_models
+from controller.human_filter import discretize_zoh, human_filter
+from controller.lq import augmented_plant
+from controller.road_noise import nearest_noise_entry
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", required=True, metavar="FILE",
+                        help="artifact to write (.npz)")
+    parser.add_argument("--json", action="store_true",
+                        help="print gains and closed-loop poles as JSON")
+
+
+def pole_info(z: complex, dt_s: float) -> dict[str, float]:
+    """Discrete pole and its continuous equivalent s = ln(z)/dt (natural freq., damping)."""
+    s = complex(np.log(complex(z))) / dt_s if z != 0 else complex(-math.inf)
+    wn = abs(s)
+    return {"re": float(np.real(z)), "im": float(np.imag(z)), "abs": float(abs(z)),
+            "wn_rad_s": float(wn), "f_hz": float(wn / (2 * math.pi)),
+            "zeta": float(-s.real / wn) if wn > 0 and math.isfinite(wn) else 1.0}
+
+
+def _poles(mat: np.ndarray, dt_s: float) -> list[dict[str, float]]:
+    ev = np.linalg.eigvals(mat)
+    ev = ev[np.argsort(-np.abs(ev))]
+    return [pole_info(complex(z), dt_s) for z in ev]
+
+
+def design_summary(design: Design, cfg: RigConfig) -> dict[str, Any]:
+    """Per model: LQ gains and closed-loop poles per weight set, nominal Kalman gain and
+    filter poles."""
+    dt = design.dt_s
+    hf = human_filter(cfg.design, dt)
+    s_nom = nearest_noise_entry(design.noise_speeds_mps, design.noise_roughness_gd,
+                                cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
+    models: dict[str, Any] = {}
+    for j, md in enumerate(design_models(cfg)):
+        entry: dict[str, Any] = {"airborne": bool(design.airborne[j]), "lq": {}}
+        aug = augmented_plant(md.model, hf, (0.0, 0.0, 1.0, 0.0))
+        Pa, Ga = discretize_zoh(aug.A, aug.B, dt)
+        for w in range(design.n_weight_sets):
+            K = design.lq_gain[w, j]
+            entry["lq"][f"weight_set_{w + 1}"] = {
+                "gain": K.tolist(),
+                "closed_loop_poles": _poles(Pa - np.outer(Ga, K), dt),
+            }
+        entry["kalman"] = {
+            "noise_entry": s_nom,
+            "speed_mps": float(design.noise_speeds_mps[s_nom // design.noise_roughness_gd.size]),
+            "roughness_gd": float(design.noise_roughness_gd[s_nom
+                                                            % design.noise_roughness_gd.size]),
+            "gain": design.kalman_gain[j, s_nom].tolist(),
+            "innovation_cov": design.innovation_cov[j, s_nom].tolist(),
+            "filter_poles": _poles(design.filter_A[j, s_nom], dt),
+        }
+        models[str(design.model_names[j])] = entry
+    return {"dt_s": dt, "config_hash": design.metadata["config_hash"], "models": models}
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    try:
+        design = design_bank(cfg)
+    except ValueError as exc:
+        print(f"rig design: design failed: {exc}")
+        return 1
+    save_design(design, args.out)
+    summary = design_summary(design, cfg)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"wrote {args.out}: {design.n_models} models, {design.n_noise} noise entries, "
+          f"{design.n_weight_sets} weight sets, dt = {design.dt_s * 1e3:g} ms")
+    for name, entry in summary["models"].items():
+        radii = [max(p["abs"] for p in v["closed_loop_poles"]) for v in entry["lq"].values()]
+        frad = max(p["abs"] for p in entry["kalman"]["filter_poles"])
+        print(f"  {name:12s} LQ spectral radius {', '.join(f'{r:.6f}' for r in radii)}; "
+              f"filter {frad:.6f}")
+    return 0

@@ -1,0 +1,218 @@
+"""JSON schemas of the MCAP recording channels (``docs/recording.md``).
+
+Every channel uses message encoding ``json`` and schema encoding ``jsonschema`` so that
+Foxglove (and any MCAP tool) can decode and plot the fields without project code.
+
+A tick record handed to :meth:`rig.recording.RunRecorder.tick` is one flat dict; the
+writer splits it by key into up to three messages that share one MCAP ``sequence``:
+
+* keys in :data:`SIGNAL_KEYS` and ``tick``         -> ``/rig/signals``
+* keys in :data:`TIMING_KEYS` and ``tick``         -> ``/rig/timing``
+* every other key (controller internals) + ``tick`` -> ``/controller/internals``
+
+Each message also carries ``t_ns`` (the loop clock, see docs/recording.md).  Key
+``t_ns`` is therefore reserved in tick records.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any, Final
+
+__all__ = [
+    "EVENT_KINDS",
+    "MESSAGE_ENCODING",
+    "RECORDING_FORMAT_VERSION",
+    "SCHEMA_ENCODING",
+    "SIGNAL_KEYS",
+    "TIMING_KEYS",
+    "TOPICS",
+    "TOPIC_CAN_RX",
+    "TOPIC_CAN_TX",
+    "TOPIC_EVENTS",
+    "TOPIC_INTERNALS",
+    "TOPIC_SIGNALS",
+    "TOPIC_TIMING",
+    "encode_json",
+    "schema_bytes",
+]
+
+#: Bumped when a channel, field meaning or attachment name changes incompatibly.
+RECORDING_FORMAT_VERSION: Final = 1
+SCHEMA_ENCODING: Final = "jsonschema"
+MESSAGE_ENCODING: Final = "json"
+
+TOPIC_CAN_RX: Final = "/can/rx"
+TOPIC_CAN_TX: Final = "/can/tx"
+TOPIC_SIGNALS: Final = "/rig/signals"
+TOPIC_INTERNALS: Final = "/controller/internals"
+TOPIC_TIMING: Final = "/rig/timing"
+TOPIC_EVENTS: Final = "/rig/events"
+
+#: Decoded rig signals and the loop's outputs (documented in docs/recording.md).
+SIGNAL_KEYS: Final = frozenset({
+    "rattlespace_m", "sprung_accel_mps2", "force_meas_n", "force_ref_n", "spool_cmd",
+    "valve_enable", "lifecycle", "fault", "sensor_counter", "sensor_age_ticks",
+})
+#: Timing statistics of the loop.
+TIMING_KEYS: Final = frozenset({
+    "wake_late_s", "compute_s", "period_s", "overrun", "overrun_streak", "overruns_total",
+    "dropped_recording", "dropped_telemetry",
+})
+#: Event kinds (``detail`` layout per kind in docs/recording.md).
+EVENT_KINDS: Final = ("command", "lifecycle", "fault", "note")
+
+_NUM: Final[dict[str, Any]] = {"type": ["number", "null"]}
+_NUM_ARRAY: Final[dict[str, Any]] = {"type": "array", "items": _NUM}
+_TICK: Final[dict[str, Any]] = {
+    "tick": {"type": "integer", "minimum": 0, "description": "loop tick number"},
+    "t_ns": {"type": "integer", "description": "loop clock [ns] (see metadata 'clock')"},
+}
+
+
+def _obj(title: str, props: dict[str, Any], required: list[str],
+         additional: bool | dict[str, Any] = True, description: str = "") -> dict[str, Any]:
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": title,
+        "description": description,
+        "type": "object",
+        "properties": {**_TICK, **props},
+        "required": ["tick", "t_ns", *required],
+        "additionalProperties": additional,
+    }
+
+
+CAN_FRAME_SCHEMA: Final = _obj(
+    "rig.CanFrame",
+    {
+        "id": {"type": "integer", "minimum": 0, "maximum": 0x1FFFFFFF,
+               "description": "arbitration id"},
+        "data": {"type": "string", "pattern": "^([0-9a-f]{2}){0,64}$",
+                 "description": "payload bytes, lowercase hex"},
+        "dlc": {"type": "integer", "minimum": 0, "maximum": 64},
+    },
+    ["id", "data", "dlc"], additional=False,
+    description="one raw CAN frame as the loop received (/can/rx) or sent (/can/tx) it",
+)
+
+SIGNALS_SCHEMA: Final = _obj(
+    "rig.Signals",
+    {
+        "rattlespace_m": {**_NUM, "description": "LVDT about static, compression +"},
+        "sprung_accel_mps2": {**_NUM, "description": "zs'' without gravity, up +"},
+        "force_meas_n": {**_NUM, "description": "load-cell actuator force"},
+        "force_ref_n": {**_NUM, "description": "blended force reference"},
+        "spool_cmd": {**_NUM, "description": "normalised spool command sent"},
+        "valve_enable": {"type": ["boolean", "integer"]},
+        "lifecycle": {"type": "string"},
+        "fault": {"type": ["string", "null"]},
+        "sensor_counter": {"type": "integer"},
+        "sensor_age_ticks": {"type": "integer"},
+        "nonfinite": {"type": "array", "items": {"type": "string"},
+                      "description": "keys whose non-finite values were written as null"},
+    },
+    [],
+    description="decoded rig signals and loop outputs, one message per tick",
+)
+
+INTERNALS_SCHEMA: Final = _obj(
+    "rig.ControllerInternals",
+    {
+        "q": {**_NUM_ARRAY, "description": "likelihood quotient per model"},
+        "firing_weight": {**_NUM_ARRAY, "description": "fuzzy firing weight per model"},
+        "probability": {**_NUM_ARRAY, "description": "normalised model probability"},
+        "u_model": {**_NUM_ARRAY, "description": "force per model controller [N]"},
+        "active": {"type": "array", "items": {"type": "boolean"}},
+        "flags": {"type": "integer", "description": "StepFlag bits"},
+        "blending": {"type": ["integer", "string"]},
+        "weight_set": {"type": "integer"},
+        "x_post": {"type": "array", "items": _NUM_ARRAY, "description": "(J, 4) estimates"},
+        "xf": _NUM_ARRAY,
+        "nonfinite": {"type": "array", "items": {"type": "string"}},
+    },
+    [],
+    description="controller internals of one tick",
+)
+
+TIMING_SCHEMA: Final = _obj(
+    "rig.Timing",
+    {
+        "wake_late_s": _NUM, "compute_s": _NUM, "period_s": _NUM,
+        "overrun": {"type": "boolean"},
+        "overrun_streak": {"type": "integer"}, "overruns_total": {"type": "integer"},
+        "dropped_recording": {"type": "integer"}, "dropped_telemetry": {"type": "integer"},
+        "nonfinite": {"type": "array", "items": {"type": "string"}},
+    },
+    [],
+    description="loop timing of one tick",
+)
+
+EVENT_SCHEMA: Final = _obj(
+    "rig.Event",
+    {
+        "kind": {"type": "string", "enum": list(EVENT_KINDS)},
+        "detail": {"type": ["object", "string", "null"]},
+    },
+    ["kind", "detail"], additional=False,
+    description="lifecycle transitions, applied commands, faults, notes",
+)
+
+#: topic -> schema
+TOPICS: Final[dict[str, dict[str, Any]]] = {
+    TOPIC_CAN_RX: CAN_FRAME_SCHEMA,
+    TOPIC_CAN_TX: CAN_FRAME_SCHEMA,
+    TOPIC_SIGNALS: SIGNALS_SCHEMA,
+    TOPIC_INTERNALS: INTERNALS_SCHEMA,
+    TOPIC_TIMING: TIMING_SCHEMA,
+    TOPIC_EVENTS: EVENT_SCHEMA,
+}
+
+
+def schema_bytes(schema: dict[str, Any]) -> bytes:
+    """The schema as stored in the MCAP Schema record (canonical JSON, UTF-8)."""
+    return json.dumps(schema, sort_keys=True, separators=(",", ":")).encode()
+
+
+def _np_default(obj: Any) -> Any:
+    """json ``default``: numpy arrays / scalars -> lists / Python scalars."""
+    tolist = getattr(obj, "tolist", None)
+    if tolist is not None:
+        return tolist()
+    if isinstance(obj, bytes | bytearray):
+        return obj.hex()
+    if isinstance(obj, set | frozenset | tuple):
+        return list(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _finite_or_none(v: Any) -> tuple[Any, bool]:
+    if isinstance(v, float):
+        return (v, False) if math.isfinite(v) else (None, True)
+    if isinstance(v, list):
+        bad = False
+        out = []
+        for x in v:
+            y, b = _finite_or_none(x)
+            out.append(y)
+            bad |= b
+        return out, bad
+    return v, False
+
+
+def encode_json(obj: dict[str, Any]) -> bytes:
+    """Compact JSON; non-finite numbers become null and their keys are listed in
+    ``nonfinite`` (JSON has no NaN; Foxglove would reject the whole message)."""
+    try:
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False,
+                          default=_np_default).encode()
+    except ValueError:
+        plain = json.loads(json.dumps(obj, default=_np_default))  # NaN-tolerant round trip
+        bad_keys = []
+        for k, v in plain.items():
+            plain[k], bad = _finite_or_none(v)
+            if bad:
+                bad_keys.append(k)
+        plain["nonfinite"] = bad_keys
+        return json.dumps(plain, separators=(",", ":"), allow_nan=False).encode()

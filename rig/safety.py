@@ -1,0 +1,217 @@
+"""Fault monitors of the control loop, allocation-free per tick.
+
+The loop feeds the monitor the facts of each tick in order and reads back the first
+fault condition observed (``code``, ``detail``).  The monitor decides nothing about the
+valve: the loop latches the lifecycle FAULT and sends the safe command in the same tick.
+
+Per tick::
+
+    mon.begin_tick()
+    mon.sensor_frame(crc_ok, counter, status_bits, rattlespace_m, force_n, accel_mps2)  # 0..n
+    mon.rig_status(crc_ok, counter, watchdog_tripped, supply_ok)                        # 0..n
+    mon.bus_error(FaultCode.BUS_ERROR, detail)                                          # 0..n
+    mon.end_receive()            # stale check
+    mon.estimator(flags, force_ref_n, q, active) ; mon.overrun(streak) ; mon.exception()
+    if mon.code: ...             # FaultCode of the first condition seen this tick
+
+``condition`` is the code of the last completed tick: a reset is refused while it is
+not NONE.  ``detail`` byte per code is tabulated in docs/service.md.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from controller.config import RigConfig
+from rig.e2e import CounterMonitor, CounterStatus
+from rig.protocol import FaultCode
+
+__all__ = [
+    "DETAIL_ACCEL",
+    "DETAIL_ESTIMATOR",
+    "DETAIL_FORCE",
+    "DETAIL_OUTPUT",
+    "DETAIL_RATTLESPACE",
+    "DETAIL_RECV",
+    "DETAIL_RIG_STATUS",
+    "DETAIL_SEND",
+    "DETAIL_SENSOR_DATA",
+    "FaultMonitor",
+]
+
+# detail bytes (FaultReport.FaultDetail)
+DETAIL_SENSOR_DATA = 1      # SENSOR_CRC / SENSOR_COUNTER: which frame
+DETAIL_RIG_STATUS = 2
+DETAIL_RATTLESPACE = 1      # SENSOR_RANGE / NONFINITE: which signal
+DETAIL_FORCE = 2
+DETAIL_ACCEL = 3
+DETAIL_ESTIMATOR = 4        # NONFINITE from the bank (StepFlag NONFINITE_*)
+DETAIL_OUTPUT = 5           # NONFINITE force reference or spool command
+DETAIL_SEND = 1             # BUS_ERROR: exception from send
+DETAIL_RECV = 2             # BUS_ERROR: exception from recv
+
+_STEP_NONFINITE = 1 | 2     # StepFlag.NONFINITE_INPUT | NONFINITE_STATE
+_STEP_DIVERGED = 8          # StepFlag.DIVERGED
+
+_NONE = FaultCode.NONE
+
+
+class FaultMonitor:
+    """All per-tick fault checks of the service (see module docstring)."""
+
+    def __init__(self, cfg: RigConfig) -> None:
+        s, sa = cfg.sensors, cfg.safety
+        self.rattlespace_limit_m = s.lvdt_range_m
+        self.force_limit_n = min(s.load_cell_range_n, sa.force_range_n)
+        self.accel_limit_mps2 = s.accel_range_mps2
+        self.stale_ticks = sa.stale_ticks
+        self.overrun_streak_limit = sa.overrun_streak
+        self.divergence_q = sa.estimator_divergence_q
+        self.divergence_ticks = sa.divergence_ticks
+        self.sensor_counter = CounterMonitor()
+        self.status_counter = CounterMonitor()
+        # the rig holds WatchdogTripped until it is re-enabled (Enable=1), so the fault is
+        # its rising edge; this memory survives reset() (else a reset would re-trigger it)
+        self.rig_watchdog_seen = False
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget history (start-up, or after an operator reset)."""
+        self.sensor_counter.reset()
+        self.status_counter.reset()
+        self.code = _NONE
+        self.detail = 0
+        self.condition = _NONE
+        self.condition_detail = 0
+        self.sensor_seen = False
+        self.sensor_age_ticks = 0       # ticks since the last valid SensorData
+        self.fresh = False              # a valid SensorData arrived this tick
+        self.diverged_ticks = 0
+        self.counts = np.zeros(256, dtype=np.int64)   # conditions seen, per FaultCode
+
+    # ------------------------------------------------------------------ per tick
+    def begin_tick(self) -> None:
+        self.code = _NONE
+        self.detail = 0
+        self.fresh = False
+
+    def _flag(self, code: FaultCode, detail: int) -> None:
+        self.counts[code] += 1
+        if self.code is _NONE:
+            self.code = code
+            self.detail = detail if detail < 255 else 255
+
+    def sensor_frame(self, crc_ok: bool, counter: int, status_bits: int, rattlespace_m: float,
+                     force_n: float, accel_mps2: float) -> bool:
+        """Check one SensorData frame; True if its values may be used."""
+        if not crc_ok:
+            self._flag(FaultCode.SENSOR_CRC, DETAIL_SENSOR_DATA)
+            return False
+        st = self.sensor_counter.check(counter)
+        if st is CounterStatus.REPEATED or st is CounterStatus.JUMPED:
+            self._flag(FaultCode.SENSOR_COUNTER, DETAIL_SENSOR_DATA)
+            return False
+        usable = True
+        if status_bits:
+            self._flag(FaultCode.SENSOR_STATUS, status_bits)
+            usable = False
+        lim = self.rattlespace_limit_m
+        if not -lim <= rattlespace_m <= lim:
+            self._range(rattlespace_m, DETAIL_RATTLESPACE)
+            usable = False
+        lim = self.force_limit_n
+        if not -lim <= force_n <= lim:
+            self._range(force_n, DETAIL_FORCE)
+            usable = False
+        lim = self.accel_limit_mps2
+        if not -lim <= accel_mps2 <= lim:
+            self._range(accel_mps2, DETAIL_ACCEL)
+            usable = False
+        if usable:
+            self.fresh = True
+            self.sensor_seen = True
+            self.sensor_age_ticks = 0
+        return usable
+
+    def _range(self, value: float, which: int) -> None:
+        if math.isfinite(value):
+            self._flag(FaultCode.SENSOR_RANGE, which)
+        else:
+            self._flag(FaultCode.NONFINITE, which)
+
+    def rig_status(self, crc_ok: bool, counter: int, watchdog_tripped: bool,
+                   supply_ok: bool) -> None:
+        if not crc_ok:
+            self._flag(FaultCode.SENSOR_CRC, DETAIL_RIG_STATUS)
+            return
+        st = self.status_counter.check(counter)
+        if st is CounterStatus.REPEATED or st is CounterStatus.JUMPED:
+            self._flag(FaultCode.SENSOR_COUNTER, DETAIL_RIG_STATUS)
+        if watchdog_tripped and not self.rig_watchdog_seen:
+            self._flag(FaultCode.RIG_WATCHDOG, 0)
+        self.rig_watchdog_seen = watchdog_tripped
+        if not supply_ok:
+            self._flag(FaultCode.SUPPLY_LOSS, 0)
+
+    def bus_error(self, code: FaultCode, detail: int) -> None:
+        self._flag(code, detail)
+
+    def end_receive(self) -> None:
+        """After the drain: age the sensor data and check staleness."""
+        if not self.fresh:
+            self.sensor_age_ticks += 1
+            if self.sensor_seen and self.sensor_age_ticks > self.stale_ticks:
+                self._flag(FaultCode.SENSOR_STALE, self.sensor_age_ticks)
+
+    def estimator(self, flags: int, force_ref_n: float, q: np.ndarray,
+                  active: np.ndarray) -> None:
+        """Bank step outcome: StepFlag bits, output, and the divergence test on ``q``."""
+        if flags & _STEP_NONFINITE:
+            self._flag(FaultCode.NONFINITE, DETAIL_ESTIMATOR)
+        elif not math.isfinite(force_ref_n):
+            self._flag(FaultCode.NONFINITE, DETAIL_OUTPUT)
+        if flags & _STEP_DIVERGED:
+            self._flag(FaultCode.ESTIMATOR_DIVERGED, 0)
+            return
+        # min likelihood quotient over the active models above the limit for long enough
+        q_min = float(np.min(q, initial=math.inf, where=active))
+        if q_min > self.divergence_q:     # NaN compares False: NONFINITE covers it
+            self.diverged_ticks += 1
+            if self.diverged_ticks >= self.divergence_ticks:
+                self._flag(FaultCode.ESTIMATOR_DIVERGED, 1)
+        else:
+            self.diverged_ticks = 0
+
+    def output(self, spool: float) -> None:
+        if not math.isfinite(spool):
+            self._flag(FaultCode.NONFINITE, DETAIL_OUTPUT)
+
+    def overrun(self, streak: int) -> None:
+        if streak >= self.overrun_streak_limit:
+            self._flag(FaultCode.OVERRUN_STREAK, streak)
+
+    def exception(self) -> None:
+        self._flag(FaultCode.EXCEPTION, 0)
+
+    def end_tick(self) -> None:
+        """The tick's first condition becomes :attr:`condition` (what reset looks at)."""
+        self.condition = self.code
+        self.condition_detail = self.detail
+
+    # ------------------------------------------------------------------ health
+    @property
+    def sensors_healthy(self) -> bool:
+        return (self.sensor_seen and self.sensor_age_ticks <= self.stale_ticks
+                and self.condition is _NONE)
+
+    def health_problem(self) -> str:
+        """Why the sensors are not healthy ('' if they are); off the hot path."""
+        if not self.sensor_seen:
+            return "no valid SensorData received yet"
+        if self.sensor_age_ticks > self.stale_ticks:
+            return f"SensorData stale for {self.sensor_age_ticks} ticks"
+        if self.condition is not _NONE:
+            return f"fault condition {self.condition.name} present"
+        return ""

@@ -1,0 +1,73 @@
+"""A separate telemetry consumer process: subscribes to ``<prefix>/**`` over Zenoh.
+
+    python -m tests.socketcan.zenoh_listener --connect tcp/127.0.0.1:PORT --out samples.jsonl
+
+Peer mode, connect-only (nothing listens), multicast scouting off; connecting is retried
+until the service is up.  Every sample is appended to ``--out`` as one JSON line
+``{"key": ..., "t_rx_s": <host monotonic>, "payload": <decoded JSON or text>}``.
+Prints ``listener subscribed`` once the subscriber is declared; stops on SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+
+def session_config(endpoint: str) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("connect/exit_on_failure", "false")
+    conf.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 500, '
+                                       '"period_increase_factor": 1.5}')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return conf
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--connect", required=True, help="e.g. tcp/127.0.0.1:7447")
+    parser.add_argument("--prefix", default="rig")
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args()
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    lock = threading.Lock()
+    count = 0
+    with open(args.out, "w") as out, zenoh.open(session_config(args.connect)) as session:
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            nonlocal count
+            raw = sample.payload.to_bytes()
+            payload: Any
+            try:
+                payload = json.loads(raw)
+            except ValueError:
+                payload = raw.decode(errors="replace")
+            line = json.dumps({"key": str(sample.key_expr), "t_rx_s": time.monotonic(),
+                               "payload": payload})
+            with lock:
+                out.write(line + "\n")
+                out.flush()
+                count += 1
+
+        sub = session.declare_subscriber(f"{args.prefix}/**", on_sample)
+        print("listener subscribed", flush=True)
+        stop.wait()
+        sub.undeclare()
+    print(f"listener samples={count}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

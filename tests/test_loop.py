@@ -1,0 +1,384 @@
+"""ControlLoop: deterministic ticking on python-can's virtual bus, frames, pacing, timing.
+
+The harness here (``LoopHarness``, ``FakeRuntime``, ``RigSide``) is shared by
+test_safety.py and test_lifecycle.py.  ``FakeRuntime`` stands in for BankRuntime where a
+test needs to control the bank's outputs exactly (flags, q, exceptions); the test at the
+end runs the real BankRuntime.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import tracemalloc
+import uuid
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from controller.config import RigConfig, default_config
+from controller.force_loop import PIForceLoop
+from rig.bus import open_bus
+from rig.loop import ControlLoop
+from rig.protocol import (
+    CONTROLLER_STATUS,
+    CONTROLLER_STATUS_ID,
+    FAULT_REPORT,
+    FAULT_REPORT_ID,
+    RIG_STATUS,
+    SENSOR_DATA,
+    VALVE_COMMAND,
+    VALVE_COMMAND_ID,
+    ControllerStatus,
+    FaultCode,
+    FaultReport,
+    LifecycleState,
+    ValveCommand,
+)
+from rig.timing import TimingStats, histogram_percentile_us
+
+PERIOD_NS = 1_000_000
+
+
+class FakeRuntime:
+    """BankRuntime stand-in: force reference = -gain * rattlespace; flags settable."""
+
+    def __init__(self, n_models: int = 3, gain: float = 1e4) -> None:
+        self.gain = gain
+        self.flags = 0
+        self.q = np.full(n_models, 2.0)
+        self.firing_weight = np.full(n_models, 1.0 / n_models)
+        self.probability = np.full(n_models, 1.0 / n_models)
+        self.u_model = np.zeros(n_models)
+        self.active = np.ones(n_models, dtype=bool)
+        self.x_post = np.zeros((n_models, 4))
+        self.xf = np.zeros(2)
+        self.steps = 0
+        self.resets = 0
+        self.output: float | None = None      # force the output when set
+        self.inputs: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float:
+        self.steps += 1
+        self.inputs = (rattlespace_m, accel_mps2, force_meas_n)
+        return -self.gain * rattlespace_m if self.output is None else self.output
+
+    def reset(self) -> None:
+        self.resets += 1
+        self.flags = 0
+
+    def set_blending(self, b: Any) -> None:
+        self.blending = int(b)
+
+    def set_weight_set(self, w: int) -> None:
+        self.weight_set = int(w)
+
+    def set_road(self, speed_mps: float, roughness_gd: float) -> None:
+        self.road = (speed_mps, roughness_gd)
+
+
+class RigSide:
+    """The rig's end of the virtual bus: sends SensorData / RigStatus, reads commands."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.sd_counter = 0
+        self.rs_counter = 0
+        self.valve: list[ValveCommand] = []
+        self.faults: list[FaultReport] = []
+        self.status: list[ControllerStatus] = []
+
+    def sensor(self, rattlespace_m: float = 0.001, force_n: float = 10.0,
+               accel_mps2: float = 0.1, status: int = 0, counter: int | None = None,
+               corrupt: bool = False) -> None:
+        buf = bytearray(8)
+        c = self.sd_counter if counter is None else counter
+        SENSOR_DATA.encode(buf, c, status, rattlespace_m, force_n, accel_mps2)
+        if counter is None:
+            self.sd_counter += 1
+        if corrupt:
+            buf[3] ^= 0x01
+        self.bus.send(can.Message(arbitration_id=SENSOR_DATA.frame_id, data=buf,
+                                  is_extended_id=False))
+
+    def rig_status(self, watchdog: int = 0, supply_ok: int = 1, bypass: int = 1) -> None:
+        buf = bytearray(8)
+        RIG_STATUS.encode(buf, self.rs_counter, bypass, watchdog, supply_ok, 10e6, 0.0, 0.0)
+        self.rs_counter += 1
+        self.bus.send(can.Message(arbitration_id=RIG_STATUS.frame_id, data=buf,
+                                  is_extended_id=False))
+
+    def read(self) -> tuple[list[ValveCommand], list[FaultReport]]:
+        """Frames the controller sent since the last read (valve commands, fault reports)."""
+        valves: list[ValveCommand] = []
+        faults: list[FaultReport] = []
+        while (msg := self.bus.recv(0.0)) is not None:
+            if msg.arbitration_id == VALVE_COMMAND_ID:
+                v = ValveCommand()
+                assert VALVE_COMMAND.decode(msg.data, v).name == "OK"
+                valves.append(v)
+            elif msg.arbitration_id == FAULT_REPORT_ID:
+                f = FaultReport()
+                assert FAULT_REPORT.decode(msg.data, f).name == "OK"
+                faults.append(f)
+            elif msg.arbitration_id == CONTROLLER_STATUS_ID:
+                s = ControllerStatus()
+                assert CONTROLLER_STATUS.decode(msg.data, s).name == "OK"
+                self.status.append(s)
+        self.valve.extend(valves)
+        self.faults.extend(faults)
+        return valves, faults
+
+
+@dataclass
+class LoopHarness:
+    loop: ControlLoop
+    rig: RigSide
+    rt: Any
+    buses: list[can.BusABC] = field(default_factory=list)
+    t_ns: int = 0
+
+    def step(self, *, sensor: bool = True, status: bool | None = None,
+             lateness_ns: int = 0, **sensor_kw: Any) -> tuple[list[ValveCommand],
+                                                               list[FaultReport]]:
+        """Rig sends (optionally), controller ticks once, return what it sent."""
+        if sensor:
+            self.rig.sensor(**sensor_kw)
+        if status is None:
+            status = self.loop.tick_count % 10 == 0
+        if status:
+            self.rig.rig_status()
+        self.loop.tick(self.t_ns, lateness_ns)
+        self.t_ns += PERIOD_NS
+        return self.rig.read()
+
+    def run(self, n: int, **kw: Any) -> None:
+        for _ in range(n):
+            self.step(**kw)
+
+    def arm(self) -> None:
+        res = self.loop.request("arm", timeout_s=None)
+        assert res.accepted, res.message
+        assert self.loop.lifecycle.state is LifecycleState.ACTIVE
+
+    def close(self) -> None:
+        for b in self.buses:
+            b.shutdown()
+
+
+def make_harness(cfg: RigConfig | None = None, rt: Any = None, role: str | None = "controller",
+                 **loop_kw: Any) -> LoopHarness:
+    """Controller loop + rig side on a fresh virtual channel.  ``role=None`` opens the
+    controller's bus without receive filters (python-can's virtual bus applies the
+    filters to error frames too; SocketCAN delivers them regardless)."""
+    cfg = cfg or default_config()
+    channel = f"test-{uuid.uuid4().hex}"
+    ctl_bus = open_bus(cfg.can, role=role, interface="virtual", channel=channel)
+    rig_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    rt = rt if rt is not None else FakeRuntime()
+    loop_kw.setdefault("warmup_ticks", 5)
+    loop = ControlLoop(cfg, ctl_bus, rt, PIForceLoop(cfg.force_loop, cfg.sample_time_s),
+                       **loop_kw)
+    return LoopHarness(loop, RigSide(rig_bus), rt, [ctl_bus, rig_bus])
+
+
+@pytest.fixture
+def harness() -> Any:
+    h = make_harness()
+    yield h
+    h.close()
+
+
+# ---------------------------------------------------------------------------- ticking
+
+
+def test_inactive_sends_safe_command_every_tick_with_counter_echo(harness: LoopHarness) -> None:
+    for k in range(20):
+        valves, faults = harness.step()
+        assert len(valves) == 1 and not faults
+        v = valves[0]
+        assert v.enable == 0 and v.spool_command == 0.0
+        assert v.lifecycle == LifecycleState.INACTIVE
+        assert v.counter == k % 16
+        assert v.sensor_counter_echo == k % 16
+    assert harness.rt.steps == 20  # estimator running warm while INACTIVE
+
+
+def test_active_command_follows_pi_force_loop(harness: LoopHarness) -> None:
+    cfg = harness.loop.cfg
+    harness.run(10)
+    harness.arm()
+    ref_pi = PIForceLoop(cfg.force_loop, cfg.sample_time_s)
+    for k in range(30):
+        rs = 0.002 * np.sin(0.3 * k)
+        valves, _ = harness.step(rattlespace_m=rs, force_n=50.0)
+        v = valves[0]
+        expected = ref_pi.step(-harness.rt.gain * round(rs / 5e-6) * 5e-6, 50.0)
+        assert v.enable == 1 and v.lifecycle == LifecycleState.ACTIVE
+        assert v.spool_command == pytest.approx(expected, abs=2 / 32767)
+        assert v.force_reference_n == pytest.approx(-harness.rt.gain * rs, abs=0.6)
+
+
+def test_disarm_returns_to_safe_state(harness: LoopHarness) -> None:
+    harness.run(10)
+    harness.arm()
+    harness.step(rattlespace_m=0.01)
+    assert harness.rig.valve[-1].enable == 1
+    assert harness.loop.request("disarm", timeout_s=None).accepted
+    valves, _ = harness.step(rattlespace_m=0.01)
+    assert valves[0].enable == 0 and valves[0].spool_command == 0.0
+    assert harness.loop.lifecycle.state is LifecycleState.INACTIVE
+
+
+def test_heartbeat_rate_and_contents(harness: LoopHarness) -> None:
+    cfg = harness.loop.cfg
+    n = 1000
+    harness.run(n)
+    every = round(cfg.design.sample_rate_hz / cfg.safety.heartbeat_hz)
+    assert len(harness.rig.status) == n // every
+    s = harness.rig.status[-1]
+    assert s.state == LifecycleState.INACTIVE and s.active_fault == FaultCode.NONE
+    assert s.weight_set == cfg.design.weight_set
+
+
+def test_sensor_values_reach_the_bank_and_are_held_when_missing(harness: LoopHarness) -> None:
+    harness.step(rattlespace_m=0.0123, force_n=-250.0, accel_mps2=1.5)
+    assert harness.rt.inputs == pytest.approx((0.0123, 1.5, -250.0), abs=1e-5)
+    harness.step(sensor=False)   # one missing frame (< stale_ticks): held, no fault
+    assert harness.rt.inputs == pytest.approx((0.0123, 1.5, -250.0), abs=1e-5)
+    assert harness.loop.lifecycle.state is LifecycleState.INACTIVE
+
+
+def test_pending_command_is_applied_by_the_loop_thread(harness: LoopHarness) -> None:
+    harness.run(10)
+    result: list[Any] = []
+    th = threading.Thread(target=lambda: result.append(harness.loop.request("arm", None, 2.0)))
+    th.start()
+    while not harness.loop._requests:
+        time.sleep(0.001)
+    harness.step()
+    th.join(2.0)
+    assert result and result[0].accepted
+    assert harness.rig.valve[-1].enable == 1
+
+
+def test_unknown_and_bad_commands_are_refused(harness: LoopHarness) -> None:
+    assert not harness.loop.request("selfdestruct", timeout_s=None).accepted
+    res = harness.loop.request("weight_set", "x", timeout_s=None)
+    assert not res.accepted and "weight_set" in res.message
+    assert harness.loop.request("blending", 1, timeout_s=None).accepted
+    assert harness.rt.blending == 1
+    harness.run(10)
+    harness.arm()
+    assert not harness.loop.request("blending", 0, timeout_s=None).accepted
+
+
+def test_tick_allocates_nothing_in_steady_state(harness: LoopHarness) -> None:
+    """No container allocation per tick (python-can's own Message objects aside)."""
+    harness.run(10)
+    harness.arm()
+    loop, rig = harness.loop, harness.rig
+    # the frames are sent beforehand so the loop's tick is all that runs under tracing
+    def one() -> None:
+        rig.sensor(rattlespace_m=0.001)
+        loop.tick(harness.t_ns, 0)
+        harness.t_ns += PERIOD_NS
+        rig.read()
+    for _ in range(50):
+        one()
+    tracemalloc.start()
+    snap0 = tracemalloc.take_snapshot()
+    for _ in range(200):
+        one()
+    snap1 = tracemalloc.take_snapshot()
+    tracemalloc.stop()
+    stats = snap1.filter_traces([tracemalloc.Filter(True, "*rig/loop.py"),
+                                 tracemalloc.Filter(True, "*rig/safety.py"),
+                                 tracemalloc.Filter(True, "*rig/timing.py")]).compare_to(
+        snap0.filter_traces([tracemalloc.Filter(True, "*rig/loop.py"),
+                             tracemalloc.Filter(True, "*rig/safety.py"),
+                             tracemalloc.Filter(True, "*rig/timing.py")]), "lineno")
+    grown = sum(s.size_diff for s in stats if s.size_diff > 0)
+    assert grown < 2048, [str(s) for s in stats[:5]]
+
+
+# ---------------------------------------------------------------------------- pacing
+
+
+def test_run_paces_with_absolute_deadlines(harness: LoopHarness) -> None:
+    """200 ticks at 1 kHz take 200 periods (no drift: deadlines are absolute)."""
+    stop = threading.Event()
+    feeder_stop = threading.Event()
+
+    def feed() -> None:
+        while not feeder_stop.is_set():
+            harness.rig.sensor()
+            time.sleep(0.001)
+
+    th = threading.Thread(target=feed, daemon=True)
+    th.start()
+    t0 = time.monotonic_ns()
+    harness.loop.run(stop, max_ticks=200)
+    elapsed = time.monotonic_ns() - t0
+    feeder_stop.set()
+    th.join()
+    assert harness.loop.tick_count + harness.loop.timing.skipped >= 200
+    # 200 deadlines -> ~200 ms; generous bounds (shared CI machine), no drift term
+    assert 0.195e9 <= elapsed < 0.6e9
+    assert harness.loop.timing.count == harness.loop.tick_count
+
+
+def test_run_skips_ahead_when_badly_late(harness: LoopHarness, monkeypatch: Any) -> None:
+    loop = harness.loop
+    real_tick = loop.tick
+    calls = {"n": 0}
+
+    def slow_tick(now_ns: int, lateness_ns: int = 0) -> None:
+        calls["n"] += 1
+        real_tick(now_ns, lateness_ns)
+        if calls["n"] == 5:
+            time.sleep(0.0105)            # ~10 periods lost
+
+    monkeypatch.setattr(loop, "tick", slow_tick)
+    loop.run(threading.Event(), max_ticks=20)
+    assert loop.timing.skipped >= 9
+
+
+# ---------------------------------------------------------------------------- timing
+
+
+def test_timing_percentiles_match_numpy() -> None:
+    rng = np.random.default_rng(1)
+    late = rng.integers(0, 800_000, size=5000)
+    steps = rng.integers(10_000, 90_000, size=5000)
+    ts = TimingStats(PERIOD_NS, 500_000, ring_size=4096)
+    for a, b in zip(late, steps, strict=True):
+        ts.add(int(a), int(b))
+    s = ts.summary()
+    for q, key in ((50, "p50"), (99, "p99"), (99.9, "p99_9")):
+        ref = np.percentile(late // 1000, q, method="inverted_cdf")
+        assert s[f"lateness_{key}_us"] == pytest.approx(ref, abs=1.0)
+    assert s["lateness_max_us"] == late.max() / 1000
+    assert s["overruns"] == int((late > 500_000).sum())
+    assert ts.lateness_p99_us() == s["lateness_p99_us"]
+    recent_late, recent_step = ts.recent()
+    np.testing.assert_array_equal(recent_late, late[-4096:])
+    np.testing.assert_array_equal(recent_step, steps[-4096:])
+
+
+def test_timing_overrun_streak_counts_consecutive_late_ticks() -> None:
+    ts = TimingStats(PERIOD_NS, 500_000)
+    pattern = [600_000, 700_000, 100, 900_000, 900_000, 900_000]
+    streaks = []
+    for x in pattern:
+        ts.add(x, 0)
+        streaks.append(ts.overrun_streak)
+    assert streaks == [1, 2, 0, 1, 2, 3]
+    assert ts.overruns == 5
+
+
+def test_histogram_percentile_empty_is_nan() -> None:
+    assert np.isnan(histogram_percentile_us(np.zeros(10, dtype=np.int64), 50))

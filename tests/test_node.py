@@ -1,0 +1,245 @@
+"""RigNode on python-can's virtual bus, tick-stepped: sensor stream, commands, watchdog.
+
+The harness here (two virtual buses on a unique channel) is reused by test_faults.py.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from controller.config import RigConfig, default_config
+from hil.faults import FaultSchedule
+from hil.node import RigNode
+from hil.roads import make_road
+from rig.bus import make_tx_message
+from rig.protocol import (
+    RIG_STATUS,
+    RIG_STATUS_ID,
+    SENSOR_DATA,
+    SENSOR_DATA_ID,
+    VALVE_COMMAND,
+    VALVE_COMMAND_ID,
+    DecodeStatus,
+    RigStatus,
+    SensorData,
+)
+
+CFG: RigConfig = default_config()
+
+
+@dataclass
+class Rx:
+    """One frame the controller side saw, tagged with the rig tick after which it came."""
+
+    tick: int
+    frame_id: int
+    data: bytes
+    status: DecodeStatus = DecodeStatus.OK
+    sensor: SensorData | None = None
+    rig: RigStatus | None = None
+
+
+@dataclass
+class Harness:
+    node: RigNode
+    ctl: can.BusABC
+    rx: list[Rx] = field(default_factory=list)
+    cmd_counter: int = 0
+
+    def __post_init__(self) -> None:
+        self._msg = make_tx_message(VALVE_COMMAND_ID)
+
+    def send_command(self, enable: int = 1, spool: float = 0.0, counter: int | None = None,
+                     corrupt: bool = False) -> None:
+        c = self.cmd_counter if counter is None else counter
+        VALVE_COMMAND.encode(self._msg.data, c, enable, 1, spool, 0.0, 0)
+        if corrupt:
+            self._msg.data[0] ^= 0x01
+        self.ctl.send(self._msg)
+        if counter is None:
+            self.cmd_counter = (self.cmd_counter + 1) & 0xF
+
+    def step(self, n: int = 1,
+             command: Callable[[int], dict[str, float] | None] | None = None) -> None:
+        """Tick the node ``n`` times; ``command(tick)`` returns send_command kwargs or
+        None (send nothing).  Frames the node sends are decoded into ``rx``."""
+        for _ in range(n):
+            if command is not None:
+                kw = command(self.node.tick_count)
+                if kw is not None:
+                    self.send_command(**kw)  # type: ignore[arg-type]
+            self.node.tick()
+            self.drain(self.node.tick_count - 1)
+
+    def drain(self, tick: int) -> None:
+        while (msg := self.ctl.recv(timeout=0.0)) is not None:
+            r = Rx(tick, msg.arbitration_id, bytes(msg.data))
+            if msg.arbitration_id == SENSOR_DATA_ID:
+                r.sensor = SensorData()
+                r.status = SENSOR_DATA.decode(msg.data, r.sensor)
+            elif msg.arbitration_id == RIG_STATUS_ID:
+                r.rig = RigStatus()
+                r.status = RIG_STATUS.decode(msg.data, r.rig)
+            self.rx.append(r)
+
+    def sensor_frames(self) -> list[Rx]:
+        return [r for r in self.rx if r.frame_id == SENSOR_DATA_ID]
+
+    def status_frames(self) -> list[Rx]:
+        return [r for r in self.rx if r.frame_id == RIG_STATUS_ID]
+
+
+@contextmanager
+def harness(faults: FaultSchedule | None = None, road: str = "iso-C",
+            duration_s: float = 2.0, **node_kw: object) -> Iterator[Harness]:
+    channel = f"test-{uuid.uuid4().hex}"
+    rig_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    ctl_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    try:
+        rd = make_road(road, 11.176, duration_s, CFG.sample_time_s, seed=3)
+        node = RigNode(rig_bus, CFG, rd, faults, **node_kw)  # type: ignore[arg-type]
+        yield Harness(node, ctl_bus)
+    finally:
+        rig_bus.shutdown()
+        ctl_bus.shutdown()
+
+
+# ----------------------------------------------------------------- tests
+
+
+def test_sensor_frame_every_tick_with_consecutive_counters() -> None:
+    with harness() as h:
+        h.step(200)
+        frames = h.sensor_frames()
+        assert [r.tick for r in frames] == list(range(200))
+        assert all(r.status is DecodeStatus.OK for r in frames)
+        counters = [r.sensor.counter for r in frames if r.sensor]
+        assert counters == [k % 16 for k in range(200)]
+        # the values are the node's sensor readings, within half an LSB
+        rec = h.node.record.arrays()
+        sent = np.array([r.sensor.rattlespace_m for r in frames if r.sensor])
+        assert np.max(np.abs(sent - rec["rattlespace_m"])) <= 2.5e-6 + 1e-12
+        assert np.ptp(sent) > 1e-4  # the road moves the body
+        status = h.status_frames()
+        assert [r.tick for r in status] == list(range(0, 200, 10))
+        rig = [r.rig for r in status if r.rig]
+        assert [s.counter for s in rig] == [k % 16 for k in range(20)]
+        assert all(s.bypass_open and not s.watchdog_tripped and s.supply_ok for s in rig)
+        assert rig[0].supply_pressure_pa == pytest.approx(CFG.actuator.supply_pressure_pa,
+                                                          abs=500)
+        assert h.node.stats.frames_sent == 220 and h.node.stats.bad_frames == 0
+
+
+@pytest.mark.parametrize("spool", [0.2, -0.2])
+def test_valve_command_moves_the_plant(spool: float) -> None:
+    with harness(road="bump") as h:
+        h.step(20)
+        assert max(abs(r.sensor.load_cell_force_n) for r in h.sensor_frames()
+                   if r.sensor) < 100.0
+        h.step(60, command=lambda k: {"enable": 1, "spool": spool})
+        forces = [r.sensor.load_cell_force_n for r in h.sensor_frames()[-20:] if r.sensor]
+        assert min(abs(f) for f in forces) > 1000.0
+        assert all(np.sign(f) == np.sign(spool) for f in forces)
+        rec = h.node.record.arrays()
+        assert np.all(rec["spool_applied"][21:] == pytest.approx(spool, abs=3.1e-5))
+        assert not rec["bypass_open"][21:].any()
+        # Enable = 0 with the same spool: safe state, force decays through the bypass
+        h.step(60, command=lambda k: {"enable": 0, "spool": spool})
+        forces = [r.sensor.load_cell_force_n for r in h.sensor_frames()[-10:] if r.sensor]
+        assert max(abs(f) for f in forces) < 100.0
+        assert h.node.record.arrays()["bypass_open"][-59:].all()
+
+
+def _rig_status_from(h: Harness, tick: int) -> list[RigStatus]:
+    return [r.rig for r in h.status_frames() if r.tick >= tick and r.rig]
+
+
+def test_watchdog_opens_bypass_within_timeout_and_recovers() -> None:
+    with harness(road="iso-B") as h:
+        wd = h.node._wd_ticks
+        assert wd == 5  # 5 ms at 1 kHz
+        h.step(100, command=lambda k: {"enable": 1, "spool": 0.1})
+        last = h.node.last_valid_tick
+        assert last == 99 and not h.node.watchdog_tripped
+        h.step(30)  # controller silent
+        rec: dict[str, Any] = h.node.record.arrays()
+        open_ticks = rec["tick"][(rec["tick"] > last) & rec["bypass_open"]]
+        first_open = int(open_ticks[0])
+        # trips once more than timeout has passed since the last valid command, i.e.
+        # within the timeout of the first missing command (expected at last + 1)
+        assert first_open == last + wd + 1
+        assert (first_open - (last + 1)) * h.node.dt_s <= h.node.watchdog_timeout_s + 1e-12
+        assert rec["bypass_open"][rec["tick"] >= first_open].all()
+        assert (rec["spool_applied"][rec["tick"] >= first_open] == 0.0).all()
+        assert h.node.stats.watchdog_trips == 1
+        assert any(s.watchdog_tripped and s.bypass_open for s in _rig_status_from(h, first_open))
+        # a valid Enable=0 command feeds the watchdog but does not clear the trip
+        h.step(5, command=lambda k: {"enable": 0, "spool": 0.1})
+        assert h.node.watchdog_tripped and h.node.bypass_applied
+        # a valid Enable=1 command clears it
+        h.step(20, command=lambda k: {"enable": 1, "spool": 0.1})
+        assert not h.node.watchdog_tripped and not h.node.bypass_applied
+        assert h.node.spool_applied == pytest.approx(0.1, abs=3.1e-5)
+        assert not _rig_status_from(h, h.node.tick_count - 10)[-1].watchdog_tripped
+        assert h.node.stats.watchdog_trips == 1
+
+
+def test_watchdog_tolerates_gaps_shorter_than_timeout() -> None:
+    with harness(watchdog_timeout_s=0.005) as h:
+        h.step(200, command=lambda k: {"enable": 1, "spool": 0.05} if k % 5 == 0 else None)
+        assert h.node.stats.watchdog_trips == 0
+        assert not h.node.record.arrays()["bypass_open"][1:].any()
+
+
+def test_bad_and_stale_commands_do_not_feed_the_watchdog() -> None:
+    with harness() as h:
+        h.step(10, command=lambda k: {"enable": 1, "spool": 0.1})
+        h.step(20, command=lambda k: {"enable": 1, "spool": 0.1, "corrupt": True})
+        assert h.node.watchdog_tripped
+        assert h.node.stats.bad_frames == 20
+        h.step(1, command=lambda k: {"enable": 1, "spool": 0.1})
+        assert not h.node.watchdog_tripped
+        h.step(20, command=lambda k: {"enable": 1, "spool": 0.1, "counter": 3})
+        assert h.node.watchdog_tripped
+        assert h.node.stats.stale_commands >= 19
+        assert h.node.stats.watchdog_trips == 2
+
+
+def test_no_command_yet_is_safe_but_not_tripped() -> None:
+    with harness() as h:
+        h.step(50)
+        rec = h.node.record.arrays()
+        assert rec["bypass_open"].all() and not rec["watchdog_tripped"].any()
+
+
+def test_lost_commands_are_counted() -> None:
+    with harness() as h:
+        h.step(10, command=lambda k: {"enable": 1, "spool": 0.0})
+        h.cmd_counter = (h.cmd_counter + 3) & 0xF  # three commands lost on the bus
+        h.step(2, command=lambda k: {"enable": 1, "spool": 0.0})
+        assert h.node.stats.lost_commands == 3
+        assert h.node.stats.valve_commands == 12
+
+
+def test_run_realtime_stops_on_event_and_duration() -> None:
+    import threading
+    import time
+
+    with harness() as h:
+        stop = threading.Event()
+        t0 = time.monotonic()
+        stats = h.node.run(stop, realtime=True, duration_s=0.05)
+        assert stats.ticks == 50
+        assert time.monotonic() - t0 >= 0.045
+        stop.set()
+        assert h.node.run(stop, realtime=True).ticks == 50
+        h.node.run(threading.Event(), realtime=False, duration_s=0.1)
+        assert h.node.tick_count == 150

@@ -1,0 +1,414 @@
+"""MCAP recording: round trip, schemas, attachments, rotation, SIGKILL survival, drops."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import signal
+import struct
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zstandard
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mcap.reader import make_reader
+
+from controller.config import RecordingConfig, config_hash, config_to_toml, default_config
+from rig.mcap_schema import SIGNAL_KEYS, TIMING_KEYS, TOPICS
+from rig.recording import RunRecorder, read_run, segment_paths
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.timeout(120)
+CFG = default_config()
+TOML = config_to_toml(CFG)
+
+
+def rcfg(**kw: Any) -> RecordingConfig:
+    return replace(CFG.recording, **kw)
+
+
+def recorder(path: Path, **kw: Any) -> RunRecorder:
+    opts = {k: kw.pop(k) for k in ("poll_s", "compression", "max_chunk_age_s") if k in kw}
+    return RunRecorder(path, rcfg(**kw), config_toml=TOML, design_bytes=b"\x93NUMPY-design",
+                       metadata={"operator": "test", "seed": 7}, **{"poll_s": 0.001, **opts})
+
+
+def tick_record(k: int) -> dict[str, Any]:
+    return {"tick": k, "rattlespace_m": 1e-3 * math.sin(k), "force_meas_n": 10.0 * k,
+            "lifecycle": "ACTIVE", "fault": None, "valve_enable": True,
+            "q": np.array([0.1 * k, 2.0, 3.5]), "firing_weight": [1.0, 0.0, 0.0],
+            "active": [True, True, False], "flags": 0,
+            "x_post": np.arange(12.0).reshape(3, 4) * k,
+            "wake_late_s": 2e-5, "overrun": False}
+
+
+def expected_json(record: dict[str, Any]) -> dict[str, Any]:
+    """What a record reads back as: arrays as nested lists (independent of the writer)."""
+    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in record.items()}
+
+
+# ----------------------------------------------------------------------- round trip
+
+
+def write_mixed(rec: RunRecorder, n: int) -> list[tuple[str, Any]]:
+    """Write a loop-like sequence; return the expected timeline."""
+    expected: list[tuple[str, Any]] = []
+    for k in range(n):
+        t = 1_000_000_000 + k * 1_000_000
+        rx = bytes([(k + i) & 0xFF for i in range(8)])
+        assert rec.can_frame(t, k, 0x100, bytearray(rx), True)
+        expected.append(("frame", (t, k, 0x100, rx, True)))
+        if k % 10 == 0:
+            assert rec.can_frame(t + 1, k, 0x200, rx[:5], True)
+            expected.append(("frame", (t + 1, k, 0x200, rx[:5], True)))
+        r = tick_record(k)
+        assert rec.tick(t + 2, r)
+        expected.append(("record", (t + 2, k, expected_json(r))))
+        assert rec.can_frame(t + 3, k, 0x080, rx[::-1], False)
+        expected.append(("frame", (t + 3, k, 0x080, rx[::-1], False)))
+        if k in (5, 50, 51):
+            detail = {"name": "arm", "args": {}, "source": "zenoh"} if k == 5 else \
+                {"from": "ACTIVE", "to": "FAULT", "reason": "STALE_SENSOR"}
+            kind = "command" if k == 5 else "lifecycle"
+            assert rec.event(t + 4, k, kind, detail)
+            expected.append(("event", (t + 4, k, kind, detail)))
+    return expected
+
+
+def timeline_of(path: Path) -> list[tuple[str, Any]]:
+    run = read_run(path)
+    out: list[tuple[str, Any]] = []
+    for item in run.timeline():
+        if hasattr(item, "arbitration_id"):
+            out.append(("frame", (item.t_ns, item.tick, item.arbitration_id, item.data,
+                                  item.is_rx)))
+        elif hasattr(item, "kind"):
+            out.append(("event", (item.t_ns, item.tick, item.kind, item.detail)))
+        else:
+            out.append(("record", (item.t_ns, item.tick, item.data)))
+    return out
+
+
+def test_round_trip_in_order(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    with recorder(path) as rec:
+        expected = write_mixed(rec, 300)
+    assert rec.dropped == 0 and rec.malformed == 0 and rec.error is None
+    assert rec.written == len(expected)
+    run = read_run(path)
+    assert run.complete and run.stopped_at is None
+    assert timeline_of(path) == expected
+
+
+frame_st = st.tuples(st.integers(0, 0x7FF), st.binary(min_size=0, max_size=8), st.booleans())
+value_st = st.one_of(st.floats(allow_nan=False, allow_infinity=False), st.integers(-2**53, 2**53),
+                     st.booleans(), st.none(), st.text(max_size=6),
+                     st.lists(st.floats(allow_nan=False, allow_infinity=False), max_size=4))
+
+
+@settings(max_examples=25, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(frames=st.lists(frame_st, max_size=40),
+       records=st.lists(st.dictionaries(st.sampled_from(
+           sorted(SIGNAL_KEYS | TIMING_KEYS | {"q", "u_model", "custom"})), value_st,
+           max_size=6), max_size=10))
+def test_round_trip_property(tmp_path: Path, frames: list[tuple[int, bytes, bool]],
+                             records: list[dict[str, Any]]) -> None:
+    path = tmp_path / f"p{time.monotonic_ns()}.mcap"
+    expected: list[tuple[str, Any]] = []
+    with recorder(path) as rec:
+        for i, (arb, data, is_rx) in enumerate(frames):
+            rec.can_frame(i * 7, i, arb, data, is_rx)
+            expected.append(("frame", (i * 7, i, arb, data, is_rx)))
+            if i < len(records):
+                r = {**records[i], "tick": i}
+                rec.tick(i * 7 + 1, r)
+                expected.append(("record", (i * 7 + 1, i, r)))
+    assert timeline_of(path) == expected
+
+
+def test_nonfinite_values_become_null_and_are_listed(tmp_path: Path) -> None:
+    path = tmp_path / "nan.mcap"
+    with recorder(path) as rec:
+        rec.tick(0, {"tick": 0, "force_ref_n": float("nan"), "q": np.array([1.0, np.inf]),
+                     "wake_late_s": 1e-5})
+    (r,) = read_run(path).records
+    assert r.data["force_ref_n"] is None and r.data["q"] == [1.0, None]
+    assert sorted(r.data["nonfinite"]) == ["force_ref_n", "q"]
+
+
+# ----------------------------------------------------------------------- schemas, attachments
+
+
+_TYPES = {"object": dict, "array": list, "string": str, "boolean": bool, "null": type(None)}
+
+
+def conforms(value: Any, schema: dict[str, Any]) -> bool:
+    """Independent checker for the JSON-schema keywords the recording uses."""
+    types = schema.get("type")
+    if types is not None:
+        names = [types] if isinstance(types, str) else types
+
+        def is_type(v: Any, n: str) -> bool:
+            if n == "integer":
+                return isinstance(v, int) and not isinstance(v, bool)
+            if n == "number":
+                return isinstance(v, int | float) and not isinstance(v, bool)
+            return isinstance(v, _TYPES[n])
+
+        if not any(is_type(value, n) for n in names):
+            return False
+    if "enum" in schema and value not in schema["enum"]:
+        return False
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        if "minimum" in schema and value < schema["minimum"]:
+            return False
+        if "maximum" in schema and value > schema["maximum"]:
+            return False
+    if isinstance(value, str) and "pattern" in schema and not re.search(schema["pattern"], value):
+        return False
+    if isinstance(value, list) and "items" in schema:
+        return all(conforms(v, schema["items"]) for v in value)
+    if isinstance(value, dict):
+        props = schema.get("properties", {})
+        if any(k not in value for k in schema.get("required", [])):
+            return False
+        for k, v in value.items():
+            if k in props:
+                if not conforms(v, props[k]):
+                    return False
+            elif schema.get("additionalProperties", True) is False:
+                return False
+    return True
+
+
+def strict_json(data: bytes) -> Any:
+    def bad(c: str) -> Any:
+        raise ValueError(f"non-standard JSON constant {c}")
+    return json.loads(data, parse_constant=bad)
+
+
+def test_schemas_messages_attachments_metadata(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    with recorder(path) as rec:
+        write_mixed(rec, 120)
+        rec.tick(0, {"tick": 999, "spool_cmd": float("nan")})
+        rec.event(0, 1, "weird-kind", [1, 2])       # coerced to a valid "note"
+    n_msgs = 0
+    with open(path, "rb") as f:                       # mcap's own indexed reader
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        topics = {c.topic for c in summary.channels.values()}
+        assert topics == set(TOPICS)
+        for schema, channel, message in reader.iter_messages():
+            assert schema is not None
+            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            sch = json.loads(schema.data)
+            assert sch == TOPICS[channel.topic]
+            assert sch["$schema"].startswith("https://json-schema.org/")
+            msg = strict_json(message.data)
+            assert conforms(msg, sch), (channel.topic, msg)
+            n_msgs += 1
+        atts = {a.name: a.data for a in reader.iter_attachments()}
+        assert atts["config.toml"].decode() == TOML
+        assert atts["design.npz"] == b"\x93NUMPY-design"
+        (meta,) = [m for m in reader.iter_metadata() if m.name == "rig"]
+    assert n_msgs > 120 * 3
+    assert meta.metadata["config_hash"] == config_hash(CFG)
+    assert meta.metadata["operator"] == "test" and meta.metadata["seed"] == "7"
+    versions = json.loads(meta.metadata["versions"])
+    assert {"python", "numpy", "mcap", "eclipse-zenoh", "lqg-fuzzy-rig"} <= set(versions)
+    run = read_run(path)
+    assert run.metadata["rig"]["format_version"] == "1"
+    assert run.events[-1].kind == "note"
+    assert run.events[-1].detail == {"kind": "weird-kind", "detail": [1, 2]}
+
+
+def test_checker_rejects_bad_messages() -> None:
+    """The schema checker above is not vacuous."""
+    frame = TOPICS["/can/rx"]
+    good = {"tick": 1, "t_ns": 5, "id": 256, "data": "0a0b", "dlc": 2}
+    assert conforms(good, frame)
+    assert not conforms({**good, "data": "0A0"}, frame)
+    assert not conforms({**good, "extra": 1}, frame)
+    assert not conforms({k: v for k, v in good.items() if k != "dlc"}, frame)
+    assert not conforms({**good, "tick": -1}, frame)
+    assert not conforms({**good, "tick": True}, frame)
+
+
+# ----------------------------------------------------------------------- rotation
+
+
+def test_rotation_by_size_keeps_every_item(tmp_path: Path) -> None:
+    path = tmp_path / "rot.mcap"
+    with recorder(path, rotate_bytes=16 * 1024, chunk_bytes=4096) as rec:
+        expected = write_mixed(rec, 600)
+    segs = segment_paths(path)
+    assert segs == rec.paths and len(segs) >= 3
+    assert [p.name for p in segs[:3]] == ["rot.mcap", "rot.001.mcap", "rot.002.mcap"]
+    for p in segs:
+        # footers present, each segment self-contained (attachments and metadata repeated)
+        with open(p, "rb") as f:
+            r = make_reader(f)
+            assert {a.name for a in r.iter_attachments()} == {"config.toml", "design.npz"}
+        assert p.stat().st_size < 16 * 1024 + 8 * 4096
+    run = read_run(path)
+    assert run.complete and run.segments == segs
+    assert timeline_of(path) == expected
+    assert len(read_run(path, follow_segments=False).frames) < len(run.frames)
+
+
+def test_rotation_by_time(tmp_path: Path) -> None:
+    path = tmp_path / "t.mcap"
+    with recorder(path, rotate_seconds=1.0) as rec:
+        for k in range(35):               # 3.4 s of loop time at 10 Hz
+            rec.can_frame(k * 100_000_000, k, 0x100, b"\x00" * 8, True)
+    segs = segment_paths(path)
+    assert len(segs) == 4
+    per_seg = [len(read_run(p, follow_segments=False).frames) for p in segs]
+    assert per_seg == [10, 10, 10, 5]
+
+
+# ----------------------------------------------------------------------- SIGKILL
+
+
+CHILD = """
+import sys, time
+from dataclasses import replace
+from controller.config import default_config, config_to_toml
+from rig.recording import RunRecorder
+cfg = default_config()
+rec = RunRecorder(sys.argv[1], replace(cfg.recording, chunk_bytes=4096),
+                  config_toml=config_to_toml(cfg), design_bytes=None, metadata={})
+k = 0
+while True:
+    rec.can_frame(k * 1_000_000, k, 0x100, k.to_bytes(8, "little"), True)
+    rec.tick(k * 1_000_000, {"tick": k, "rattlespace_m": k * 1e-6})
+    k += 1
+    if k % 50 == 0:
+        time.sleep(0.001)
+"""
+
+
+def raw_complete_chunk_messages(path: Path) -> int:
+    """Count messages inside the *complete* chunk records, parsing the MCAP byte layout
+    directly (spec: opcode u8, length u64; Chunk = start u64, end u64, size u64, crc u32,
+    compression str, records bytes)."""
+    data = path.read_bytes()
+    assert data[:8] == b"\x89MCAP0\r\n"
+    pos, n = 8, 0
+    while pos + 9 <= len(data):
+        op, length = struct.unpack_from("<BQ", data, pos)
+        body_at, end = pos + 9, pos + 9 + length
+        if end > len(data):
+            break                              # the torn tail
+        if op == 0x06:
+            _, _, usize, _ = struct.unpack_from("<QQQI", data, body_at)
+            off = body_at + 28
+            (clen,) = struct.unpack_from("<I", data, off)
+            comp = data[off + 4:off + 4 + clen].decode()
+            off += 4 + clen
+            (rlen,) = struct.unpack_from("<Q", data, off)
+            blob = data[off + 8:off + 8 + rlen]
+            recs = zstandard.ZstdDecompressor().decompress(blob, max_output_size=usize) \
+                if comp == "zstd" else blob
+            p = 0
+            while p < len(recs):
+                rop, rl = struct.unpack_from("<BQ", recs, p)
+                n += rop == 0x05
+                p += 9 + rl
+        pos = end
+    return n
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="SIGKILL semantics")
+def test_sigkill_leaves_readable_completed_chunks(tmp_path: Path) -> None:
+    path = tmp_path / "killed.mcap"
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(path)], cwd=ROOT,
+                            stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            if path.exists() and path.stat().st_size > 60_000:
+                break
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+            time.sleep(0.05)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)       # our own child, by PID
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    run = read_run(path)
+    assert not run.complete and run.stopped_at is not None
+    n_raw = raw_complete_chunk_messages(path)
+    frames, records = run.frames, run.records
+    assert len(frames) + len(records) == n_raw > 100
+    # a contiguous prefix, nothing corrupted
+    assert [f.tick for f in frames] == list(range(len(frames)))
+    assert all(f.data == f.tick.to_bytes(8, "little") for f in frames)
+    assert [r.tick for r in records] == list(range(len(records)))
+    assert run.attachments["config.toml"].decode() == TOML
+
+
+# ----------------------------------------------------------------------- never blocks
+
+
+def test_full_queue_drops_and_counts(tmp_path: Path) -> None:
+    path = tmp_path / "drop.mcap"
+    rec = recorder(path, queue_size=16, poll_s=2.0)
+    time.sleep(0.05)                      # writer is asleep on an empty queue
+    accepted = [rec.can_frame(k, k, 0x100, b"\x01", True) for k in range(100)]
+    assert accepted == [True] * 16 + [False] * 84
+    assert rec.tick(200, {"tick": 200}) is False
+    assert rec.event(201, 200, "fault", {"code": 3}) is True     # event headroom
+    assert rec.dropped == 85
+    rec.close()
+    assert not rec.can_frame(0, 0, 1, b"", True) and rec.dropped == 86
+    run = read_run(path)
+    assert [f.tick for f in run.frames] == list(range(16))
+    assert run.events[0].detail == {"code": 3}
+
+
+def test_malformed_record_is_skipped_not_fatal(tmp_path: Path) -> None:
+    path = tmp_path / "bad.mcap"
+    with recorder(path) as rec:
+        rec.tick(0, {"no_tick": 1})
+        rec.tick(1, {"tick": 1, "obj": object()})
+        rec.can_frame(2, 2, 0x100, b"\x02", True)
+    assert rec.malformed == 2 and rec.last_malformed is not None
+    assert [f.tick for f in read_run(path).frames] == [2]
+
+
+def test_throughput_1khz_three_frames_one_record(tmp_path: Path) -> None:
+    """Recorder load of the 1 kHz loop: 3 frames + 1 record per tick.  Reported, with a
+    loose sanity bound only (timing goals live in bench/)."""
+    n = 3000
+    rec = recorder(tmp_path / "tp.mcap", poll_s=0.002)
+    records = [tick_record(k) for k in range(n)]
+    t0 = time.perf_counter()
+    cpu0 = time.thread_time()
+    for k in range(n):
+        t = k * 1_000_000
+        rec.can_frame(t, k, 0x100, b"\x01" * 8, True)
+        rec.can_frame(t, k, 0x200, b"\x02" * 8, True)
+        rec.tick(t, records[k])
+        rec.can_frame(t, k, 0x080, b"\x03" * 8, False)
+    enqueue_s = time.thread_time() - cpu0
+    rec.close()
+    total_s = time.perf_counter() - t0
+    size = rec.paths[0].stat().st_size
+    print(f"\nrecorder: enqueue {1e6 * enqueue_s / n:.2f} us/tick on the loop thread; "
+          f"{n} ticks written in {total_s:.3f} s = {n / total_s:.0f} ticks/s "
+          f"({100 * total_s / (n / 1000):.1f} % of real time at 1 kHz); "
+          f"{size / n:.0f} B/tick zstd")
+    assert rec.dropped == 0 and len(read_run(rec.paths[0]).records) == n
+    assert n / total_s > 1000   # must at least keep up with 1 kHz

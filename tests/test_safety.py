@@ -1,0 +1,519 @@
+"""Every fault path: the safe ValveCommand (Enable=0) is on the bus within one tick of the
+fault becoming observable, the FaultReport carries the right FaultCode, FAULT latches.
+
+Tick-stepped on python-can's virtual bus, no sleeping.  The controller's side is the
+real ControlLoop; the rig's side is ``RigSide`` (hand-made frames) here and the emulated
+rig with its FaultSchedule in test_safety_hil below.
+"""
+
+from __future__ import annotations
+
+import math
+import uuid
+from dataclasses import dataclass
+from typing import Any
+
+import can
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controller.config import default_config
+from controller.force_loop import PIForceLoop
+from hil.faults import FaultSchedule
+from rig.bus import open_bus
+from rig.loop import ControlLoop
+from rig.protocol import (
+    FAULT_REPORT,
+    FAULT_REPORT_ID,
+    VALVE_COMMAND,
+    VALVE_COMMAND_ID,
+    FaultCode,
+    FaultReport,
+    LifecycleState,
+    ValveCommand,
+)
+from rig.safety import (
+    DETAIL_ACCEL,
+    DETAIL_ESTIMATOR,
+    DETAIL_FORCE,
+    DETAIL_OUTPUT,
+    DETAIL_RATTLESPACE,
+    DETAIL_RIG_STATUS,
+    DETAIL_SEND,
+    DETAIL_SENSOR_DATA,
+    FaultMonitor,
+)
+from tests.test_loop import LoopHarness, make_harness
+
+CFG = default_config()
+
+
+@pytest.fixture
+def armed() -> Any:
+    h = make_harness()
+    h.run(10)
+    h.arm()
+    h.step()
+    assert h.rig.valve[-1].enable == 1
+    yield h
+    h.close()
+
+
+def assert_faulted_now(h: LoopHarness, valves: list[Any], faults: list[Any],
+                       code: FaultCode, detail: int | None = None) -> None:
+    """The tick just run sent the safe command and a FaultReport with ``code``."""
+    assert h.loop.lifecycle.state is LifecycleState.FAULT
+    assert h.loop.lifecycle.fault_code is code
+    assert valves, "no ValveCommand sent this tick"
+    v = valves[-1]
+    assert v.enable == 0 and v.spool_command == 0.0 and v.force_reference_n == 0.0
+    assert v.lifecycle == LifecycleState.FAULT
+    assert faults, "no FaultReport sent this tick"
+    f = faults[0]
+    assert f.fault_code == code and f.fault_state == LifecycleState.FAULT
+    assert f.fault_tick == h.loop.lifecycle.fault_tick == h.loop.tick_count - 1
+    if detail is not None:
+        assert f.fault_detail == detail
+
+
+def assert_latched(h: LoopHarness, code: FaultCode, ticks: int = 110) -> None:
+    """Stays FAULT with the safe command while healthy frames flow (until reset); the
+    heartbeat reports the fault and the FaultReport is repeated with it."""
+    n_status = len(h.rig.status)
+    n_faults = len(h.rig.faults)
+    for _ in range(ticks):
+        valves, _ = h.step()
+        assert valves[-1].enable == 0
+    assert h.loop.lifecycle.state is LifecycleState.FAULT
+    assert h.loop.lifecycle.fault_code is code
+    assert not h.loop.request("arm", timeout_s=None).accepted
+    beats = h.rig.status[n_status:]
+    assert beats and all(s.active_fault == code and s.state == LifecycleState.FAULT
+                         for s in beats)
+    repeats = h.rig.faults[n_faults:]
+    assert len(repeats) == len(beats) and all(f.fault_code == code for f in repeats)
+
+
+# ---------------------------------------------------------------------------- sensor frames
+
+
+def test_sensor_stale(armed: LoopHarness) -> None:
+    h = armed
+    stale = CFG.safety.stale_ticks
+    for _ in range(stale):                     # missing but within the allowance
+        valves, _ = h.step(sensor=False)
+        assert valves[-1].enable == 1
+    valves, faults = h.step(sensor=False)      # now older than stale_ticks
+    assert_faulted_now(h, valves, faults, FaultCode.SENSOR_STALE, stale + 1)
+    assert_latched(h, FaultCode.SENSOR_STALE)
+
+
+def test_sensor_bad_crc(armed: LoopHarness) -> None:
+    valves, faults = armed.step(corrupt=True)
+    assert_faulted_now(armed, valves, faults, FaultCode.SENSOR_CRC, DETAIL_SENSOR_DATA)
+    assert_latched(armed, FaultCode.SENSOR_CRC)
+
+
+@pytest.mark.parametrize("delta", [0, 2, 5])   # 0 = stuck counter, else frames lost
+def test_sensor_counter_stuck_or_jumped(armed: LoopHarness, delta: int) -> None:
+    h = armed
+    h.rig.sd_counter = (h.rig.sd_counter - 1 + delta) % 16
+    valves, faults = h.step()
+    assert_faulted_now(h, valves, faults, FaultCode.SENSOR_COUNTER, DETAIL_SENSOR_DATA)
+
+
+@pytest.mark.parametrize(("signal", "value", "code", "detail"), [
+    ("rattlespace_m", 0.12, FaultCode.SENSOR_RANGE, DETAIL_RATTLESPACE),
+    ("rattlespace_m", -0.15, FaultCode.SENSOR_RANGE, DETAIL_RATTLESPACE),
+    ("force_n", 15500.0, FaultCode.SENSOR_RANGE, DETAIL_FORCE),
+    ("accel_mps2", -155.0, FaultCode.SENSOR_RANGE, DETAIL_ACCEL),
+])
+def test_sensor_out_of_range(armed: LoopHarness, signal: str, value: float,
+                             code: FaultCode, detail: int) -> None:
+    valves, faults = armed.step(**{signal: value})
+    assert_faulted_now(armed, valves, faults, code, detail)
+    # the bad value never reached the bank
+    assert value not in armed.rt.inputs
+
+
+@pytest.mark.parametrize("bits", [1, 2, 4, 7])
+def test_sensor_status_bits(armed: LoopHarness, bits: int) -> None:
+    valves, faults = _step_status(armed, bits)
+    assert_faulted_now(armed, valves, faults, FaultCode.SENSOR_STATUS, bits)
+
+
+def _step_status(h: LoopHarness, bits: int) -> tuple[list[Any], list[Any]]:
+    h.rig.sensor(status=bits)
+    h.loop.tick(h.t_ns)
+    h.t_ns += 1_000_000
+    return h.rig.read()
+
+
+# ---------------------------------------------------------------------------- rig status
+
+
+@pytest.mark.parametrize(("kw", "code"), [
+    ({"watchdog": 1}, FaultCode.RIG_WATCHDOG),
+    ({"supply_ok": 0}, FaultCode.SUPPLY_LOSS),
+])
+def test_rig_status_faults(armed: LoopHarness, kw: dict[str, int], code: FaultCode) -> None:
+    h = armed
+    h.rig.sensor()
+    h.rig.rig_status(**kw)
+    h.loop.tick(h.t_ns)
+    valves, faults = h.rig.read()
+    assert_faulted_now(h, valves, faults, code)
+
+
+def test_rig_status_bad_crc(armed: LoopHarness) -> None:
+    h = armed
+    h.rig.sensor()
+    msg = can.Message(arbitration_id=0x200, data=bytes(8), is_extended_id=False)
+    h.rig.bus.send(msg)
+    h.loop.tick(h.t_ns)
+    valves, faults = h.rig.read()
+    assert_faulted_now(h, valves, faults, FaultCode.SENSOR_CRC, DETAIL_RIG_STATUS)
+
+
+# ---------------------------------------------------------------------------- estimator
+
+
+@pytest.mark.parametrize(("flags", "code", "detail"), [
+    (1, FaultCode.NONFINITE, DETAIL_ESTIMATOR),       # StepFlag.NONFINITE_INPUT
+    (2, FaultCode.NONFINITE, DETAIL_ESTIMATOR),       # StepFlag.NONFINITE_STATE
+    (8, FaultCode.ESTIMATOR_DIVERGED, 0),             # StepFlag.DIVERGED
+])
+def test_estimator_flags(armed: LoopHarness, flags: int, code: FaultCode,
+                         detail: int) -> None:
+    h = armed
+    resets = h.rt.resets
+    original = h.rt.step
+
+    def bad_step(*a: float) -> float:
+        h.rt.flags = flags
+        return 0.0 if flags & 3 else original(*a)
+
+    h.rt.step = bad_step
+    valves, faults = h.step()
+    assert_faulted_now(h, valves, faults, code, detail)
+    if flags & 3:
+        assert h.rt.resets == resets + 1     # estimator restarted warm
+
+
+def test_nonfinite_estimate_output(armed: LoopHarness) -> None:
+    armed.rt.output = math.nan
+    valves, faults = armed.step()
+    assert_faulted_now(armed, valves, faults, FaultCode.NONFINITE, DETAIL_OUTPUT)
+    armed.rt.output = math.inf
+    assert_latched(armed, FaultCode.NONFINITE)
+
+
+def test_estimator_divergence_from_likelihood_quotient(armed: LoopHarness) -> None:
+    h = armed
+    n = CFG.safety.divergence_ticks
+    h.rt.q[:] = 10 * CFG.safety.estimator_divergence_q
+    h.rt.q[0] = 1.0
+    h.rt.active[0] = False                    # inactive models do not count
+    for _ in range(n - 1):
+        valves, _ = h.step()
+        assert valves[-1].enable == 1
+    valves, faults = h.step()
+    assert_faulted_now(h, valves, faults, FaultCode.ESTIMATOR_DIVERGED, 1)
+
+
+def test_exception_inside_step(armed: LoopHarness, monkeypatch: Any) -> None:
+    def boom(*a: float) -> float:
+        raise ZeroDivisionError("injected")
+
+    monkeypatch.setattr(armed.rt, "step", boom)
+    valves, faults = armed.step()
+    assert_faulted_now(armed, valves, faults, FaultCode.EXCEPTION)
+    assert "ZeroDivisionError: injected" in armed.loop.lifecycle.fault_message
+    # still raising: reset refused while the condition persists
+    res = armed.loop.request("reset", timeout_s=None)
+    assert not res.accepted and "EXCEPTION" in res.message
+
+
+def test_exception_inside_force_loop(armed: LoopHarness, monkeypatch: Any) -> None:
+    monkeypatch.setattr(armed.loop.pi, "step", lambda *a: [][1])
+    valves, faults = armed.step()
+    assert_faulted_now(armed, valves, faults, FaultCode.EXCEPTION)
+
+
+# ---------------------------------------------------------------------------- timing, bus
+
+
+def test_overrun_streak(armed: LoopHarness) -> None:
+    h = armed
+    n = CFG.safety.overrun_streak
+    late = int(CFG.safety.overrun_threshold_s * 1e9) + 1
+    h.step(lateness_ns=late)
+    h.step(lateness_ns=0)                     # streak broken
+    for _ in range(n - 1):
+        valves, _ = h.step(lateness_ns=late)
+        assert valves[-1].enable == 1
+    valves, faults = h.step(lateness_ns=late)
+    assert_faulted_now(h, valves, faults, FaultCode.OVERRUN_STREAK, n)
+
+
+@pytest.mark.parametrize(("error_class", "code"), [
+    (0x040, FaultCode.BUS_OFF),     # CAN_ERR_BUSOFF
+    (0x080, FaultCode.BUS_ERROR),   # CAN_ERR_BUSERROR
+    (0x008, FaultCode.BUS_ERROR),   # CAN_ERR_PROT
+])
+def test_error_frames(error_class: int, code: FaultCode) -> None:
+    h = make_harness(role=None)
+    h.run(10)
+    h.arm()
+    h.rig.sensor()
+    h.rig.bus.send(can.Message(arbitration_id=error_class, is_error_frame=True,
+                               data=bytes(8), is_extended_id=False))
+    h.loop.tick(h.t_ns)
+    valves, faults = h.rig.read()
+    assert_faulted_now(h, valves, faults, code, error_class & 0xFF)
+    h.close()
+
+
+def test_receive_exception(armed: LoopHarness, monkeypatch: Any) -> None:
+    def broken(timeout: float | None = None) -> can.Message | None:
+        raise can.CanOperationError("recv failed")
+
+    monkeypatch.setattr(armed.loop.bus, "recv", broken)
+    valves, faults = armed.step()
+    assert_faulted_now(armed, valves, faults, FaultCode.BUS_ERROR)
+
+
+def test_send_exception_safe_command_next_tick(armed: LoopHarness, monkeypatch: Any) -> None:
+    h = armed
+    real_send = h.loop.bus.send
+    fail = {"n": 1}
+
+    def flaky(msg: can.Message, timeout: float | None = None) -> None:
+        if fail["n"] > 0:
+            fail["n"] -= 1
+            raise can.CanOperationError("Transmit buffer full", error_code=105)
+        real_send(msg, timeout)
+
+    monkeypatch.setattr(h.loop.bus, "send", flaky)
+    valves, faults = h.step()                 # valve send failed: nothing on the bus ...
+    assert not valves
+    assert h.loop.lifecycle.state is LifecycleState.FAULT
+    assert h.loop.lifecycle.fault_code is FaultCode.BUS_ERROR
+    assert h.loop.lifecycle.fault_detail == DETAIL_SEND
+    assert faults and faults[0].fault_code == FaultCode.BUS_ERROR   # ... the report went out
+    valves, _ = h.step()                      # ... and the next tick's command is safe
+    assert valves[-1].enable == 0
+
+
+def test_fault_while_inactive_latches_too() -> None:
+    h = make_harness()
+    try:
+        h.run(5)
+        valves, faults = h.step(corrupt=True)
+        assert_faulted_now(h, valves, faults, FaultCode.SENSOR_CRC)
+    finally:
+        h.close()
+
+
+# ---------------------------------------------------------------------------- monitor unit
+
+
+def test_first_condition_of_a_tick_wins_and_all_are_counted() -> None:
+    mon = FaultMonitor(CFG)
+    mon.begin_tick()
+    mon.sensor_frame(True, 0, 0, 0.0, 0.0, 0.0)
+    mon.rig_status(True, 0, True, False)
+    mon.end_receive()
+    assert mon.code is FaultCode.RIG_WATCHDOG
+    assert mon.counts[FaultCode.SUPPLY_LOSS] == 1
+    mon.end_tick()
+    assert mon.condition is FaultCode.RIG_WATCHDOG and not mon.sensors_healthy
+
+
+def test_no_stale_fault_before_the_first_frame() -> None:
+    mon = FaultMonitor(CFG)
+    for _ in range(100):
+        mon.begin_tick()
+        mon.end_receive()
+        assert mon.code is FaultCode.NONE
+    assert "no valid SensorData" in mon.health_problem()
+
+
+finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@settings(max_examples=300, deadline=None)
+@given(rs=finite, force=finite, acc=finite)
+def test_range_check_matches_reference(rs: float, force: float, acc: float) -> None:
+    """The monitor's range verdict equals an independent statement of the rules."""
+    mon = FaultMonitor(CFG)
+    mon.begin_tick()
+    usable = mon.sensor_frame(True, 0, 0, rs, force, acc)
+    limits = [(rs, CFG.sensors.lvdt_range_m, DETAIL_RATTLESPACE),
+              (force, min(CFG.sensors.load_cell_range_n, CFG.safety.force_range_n),
+               DETAIL_FORCE),
+              (acc, CFG.sensors.accel_range_mps2, DETAIL_ACCEL)]
+    bad = [(x, d) for x, lim, d in limits if not (math.isfinite(x) and abs(x) <= lim)]
+    assert usable == (not bad)
+    if bad:
+        x, d = bad[0]
+        expect = FaultCode.SENSOR_RANGE if math.isfinite(x) else FaultCode.NONFINITE
+        assert (mon.code, mon.detail) == (expect, d)
+    else:
+        assert mon.code is FaultCode.NONE
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(0, 15), min_size=2, max_size=40))
+def test_counter_fault_iff_not_consecutive(counters: list[int]) -> None:
+    mon = FaultMonitor(CFG)
+    for i, c in enumerate(counters):
+        mon.begin_tick()
+        mon.sensor_frame(True, c, 0, 0.0, 0.0, 0.0)
+        expect_fault = i > 0 and (c - counters[i - 1]) % 16 != 1
+        assert (mon.code is FaultCode.SENSOR_COUNTER) == expect_fault
+
+
+# ---------------------------------------------------------------------------- emulated rig
+
+
+@dataclass
+class HilPair:
+    """Emulated rig (RigNode + FaultSchedule) and the real loop with the real bank on one
+    virtual channel, stepped alternately: rig tick k, then controller tick k."""
+
+    node: Any
+    loop: ControlLoop
+    spy: can.BusABC
+    buses: list[can.BusABC]
+    sent: dict[int, tuple[list[ValveCommand], list[FaultReport]]]
+
+    def step(self, n: int = 1, controller: bool = True) -> None:
+        for _ in range(n):
+            k = self.node.tick_count
+            self.node.tick()
+            if controller:                      # keyed by the controller's tick
+                j = self.loop.tick_count
+                self.loop.tick(k * 1_000_000)
+                self.sent[j] = self._read()
+
+    def _read(self) -> tuple[list[ValveCommand], list[FaultReport]]:
+        valves: list[ValveCommand] = []
+        faults: list[FaultReport] = []
+        while (msg := self.spy.recv(0.0)) is not None:
+            if msg.arbitration_id == VALVE_COMMAND_ID:
+                v = ValveCommand()
+                VALVE_COMMAND.decode(msg.data, v)
+                valves.append(v)
+            elif msg.arbitration_id == FAULT_REPORT_ID:
+                f = FaultReport()
+                FAULT_REPORT.decode(msg.data, f)
+                faults.append(f)
+        return valves, faults
+
+    def close(self) -> None:
+        for b in self.buses:
+            b.shutdown()
+
+
+@pytest.fixture(scope="module")
+def design() -> Any:
+    from hil.sim import cached_design
+    return cached_design(CFG)
+
+
+def make_hil(design: Any, faults: FaultSchedule | None = None) -> HilPair:
+    from controller.bank import BankRuntime
+    from hil.node import RigNode
+    from hil.roads import make_road
+
+    channel = f"hil-{uuid.uuid4().hex}"
+    ctl = open_bus(CFG.can, role="controller", interface="virtual", channel=channel)
+    rig = open_bus(CFG.can, role="rig", interface="virtual", channel=channel)
+    spy = open_bus(CFG.can, role="rig", interface="virtual", channel=channel)
+    road = make_road("rough-course", 11.176, 2.0, CFG.sample_time_s, seed=3)
+    node = RigNode(rig, CFG, road, faults)
+    rt = BankRuntime(design, cfg=CFG)
+    loop = ControlLoop(CFG, ctl, rt, PIForceLoop(CFG.force_loop, CFG.sample_time_s),
+                       warmup_ticks=20)
+    return HilPair(node, loop, spy, [ctl, rig, spy], {})
+
+
+ARM_TICK = 100
+FAULT_TICK = 200
+STALE = CFG.safety.stale_ticks
+
+
+@pytest.mark.parametrize(("kind", "params", "code", "observable"), [
+    ("drop", {}, FaultCode.SENSOR_STALE, FAULT_TICK + STALE),
+    ("silence", {}, FaultCode.SENSOR_STALE, FAULT_TICK + STALE),
+    ("delay", {"ticks": 5}, FaultCode.SENSOR_STALE, FAULT_TICK + STALE),
+    ("corrupt_crc", {}, FaultCode.SENSOR_CRC, FAULT_TICK),
+    ("corrupt_crc", {"frames": "status"}, FaultCode.SENSOR_CRC, FAULT_TICK),
+    ("stuck_counter", {}, FaultCode.SENSOR_COUNTER, FAULT_TICK),
+    ("stuck_counter", {"frames": "status"}, FaultCode.SENSOR_COUNTER, FAULT_TICK + 10),
+    ("out_of_range", {"signal": "force"}, FaultCode.SENSOR_RANGE, FAULT_TICK),
+    ("out_of_range", {"signal": "accel", "value": -1e9}, FaultCode.SENSOR_RANGE, FAULT_TICK),
+    ("sensor_status", {"bits": 2}, FaultCode.SENSOR_STATUS, FAULT_TICK),
+    ("supply_loss", {}, FaultCode.SUPPLY_LOSS, FAULT_TICK),
+])
+def test_fault_schedule_on_emulated_rig(design: Any, kind: str, params: dict[str, Any],
+                                        code: FaultCode, observable: int) -> None:
+    dt = CFG.sample_time_s
+    schedule = FaultSchedule.from_list(
+        [(FAULT_TICK * dt, (FAULT_TICK + 50) * dt, kind, params)])
+    h = make_hil(design, schedule)
+    try:
+        h.step(ARM_TICK)
+        assert h.loop.request("arm", timeout_s=None).accepted
+        h.step(observable - ARM_TICK)
+        assert h.loop.lifecycle.state is LifecycleState.ACTIVE   # not before it is visible
+        assert h.sent[observable - 1][0][-1].enable == 1
+        h.step()                                   # the tick the fault becomes observable
+        lc = h.loop.lifecycle
+        assert lc.state is LifecycleState.FAULT and lc.fault_code is code
+        assert lc.fault_tick == observable
+        valves, faults = h.sent[observable]
+        assert valves[-1].enable == 0 and valves[-1].spool_command == 0.0
+        assert faults and faults[0].fault_code == code
+        h.step()                                   # the rig applies it at its next tick
+        rec = h.node.record.arrays()
+        assert not rec["bypass_open"][observable]
+        assert rec["bypass_open"][observable + 1] and rec["spool_applied"][observable + 1] == 0
+        h.step(150)                                # window over: still latched
+        assert lc.state is LifecycleState.FAULT and lc.fault_code is code
+        assert all(v.enable == 0 for k in range(observable, h.node.tick_count)
+                   for v in h.sent[k][0])
+        assert h.loop.request("reset", timeout_s=None).accepted
+        h.step(30)
+        assert h.loop.request("arm", timeout_s=None).accepted
+    finally:
+        h.close()
+
+
+def test_rig_watchdog_trip_from_controller_stall(design: Any) -> None:
+    h = make_hil(design)
+    try:
+        h.step(ARM_TICK)
+        assert h.loop.request("arm", timeout_s=None).accepted
+        h.step(50)
+        h.step(10, controller=False)               # controller stalls 10 ms (> 5 ms)
+        assert h.node.watchdog_tripped
+        # the rig flags it in its next RigStatus; the controller sees it then
+        k = h.node.tick_count
+        while not h.loop.lifecycle.latched:
+            h.step()
+        lc = h.loop.lifecycle
+        assert lc.fault_code is FaultCode.RIG_WATCHDOG
+        assert lc.fault_tick <= k + 10
+        valves, faults = h.sent[lc.fault_tick]
+        assert valves[-1].enable == 0 and faults[0].fault_code == FaultCode.RIG_WATCHDOG
+        # reset is allowed (the trip is an event), arming re-enables the rig's drive
+        assert h.loop.request("reset", timeout_s=None).accepted
+        h.step(30)
+        assert h.loop.request("arm", timeout_s=None).accepted
+        h.step(3)
+        assert not h.node.watchdog_tripped
+    finally:
+        h.close()
