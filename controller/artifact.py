@@ -39,7 +39,7 @@ ARTIFACT_VERSION = 1
 FloatArray = NDArray[np.float64]
 
 
-class DesignMismatch(ValueError):
+class DesignMismatch(ValueError):  # noqa: N818 (name fixed by docs/architecture.md)
     """The artifact does not fit: wrong version, wrong configuration, missing or bad field."""
 
 
@@ -62,16 +62,16 @@ class Design:
     innovation_cov: FloatArray
     innovation_cov_inv: FloatArray
     innovation_logdet: FloatArray
-    filter_A: FloatArray
-    filter_By: FloatArray
-    filter_Bu: FloatArray
+    filter_A: FloatArray  # noqa: N815
+    filter_By: FloatArray  # noqa: N815
+    filter_Bu: FloatArray  # noqa: N815
     filter_b: FloatArray
     noise_speeds_mps: FloatArray
     noise_roughness_gd: FloatArray
     lq_gain: FloatArray
-    human_filter_Ad: FloatArray
-    human_filter_Bd: FloatArray
-    human_filter_Cd: FloatArray
+    human_filter_Ad: FloatArray  # noqa: N815
+    human_filter_Bd: FloatArray  # noqa: N815
+    human_filter_Cd: FloatArray  # noqa: N815
     fuzzy_q_grid: FloatArray
     fuzzy_weight_curve: FloatArray
     static_rattlespace_m: float

@@ -20,8 +20,8 @@ filter in every mode (telemetry; a switch of blending starts warm).
 
 Faults (never raised): a non-finite input returns 0.0 with NONFINITE_INPUT and leaves
 the state untouched.  A filter whose q, estimate or force becomes non-finite (huge
-inputs can overflow) is reset to the blended next prior of the healthy filters (or its
-equilibrium) and NONFINITE_STATE is set; a non-finite blended force returns 0.0.
+inputs can overflow) is reset to its equilibrium plus the blended deviation of the healthy
+filters (see :func:`controller.kernels.activate`) and NONFINITE_STATE is set; a non-finite blended force returns 0.0.
 min q over the contributing models above ``safety.estimator_divergence_q`` for
 ``safety.divergence_ticks`` ticks sets DIVERGED.  q is clamped to ``Q_MAX``.
 """
@@ -59,6 +59,8 @@ from controller.kernels import (
     F_STATIC,
     F_TFLOOR,
     F_THRESH,
+    F_XDEV,
+    F_XDEVM,
     F_XF,
     F_XHAT,
     F_XHATM,
@@ -284,32 +286,36 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             if iv[I_FALLBACK] == FALLBACK_BEST:
                 st[best, S_W] = 1.0
     out = 0.0
-    for i in range(8):
+    for i in range(16):
         fv[F_SCR + i] = 0.0
     wsum = 0.0
     for j in range(J):
         w = st[j, S_W]
+        if w == 0.0 and best == j and total == 0.0:
+            w = 1.0                        # passive fallback: the estimate is still the best
         if w != 0.0:
-            out += w * st[j, S_U]
+            out += st[j, S_W] * st[j, S_U]
             wsum += w
             for i in range(4):
+                xb = mat[j, i, M_XBAR]
                 fv[F_SCR + i] += w * st[j, S_XPOST + i]
                 fv[F_SCR + 4 + i] += w * st[j, S_XPRIOR + i]
-    if wsum == 0.0 and best >= 0:          # passive fallback: the estimate is still the best
-        for i in range(4):
-            fv[F_SCR + i] = st[best, S_XPOST + i]
-            fv[F_SCR + 4 + i] = st[best, S_XPRIOR + i]
-        wsum = 1.0
+                fv[F_SCR + 8 + i] += w * (st[j, S_XPOST + i] - xb)
+                fv[F_SCR + 12 + i] += w * (st[j, S_XPRIOR + i] - xb)
     if wsum > 0.0:
         for i in range(4):
             fv[F_XHAT + i] = fv[F_SCR + i]
             fv[F_XHATM + i] = fv[F_SCR + 4 + i]
+            fv[F_XDEV + i] = fv[F_SCR + 8 + i]
+            fv[F_XDEVM + i] = fv[F_SCR + 12 + i]
     # ---- recover the filters that went non-finite
     if flags & _NONFINITE_STATE:
         for j in range(J):
             if st[j, S_BAD] != 0.0:
                 for i in range(4):
-                    x = fv[F_XHATM + i] if wsum > 0.0 else mat[j, i, M_XBAR]
+                    x = mat[j, i, M_XBAR]
+                    if wsum > 0.0:
+                        x += fv[F_XDEVM + i]
                     st[j, S_XPRIOR + i] = x
                     st[j, S_XPOST + i] = x
     # ---- divergence
@@ -333,7 +339,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         out = 0.0
         flags |= _NONFINITE_STATE
     if blend == _MOVING:
-        supervise(st, active, fv, iv, nbr, vec)
+        supervise(st, active, fv, iv, nbr, vec, mat)
     iv[I_NUPD] = nupd
     iv[I_TICK] += 1
     iv[I_FLAGS] = flags
@@ -355,7 +361,7 @@ def bank_configure(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.
             if active[j] and j != single:
                 deactivate(j, st, active)
         if not active[single]:
-            activate(single, st, active, fv, QS_INIT, 1.0)
+            activate(single, st, active, fv, mat, QS_INIT, 1.0)
     elif blend == _MOVING:
         centre = -1
         qbest = np.inf
@@ -365,11 +371,11 @@ def bank_configure(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.
                 centre = j
         if centre < 0:
             centre = single
-        enter_moving(st, active, fv, iv, nbr, vec, centre)
+        enter_moving(st, active, fv, iv, nbr, vec, mat, centre)
     else:
         for j in range(J):
             if not active[j]:
-                activate(j, st, active, fv, QS_INIT, 1.0 / J)
+                activate(j, st, active, fv, mat, QS_INIT, 1.0 / J)
     total = 0.0
     for j in range(J):
         if active[j]:
@@ -394,6 +400,8 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     for i in range(4):
         fv[F_XHAT + i] = fv[F_XINIT + i]
         fv[F_XHATM + i] = fv[F_XINIT + i]
+        fv[F_XDEV + i] = 0.0
+        fv[F_XDEVM + i] = 0.0
     fv[F_THRESH] = fv[F_TFLOOR]
     fv[F_SIGNAL] = 0.0
     fv[F_HINC] = 1.0

@@ -103,7 +103,7 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
             kalman_gain[j, s] = kf.L
             f_cov[j, s] = kf.F
             f_inv[j, s] = kf.F_inv
-            f_logdet[j, s] = kf.logdet_F
+            f_logdet[j, s] = kf.logdet
             fA[j, s], fBy[j, s], fBu[j, s], fb[j, s] = fused.A, fused.By, fused.Bu, fused.b
         for w, weights in enumerate(cfg.design.weight_sets):
             gains[w, j] = lq_gain(md.model, hf, weights)

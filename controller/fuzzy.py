@@ -17,6 +17,7 @@ in the tabulated curve such grid points are NaN so the runtime can flag NO_RULE_
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -88,7 +89,7 @@ def _clipped_triangle_knots(t: Sequence[float], h: float) -> list[tuple[float, f
 
 def _segments(knots: list[tuple[float, float]]) -> list[tuple[float, float, float, float]]:
     """Non-vertical segments, plus the zero lines outside the support."""
-    return [(x0, y0, x1, y1) for (x0, y0), (x1, y1) in zip(knots[:-1], knots[1:], strict=True)
+    return [(x0, y0, x1, y1) for (x0, y0), (x1, y1) in itertools.pairwise(knots)
             if x1 > x0]
 
 
@@ -113,7 +114,7 @@ def _union_area_moment(funcs: list[list[tuple[float, float]]]) -> tuple[float, f
                 xs.add(x)
     grid = sorted(xs)
     area = moment = 0.0
-    for x0, x1 in zip(grid[:-1], grid[1:], strict=True):
+    for x0, x1 in itertools.pairwise(grid):
         h = x1 - x0
         if h <= 0.0:
             continue
@@ -131,7 +132,7 @@ def _pl_eval_open(knots: list[tuple[float, float]], x: float, side: float) -> fl
     """Limit of the piecewise-linear function at x from the side sign(side)."""
     if not knots:
         return 0.0
-    for (x0, y0), (x1, y1) in zip(knots[:-1], knots[1:], strict=True):
+    for (x0, y0), (x1, y1) in itertools.pairwise(knots):
         if x1 <= x0:
             continue
         if (side > 0 and x0 <= x < x1) or (side < 0 and x0 < x <= x1):

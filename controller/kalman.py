@@ -92,7 +92,7 @@ class SteadyStateKalman:
     L: FloatArray         # (4, 2)
     F: FloatArray         # (2, 2)
     F_inv: FloatArray     # (2, 2)
-    logdet_F: float
+    logdet: float
 
 
 @dataclass(frozen=True)

@@ -89,8 +89,10 @@ F_SIGNAL = 35       # smoothed min q of the on-ground set (moving bank)
 F_HINC = 36         # current history increment
 F_HTOT = 37         # total history weight
 F_OUT = 38          # last force reference [N]
-F_SCR = 40          # (4) scratch
-FV_HEAD = 48        # the fuzzy table starts here
+F_SCR = 40          # (16) scratch
+F_XDEV = 56         # (4) blended posterior deviation from the models' equilibria
+F_XDEVM = 60        # (4) blended next-prior deviation (bumpless starts)
+FV_HEAD = 64        # the fuzzy table starts here
 
 # --- iv: parameters
 I_J, I_G, I_BLEND, I_SINGLE, I_AIR, I_NG, I_K, I_DWELL, I_PROBE, I_DIVTICKS = range(10)
@@ -149,13 +151,16 @@ def firing_weight(q: float, fv: np.ndarray, off_grid: int, off_curve: int, G: in
 
 
 @nb.njit(**_JIT)
-def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, qs0: float,
-             p0: float) -> None:
-    """Switch filter j on, bumpless: its prior is the current blended next prior."""
+def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, mat: np.ndarray,
+             qs0: float, p0: float) -> None:
+    """Switch filter j on, bumpless: its prior is its own equilibrium plus the current
+    blended deviation from equilibrium (the models' equilibria differ -- each secant
+    tire spring carries the weight at its own deflection -- so the deviation, not the
+    absolute state, is what carries over between models)."""
     active[j] = True
     for i in range(4):
-        st[j, S_XPRIOR + i] = fv[F_XHATM + i]
-        st[j, S_XPOST + i] = fv[F_XHAT + i]
+        st[j, S_XPRIOR + i] = mat[j, i, M_XBAR] + fv[F_XDEVM + i]
+        st[j, S_XPOST + i] = mat[j, i, M_XBAR] + fv[F_XDEV + i]
     st[j, S_QS] = qs0
     st[j, S_P] = p0
     st[j, S_Q] = 0.0

@@ -61,7 +61,7 @@ class AugmentedPlant:
 
 @dataclass(frozen=True)
 class DiscreteLQProblem:
-    """The LQ problem on the sample grid: z+ = Ad z + Bd u, stage cost z'Qd z + 2 z'Nd u + Rd u^2."""
+    """Sampled LQ problem: z+ = Ad z + Bd u, stage cost z'Qd z + 2 z'Nd u + Rd u^2."""
 
     Ad: FloatArray
     Bd: FloatArray

@@ -26,7 +26,10 @@ re-centre.  So that every grid direction gets explored even with small k (a 9 x 
 and k = 3 would otherwise only ever move along the deflection axis), every probe period
 the worst non-centre member is swapped for the next candidate in the centre's
 neighbour list (round robin over the next ``nprobe`` nearest).  A newly activated
-filter starts from the blended next prior (bumpless) with the centre's smoothed q.
+filter starts bumpless -- at its own equilibrium plus the blended deviation from
+equilibrium (:func:`controller.kernels.activate`) -- with the centre's smoothed q; at
+touch-down the blend is the airborne filter's, so the returning on-ground filters start
+from the sentinel's deviation instead (the on-ground view that just passed the test).
 """
 
 from __future__ import annotations
@@ -49,6 +52,8 @@ from controller.kernels import (
     F_SIGNAL,
     F_TFLOOR,
     F_THRESH,
+    F_XDEV,
+    F_XDEVM,
     I_AIR,
     I_CENTRE,
     I_DWELL,
@@ -69,11 +74,14 @@ from controller.kernels import (
     I_SENTINEL,
     I_SINCE_RECENTRE,
     I_SINCE_SWITCH,
+    M_XBAR,
     MODE_AIR,
     MODE_GROUND,
     S_P,
     S_QS,
     S_W,
+    S_XPOST,
+    S_XPRIOR,
     V_AIR,
     activate,
     deactivate,
@@ -175,7 +183,7 @@ def history_quantile(fv: np.ndarray, iv: np.ndarray, quantile: float) -> float:
 
 @nb.njit(**_JIT)
 def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
-             iv: np.ndarray, nbr: np.ndarray, vec: np.ndarray) -> None:
+             iv: np.ndarray, nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray) -> None:
     """Active set := the k nearest grid models of ``centre`` (no airborne model)."""
     k = iv[I_K]
     ng = iv[I_NG]
@@ -194,7 +202,7 @@ def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
     for i in range(min(k, ng)):
         j = nbr[centre, i]
         if not active[j]:
-            activate(j, st, active, fv, qs0, p0)
+            activate(j, st, active, fv, mat, qs0, p0)
     iv[I_CENTRE] = centre
     iv[I_SINCE_RECENTRE] = 0
     iv[I_PROBE_PTR] = 0
@@ -203,17 +211,17 @@ def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
 
 @nb.njit(**_JIT)
 def enter_moving(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
-                 nbr: np.ndarray, vec: np.ndarray, centre: int) -> None:
+                 nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray, centre: int) -> None:
     """Start the moving bank on the ground, centred on ``centre``."""
     iv[I_MODE] = MODE_GROUND
     iv[I_SENTINEL] = -1
     iv[I_SINCE_SWITCH] = 0
-    _move_to(centre, st, active, fv, iv, nbr, vec)
+    _move_to(centre, st, active, fv, iv, nbr, vec, mat)
 
 
 @nb.njit(**_JIT)
 def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
-              nbr: np.ndarray, vec: np.ndarray) -> None:
+              nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray) -> None:
     """After a tick: learn the threshold, switch sets, re-centre or probe (for next tick)."""
     J = st.shape[0]
     dwell = iv[I_DWELL]
@@ -239,7 +247,7 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
             for j in range(J):
                 if active[j] and j != centre:
                     deactivate(j, st, active)
-            activate(air, st, active, fv, st[centre, S_QS], 1.0)
+            activate(air, st, active, fv, mat, st[centre, S_QS], 1.0)
             st[centre, S_P] = 0.0
             st[centre, S_W] = 0.0
             iv[I_SENTINEL] = centre
@@ -249,7 +257,7 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
             return
         if best >= 0 and best != centre and iv[I_SINCE_RECENTRE] >= dwell \
                 and st[best, S_QS] < fv[F_RECENTRE] * st[centre, S_QS]:
-            _move_to(best, st, active, fv, iv, nbr, vec)
+            _move_to(best, st, active, fv, iv, nbr, vec, mat)
             iv[I_NRECENTRE] += 1
             return
         nprobe = iv[I_NPROBE]
@@ -270,7 +278,7 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
                                 worst = j
                         if worst >= 0:
                             deactivate(worst, st, active)
-                            activate(cand, st, active, fv, st[centre, S_QS], 1.0 / k)
+                            activate(cand, st, active, fv, mat, st[centre, S_QS], 1.0 / k)
                         break
     else:
         sentinel = iv[I_SENTINEL]
@@ -283,4 +291,8 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
             iv[I_SENTINEL] = -1
             iv[I_SINCE_SWITCH] = 0
             iv[I_NSWITCH] += 1
-            _move_to(sentinel, st, active, fv, iv, nbr, vec)
+            # the new on-ground filters start from the sentinel's (on-ground) estimate
+            for i in range(4):
+                fv[F_XDEV + i] = st[sentinel, S_XPOST + i] - mat[sentinel, i, M_XBAR]
+                fv[F_XDEVM + i] = st[sentinel, S_XPRIOR + i] - mat[sentinel, i, M_XBAR]
+            _move_to(sentinel, st, active, fv, iv, nbr, vec, mat)

@@ -114,6 +114,8 @@ class ReferenceBank:
         self.xf = np.zeros(2)
         self.xhat = self.xinit.copy()
         self.xhatm = self.xinit.copy()
+        self.xdev = np.zeros(4)
+        self.xdevm = np.zeros(4)
         self.thresh = self.t_floor
         self.hist = np.zeros(HIST_BINS)
         self.nlearn = 0
@@ -134,8 +136,8 @@ class ReferenceBank:
 
     def _activate(self, j: int, qs0: float, p0: float) -> None:
         self.active[j] = True
-        self.x_prior[j] = self.xhatm
-        self.x_post[j] = self.xhat
+        self.x_prior[j] = self.xbar[j] + self.xdevm
+        self.x_post[j] = self.xbar[j] + self.xdev
         self.qs[j] = qs0
         self.p[j] = p0
         self.q[j] = self.wt[j] = self.u[j] = self.f[j] = 0.0
@@ -235,13 +237,15 @@ class ReferenceBank:
                 w[best] = 1.0
         self.wt = w
         out = float(w @ self.u)
-        if w.sum() > 0.0:
-            self.xhat, self.xhatm = w @ self.x_post, w @ self.x_prior
-        elif best >= 0:
-            self.xhat, self.xhatm = self.x_post[best].copy(), self.x_prior[best].copy()
-        have_blend = w.sum() > 0.0 or best >= 0
+        we = w.copy()
+        if we.sum() == 0.0 and best >= 0:
+            we[best] = 1.0            # the estimate of the best model, even when passive
+        if we.sum() > 0.0:
+            self.xhat, self.xhatm = we @ self.x_post, we @ self.x_prior
+            self.xdev = we @ (self.x_post - self.xbar)
+            self.xdevm = we @ (self.x_prior - self.xbar)
         for j in np.flatnonzero(bad):
-            x = self.xhatm if have_blend else self.xbar[j]
+            x = self.xbar[j] + self.xdevm if we.sum() > 0.0 else self.xbar[j].copy()
             self.x_prior[j] = x
             self.x_post[j] = x
         qmin = float(np.min(self.q[contrib])) if contrib.any() else math.inf
@@ -342,4 +346,65 @@ class ReferenceBank:
                 centre = self.sentinel
                 self.sentinel = -1
                 self.since_switch = 0
+                self.xdev = self.x_post[centre] - self.xbar[centre]
+                self.xdevm = self.x_prior[centre] - self.xbar[centre]
                 self._move_to(centre)
+
+
+# ============================================================================ test plant
+
+
+def quarter_car_measurements(cfg: RigConfig, dt_s: float, road_velocity_mps: FloatArray,
+                             force_n: FloatArray, rng: np.random.Generator, *,
+                             deflection_m: float | None = None, damping_scale: float = 1.0,
+                             noise: bool = True) -> dict[str, FloatArray]:
+    """Measurements of a piecewise-linear quarter car (for tests of the bank).
+
+    The tire is the secant spring/damper of the model linearised at ``deflection_m``
+    (default: the static deflection) while it pushes (x2 > 0 and Kt x2 + Ct x2' > 0) and
+    absent otherwise (lift-off); each tick uses the exact ZOH step of the current regime.
+    Returns ``rattlespace`` (about static, like the LVDT), ``accel`` (zs''), ``force``,
+    ``contact`` (bool) and the true states ``x`` (n, 4).
+    """
+    from controller.human_filter import discretize_zoh
+    from controller.plant import (
+        GRAVITY_INPUT,
+        linear_model,
+        static_tire_deflection_m,
+        tire_damping_ns_per_m,
+        tire_secant_stiffness_n_per_m,
+    )
+
+    v = cfg.vehicle
+    x2j = static_tire_deflection_m(cfg) if deflection_m is None else deflection_m
+    kt = tire_secant_stiffness_n_per_m(x2j, cfg.tire)
+    ct = tire_damping_ns_per_m(x2j, cfg.tire) * damping_scale
+    on = linear_model(v, kt, ct)
+    off = linear_model(v, 0.0, 0.0)
+    g = v.gravity_mps2
+    steps = []
+    for mdl in (on, off):
+        Phi, Gam = discretize_zoh(mdl.A, np.column_stack([mdl.B2, mdl.B1, GRAVITY_INPUT]), dt_s)
+        steps.append((Phi, Gam))
+    assert on.equilibrium is not None
+    x = on.equilibrium.copy()
+    n = int(road_velocity_mps.shape[0])
+    out = {"rattlespace": np.zeros(n), "accel": np.zeros(n), "force": np.asarray(force_n),
+           "contact": np.zeros(n, dtype=bool), "x": np.zeros((n, 4))}
+    static_rattle = v.sprung_mass_kg * g / v.suspension_stiffness_n_per_m
+    for k in range(n):
+        wdot = float(road_velocity_mps[k])
+        u = float(force_n[k])
+        contact = x[1] > 0.0 and kt * x[1] + ct * (wdot - x[3]) > 0.0
+        mdl = on if contact else off
+        out["contact"][k] = contact
+        out["x"][k] = x
+        acc = float(mdl.C_meas[1] @ x + mdl.D_meas[1] * u - g)
+        out["rattlespace"][k] = x[0] - x[1] - static_rattle
+        out["accel"][k] = acc
+        Phi, Gam = steps[0] if contact else steps[1]
+        x = Phi @ x + Gam @ np.array([u, wdot, g])
+    if noise:
+        out["rattlespace"] = out["rattlespace"] + rng.normal(0.0, cfg.noise.rattlespace_std_m, n)
+        out["accel"] = out["accel"] + rng.normal(0.0, cfg.noise.accel_std_mps2, n)
+    return out

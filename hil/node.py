@@ -62,6 +62,8 @@ __all__ = ["NodeRecord", "NodeStats", "RigNode"]
 
 DEFAULT_WATCHDOG_S = 0.005
 DEFAULT_STATUS_RATE_HZ = 100.0
+_NO_WINDOWS: list[FaultWindow] = []  # never mutated
+_NO_KINDS: frozenset[FaultKind] = frozenset()
 
 
 @dataclass
@@ -276,8 +278,9 @@ class RigNode:
     def tick(self) -> None:
         """One rig tick (receive, watchdog, plant, sensors, transmit).  Never sleeps."""
         k = self.tick_count
-        active = self.faults.active(k) if self.faults.windows else []
-        kinds = {w.kind for w in active}
+        active = self.faults.active(k) if self.faults.windows else _NO_WINDOWS
+        kinds: frozenset[FaultKind] | set[FaultKind] = (
+            {w.kind for w in active} if active else _NO_KINDS)
         silent = FaultKind.SILENCE in kinds
         self._receive()
 

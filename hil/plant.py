@@ -204,12 +204,17 @@ class RigPlant:
     non-finite state sets :attr:`nonfinite` (and stays so until :meth:`reset`).
 
     ``params`` overrides M, m, K, C and scales the tire stiffness and damping laws.
+    ``lvdt_zero`` is where the LVDT reads 0: ``"nominal"`` (M g / K of the configured
+    nominal rig, the DBC contract) or ``"actual"`` (this plant's own static rattlespace,
+    as a rig calibrated at rest reads; differs only when ``params`` perturbs M or K).
     """
 
     def __init__(self, cfg: RigConfig, params: PlantParams | None = None,
-                 substeps: int = 20) -> None:
+                 substeps: int = 20, lvdt_zero: str = "nominal") -> None:
         if substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
+        if lvdt_zero not in ("nominal", "actual"):
+            raise ValueError(f"lvdt_zero {lvdt_zero!r}: allowed 'nominal', 'actual'")
         self.cfg = cfg
         self.params = params or PlantParams()
         self.p = _param_vector(cfg, self.params)
@@ -225,8 +230,10 @@ class RigPlant:
         self.supply_lost = False
         self.time_s = 0.0
         self.nonfinite = False
-        self.static_rattlespace_m = float(self.p[P_R0])   # nominal M g / K (LVDT zero)
         self.reset()
+        eq = self.equilibrium()
+        self.static_rattlespace_m = (float(self.p[P_R0]) if lvdt_zero == "nominal"
+                                     else float(eq[0] - eq[1]))    # the LVDT zero
 
     # ------------------------------------------------------------------ state
     def equilibrium(self) -> FloatArray:

@@ -84,11 +84,12 @@ def _make_runtime(controller: str, design: Design, cfg: RigConfig, weight_set: i
 def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: int = 1, *,
              delay_ticks: int = 0, seed: int | None = None, params: PlantParams | None = None,
              design: Design | None = None, settle_s: float = 0.0,
-             latch_on_sensor_status: bool = True) -> SimResult:
+             latch_on_sensor_status: bool = True, lvdt_zero: str = "nominal") -> SimResult:
     """Closed-loop run of ``controller`` over ``road`` (sampled at the controller rate).
 
     ``params`` perturbs the plant (the controller keeps its nominal design); ``design``
-    defaults to ``design_bank(cfg)`` (memoised).  Raises ValueError on bad arguments.
+    defaults to ``design_bank(cfg)`` (memoised); ``lvdt_zero`` see :class:`RigPlant`.
+    Raises ValueError on bad arguments.
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}: use one of "
@@ -102,7 +103,7 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
         raise ValueError(f"road sampled at {road.dt_s} s but the controller runs at {dt} s")
     n = road.n_ticks
     substeps = max(1, math.ceil(dt / MAX_INNER_STEP_S - 1e-9))
-    plant = RigPlant(cfg, params, substeps=substeps)
+    plant = RigPlant(cfg, params, substeps=substeps, lvdt_zero=lvdt_zero)
     sensors = SensorSuite(cfg.sensors, cfg.noise, seed, dt_s=dt)
     active = controller != "passive"
     rt: Any = None
@@ -179,8 +180,9 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
                               tr["off_ground_s"], tr["bump_stop_s"], settle_s=settle_s,
                               human_filter=(cfg.design.human_filter_num,
                                             cfg.design.human_filter_den))
-    penetration = float(np.max(np.abs(tr["rattlespace_m"]))) - v.rattlespace_travel_m \
-        if n_done else 0.0
+    zero_offset = plant.static_rattlespace_m - float(plant.p[12])   # LVDT zero - r0
+    penetration = (float(np.max(np.abs(tr["rattlespace_m"] + zero_offset)))
+                   - v.rattlespace_travel_m) if n_done else 0.0
     slam = penetration > SLAM_PENETRATION_M
     metrics.update({
         "duration_s": n_done * dt,

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
-from collections.abc import Iterator, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from typing import Any, Final
 
 import can
@@ -74,7 +74,8 @@ def receive_filters(role: str | None) -> list[dict[str, Any]] | None:
 def open_bus(can_cfg: CanConfig, *, role: str | None = None, **overrides: Any) -> can.BusABC:
     """Open the bus described by ``can_cfg`` (``interface``, ``channel``, ``fd``).
 
-    ``role`` ("controller", "rig", "monitor" or None) sets the receive filters;
+    ``role`` ("controller", "rig", "monitor" or None) sets the kernel receive filters
+    (SocketCAN; the virtual bus gets none, see below);
     ``overrides`` replace config values (``interface=``, ``channel=``, ``fd=``) or are
     passed through to python-can (``can_filters=``, ``rx_queue_size=``...).
     Raises :class:`ConfigError` for an unknown interface and ``can.CanError`` /
@@ -84,11 +85,16 @@ def open_bus(can_cfg: CanConfig, *, role: str | None = None, **overrides: Any) -
     channel = overrides.pop("channel", can_cfg.channel)
     fd = bool(overrides.pop("fd", can_cfg.fd))
     overrides.pop("bitrate", None)  # a SocketCAN bit rate belongs to the kernel interface
-    overrides.setdefault("can_filters", receive_filters(role))
+    filters = receive_filters(role)
     overrides.setdefault("receive_own_messages", False)
     if interface == "socketcan":
+        overrides.setdefault("can_filters", filters)
         return can.Bus(interface="socketcan", channel=channel, fd=fd, **overrides)
     if interface == "virtual":
+        # no role filters here: python-can filters the virtual bus in software, and then
+        # recv(timeout=0) returns None at the first non-matching frame although matching
+        # ones are queued behind it.  Consumers dispatch by ID (or pass ``ids`` to
+        # iter_pending / drain_latest).  Explicit ``can_filters=`` are still honoured.
         return can.Bus(interface="virtual", channel=channel, **overrides)
     raise ConfigError("can.interface", interface, "one of 'socketcan', 'virtual'")
 
@@ -152,10 +158,12 @@ def safe_send(bus: can.BusABC, msg: can.Message, timeout: float | None = 0.0) ->
 
 
 def iter_pending(bus: can.BusABC, max_frames: int = 4096,
-                 faults: list[FaultCode] | None = None) -> Iterator[can.Message]:
+                 faults: list[FaultCode] | None = None,
+                 ids: Collection[int] | None = None) -> Iterator[can.Message]:
     """Yield every frame already received (``recv(timeout=0)`` loop), at most
-    ``max_frames``.  Error frames and receive exceptions end up in ``faults`` (if given)
-    as FaultCodes; error frames are not yielded.  Never blocks, never raises."""
+    ``max_frames`` read, only standard-ID frames in ``ids`` if given.  Error frames and
+    receive exceptions end up in ``faults`` (if given) as FaultCodes; error frames are
+    not yielded.  Never blocks, never raises."""
     for _ in range(max_frames):
         try:
             msg = bus.recv(timeout=0.0)
@@ -170,18 +178,22 @@ def iter_pending(bus: can.BusABC, max_frames: int = 4096,
             if fault and faults is not None:
                 faults.append(fault)
             continue
+        if ids is not None and (msg.is_extended_id or msg.arbitration_id not in ids):
+            continue
         yield msg
 
 
 def drain_latest(bus: can.BusABC, latest: dict[int, can.Message],
-                 max_frames: int = 4096) -> tuple[int, FaultCode]:
-    """Read all pending frames, keeping the latest per arbitration ID in ``latest``.
+                 max_frames: int = 4096,
+                 ids: Collection[int] | None = None) -> tuple[int, FaultCode]:
+    """Read all pending frames, keeping the latest per arbitration ID in ``latest``
+    (only IDs in ``ids`` if given).
 
-    Returns (data frames read, worst bus fault seen: NONE < BUS_ERROR < BUS_OFF).
+    Returns (data frames kept, worst bus fault seen: NONE < BUS_ERROR < BUS_OFF).
     """
     faults: list[FaultCode] = []
     n = 0
-    for msg in iter_pending(bus, max_frames, faults):
+    for msg in iter_pending(bus, max_frames, faults, ids):
         latest[msg.arbitration_id] = msg
         n += 1
     return n, max(faults, default=FaultCode.NONE)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -79,7 +78,8 @@ COMMANDS = ("arm", "disarm", "reset", "blending", "weight_set", "road")
 class Runtime(Protocol):
     """What the loop needs of ``controller.bank.BankRuntime``."""
 
-    flags: Any
+    @property
+    def flags(self) -> Any: ...
     q: np.ndarray
     firing_weight: np.ndarray
     probability: np.ndarray
@@ -92,7 +92,7 @@ class Runtime(Protocol):
     def reset(self) -> None: ...
     def set_blending(self, b: Any) -> None: ...
     def set_weight_set(self, w: int) -> None: ...
-    def set_road(self, speed_mps: float, roughness_gd: float) -> None: ...
+    def set_road(self, speed_mps: float, roughness_gd: float) -> Any: ...
 
 
 class ForceLoop(Protocol):
@@ -139,7 +139,8 @@ class ControlLoop:
                  telemetry: Telemetry | None = None, notifier: SdNotifier | None = None,
                  blending: int = 0, weight_set: int | None = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns,
-                 spin_ns: int = 60_000, warmup_ticks: int | None = None) -> None:
+                 spin_ns: int = 60_000, warmup_ticks: int | None = None,
+                 timing_ring: int = 1 << 16) -> None:
         self.cfg = cfg
         self.bus = bus
         self.rt = runtime
@@ -162,7 +163,8 @@ class ControlLoop:
         self.lifecycle.add_listener(self._on_transition)
         self.monitor = FaultMonitor(cfg)
         self.timing = TimingStats(self.period_ns,
-                                  round(cfg.safety.overrun_threshold_s * 1e9))
+                                  round(cfg.safety.overrun_threshold_s * 1e9),
+                                  ring_size=timing_ring)
         # preallocated frames
         self._valve_msg = make_tx_message(VALVE_COMMAND.frame_id)
         self._fault_msg = make_tx_message(FAULT_REPORT.frame_id)
@@ -597,8 +599,10 @@ class ControlLoop:
 
     # ------------------------------------------------------------------ pacing
     def run(self, stop: threading.Event, max_ticks: int | None = None,
-            on_tick: Callable[[ControlLoop], None] | None = None) -> None:
-        """Tick at the configured rate until ``stop`` is set (or ``max_ticks`` ticks).
+            on_tick: Callable[[ControlLoop], None] | None = None,
+            duration_s: float | None = None) -> None:
+        """Tick at the configured rate until ``stop`` is set, ``max_ticks`` ticks were
+        done or ``duration_s`` of wall time has passed (skipped deadlines included).
 
         ``on_tick`` (if given) runs after each tick in the loop thread: keep it cheap."""
         clock = self.clock_ns
@@ -608,6 +612,7 @@ class ControlLoop:
         timing = self.timing
         deadline = clock() + period
         end = None if max_ticks is None else self.tick_count + max_ticks
+        end_ns = None if duration_s is None else deadline + round(duration_s * 1e9) - period
         while not stop.is_set():
             remaining = deadline - clock()
             if remaining > spin:
@@ -625,6 +630,8 @@ class ControlLoop:
                 deadline += missed * period
                 timing.add_skipped(missed)
             if end is not None and self.tick_count >= end:
+                break
+            if end_ns is not None and deadline > end_ns:
                 break
 
     def shutdown(self, reason: str = "shutdown") -> None:

@@ -10,6 +10,7 @@ semantics and the TLS / access-control set-up for a rig network: ``docs/telemetr
 from __future__ import annotations
 
 import json
+import math
 import queue
 import threading
 import time
@@ -30,6 +31,7 @@ COMMANDS: dict[str, dict[str, tuple[type, ...]]] = {
     "reset": {},
     "weight_set": {"weight_set": (int,)},
     "blending": {"blending": (str, int)},
+    "road": {"speed_mps": (int, float), "roughness_gd": (int, float)},
 }
 _PERIODIC_S = 1.0  # lifecycle / fault are re-published at least this often
 
@@ -67,6 +69,8 @@ def validate_command(name: str, args: object) -> dict[str, Any]:
         if isinstance(v, bool) or not isinstance(v, types):
             raise ValueError(f"command {name!r}: {key}={v!r} must be "
                              f"{' or '.join(t.__name__ for t in types)}")
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"command {name!r}: {key}={v!r} must be finite")
     return args
 
 

@@ -116,7 +116,7 @@ def test_steady_state_covariance_is_fixed_point_of_eq_3_3_to_3_8() -> None:
                                atol=1e-10 * np.max(np.abs(kf.P_prior)))
     np.testing.assert_allclose(kf.F, F, rtol=1e-12)
     np.testing.assert_allclose(kf.F @ kf.F_inv, np.eye(2), atol=1e-10)
-    assert kf.logdet_F == pytest.approx(math.log(np.linalg.det(F)), rel=1e-12)
+    assert kf.logdet == pytest.approx(math.log(np.linalg.det(F)), rel=1e-12)
 
 
 @pytest.mark.parametrize("j", range(len(MDS)))

@@ -9,6 +9,7 @@ import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import can
@@ -21,6 +22,7 @@ from hil.node import RigNode
 from hil.roads import make_road
 from rig.bus import make_tx_message
 from rig.protocol import (
+    RIG_RX_IDS,
     RIG_STATUS,
     RIG_STATUS_ID,
     SENSOR_DATA,
@@ -243,3 +245,127 @@ def test_run_realtime_stops_on_event_and_duration() -> None:
         assert h.node.run(stop, realtime=True).ticks == 50
         h.node.run(threading.Event(), realtime=False, duration_s=0.1)
         assert h.node.tick_count == 150
+
+
+# ----------------------------------------------------------------- rig.bus
+
+
+def test_open_bus_role_filters_and_drain_latest() -> None:
+    from rig.bus import drain_latest, open_bus, safe_send
+
+    channel = f"test-{uuid.uuid4().hex}"
+    cfg = CFG.can
+    ctl = open_bus(cfg, role="controller", channel=channel)
+    rig = open_bus(cfg, role="rig", channel=channel, interface="virtual")
+    try:
+        msg = make_tx_message(VALVE_COMMAND_ID)
+        VALVE_COMMAND.encode(msg.data, 1, 1, 1, 0.5, 0.0, 0)
+        assert safe_send(ctl, msg) == 0
+        sd = make_tx_message(SENSOR_DATA_ID)
+        for c in range(3):
+            SENSOR_DATA.encode(sd.data, c, 0, 0.001 * c, 0.0, 0.0)
+            assert safe_send(rig, sd) == 0
+        latest: dict[int, can.Message] = {}
+        n, fault = drain_latest(ctl, latest)
+        assert (n, fault) == (3, 0) and set(latest) == {SENSOR_DATA_ID}
+        out = SensorData()
+        assert SENSOR_DATA.decode(latest[SENSOR_DATA_ID].data, out) is DecodeStatus.OK
+        assert out.counter == 2  # the latest one
+        n, _ = drain_latest(rig, latest)
+        assert n == 1 and VALVE_COMMAND_ID in latest  # the rig sees the command only
+        assert drain_latest(rig, latest)[0] == 0  # nothing left, did not block
+        # software ID filter: a foreign frame ahead of a wanted one does not end the drain
+        foreign = can.Message(arbitration_id=0x555, is_extended_id=False, data=b"\0")
+        ctl.send(foreign)
+        ctl.send(msg)
+        latest.clear()
+        assert drain_latest(rig, latest, ids=RIG_RX_IDS) == (1, 0)
+        assert set(latest) == {VALVE_COMMAND_ID}
+    finally:
+        ctl.shutdown()
+        rig.shutdown()
+    # a shut-down bus: mapped to a fault, not raised
+    from rig.protocol import FaultCode
+    assert safe_send(ctl, msg) is FaultCode.BUS_ERROR
+    assert drain_latest(ctl, {}) == (0, FaultCode.BUS_ERROR)
+
+
+def test_open_bus_rejects_unknown_role_and_interface() -> None:
+    from controller.config import ConfigError
+    from rig.bus import open_bus
+
+    with pytest.raises(ConfigError):
+        open_bus(CFG.can, role="spectator")
+    with pytest.raises(ConfigError):
+        open_bus(CFG.can, interface="pcan")
+
+
+def test_bus_error_classification() -> None:
+    import errno
+
+    from rig.bus import classify_bus_exception, classify_error_frame
+    from rig.protocol import FaultCode
+
+    assert classify_bus_exception(OSError(errno.ENETDOWN, "down")) is FaultCode.BUS_OFF
+    assert classify_bus_exception(OSError(errno.ENOBUFS, "full")) is FaultCode.BUS_ERROR
+    op = can.CanOperationError("send failed", error_code=errno.ENETDOWN)
+    assert classify_bus_exception(op) is FaultCode.BUS_OFF
+    assert classify_bus_exception(can.CanOperationError("x")) is FaultCode.BUS_ERROR
+
+    def err(cls: int, data: bytes = b"\0" * 8) -> can.Message:
+        return can.Message(arbitration_id=cls, is_error_frame=True, data=data)
+
+    assert classify_error_frame(err(0x40)) is FaultCode.BUS_OFF
+    assert classify_error_frame(err(0x80)) is FaultCode.BUS_ERROR
+    assert classify_error_frame(err(0x20)) is FaultCode.BUS_ERROR  # no ACK
+    assert classify_error_frame(err(0x04, b"\x00\x10" + b"\0" * 6)) is FaultCode.BUS_ERROR
+    assert classify_error_frame(err(0x04, b"\x00\x40" + b"\0" * 6)) is FaultCode.NONE
+    assert classify_error_frame(err(0x02)) is FaultCode.NONE  # lost arbitration
+    assert classify_error_frame(can.Message(arbitration_id=0x100)) is FaultCode.NONE
+
+
+# ----------------------------------------------------------------- rig hil
+
+
+def test_rig_hil_cli_runs_and_summarises(capsys: pytest.CaptureFixture[str],
+                                         tmp_path: Path) -> None:
+    from rig.cli import main
+
+    faults = tmp_path / "f.toml"
+    faults.write_text('[[faults]]\nkind = "silence"\nstart_s = 0.01\nend_s = 0.03\n')
+    rc = main(["hil", "--interface", "virtual", "--channel", f"t-{uuid.uuid4().hex}",
+               "--road", "bump", "--duration", "0.05", "--faults", str(faults), "--seed", "2"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "ticks=50 sent=33 " in out  # 50 + 5 frames minus 20 + 2 silenced
+    assert "watchdog_trips=0" in out
+
+
+@pytest.mark.parametrize("argv", [["--road", "nope"], ["--duration", "-1"],
+                                  ["--watchdog-ms", "0"]])
+def test_rig_hil_cli_bad_arguments(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    from rig.cli import main
+
+    assert main(["hil", "--interface", "virtual", "--duration", "0.01", *argv]) == 2
+    assert "rig hil:" in capsys.readouterr().err
+
+
+def test_rig_hil_process_stops_on_sigterm() -> None:
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "hil", "--interface", "virtual",
+                             "--channel", f"t-{uuid.uuid4().hex}", "--road", "bump"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(2.5)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert out.startswith("rig hil: ") and "ticks=" in out

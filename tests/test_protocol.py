@@ -246,3 +246,17 @@ def test_full_scale_spool_is_in_range() -> None:
     buf[0] = crc8_bitwise(bytes([0x80, 0x00]) + bytes(buf[1:]))
     assert VALVE_COMMAND.decode(buf, out) is DecodeStatus.OUT_OF_RANGE
     assert out.range_mask == 4
+
+
+def test_codec_bench_runs_quick() -> None:
+    import importlib.util
+
+    path = Path(__file__).parents[1] / "bench" / "codec_bench.py"
+    spec = importlib.util.spec_from_file_location("codec_bench", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rows = mod.run(quick=True)
+    assert len(rows) == 10
+    assert all(r["ours_us"] > 0 and r["cantools_us"] > 0 for r in rows)
+    assert "speedup" in mod.format_table(rows)

@@ -24,7 +24,7 @@ from mcap.reader import make_reader
 
 from controller.config import RecordingConfig, config_hash, config_to_toml, default_config
 from rig.mcap_schema import SIGNAL_KEYS, TIMING_KEYS, TOPICS
-from rig.recording import RunRecorder, read_run, segment_paths
+from rig.recording import CanFrameRecord, EventRecord, RunRecorder, read_run, segment_paths
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)
@@ -88,10 +88,10 @@ def timeline_of(path: Path) -> list[tuple[str, Any]]:
     run = read_run(path)
     out: list[tuple[str, Any]] = []
     for item in run.timeline():
-        if hasattr(item, "arbitration_id"):
+        if isinstance(item, CanFrameRecord):
             out.append(("frame", (item.t_ns, item.tick, item.arbitration_id, item.data,
                                   item.is_rx)))
-        elif hasattr(item, "kind"):
+        elif isinstance(item, EventRecord):
             out.append(("event", (item.t_ns, item.tick, item.kind, item.detail)))
         else:
             out.append(("record", (item.t_ns, item.tick, item.data)))
@@ -202,7 +202,7 @@ def test_schemas_messages_attachments_metadata(tmp_path: Path) -> None:
     with recorder(path) as rec:
         write_mixed(rec, 120)
         rec.tick(0, {"tick": 999, "spool_cmd": float("nan")})
-        rec.event(0, 1, "weird-kind", [1, 2])       # coerced to a valid "note"
+        rec.event(0, 1, "weird-kind", [1, 2])  # type: ignore[arg-type]  # -> "note"
     n_msgs = 0
     with open(path, "rb") as f:                       # mcap's own indexed reader
         reader = make_reader(f)

@@ -190,8 +190,9 @@ def query(session: zenoh.Session, key: str, payload: str | None = None
           ) -> list[tuple[bool, dict[str, Any]]]:
     out = []
     for r in session.get(key, payload=payload, timeout=3.0):
-        body = (r.ok or r.err).payload.to_bytes()
-        out.append((r.ok is not None, json.loads(body)))
+        answer = r.ok if r.ok is not None else r.err
+        assert answer is not None
+        out.append((r.ok is not None, json.loads(answer.payload.to_bytes())))
     return out
 
 
@@ -199,7 +200,12 @@ def test_status_queryable_answers(rig: Rig, port: int) -> None:
     s2 = client_session(port)
     try:
         replies: list[tuple[bool, dict[str, Any]]] = []
-        assert wait_for(lambda: bool(replies.extend(query(s2, "rig/status")) or replies))
+
+        def answered() -> bool:
+            replies.extend(query(s2, "rig/status"))
+            return bool(replies)
+
+        assert wait_for(answered)
         ok, body = replies[0]
         assert ok
         assert body["lifecycle"] == "INACTIVE" and body["tick"] == 42
@@ -287,8 +293,9 @@ _arg = st.one_of(st.integers(), st.text(max_size=5), st.booleans(), st.none(), s
 
 
 @given(name=st.one_of(st.sampled_from(sorted(COMMANDS)), st.text(max_size=8)),
-       args=st.one_of(st.dictionaries(st.sampled_from(["weight_set", "blending", "x"]), _arg,
-                                      max_size=3), _arg))
+       args=st.one_of(st.dictionaries(st.sampled_from(
+           ["weight_set", "blending", "x", "speed_mps", "roughness_gd"]), _arg, max_size=3),
+           _arg))
 def test_validate_command_property(name: str, args: Any) -> None:
     expected_ok = (
         isinstance(args, dict)
@@ -298,6 +305,9 @@ def test_validate_command_property(name: str, args: Any) -> None:
                 and type(args["weight_set"]) is int)
             or (name == "blending" and list(args) == ["blending"]
                 and type(args["blending"]) in (int, str))
+            or (name == "road" and sorted(args) == ["roughness_gd", "speed_mps"]
+                and all(type(v) is int or (type(v) is float and v - v == 0)
+                        for v in args.values()))
         )
     )
     try:
@@ -376,15 +386,23 @@ def test_tls_and_access_control_from_deploy_config(tmp_path: Path, port: int) ->
         for cn in ("rig-operator", "rig-viewer", None):
             s2 = tls_client(port, tmp_path, cn)
             got: list[int] = []
-            sub = s2.declare_subscriber(
-                "rig/state", lambda smp, got=got: got.append(json.loads(
-                    smp.payload.to_bytes())["tick"]))
+
+            def on_state(smp: zenoh.Sample, got: list[int] = got) -> None:
+                got.append(json.loads(smp.payload.to_bytes())["tick"])
+
+            def status_ok(s2: zenoh.Session = s2) -> bool:
+                return bool(query(s2, "rig/status"))
+
+            def all_three(got: list[int] = got) -> bool:
+                return len(got) == 3
+
+            sub = s2.declare_subscriber("rig/state", on_state)
             try:
-                connected = wait_for(lambda s2=s2: bool(query(s2, "rig/status")), 3)
+                connected = wait_for(status_ok, 3)
                 for k in range(3):
                     tp.offer({"tick": k, "t_ns": k, "state": {"k": k}})
                     time.sleep(0.05)
-                wait_for(lambda got=got: len(got) == 3, 2 if connected else 0.3)
+                wait_for(all_three, 2 if connected else 0.3)
                 results[cn] = (connected, len(got), query(s2, "rig/cmd/arm"))
             finally:
                 sub.undeclare()

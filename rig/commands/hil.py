@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         pass
     try:
         node = RigNode(bus, cfg, road, faults, watchdog_timeout_s=args.watchdog_ms * 1e-3,
-                       seed=seed, record_ticks=1)
+                       seed=seed, record_ticks=1, fd=cfg.can.fd)
         t0 = time.monotonic()
         stats = node.run(stop, realtime=True, duration_s=args.duration)
         wall = time.monotonic() - t0

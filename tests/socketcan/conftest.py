@@ -12,9 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.socketcan.support import MEASUREMENTS, Children, vcan_status
+from tests.socketcan.support import CHANNEL, MEASUREMENTS, Children, vcan_status
 
-CHANNEL = os.environ.get("SOCKETCAN_CHANNEL", "vcan0")
 _HERE = Path(__file__).resolve().parent
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 PYTHON = sys.executable
 DBC_PATH = REPO / "rig" / "rig.dbc"
+CHANNEL = os.environ.get("SOCKETCAN_CHANNEL", "vcan0")
 
 
 #: name -> (value, unit, note): measurements the tests make, printed at the end of the run
@@ -147,7 +148,8 @@ class Child:
         return self.proc.pid
 
     def output(self) -> str:
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text(errors="replace")
 
     def wait_for_output(self, pattern: str, timeout_s: float) -> re.Match[str]:

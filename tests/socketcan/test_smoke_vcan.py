@@ -147,3 +147,28 @@ def test_can_logger_capture_decodes_with_the_dbc(
     lines = [ln for ln in cli.stdout.splitlines() if "SensorData(" in ln]
     assert len(lines) == len(readings), cli.stdout
     assert "LoadCellForce: 100.0 N" in lines[0], lines[0]
+
+
+def test_error_frames_cross_vcan_between_processes(channel: str, children: Children,
+                                                   tmp_path: Path) -> None:
+    """Error frames (CAN_ERR_FLAG) written by one process reach another's socket when it
+    asks for them: the way the end-to-end tests inject BUS_ERROR / BUS_OFF."""
+    err_ids = (0x080, 0x040)  # CAN_ERR_BUSERROR, CAN_ERR_BUSOFF (linux/can/error.h)
+    dump = children.start("candump", ["candump", "-L", "-n", str(len(err_ids)),
+                                      f"{channel},7FF:7FF,#FFFFFFFF"])
+    time.sleep(0.5)
+    with _bus(channel) as rx, can.Bus(interface="socketcan", channel=channel) as tx:
+        for err in err_ids:
+            tx.send(can.Message(arbitration_id=err, is_error_frame=True, data=bytes(8),
+                                is_extended_id=False))
+        got = []
+        deadline = time.monotonic() + 5
+        while len(got) < len(err_ids) and time.monotonic() < deadline:
+            msg = rx.recv(timeout=0.5)
+            if msg is not None and msg.is_error_frame:
+                got.append(msg.arbitration_id & 0x1FFFFFFF)
+    assert got == list(err_ids)
+    assert dump.wait(timeout_s=10) == 0
+    log = tmp_path / "err.log"
+    log.write_text(dump.output())
+    assert [f.arbitration_id for f in read_candump_log(log)] == [0x20000000 | e for e in err_ids]

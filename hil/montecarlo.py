@@ -1,0 +1,175 @@
+"""Monte Carlo robustness runs (thesis Ch. IV): the plant's M, m, K, Kt, C, Ct drawn
+normal around nominal, the controller kept at its nominal design.
+
+Runs execute in parallel (``concurrent.futures.ProcessPoolExecutor``, one process per
+core by default) with a tqdm progress bar.  Each run is a :func:`hil.sim.simulate` call;
+the summary gives mean / std / min / max of every metric and lists the unstable runs
+(non-finite state, bump-stop slamming) and the runs with a latched fault.  ``plot_runs``
+draws the rattlespace traces of all runs (like the thesis's Fig. 4.1) with matplotlib's
+Agg backend.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.config import RigConfig
+from hil.plant import PlantParams
+from hil.roads import Road
+from hil.sim import cached_design, simulate
+
+__all__ = ["MonteCarloResult", "draw_params", "plot_runs", "run_montecarlo", "summarise"]
+
+FloatArray = NDArray[np.float64]
+
+#: a drawn factor is kept at least this fraction of nominal (a 5 % spread never gets here)
+MIN_FACTOR = 0.2
+TRACE_DECIMATION = 10
+
+
+@dataclass
+class MonteCarloResult:
+    runs: list[dict[str, Any]]                 # params + metrics per run, in run order
+    summary: dict[str, dict[str, float]]       # metric -> mean, std, min, max
+    unstable_runs: list[int]
+    faulted_runs: list[int]
+    traces: list[FloatArray] = field(default_factory=list)   # decimated rattlespace [m]
+    trace_dt_s: float = 0.0
+    png: str | None = None
+
+
+def draw_params(cfg: RigConfig, runs: int, spread: float | dict[str, float] = 0.05,
+                seed: int = 0) -> list[PlantParams]:
+    """``runs`` plant perturbations: each of M, m, K, C, Kt (scale), Ct (scale) is
+    nominal x N(1, spread) (``spread`` may be per parameter: keys M, m, K, C, Kt, Ct)."""
+    if runs < 1:
+        raise ValueError(f"runs must be >= 1, got {runs}")
+    names = ("M", "m", "K", "C", "Kt", "Ct")
+    if isinstance(spread, dict):
+        unknown = set(spread) - set(names)
+        if unknown:
+            raise ValueError(f"unknown spread keys {sorted(unknown)}: use {names}")
+        sd = np.array([spread.get(n, 0.05) for n in names])
+    else:
+        sd = np.full(len(names), float(spread))
+    if np.any(~np.isfinite(sd)) or np.any(sd < 0) or np.any(sd > 0.5):
+        raise ValueError(f"spread must be in [0, 0.5], got {spread}")
+    rng = np.random.default_rng(seed)
+    factors = np.maximum(1.0 + sd * rng.standard_normal((runs, len(names))), MIN_FACTOR)
+    v = cfg.vehicle
+    return [PlantParams(sprung_mass_kg=v.sprung_mass_kg * f[0],
+                        unsprung_mass_kg=v.unsprung_mass_kg * f[1],
+                        suspension_stiffness_n_per_m=v.suspension_stiffness_n_per_m * f[2],
+                        suspension_damping_ns_per_m=v.suspension_damping_ns_per_m * f[3],
+                        tire_stiffness_scale=float(f[4]), tire_damping_scale=float(f[5]))
+            for f in factors]
+
+
+def _one_run(args: tuple[Any, ...]) -> tuple[int, dict[str, float], FloatArray]:
+    i, cfg, road, controller, weight_set, params, design, seed, lvdt_zero = args
+    res = simulate(cfg, road, controller, weight_set, params=params, design=design,
+                   seed=seed, lvdt_zero=lvdt_zero)
+    return i, res.metrics, res.traces["rattlespace_m"][::TRACE_DECIMATION].copy()
+
+
+def summarise(metrics: list[dict[str, float]]) -> dict[str, dict[str, float]]:
+    """mean, std, min, max of every metric over the runs (NaN-aware)."""
+    out: dict[str, dict[str, float]] = {}
+    for key in metrics[0]:
+        x = np.array([m[key] for m in metrics], dtype=float)
+        finite = x[np.isfinite(x)]
+        if finite.size == 0:
+            out[key] = {"mean": math.nan, "std": math.nan, "min": math.nan, "max": math.nan}
+            continue
+        out[key] = {"mean": float(finite.mean()), "std": float(finite.std()),
+                    "min": float(finite.min()), "max": float(finite.max())}
+    return out
+
+
+def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "fuzzy",
+                   weight_set: int = 1, spread: float | dict[str, float] = 0.05,
+                   seed: int = 0, workers: int | None = None, progress: bool = True,
+                   out_dir: str | Path | None = None,
+                   lvdt_zero: str = "actual") -> MonteCarloResult:
+    """Run ``runs`` perturbed plants in parallel; write ``montecarlo.png`` (and
+    ``montecarlo.json``) into ``out_dir`` if given.
+
+    ``lvdt_zero="actual"``: each perturbed rig's LVDT is zeroed at its own static
+    position (calibrated at rest, like the thesis's deviation-coordinate models);
+    ``"nominal"`` keeps the nominal zero, so the controller also sees the static offset
+    M g / K - M_nom g / K_nom (about 9 mm for +5 % M).
+    """
+    params = draw_params(cfg, runs, spread, seed)
+    design = cached_design(cfg) if controller != "passive" else None
+    workers = max(1, min(workers or os.cpu_count() or 1, runs))
+    tasks = [(i, cfg, road, controller, weight_set, p, design, seed + 1000 + i, lvdt_zero)
+             for i, p in enumerate(params)]
+    results: list[tuple[int, dict[str, float], FloatArray] | None] = [None] * runs
+    bar: Any = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=runs, desc=f"monte carlo {controller}", unit="run")
+    if workers == 1:
+        for t in tasks:
+            results[t[0]] = _one_run(t)
+            if bar is not None:
+                bar.update(1)
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = [pool.submit(_one_run, t) for t in tasks]
+            for fut in as_completed(futures):
+                i, m, tr = fut.result()
+                results[i] = (i, m, tr)
+                if bar is not None:
+                    bar.update(1)
+    if bar is not None:
+        bar.close()
+    done = [r for r in results if r is not None]
+    metrics = [r[1] for r in done]
+    run_rows = [{"run": i, **{k: v for k, v in asdict(params[i]).items()}, **m}
+                for i, m, _ in done]
+    result = MonteCarloResult(
+        runs=run_rows, summary=summarise(metrics),
+        unstable_runs=[i for i, m, _ in done if m["unstable"]],
+        faulted_runs=[i for i, m, _ in done if m["n_faults"]],
+        traces=[tr for _, _, tr in done], trace_dt_s=road.dt_s * TRACE_DECIMATION)
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        title = (f"Monte Carlo: {controller} (weights {weight_set}), {road.name} at "
+                 f"{road.speed_mps:g} m/s, {runs} runs")
+        result.png = str(plot_runs(result, out / "montecarlo.png", title))
+        import json
+        (out / "montecarlo.json").write_text(json.dumps(
+            {"summary": result.summary, "unstable_runs": result.unstable_runs,
+             "faulted_runs": result.faulted_runs, "runs": result.runs}, indent=1))
+    return result
+
+
+def plot_runs(result: MonteCarloResult, path: str | Path, title: str = "") -> Path:
+    """Rattlespace traces of every run on one axis (thesis Fig. 4.1 style)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
+    for i, tr in enumerate(result.traces):
+        t = np.arange(tr.shape[0]) * result.trace_dt_s
+        style = "r-" if i in result.unstable_runs else "-"
+        ax.plot(t, 1000.0 * tr, style, lw=0.7, alpha=0.8)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("rattlespace about static [mm]")
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    p = Path(path)
+    fig.savefig(p)
+    plt.close(fig)
+    return p

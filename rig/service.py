@@ -1,0 +1,261 @@
+"""The controller service: everything built from the configuration, run until told to stop.
+
+``Service(cfg, ServiceOptions(...))`` loads the design artifact (or designs the bank at
+start), opens the bus, the recording (MCAP, own thread) and the telemetry (Zenoh, own
+thread), and builds the :class:`rig.loop.ControlLoop`.  :meth:`Service.run`:
+
+1. real-time set-up of the loop thread (best effort, reported: :mod:`rig.realtime`);
+2. systemd ``READY=1`` (+ ``STATUS=``), the loop then pings ``WATCHDOG=1`` itself at half
+   of ``WATCHDOG_USEC`` (:mod:`rig.sdnotify`);
+3. SIGTERM / SIGINT set the stop event (handlers installed in the main thread);
+4. the loop runs until stopped or ``duration_s``; with ``arm`` it arms as soon as the
+   sensors are healthy and the estimator is warm;
+5. shutdown: STOPPING, the safe ValveCommand and a SHUTDOWN FaultReport go out, the
+   recording is closed completely (summary + footer), exit status 0.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import signal
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import can
+
+from controller.config import RigConfig, config_hash, config_to_toml
+from rig.loop import ControlLoop
+from rig.realtime import RealtimeReport, RealtimeRequest, apply_realtime, restore_gc
+from rig.sdnotify import SdNotifier
+
+__all__ = ["BLENDING_NAMES", "Service", "ServiceOptions", "design_bytes", "parse_blending"]
+
+log = logging.getLogger(__name__)
+
+BLENDING_NAMES = ("fuzzy", "bayes", "moving", "single")
+
+
+def parse_blending(value: str | int) -> int:
+    """'fuzzy' / 'FUZZY' / 0 -> 0 ...; ValueError names the allowed values."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        if 0 <= value < len(BLENDING_NAMES):
+            return value
+    elif isinstance(value, str) and value.lower() in BLENDING_NAMES:
+        return BLENDING_NAMES.index(value.lower())
+    raise ValueError(f"blending {value!r}: allowed {', '.join(BLENDING_NAMES)} or 0..3")
+
+
+@dataclass(frozen=True)
+class ServiceOptions:
+    design_path: str | None = None        # artifact (.npz); None = design at start
+    interface: str | None = None          # overrides cfg.can.interface
+    channel: str | None = None            # overrides cfg.can.channel
+    arm: bool = False                     # arm as soon as healthy
+    arm_after_s: float = 0.0              # ... but not before this much run time
+    duration_s: float | None = None       # None = until SIGTERM / SIGINT
+    record: str | None = None             # directory or .mcap path; None = cfg.recording
+    recording: bool | None = None         # None = cfg.recording.enabled
+    telemetry: bool | None = None         # None = cfg.telemetry.enabled
+    blending: str | int = "fuzzy"
+    weight_set: int | None = None         # None = cfg.design.weight_set
+    realtime: RealtimeRequest | None = field(default_factory=RealtimeRequest)  # None = none
+    install_signal_handlers: bool = True
+    timing_ring: int = 1 << 16            # per-tick timing samples kept (ring buffer)
+
+
+def design_bytes(design: Any) -> bytes:
+    """The artifact bytes of ``design`` (for the recording's attachment)."""
+    from controller.artifact import save_design
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "design.npz"
+        save_design(design, path)
+        return path.read_bytes()
+
+
+class Service:
+    """One controller service instance (see the module docstring)."""
+
+    def __init__(self, cfg: RigConfig, opts: ServiceOptions | None = None, *,
+                 bus: can.BusABC | None = None, notifier: SdNotifier | None = None,
+                 metadata: dict[str, Any] | None = None) -> None:
+        from controller.bank import BankRuntime
+        from controller.force_loop import PIForceLoop
+
+        self.cfg = cfg
+        self.opts = opts = opts or ServiceOptions()
+        self.stop_event = threading.Event()
+        self.realtime_report = RealtimeReport()
+        self.exit_reason = ""
+        self._own_bus = bus is None
+        t0 = time.monotonic()
+        if opts.design_path:
+            from controller.artifact import load_design
+
+            self.design = load_design(opts.design_path, cfg)
+            self.design_blob = Path(opts.design_path).read_bytes()
+            log.info("design loaded from %s", opts.design_path)
+        else:
+            from controller.design import design_bank
+
+            self.design = design_bank(cfg)
+            self.design_blob = design_bytes(self.design)
+            log.info("bank designed at start in %.1f s", time.monotonic() - t0)
+        blending = parse_blending(opts.blending)
+        weight_set = cfg.design.weight_set if opts.weight_set is None else opts.weight_set
+        self.runtime = BankRuntime(self.design, blending=blending, weight_set=weight_set,
+                                   cfg=cfg)
+        self.force_loop = PIForceLoop(cfg.force_loop, cfg.sample_time_s)
+        if bus is None:
+            from rig.bus import open_bus
+
+            interface = opts.interface or cfg.can.interface
+            # virtual bus: no software receive filters (python-can's recv(timeout=0)
+            # returns None at the first filtered frame); the loop ignores unknown IDs.
+            role = "controller" if interface == "socketcan" else None
+            bus = open_bus(cfg.can, role=role, interface=interface,
+                           channel=opts.channel or cfg.can.channel)
+        self.bus = bus
+        self.notifier = notifier if notifier is not None else SdNotifier.from_environment()
+        self.recorder: Any = None
+        self.telemetry: Any = None
+        record_on = cfg.recording.enabled if opts.recording is None else opts.recording
+        if opts.record is not None:
+            record_on = True
+        if record_on:
+            from rig.recording import RunRecorder
+
+            target = opts.record or cfg.recording.directory
+            meta = {"source": "rig run", "config_hash": config_hash(cfg),
+                    "sample_rate_hz": cfg.design.sample_rate_hz, "blending": blending,
+                    "weight_set": weight_set, "models": list(map(str, self.design.model_names))}
+            meta.update(metadata or {})
+            self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
+                                        design_bytes=self.design_blob, metadata=meta)
+        self.loop = ControlLoop(cfg, bus, self.runtime, self.force_loop,
+                                recorder=self.recorder, notifier=self.notifier,
+                                blending=blending, weight_set=weight_set,
+                                timing_ring=opts.timing_ring)
+        telemetry_on = cfg.telemetry.enabled if opts.telemetry is None else opts.telemetry
+        if telemetry_on:
+            from rig.telemetry import TelemetryPublisher
+
+            self.telemetry = TelemetryPublisher(cfg.telemetry, self.status,
+                                                self.command_handler)
+            self.loop.telemetry = self.telemetry
+        self._arm_pending = opts.arm
+        self._arm_after_ticks = round(opts.arm_after_s * cfg.design.sample_rate_hz)
+        self._closed = False
+
+    # ------------------------------------------------------------------ outside views
+    @property
+    def recording_path(self) -> Path | None:
+        return None if self.recorder is None else Path(self.recorder.base_path)
+
+    def status(self) -> dict[str, Any]:
+        """Status for the telemetry's ``status`` queryable (runs on a Zenoh thread)."""
+        s = self.loop.status()
+        s["realtime"] = self.realtime_report.as_dict()
+        s["recording"] = str(self.recording_path) if self.recording_path else None
+        return s
+
+    def command_handler(self, name: str, args: dict[str, Any]) -> str:
+        """Telemetry command -> the loop (waits <= 50 ms); ValueError when refused."""
+        if name == "weight_set":
+            arg: Any = int(args["weight_set"])
+        elif name == "blending":
+            arg = parse_blending(args["blending"])
+        else:
+            arg = None
+        res = self.loop.request(name, arg, timeout_s=0.05)
+        if not res.accepted:
+            raise ValueError(res.message)
+        return res.message
+
+    # ------------------------------------------------------------------ running
+    def _install_signals(self) -> dict[int, Any]:
+        previous: dict[int, Any] = {}
+        if not self.opts.install_signal_handlers:
+            return previous
+        if threading.current_thread() is not threading.main_thread():
+            log.warning("not in the main thread: SIGTERM/SIGINT handlers not installed")
+            return previous
+
+        def on_signal(signum: int, _frame: FrameType | None) -> None:
+            self.exit_reason = signal.Signals(signum).name
+            self.stop_event.set()
+
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            previous[sig] = signal.signal(sig, on_signal)
+        return previous
+
+    def _on_tick(self, loop: ControlLoop) -> None:
+        if self._arm_pending and loop.tick_count >= self._arm_after_ticks \
+                and not loop.health_problem():
+            self._arm_pending = False
+            res = loop.request("arm", timeout_s=None)
+            if not res.accepted:
+                log.warning("arm on start refused: %s", res.message)
+
+    def run(self, on_tick: Callable[[ControlLoop], None] | None = None) -> int:
+        """Run until SIGTERM / SIGINT / ``stop_event`` / ``duration_s``; returns 0."""
+        previous = self._install_signals()
+        try:
+            if self.opts.realtime is not None:
+                self.realtime_report = apply_realtime(self.opts.realtime)
+            self.notifier.ready(f"{self.loop.lifecycle.state.name}; "
+                                f"{self.realtime_report.summary()}")
+
+            def tick_hook(loop: ControlLoop) -> None:
+                self._on_tick(loop)
+                if on_tick is not None:
+                    on_tick(loop)
+
+            self.loop.run(self.stop_event, on_tick=tick_hook, duration_s=self.opts.duration_s)
+            if not self.exit_reason:
+                self.exit_reason = "stop requested" if self.stop_event.is_set() else "duration"
+        finally:
+            self.close()
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        return 0
+
+    def close(self) -> None:
+        """Shutdown frames, recording closed completely, bus and telemetry closed."""
+        if self._closed:
+            return
+        self._closed = True
+        self.notifier.stopping(f"stopping: {self.exit_reason or 'close'}")
+        self.loop.shutdown(self.exit_reason or "shutdown")
+        if self.opts.realtime is not None and self.opts.realtime.freeze_gc:
+            restore_gc()
+        if self.telemetry is not None:
+            self.telemetry.close()
+        if self.recorder is not None:
+            self.recorder.close()
+            if self.recorder.error:
+                log.error("recording: %s", self.recorder.error)
+        if self._own_bus:
+            try:
+                self.bus.shutdown()
+            except (can.CanError, OSError):
+                log.exception("bus shutdown")
+        self.notifier.close()
+        log.info("service stopped (%s): %s", self.exit_reason or "close",
+                 _fmt_timing(self.loop.timing.summary()))
+
+
+def _fmt_timing(s: dict[str, float | int]) -> str:
+    out = io.StringIO()
+    out.write(f"{s['ticks']} ticks, lateness p50/p99/max {s['lateness_p50_us']:.0f}/"
+              f"{s['lateness_p99_us']:.0f}/{s['lateness_max_us']:.0f} us, "
+              f"step p99 {s['step_p99_us']:.0f} us, overruns {s['overruns']}, "
+              f"skipped {s['skipped']}")
+    return out.getvalue()

@@ -1,0 +1,170 @@
+"""Design bank and artifact: shapes, save/load round trip, mismatch detection, CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller.artifact import (
+    ARTIFACT_VERSION,
+    Design,
+    DesignMismatch,
+    load_design,
+    save_design,
+)
+from controller.config import config_hash, default_config
+from controller.design import design_bank
+from controller.fuzzy import firing_weight
+from controller.human_filter import human_filter
+from controller.lq import lq_gain
+from controller.plant import model_family
+from controller.road_noise import road_velocity_intensity
+from rig.cli import main
+
+CFG = default_config()
+
+
+@pytest.fixture(scope="module")
+def design() -> Design:
+    return design_bank(CFG)
+
+
+def test_shapes_and_fields(design: Design) -> None:
+    J = len(model_family(CFG))
+    S = len(CFG.noise.speeds_mps) * len(CFG.noise.road_roughness_gd)
+    assert design.n_models == J == 4
+    assert design.n_noise == S == 20
+    assert design.lq_gain.shape == (2, J, 6)
+    assert design.airborne.tolist() == [False, False, False, True]
+    assert design.grid_index.tolist() == [[0, 0], [1, 0], [2, 0], [-1, -1]]
+    assert np.all(np.isnan(design.equilibrium[3]))
+    assert design.dt_s == pytest.approx(1e-3)
+    assert design.y_offset.tolist() == [0.0, -CFG.vehicle.gravity_mps2]
+    assert design.static_rattlespace_m == pytest.approx(500 * 9.80665 / 27.4e3)
+    md = design.metadata
+    assert md["artifact_version"] == ARTIFACT_VERSION
+    assert md["config_hash"] == config_hash(CFG)
+    for key in ("config_toml", "numpy_version", "scipy_version", "control_version",
+                "created_utc"):
+        assert md[key]
+
+
+def test_gains_and_curve_are_the_component_results(design: Design) -> None:
+    hf = human_filter(CFG.design, CFG.sample_time_s)
+    for j, model in enumerate(model_family(CFG)):
+        for w, ws in enumerate(CFG.design.weight_sets):
+            np.testing.assert_array_equal(design.lq_gain[w, j], lq_gain(model, hf, ws))
+    assert np.all(design.lq_gain[:, 3] == 0.0)
+    np.testing.assert_array_equal(design.human_filter_Ad, hf.Ad)
+    for i in range(0, design.fuzzy_q_grid.size, 250):
+        assert design.fuzzy_weight_curve[i] == firing_weight(float(design.fuzzy_q_grid[i]),
+                                                             CFG.fuzzy)
+
+
+def test_noise_table_order_and_monotonicity(design: Design) -> None:
+    """s = i_speed * Nr + i_rough; more road noise -> larger innovation covariance."""
+    Nr = design.noise_roughness_gd.size
+    for j in range(3):
+        dets = design.innovation_logdet[j]
+        for i_s in range(design.noise_speeds_mps.size):
+            row = dets[i_s * Nr:(i_s + 1) * Nr]
+            assert np.all(np.diff(row) > 0)
+    w = [road_velocity_intensity(v, g) for v in CFG.noise.speeds_mps
+         for g in CFG.noise.road_roughness_gd]
+    assert design.noise_index(2, 3) == 2 * Nr + 3
+    assert w[design.noise_index(2, 3)] == pytest.approx(
+        road_velocity_intensity(CFG.noise.speeds_mps[2], CFG.noise.road_roughness_gd[3]))
+
+
+def test_every_filter_stable(design: Design) -> None:
+    rho = np.max(np.abs(np.linalg.eigvals(design.filter_A)), axis=-1)
+    assert np.all(rho < 1.0)
+
+
+def test_save_load_round_trip(design: Design, tmp_path: Path) -> None:
+    p = tmp_path / "design.npz"
+    save_design(design, p)
+    back = load_design(p, CFG)
+    for f in Design.__dataclass_fields__:
+        a, b = getattr(design, f), getattr(back, f)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype.kind == b.dtype.kind
+        else:
+            assert a == b
+
+
+def test_config_mismatch_raises(design: Design, tmp_path: Path) -> None:
+    p = tmp_path / "design.npz"
+    save_design(design, p)
+    other = CFG.replace(vehicle={"sprung_mass_kg": 450.0})
+    with pytest.raises(DesignMismatch, match="rig design"):
+        load_design(p, other)
+    load_design(p)  # without a config no hash check
+
+
+def test_version_and_corruption_detected(design: Design, tmp_path: Path) -> None:
+    p = tmp_path / "design.npz"
+    save_design(design, p)
+    with np.load(p) as npz:
+        data = {k: npz[k] for k in npz.files}
+    meta = json.loads(str(data["metadata"]))
+    meta["artifact_version"] = ARTIFACT_VERSION + 1
+    bad = tmp_path / "v.npz"
+    np.savez(bad, **{**data, "metadata": np.asarray(json.dumps(meta))})
+    with pytest.raises(DesignMismatch, match="version"):
+        load_design(bad)
+    missing = tmp_path / "m.npz"
+    np.savez(missing, **{k: v for k, v in data.items() if k != "kalman_gain"})
+    with pytest.raises(DesignMismatch, match="kalman_gain"):
+        load_design(missing)
+    shape = tmp_path / "s.npz"
+    np.savez(shape, **{**data, "lq_gain": data["lq_gain"][:, :, :5]})
+    with pytest.raises(DesignMismatch, match="lq_gain"):
+        load_design(shape)
+    nan = tmp_path / "n.npz"
+    fa = data["filter_A"].copy()
+    fa[0, 0, 0, 0] = np.nan
+    np.savez(nan, **{**data, "filter_A": fa})
+    with pytest.raises(DesignMismatch, match="non-finite"):
+        load_design(nan)
+    junk = tmp_path / "j.npz"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(DesignMismatch):
+        load_design(junk)
+    with pytest.raises(FileNotFoundError):
+        load_design(tmp_path / "nope.npz")
+
+
+def test_cli_design_writes_artifact_and_json(tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "d.npz"
+    assert main(["design", "--out", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert set(summary["models"]) == {"x2_40mm", "x2_25mm", "x2_10mm", "airborne"}
+    d = load_design(out, CFG)
+    m = summary["models"]["x2_25mm"]
+    np.testing.assert_allclose(m["lq"]["weight_set_1"]["gain"], d.lq_gain[0, 1])
+    poles = m["lq"]["weight_set_1"]["closed_loop_poles"]
+    assert len(poles) == 6 and all(p["abs"] < 1.0 for p in poles)
+    # continuous equivalent of a discrete pole: |z| = exp(-zeta wn dt)
+    for p in poles:
+        assert p["abs"] == pytest.approx(np.exp(-p["zeta"] * p["wn_rad_s"] * d.dt_s), rel=1e-9)
+    k = m["kalman"]
+    np.testing.assert_allclose(k["gain"], d.kalman_gain[1, k["noise_entry"]])
+    assert k["speed_mps"] == pytest.approx(CFG.noise.nominal_speed_mps)
+    assert k["roughness_gd"] == pytest.approx(CFG.noise.nominal_roughness_gd)
+
+
+def test_cli_design_plain_and_bad_config(tmp_path: Path,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "d.npz"
+    assert main(["design", "--out", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[design]\nsample_rate_hz = -5\n")
+    assert main(["design", "--config", str(bad), "--out", str(out)]) == 2
+    assert "sample_rate_hz" in capsys.readouterr().err

@@ -1,0 +1,85 @@
+"""Monte Carlo robustness runs (hil/montecarlo.py, ``rig montecarlo``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller.config import default_config
+from hil.montecarlo import draw_params, run_montecarlo, summarise
+from hil.roads import make_road
+from hil.sim import simulate
+from rig.cli import main
+
+CFG = default_config()
+DT = CFG.sample_time_s
+
+
+def test_draws_are_normal_around_nominal_and_reproducible() -> None:
+    params = draw_params(CFG, 4000, 0.05, seed=3)
+    v = CFG.vehicle
+    f = np.array([[p.sprung_mass_kg / v.sprung_mass_kg, p.unsprung_mass_kg / v.unsprung_mass_kg,
+                   p.suspension_stiffness_n_per_m / v.suspension_stiffness_n_per_m,
+                   p.suspension_damping_ns_per_m / v.suspension_damping_ns_per_m,
+                   p.tire_stiffness_scale, p.tire_damping_scale] for p in params])
+    np.testing.assert_allclose(f.mean(axis=0), 1.0, atol=0.005)
+    np.testing.assert_allclose(f.std(axis=0), 0.05, rtol=0.06)
+    assert np.abs(np.corrcoef(f.T) - np.eye(6)).max() < 0.06      # independent draws
+    assert draw_params(CFG, 3, 0.05, seed=3) == params[:3]
+    per = draw_params(CFG, 500, {"M": 0.1, "K": 0.0}, seed=1)
+    assert np.std([p.sprung_mass_kg for p in per]) / v.sprung_mass_kg == pytest.approx(
+        0.1, rel=0.1)
+    assert {p.suspension_stiffness_n_per_m for p in per} == {v.suspension_stiffness_n_per_m}
+
+
+@pytest.mark.parametrize("bad", [-0.1, 0.9, float("nan"), {"X": 0.1}])
+def test_bad_spread_rejected(bad: object) -> None:
+    with pytest.raises(ValueError):
+        draw_params(CFG, 2, bad)  # type: ignore[arg-type]
+
+
+def test_summary_matches_numpy() -> None:
+    rows = [{"a": 1.0, "b": 2.0}, {"a": 3.0, "b": float("nan")}, {"a": 5.0, "b": 4.0}]
+    s = summarise(rows)
+    assert s["a"] == {"mean": 3.0, "std": pytest.approx(np.std([1, 3, 5])), "min": 1.0,
+                      "max": 5.0}
+    assert s["b"]["mean"] == 3.0
+
+
+def test_zero_spread_runs_reproduce_the_nominal_run_in_parallel(tmp_path: Path) -> None:
+    road = make_road("bump", 11.176, 1.5, DT)
+    res = run_montecarlo(CFG, road, 3, controller="passive", spread=0.0, workers=2,
+                         progress=False, out_dir=tmp_path)
+    nominal = simulate(CFG, road, "passive").metrics
+    for key in ("absorbed_power", "rattlespace_peak_m", "tire_load_rms_ratio"):
+        assert res.summary[key]["std"] == 0.0
+        assert res.summary[key]["mean"] == pytest.approx(nominal[key], rel=1e-12)
+    assert res.unstable_runs == [] and len(res.traces) == 3
+    png = Path(res.png or "")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "montecarlo.json").exists()
+
+
+def test_active_runs_and_unstable_detection() -> None:
+    road = make_road("rough-course", 11.176, 2.0, DT, seed=2)
+    res = run_montecarlo(CFG, road, 2, controller="fuzzy", spread=0.05, workers=1,
+                         progress=False)
+    assert len(res.runs) == 2 and res.unstable_runs == []
+    assert res.summary["force_rms_n"]["min"] > 0.0
+    tight = CFG.replace(vehicle={"rattlespace_travel_m": 0.006})
+    bump = make_road("bump", 11.176, 1.5, DT)
+    res = run_montecarlo(tight, bump, 2, controller="passive", workers=1, progress=False)
+    assert res.unstable_runs == [0, 1]
+
+
+def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["montecarlo", "--runs", "2", "--duration", "1", "--road", "bump",
+               "--controller", "passive", "--workers", "1", "--no-progress",
+               "--out", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "absorbed_power" in out and "unstable runs: none" in out
+    assert (tmp_path / "montecarlo.png").exists()
+    assert main(["montecarlo", "--runs", "2", "--road", "nowhere", "--no-progress"]) == 2
