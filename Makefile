@@ -18,6 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/rig demo
 
 test: $(STAMP)
+	bash scripts/ensure-debian-packages.sh
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 	$(PY) -m pytest -n 2 --timeout 600 -q

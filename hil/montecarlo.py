@@ -162,8 +162,12 @@ def plot_runs(result: MonteCarloResult, path: str | Path, title: str = "") -> Pa
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
     for i, tr in enumerate(result.traces):
         t = np.arange(tr.shape[0]) * result.trace_dt_s
-        style = "r-" if i in result.unstable_runs else "-"
-        ax.plot(t, 1000.0 * tr, style, lw=0.7, alpha=0.8)
+        if i in result.unstable_runs:    # unstable runs: black dashed, on top
+            ax.plot(t, 1000.0 * tr, "k--", lw=1.2, zorder=3, label=f"run {i} unstable")
+        else:
+            ax.plot(t, 1000.0 * tr, "-", lw=0.7, alpha=0.8)
+    if result.unstable_runs:
+        ax.legend(fontsize=7)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("rattlespace about static [mm]")
     ax.set_title(title, fontsize=9)

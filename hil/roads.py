@@ -96,7 +96,7 @@ class Road:
 
     @property
     def time_s(self) -> FloatArray:
-        return np.arange(self.n_ticks) * self.dt_s
+        return np.arange(self.n_ticks, dtype=np.float64) * self.dt_s
 
 
 def iso_gd(road_class: str) -> float:
@@ -113,7 +113,7 @@ def iso_psd(n_cpm: FloatArray | float, gd_n0: float) -> FloatArray:
     n = np.asarray(n_cpm, dtype=float)
     with np.errstate(divide="ignore"):
         g = gd_n0 * (np.where(n > 0, n, np.inf) / ISO_N0) ** -2.0
-    return np.where((n >= ISO_N1) & (n <= ISO_N2), g, 0.0)
+    return np.asarray(np.where((n >= ISO_N1) & (n <= ISO_N2), g, 0.0), dtype=np.float64)
 
 
 def iso_rms_m(gd_n0: float, n1: float = ISO_N1, n2: float = ISO_N2) -> float:
@@ -144,8 +144,8 @@ def iso_spatial_profile(gd_n0: float, length_m: float, dx_m: float,
     spec = amp * np.exp(1j * phase) * (n_pts / 2.0)
     spec[0] = 0.0
     h = np.fft.irfft(spec, n=n_pts)
-    x = np.arange(n_pts) * dx_m
-    return x, h
+    x = np.arange(n_pts, dtype=np.float64) * dx_m
+    return x, np.asarray(h, dtype=np.float64)
 
 
 def _sample(distance: FloatArray, height: FloatArray, speed: float, n_ticks: int,
@@ -249,7 +249,7 @@ def make_road(name: str, speed_mps: float, duration_s: float, dt_s: float,
             pos += blen + rng.uniform(4.0, 12.0)
         return _finish("datp", speed_mps, dt_s, _sample(x, h, speed_mps, n_ticks, dt_s),
                        gd, "bumpy DAT-P-like course: class C roughness + random bumps")
-    s = np.arange(n_ticks + 1) * dt_s * speed_mps
+    s = np.arange(n_ticks + 1, dtype=np.float64) * dt_s * speed_mps
     if low == "bump":
         return _finish("bump", speed_mps, dt_s, _cosine_bump(s, 5.0, 1.0, 0.08), None,
                        "1-cos bump, 80 mm x 1 m, at 5 m")

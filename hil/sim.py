@@ -117,7 +117,7 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
         rt = _make_runtime(controller, design, cfg, weight_set, road)
         pi = PIForceLoop(cfg.force_loop, dt)
 
-    tr = {k: np.zeros(n) for k in (
+    tr: dict[str, FloatArray] = {k: np.zeros(n) for k in (
         "rattlespace_m", "accel_mps2", "force_n", "force_ref_n", "spool_cmd", "tire_force_n",
         "hydraulic_power_w", "off_ground_s", "bump_stop_s", "meas_rattlespace_m",
         "meas_force_n", "meas_accel_mps2")}
@@ -171,7 +171,7 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
     wall = time.perf_counter() - t0
     if n_done < n:
         tr = {key: v[:n_done] for key, v in tr.items()}
-    tr["time_s"] = np.arange(n_done) * dt
+    tr["time_s"] = np.arange(n_done, dtype=np.float64) * dt
     tr["road_height_m"] = height[:n_done].copy()
     v = cfg.vehicle
     static_load = (plant.p[0] + plant.p[1]) * v.gravity_mps2

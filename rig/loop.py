@@ -281,7 +281,7 @@ class ControlLoop:
     def _reset_estimation(self) -> None:
         self.rt.reset()
         self.pi.reset()
-        self.monitor.reset()
+        self.monitor.reset_estimator_checks()
         self.good_ticks = 0
 
     def _on_transition(self, tr: Transition) -> None:

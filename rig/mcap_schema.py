@@ -10,8 +10,9 @@ writer splits it by key into up to three messages that share one MCAP ``sequence
 * keys in :data:`TIMING_KEYS` and ``tick``         -> ``/rig/timing``
 * every other key (controller internals) + ``tick`` -> ``/controller/internals``
 
-Each message also carries ``t_ns`` (the loop clock, see docs/recording.md).  Key
-``t_ns`` is therefore reserved in tick records.
+Each message also carries ``t_ns`` (the loop clock, see docs/recording.md) and the
+signals message ``record_parts`` (how many messages the record has).  Keys ``t_ns`` and
+``record_parts`` are therefore reserved in tick records.
 """
 
 from __future__ import annotations
@@ -110,6 +111,8 @@ SIGNALS_SCHEMA: Final = _obj(
         "fault": {"type": ["string", "null"]},
         "sensor_counter": {"type": "integer"},
         "sensor_age_ticks": {"type": "integer"},
+        "record_parts": {"type": "integer", "minimum": 1, "maximum": 3,
+                         "description": "messages of this tick record (signals first)"},
         "nonfinite": {"type": "array", "items": {"type": "string"},
                       "description": "keys whose non-finite values were written as null"},
     },

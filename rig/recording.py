@@ -64,6 +64,8 @@ CONFIG_ATTACHMENT = "config.toml"
 DESIGN_ATTACHMENT = "design.npz"
 METADATA_NAME = "rig"
 _RECORD_TOPICS = (TOPIC_SIGNALS, TOPIC_INTERNALS, TOPIC_TIMING)
+PARTS_KEY = "record_parts"  # in /rig/signals: how many messages the tick record has
+_RESERVED = frozenset({"tick", "t_ns", PARTS_KEY})
 _FRAME, _TICK, _EVENT = 0, 1, 2
 _EVENT_HEADROOM = 1024  # events may exceed queue_size by this much (they are rare)
 
@@ -302,13 +304,15 @@ class RunRecorder:
                     sig[k] = v
                 elif k in TIMING_KEYS:
                     tim[k] = v
-                elif k != "tick" and k != "t_ns":
+                elif k not in _RESERVED:
                     intl[k] = v
-            for topic, msg in ((TOPIC_SIGNALS, sig), (TOPIC_INTERNALS, intl),
-                               (TOPIC_TIMING, tim)):
-                if len(msg) > 2 or topic == TOPIC_SIGNALS:
-                    w.add_message(self._channels[topic], log_time, encode_json(msg),
-                                  log_time, seq)
+            parts = [(TOPIC_SIGNALS, sig)]
+            parts += [(t, m) for t, m in ((TOPIC_INTERNALS, intl), (TOPIC_TIMING, tim))
+                      if len(m) > 2]
+            sig[PARTS_KEY] = len(parts)   # lets a reader spot a record torn by a crash
+            for topic, msg in parts:
+                w.add_message(self._channels[topic], log_time, encode_json(msg),
+                              log_time, seq)
         else:
             _, _, tick, kind_s, detail = item
             if kind_s not in EVENT_KINDS:
@@ -436,6 +440,7 @@ def read_run(path: str | Path, *, follow_segments: bool = True) -> RunData:
 def _read_segment(path: Path, run: RunData, index: int, *, first: bool) -> tuple[int, bool]:
     topics: dict[int, str] = {}
     last_rec: tuple[int, dict[str, Any]] | None = None  # (sequence, merged record data)
+    parts = [0, 0]  # of the last record: messages expected, messages seen
     n_msgs = 0
     footer = False
     with open(path, "rb") as f:
@@ -453,8 +458,10 @@ def _read_segment(path: Path, run: RunData, index: int, *, first: bool) -> tuple
                             last_rec[1].update(msg)
                             if bad:
                                 last_rec[1]["nonfinite"] = bad
+                            parts[1] += 1
                             continue
                         last_rec = (rec.sequence, msg)
+                        parts[:] = [int(msg.pop(PARTS_KEY, 1)), 1]
                         run.records.append(TickRecord(index, msg["t_ns"], msg["tick"], msg))
                     elif topic in (TOPIC_CAN_RX, TOPIC_CAN_TX):
                         last_rec = None
@@ -477,14 +484,24 @@ def _read_segment(path: Path, run: RunData, index: int, *, first: bool) -> tuple
         except Exception as exc:  # truncated / corrupt tail: keep what was complete
             run.complete = False
             run.stopped_at = (f"{path}: {type(exc).__name__} {exc} after {n_msgs} messages "
-                              f"(offset {f.tell()} of {path.stat().st_size} bytes)")
+                              f"(offset {f.tell()} of {path.stat().st_size} bytes)"
+                              + _drop_torn_record(run, parts))
             _strip_t_ns(run)
             return index, False
     if not footer:
         run.complete = False
-        run.stopped_at = f"{path}: no footer after {n_msgs} messages"
+        run.stopped_at = f"{path}: no footer after {n_msgs} messages" + \
+            _drop_torn_record(run, parts)
     _strip_t_ns(run)
     return index, footer
+
+
+def _drop_torn_record(run: RunData, parts: list[int]) -> str:
+    """A crash can cut the last tick record between its messages: drop it whole."""
+    if run.records and parts[1] < parts[0]:
+        torn = run.records.pop()
+        return f"; dropped torn record of tick {torn.tick} ({parts[1]}/{parts[0]} parts)"
+    return ""
 
 
 def _strip_t_ns(run: RunData) -> None:

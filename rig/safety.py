@@ -77,8 +77,13 @@ class FaultMonitor:
         self.rig_watchdog_seen = False
         self.reset()
 
+    def reset_estimator_checks(self) -> None:
+        """After an operator reset (the estimator restarts): the divergence count.  The
+        facts about the bus (last frame, counters, age) carry on."""
+        self.diverged_ticks = 0
+
     def reset(self) -> None:
-        """Forget history (start-up, or after an operator reset)."""
+        """Forget all history (start-up)."""
         self.sensor_counter.reset()
         self.status_counter.reset()
         self.code = _NONE

@@ -155,6 +155,16 @@ class TelemetryPublisher:
 
     def _open(self) -> zenoh.Session:
         session = zenoh.open(zenoh_config(self.cfg))
+        try:
+            self._declare(session)
+        except Exception:
+            self._declared.clear()
+            self._pubs.clear()
+            session.close()
+            raise
+        return session
+
+    def _declare(self, session: zenoh.Session) -> None:
         enc = zenoh.Encoding.APPLICATION_JSON
         for leaf in ("state", "timing", "lifecycle", "fault"):
             self._pubs[leaf] = session.declare_publisher(
@@ -165,7 +175,6 @@ class TelemetryPublisher:
                 session.declare_queryable(self._key("cmd/**"), self._on_command_query))
             self._declared.append(
                 session.declare_subscriber(self._key("cmd/**"), self._on_command_put))
-        return session
 
     def _run(self) -> None:
         while not self._stop.is_set() and self._session is None:
@@ -175,7 +184,6 @@ class TelemetryPublisher:
                 self._connected.set()
             except Exception as exc:  # zenoh.ZError, bad config file...: keep retrying
                 self.error = f"zenoh session: {exc}"
-                self._pubs.clear()
                 self._stop.wait(self._retry_s)
         while not self._stop.is_set():
             try:

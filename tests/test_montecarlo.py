@@ -20,17 +20,18 @@ DT = CFG.sample_time_s
 def test_draws_are_normal_around_nominal_and_reproducible() -> None:
     params = draw_params(CFG, 4000, 0.05, seed=3)
     v = CFG.vehicle
-    f = np.array([[p.sprung_mass_kg / v.sprung_mass_kg, p.unsprung_mass_kg / v.unsprung_mass_kg,
-                   p.suspension_stiffness_n_per_m / v.suspension_stiffness_n_per_m,
-                   p.suspension_damping_ns_per_m / v.suspension_damping_ns_per_m,
-                   p.tire_stiffness_scale, p.tire_damping_scale] for p in params])
+    f = np.array([[p.sprung_mass_kg, p.unsprung_mass_kg, p.suspension_stiffness_n_per_m,
+                   p.suspension_damping_ns_per_m, p.tire_stiffness_scale,
+                   p.tire_damping_scale] for p in params], dtype=float)
+    f /= np.array([v.sprung_mass_kg, v.unsprung_mass_kg, v.suspension_stiffness_n_per_m,
+                   v.suspension_damping_ns_per_m, 1.0, 1.0])
     np.testing.assert_allclose(f.mean(axis=0), 1.0, atol=0.005)
     np.testing.assert_allclose(f.std(axis=0), 0.05, rtol=0.06)
     assert np.abs(np.corrcoef(f.T) - np.eye(6)).max() < 0.06      # independent draws
     assert draw_params(CFG, 3, 0.05, seed=3) == params[:3]
     per = draw_params(CFG, 500, {"M": 0.1, "K": 0.0}, seed=1)
-    assert np.std([p.sprung_mass_kg for p in per]) / v.sprung_mass_kg == pytest.approx(
-        0.1, rel=0.1)
+    masses = np.array([p.sprung_mass_kg for p in per], dtype=float)
+    assert np.std(masses) / v.sprung_mass_kg == pytest.approx(0.1, rel=0.1)
     assert {p.suspension_stiffness_n_per_m for p in per} == {v.suspension_stiffness_n_per_m}
 
 

@@ -412,3 +412,30 @@ def test_throughput_1khz_three_frames_one_record(tmp_path: Path) -> None:
           f"{size / n:.0f} B/tick zstd")
     assert rec.dropped == 0 and len(read_run(rec.paths[0]).records) == n
     assert n / total_s > 1000   # must at least keep up with 1 kHz
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[bytes, list[tuple[str, Any]]]:
+    path = tmp_path_factory.mktemp("cut") / "full.mcap"
+    with recorder(path, chunk_bytes=2048) as rec:
+        expected = write_mixed(rec, 60)
+    return path.read_bytes(), expected
+
+
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(frac=st.floats(0.0, 1.0))
+def test_truncated_anywhere_reads_a_prefix(tmp_path: Path, frac: float,
+                                           small_run: tuple[bytes, list[tuple[str, Any]]]
+                                           ) -> None:
+    """Cutting the file at any byte never raises and yields a prefix of what was written."""
+    blob, expected = small_run
+    cut = int(frac * len(blob))
+    path = tmp_path / f"cut{cut}.mcap"
+    path.write_bytes(blob[:cut])
+    got = timeline_of(path)
+    assert got == expected[:len(got)]
+    run = read_run(path)
+    assert run.complete == (cut == len(blob))
+    if cut < len(blob):
+        assert run.stopped_at is not None and str(path) in run.stopped_at

@@ -307,6 +307,12 @@ def run(args: argparse.Namespace) -> int:
     report = None if args.no_realtime else apply_realtime(RealtimeRequest())
     if report is not None:
         service.realtime_report = report
+    # first rig ticks outside real time (numba / first-call costs): no command has armed the
+    # rig's drive watchdog yet, so a slow first tick cannot trip it
+    for _ in range(3):
+        node.tick()
+    while service.bus.recv(0.0) is not None:    # the controller has not seen these frames
+        pass
     progress = _Progress(cfg, node, service, arm_tick, enabled=not args.quiet)
     progress.start()
     try:

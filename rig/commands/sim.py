@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -82,9 +83,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"rig sim: {exc}", file=sys.stderr)
         return 2
     if args.traces:
-        np.savez_compressed(Path(args.traces), **{f"{r.controller}.{k}": v
-                                                  for r in results
-                                                  for k, v in r.traces.items()})
+        arrays: dict[str, Any] = {f"{r.controller}.{k}": v for r in results
+                                  for k, v in r.traces.items()}
+        np.savez_compressed(Path(args.traces), **arrays)
     if args.json:
         out = {r.controller: r.metrics for r in results}
         print(json.dumps(out if len(results) > 1 else results[0].metrics, indent=1))

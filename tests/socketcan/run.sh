@@ -125,6 +125,7 @@ run_uml() {
     ln -s "$modules" "$run_dir/lib/modules/$(basename "$modules")"
     # pytest arguments for the guest, NUL-separated (the kernel command line cannot quote)
     if (($#)); then printf '%s\0' "$@" > "$run_dir/pytest_args"; fi
+    [[ ${SOCKETCAN_KEEP_RUN_DIR:-0} == 1 ]] && touch "$run_dir/keep"
     case "$repo$run_dir" in *[[:space:]]*)
         skip_or_fail "paths with blanks cannot go on the UML kernel command line: $repo";;
     esac

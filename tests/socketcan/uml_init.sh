@@ -18,9 +18,8 @@ export HOME=/root LANG=C.UTF-8 LC_ALL=C.UTF-8 TERM=dumb
 export PYTHONUNBUFFERED=1 PYTHONDONTWRITEBYTECODE=1
 export SOCKETCAN_IN_UML=1
 
-run_dir=${SOCKETCAN_RUN_DIR:?SOCKETCAN_RUN_DIR not set on the kernel command line}
+host_run_dir=${SOCKETCAN_RUN_DIR:?SOCKETCAN_RUN_DIR not set on the kernel command line}
 repo=${SOCKETCAN_REPO:?SOCKETCAN_REPO not set on the kernel command line}
-log="$run_dir/guest.log"
 
 power_off() {
     sync
@@ -31,24 +30,39 @@ power_off() {
     exit 0  # init exiting panics the UML kernel, which ends the process as well
 }
 
+# Pseudo file systems.  The run directory is bind-mounted to /run/socketcan, then /tmp
+# becomes a private tmpfs: the tests' temporary files stay inside the guest (fast, and
+# out of the way of pytest runs on the host, which share the host's /tmp/pytest-of-*).
+mount -t proc proc /proc
+mount -t sysfs sysfs /sys
+# the UML kernel auto-mounts devtmpfs on /dev (CONFIG_DEVTMPFS_MOUNT); mount it if not
+[[ -c /dev/null ]] || mount -t devtmpfs devtmpfs /dev
+mkdir -p /dev/shm /dev/pts
+mount -t tmpfs -o mode=1777 shm /dev/shm     # multiprocessing semaphores need it
+mount -t devpts devpts /dev/pts
+mount -t tmpfs -o mode=0755 run /run
+mkdir -p /run/socketcan
+python_real=$(readlink -f "$repo/.venv/bin/python")
+case "$repo/ $python_real" in
+    /tmp/*|*" /tmp/"*) tmp_private=0 ;;   # the repository or Python lives in /tmp: keep it
+    *) tmp_private=1 ;;
+esac
+if ((tmp_private)) && mount --bind "$host_run_dir" /run/socketcan; then
+    run_dir=/run/socketcan
+    mount -t tmpfs -o mode=1777 tmp /tmp
+else
+    run_dir=$host_run_dir   # keep going on the shared /tmp
+fi
+log="$run_dir/guest.log"
+
 verdict() {  # verdict CODE MESSAGE: record the exit status and stop the guest
     echo "uml_init: $2" | tee -a "$log"
     echo "$1" > "$run_dir/exit_code.tmp" && mv "$run_dir/exit_code.tmp" "$run_dir/exit_code"
     power_off
 }
 
-{
-    echo "uml_init: guest kernel $(uname -r), $(nproc) CPU(s)"
-    mount -t proc proc /proc
-    mount -t sysfs sysfs /sys
-    # the UML kernel auto-mounts devtmpfs on /dev (CONFIG_DEVTMPFS_MOUNT); mount it if not
-    [[ -c /dev/null ]] || mount -t devtmpfs devtmpfs /dev
-    mkdir -p /dev/shm /dev/pts
-    mount -t tmpfs -o mode=1777 shm /dev/shm     # multiprocessing semaphores need it
-    mount -t devpts devpts /dev/pts
-    mount -t tmpfs -o mode=0755 run /run
-    hostname uml-socketcan
-} >> "$log" 2>&1 || verdict 90 "mounting the pseudo file systems failed"
+echo "uml_init: guest kernel $(uname -r), $(nproc) CPU(s), run directory $run_dir" >> "$log"
+hostname uml-socketcan
 
 {
     for m in vcan can-raw can-bcm; do
@@ -67,6 +81,8 @@ verdict() {  # verdict CODE MESSAGE: record the exit status and stop the guest
 cd "$repo" || verdict 92 "repository $repo not visible in the guest"
 extra=()
 [[ -f $run_dir/pytest_args ]] && mapfile -d '' -t extra < "$run_dir/pytest_args"
+# run.sh with SOCKETCAN_KEEP_RUN_DIR=1: keep the tests' temporary files in the run directory
+[[ -f $run_dir/keep ]] && extra+=("--basetemp=$run_dir/pytest")
 echo "uml_init: running the SocketCAN suite: pytest tests/socketcan ${extra[*]}" >> "$log"
 "$repo/.venv/bin/python" -m pytest tests/socketcan -q -p no:cacheprovider -rA \
     "${extra[@]}" >> "$log" 2>&1

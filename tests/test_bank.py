@@ -1,0 +1,396 @@
+"""The runtime bank step: kernel vs the plain-numpy reference, vs a textbook Kalman filter,
+fault handling, allocation-freedom and blending invariants."""
+
+from __future__ import annotations
+
+import math
+import tracemalloc
+
+import numba as nb
+import numpy as np
+import pytest
+import scipy.linalg
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from controller.artifact import Design
+from controller.bank import BankRuntime, Blending, StepFlag, bank_step
+from controller.config import RigConfig, default_config
+from controller.design import design_bank, design_models, measurement_noise_cov
+from controller.reference import ReferenceBank, quarter_car_measurements
+from controller.road_noise import road_velocity_intensity
+
+SMOOTH_SPEED, SMOOTH_GD = 5.0, 16e-6       # ISO class A at 5 m/s: tight filters
+
+
+def smooth_road_config(**design: object) -> RigConfig:
+    """One noise-table entry (fast designs), tuned for a smooth road."""
+    return default_config().replace(
+        noise={"speeds_mps": [SMOOTH_SPEED], "road_roughness_gd": [SMOOTH_GD],
+               "nominal_speed_mps": SMOOTH_SPEED, "nominal_roughness_gd": SMOOTH_GD},
+        design=dict(design))
+
+
+def trajectory(cfg: RigConfig, n: int, seed: int, *, drop_at: int | None = None,
+               force_std: float = 300.0, deflection_m: float | None = None
+               ) -> dict[str, np.ndarray]:
+    """Measurements of the piecewise-linear quarter car on a road matching the filter
+    tuning; ``drop_at``: the road falls 10 cm in 50 ms there (the wheel lifts off)."""
+    rng = np.random.default_rng(seed)
+    dt = cfg.sample_time_s
+    w = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
+    road = rng.normal(0.0, math.sqrt(w / dt), n)
+    if drop_at is not None:
+        road[drop_at:drop_at + 50] -= 2.0
+    force = rng.normal(0.0, force_std, n)
+    return quarter_car_measurements(cfg, dt, road, force, rng, deflection_m=deflection_m)
+
+
+@pytest.fixture(scope="module")
+def default_design() -> Design:
+    return design_bank(default_config())
+
+
+@pytest.fixture(scope="module")
+def smooth_cfg() -> RigConfig:
+    return smooth_road_config()
+
+
+@pytest.fixture(scope="module")
+def smooth_design(smooth_cfg: RigConfig) -> Design:
+    return design_bank(smooth_cfg)
+
+
+@pytest.fixture(scope="module")
+def grid_cfg() -> RigConfig:
+    return smooth_road_config(linearisation_deflections_m=[0.04, 0.03, 0.025, 0.02, 0.01],
+                              tire_damping_scales=[0.5, 1.0, 2.0])
+
+
+@pytest.fixture(scope="module")
+def grid_design(grid_cfg: RigConfig) -> Design:
+    return design_bank(grid_cfg)
+
+
+FORCE_SCALE_N = 1e3     # forces agree to 1e-9 of this scale (the LQ gains are ~1e6 N/m)
+
+
+def _compare(rt: BankRuntime, ref: ReferenceBank, out: float, out_ref: float, k: int) -> None:
+    tol = {"rtol": 1e-9, "atol": 1e-9}
+    ftol = {"rtol": 1e-9, "atol": 1e-9 * FORCE_SCALE_N}
+    np.testing.assert_allclose(out, out_ref, **ftol, err_msg=f"force at tick {k}")
+    assert np.array_equal(rt.active, ref.active), f"active set at tick {k}"
+    assert rt.flags == ref.flags, f"flags at tick {k}"
+    np.testing.assert_allclose(rt.q, ref.q, **tol, err_msg=f"q at tick {k}")
+    np.testing.assert_allclose(rt.firing_weight, ref.wt, **tol, err_msg=f"w at tick {k}")
+    np.testing.assert_allclose(rt.raw_firing_weight, ref.f, **tol, err_msg=f"f at tick {k}")
+    np.testing.assert_allclose(rt.probability, ref.p, **tol, err_msg=f"p at tick {k}")
+    np.testing.assert_allclose(rt.u_model, ref.u, **ftol, err_msg=f"u_j at tick {k}")
+    np.testing.assert_allclose(rt.x_post, ref.x_post, rtol=1e-9, atol=1e-12,
+                               err_msg=f"x+ at tick {k}")
+    np.testing.assert_allclose(rt.xf, ref.xf, rtol=1e-9, atol=1e-12, err_msg=f"xf at {k}")
+
+
+def _run_pair(design: Design, cfg: RigConfig, mode: Blending, meas: dict[str, np.ndarray],
+              junk_seed: int, **kw: object) -> tuple[BankRuntime, ReferenceBank]:
+    rt = BankRuntime(design, blending=mode, **kw)  # type: ignore[arg-type]
+    ref = ReferenceBank(design, blending=mode, **kw)  # type: ignore[arg-type]
+    rng = np.random.default_rng(junk_seed)
+    n = meas["accel"].size
+    for k in range(n):
+        r, a, f = meas["rattlespace"][k], meas["accel"][k], meas["force"][k]
+        if n // 3 <= k < n // 3 + 30:          # a burst of random, inconsistent samples
+            r, a, f = rng.normal(0, 0.01), rng.normal(0, 20.0), rng.normal(0, 2000.0)
+        if k == n // 2:
+            r = math.nan
+        out = rt.step(r, a, f)
+        out_ref = ref.step(r, a, f)
+        _compare(rt, ref, out, out_ref, k)
+    return rt, ref
+
+
+@pytest.mark.parametrize("mode", list(Blending))
+def test_kernel_matches_reference_step_by_step(smooth_design: Design, smooth_cfg: RigConfig,
+                                               mode: Blending) -> None:
+    meas = trajectory(smooth_cfg, 1500, seed=3, drop_at=900)
+    _run_pair(smooth_design, smooth_cfg, mode, meas, junk_seed=4)
+
+
+@pytest.mark.parametrize("fallback", ["passive", "best_model"])
+def test_kernel_matches_reference_on_grid_with_moving_bank(
+        grid_design: Design, grid_cfg: RigConfig, fallback: str) -> None:
+    meas = trajectory(grid_cfg, 2500, seed=5, drop_at=1800, force_std=1500.0)
+    rt, _ = _run_pair(grid_design, grid_cfg, Blending.MOVING, meas, junk_seed=6,
+                      no_fire_fallback=fallback)
+    c = rt.counters()
+    assert c["set_switches"] >= 2 and c["recentres"] >= 1    # the comparison covered both
+
+
+def test_kernel_matches_reference_across_mode_switches(smooth_design: Design,
+                                                       smooth_cfg: RigConfig) -> None:
+    meas = trajectory(smooth_cfg, 800, seed=8)
+    rt, ref = BankRuntime(smooth_design), ReferenceBank(smooth_design)
+    order = [Blending.BAYES, Blending.SINGLE, Blending.MOVING, Blending.FUZZY]
+    for k in range(800):
+        if k % 200 == 199:
+            rt.set_blending(order[k // 200])
+            ref.set_blending(order[k // 200])
+        out = rt.step(meas["rattlespace"][k], meas["accel"][k], meas["force"][k])
+        out_ref = ref.step(meas["rattlespace"][k], meas["accel"][k], meas["force"][k])
+        _compare(rt, ref, out, out_ref, k)
+
+
+def test_single_filter_matches_textbook_kalman_filter(smooth_design: Design,
+                                                      smooth_cfg: RigConfig) -> None:
+    """Full covariance recursion (Eq. 3.3-3.8) started at the steady-state P (scipy DARE)
+    gives the same estimates and likelihood quotients as the fused steady-state kernel."""
+    cfg, d = smooth_cfg, smooth_design
+    rt = BankRuntime(d, blending=Blending.SINGLE)
+    j = rt.single_model
+    md = design_models(cfg)[j]
+    W = road_velocity_intensity(SMOOTH_SPEED, SMOOTH_GD)
+    Qd = md.dfm.Qd_unit * W
+    R = measurement_noise_cov(cfg)
+    Phi, C, D = d.Phi[j], d.C_meas[j], d.D_meas[j]
+    P = scipy.linalg.solve_discrete_are(Phi.T, C.T, Qd, R)       # prior covariance
+    x = d.equilibrium[j].copy()
+    g = -d.y_offset[1]
+    meas = trajectory(cfg, 600, seed=11)
+    for k in range(600):
+        y = np.array([meas["rattlespace"][k] + d.static_rattlespace_m, meas["accel"][k]])
+        u = meas["force"][k]
+        F = C @ P @ C.T + R                                           # (3.3)
+        L = P @ C.T @ np.linalg.inv(F)                                # (3.4)
+        r = y - C @ x - D * u - d.y_offset                            # (3.9)
+        xp = x + L @ r                                                # (3.5)
+        Pp = P - L @ C @ P                                            # (3.6)
+        q = float(r @ np.linalg.solve(F, r))                          # (4.8)
+        rt.step(meas["rattlespace"][k], meas["accel"][k], u)
+        np.testing.assert_allclose(rt.x_post[j], xp, rtol=1e-8, atol=1e-11)
+        assert rt.q[j] == pytest.approx(q, rel=1e-6, abs=1e-9)
+        x = Phi @ xp + d.Gamma_u[j] * u + d.Gamma_g[j] * g            # (3.7)
+        P = Phi @ Pp @ Phi.T + Qd                                     # (3.8)
+
+
+# ---------------------------------------------------------------------------- invariants
+
+FINITE = st.floats(allow_nan=False, allow_infinity=False)
+MODERATE = st.tuples(st.floats(-0.05, 0.05), st.floats(-50.0, 50.0), st.floats(-5e3, 5e3))
+
+
+@pytest.fixture(scope="module")
+def runtimes(smooth_design: Design) -> dict[Blending, BankRuntime]:
+    return {b: BankRuntime(smooth_design, blending=b) for b in Blending}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(MODERATE, min_size=1, max_size=40), st.sampled_from(list(Blending)))
+def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRuntime],
+                                              seq: list[tuple[float, float, float]],
+                                              mode: Blending) -> None:
+    rt = runtimes[mode]
+    rt.reset()
+    for r, a, f in seq:
+        out = rt.step(r, a, f)
+        assert math.isfinite(out)
+        w, p = rt.firing_weight, rt.probability
+        assert np.all((w >= 0.0) & (w <= 1.0)) and np.all((p >= 0.0) & (p <= 1.0))
+        assert np.all(w[~rt.active] == 0.0) and np.all(p[~rt.active] == 0.0)
+        assert np.sum(p) == pytest.approx(1.0, abs=1e-12)
+        if StepFlag.NO_RULE_FIRED in rt.flags:
+            assert mode in (Blending.FUZZY, Blending.MOVING)
+            assert np.sum(w) in (0.0, 1.0)
+        else:
+            assert np.sum(w) == pytest.approx(1.0, abs=1e-12)
+        raw = rt.raw_firing_weight
+        assert np.all((raw >= 0.0) & (raw <= 1.0))
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.tuples(FINITE, FINITE, FINITE), min_size=1, max_size=20),
+       st.sampled_from(list(Blending)))
+def test_any_finite_input_gives_finite_output(runtimes: dict[Blending, BankRuntime],
+                                              seq: list[tuple[float, float, float]],
+                                              mode: Blending) -> None:
+    rt = runtimes[mode]
+    rt.reset()
+    for r, a, f in seq:
+        out = rt.step(r, a, f)
+        assert math.isfinite(out)
+        assert StepFlag.NONFINITE_INPUT not in rt.flags
+        assert np.all(np.isfinite(rt.q)) and np.all(np.isfinite(rt.x_post))
+        assert np.all(np.isfinite(rt.x_prior)) and np.all(np.isfinite(rt.xf))
+    # ... and it recovers: after a reset it is exactly the fresh controller again
+    rt.reset()
+    fresh = BankRuntime(rt.design, blending=mode)
+    for k in range(20):
+        assert rt.step(1e-4 * k, 0.01, 5.0) == fresh.step(1e-4 * k, 0.01, 5.0)
+
+
+BAD = st.sampled_from([math.nan, math.inf, -math.inf])
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(BAD, st.integers(0, 2), st.sampled_from(list(Blending)))
+def test_nonfinite_input_flags_and_leaves_state_untouched(
+        runtimes: dict[Blending, BankRuntime], bad: float, where: int, mode: Blending) -> None:
+    rt = runtimes[mode]
+    rt.reset()
+    for k in range(5):
+        rt.step(1e-4 * k, 0.05, 10.0)
+    before = rt.snapshot()
+    args = [1e-4, 0.05, 10.0]
+    args[where] = bad
+    assert rt.step(*args) == 0.0
+    assert rt.flags == StepFlag.NONFINITE_INPUT
+    after = rt.snapshot()
+    for key in ("q", "w", "p", "u", "active", "x_post", "x_prior", "xf"):
+        assert np.array_equal(before[key], after[key]), key
+
+
+def test_non_numbers_never_raise(runtimes: dict[Blending, BankRuntime]) -> None:
+    rt = runtimes[Blending.FUZZY]
+    assert rt.step(None, 0.0, 0.0) == 0.0  # type: ignore[arg-type]
+    assert rt.flags == StepFlag.NONFINITE_INPUT
+    assert rt.step("1", 0.0, 0.0) == 0.0  # type: ignore[arg-type]
+    assert rt.step(1, 0, 0) == rt.step(1, 0, 0) or True       # ints are accepted
+    assert len(bank_step.signatures) == 1                      # ...without a recompile
+
+
+def test_huge_inputs_flag_nonfinite_state_and_recover(smooth_design: Design) -> None:
+    rt = BankRuntime(smooth_design)
+    seen = StepFlag(0)
+    for _ in range(5):
+        out = rt.step(1e305, -1e305, 1e306)
+        seen |= rt.flags
+        assert math.isfinite(out)
+    assert StepFlag.NONFINITE_STATE in seen
+    assert np.all(np.isfinite(rt.x_prior))
+    rt.reset()
+    meas = trajectory(default_config(), 200, seed=1)
+    for k in range(200):
+        rt.step(meas["rattlespace"][k], meas["accel"][k], meas["force"][k])
+    assert not (rt.flags & (StepFlag.NONFINITE_STATE | StepFlag.DIVERGED))
+
+
+@nb.njit
+def _drive(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+           fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, data: np.ndarray) -> float:
+    acc = 0.0
+    for k in range(data.shape[0]):
+        acc += bank_step(mat, vec, st, active, fv, iv, nbr, data[k, 0], data[k, 1], data[k, 2])
+    return acc
+
+
+def test_no_allocation_per_tick(runtimes: dict[Blending, BankRuntime]) -> None:
+    """The kernel allocates nothing (numba NRT statistics over 10k ticks called from
+    compiled code); through ``step`` the Python heap does not grow (tracemalloc) and
+    every NRT allocation of the call wrapper (the array-argument descriptors numba
+    builds at each call; no data buffers) is freed in the same call."""
+    from numba.core.runtime import _nrt_python, rtsys
+
+    _nrt_python.memsys_enable_stats()
+    rng = np.random.default_rng(0)
+    data = rng.normal(0.0, 1.0, (10_000, 3)) * [1e-3, 1.0, 100.0]
+    rows = [(float(a), float(b), float(c)) for a, b, c in data]
+    for mode, rt in runtimes.items():
+        rt.reset()
+        args = (rt._mat, rt._vec, rt._st, rt._active, rt._fv, rt._iv, rt._nbr)
+        _drive(*args, data[:10])
+        deltas = []
+        for n in (10, 10_000):
+            s0 = rtsys.get_allocation_stats()
+            _drive(*args, data[:n])
+            s1 = rtsys.get_allocation_stats()
+            deltas.append(s1.alloc - s0.alloc)
+        assert deltas[0] == deltas[1], (mode, deltas)       # nothing per tick
+        for r, a, f in rows[:100]:
+            rt.step(r, a, f)
+        nrt0 = rtsys.get_allocation_stats()
+        tracemalloc.start()
+        snap0 = tracemalloc.take_snapshot()
+        for r, a, f in rows:
+            rt.step(r, a, f)
+        snap1 = tracemalloc.take_snapshot()
+        tracemalloc.stop()
+        nrt1 = rtsys.get_allocation_stats()
+        growth = sum(s.size_diff for s in snap1.compare_to(snap0, "filename")
+                     if "tracemalloc" not in str(s.traceback))
+        assert growth < 2048, (mode, growth)
+        assert nrt1.alloc - nrt0.alloc == nrt1.free - nrt0.free, mode
+
+
+# ---------------------------------------------------------------------------- behaviour
+
+
+def test_default_single_model_is_nearest_static_deflection(default_design: Design) -> None:
+    rt = BankRuntime(default_design, blending=Blending.SINGLE)
+    assert default_design.model_names[rt.single_model] == "x2_25mm"
+    assert rt.active.sum() == 1 and rt.active[rt.single_model]
+    with pytest.raises(ValueError, match="single_model"):
+        BankRuntime(default_design, single_model=int(np.flatnonzero(default_design.airborne)[0]))
+
+
+def test_at_rest_the_force_is_zero_and_all_filters_stay_put(default_design: Design) -> None:
+    for mode in Blending:
+        rt = BankRuntime(default_design, blending=mode)
+        for _ in range(50):
+            out = rt.step(0.0, 0.0, 0.0)
+        ground = ~default_design.airborne & rt.active
+        assert abs(out) < 1e-6
+        np.testing.assert_allclose(rt.x_post[ground], default_design.equilibrium[ground],
+                                   atol=1e-9)
+
+
+def test_no_rule_fired_fallbacks(smooth_design: Design) -> None:
+    """A sustained measurement no model explains: all firing weights 0."""
+    outs = {}
+    for fb in ("passive", "best_model"):
+        rt = BankRuntime(smooth_design, no_fire_fallback=fb)
+        for _ in range(30):
+            out = rt.step(0.02, 30.0, 0.0)
+        assert StepFlag.NO_RULE_FIRED in rt.flags
+        assert np.all(rt.raw_firing_weight == 0.0)
+        outs[fb] = (out, rt.u_model[int(np.argmin(np.where(rt.active, rt.q, np.inf)))])
+    assert outs["passive"][0] == 0.0
+    assert outs["best_model"][0] == outs["best_model"][1] != 0.0
+
+
+def test_divergence_flag(smooth_design: Design, smooth_cfg: RigConfig) -> None:
+    rt = BankRuntime(smooth_design)
+    n = smooth_cfg.safety.divergence_ticks
+    flagged_at = None
+    for k in range(3 * n):
+        rt.step(0.05, 100.0, 0.0)
+        if StepFlag.DIVERGED in rt.flags and flagged_at is None:
+            flagged_at = k
+    assert flagged_at is not None and flagged_at >= n - 1
+    for _ in range(3):
+        rt.reset()
+    rt.step(0.0, 0.0, 0.0)
+    assert StepFlag.DIVERGED not in rt.flags
+
+
+def test_set_road_and_weight_set(default_design: Design) -> None:
+    rt = BankRuntime(default_design)
+    d = default_design
+    s = rt.set_road(11.0, 1000e-6)
+    assert s == d.noise_index(int(np.argmin(np.abs(d.noise_speeds_mps - 11.176))),
+                              int(np.argmin(np.abs(d.noise_roughness_gd - 1024e-6))))
+    assert rt.set_road(1e3, 1.0) == d.n_noise - 1          # clamps to the table edge
+    with pytest.raises(ValueError):
+        rt.set_road(math.nan, 1e-6)
+    meas = trajectory(default_config(), 100, seed=2)
+
+    def run(w: int) -> np.ndarray:
+        rt.set_weight_set(w)
+        rt.reset()
+        for k in range(100):
+            rt.step(meas["rattlespace"][k], meas["accel"][k], meas["force"][k])
+        return rt.u_model.copy()
+
+    u1, u2 = run(1), run(2)
+    assert not np.allclose(u1, u2)
+    np.testing.assert_array_equal(run(1), u1)
+    with pytest.raises(ValueError, match="weight_set"):
+        rt.set_weight_set(3)

@@ -1,0 +1,200 @@
+"""The service: SIGTERM in a subprocess (exit 0, valve safe, recording complete), systemd
+notify protocol (READY, WATCHDOG from the loop, STOPPING), command handler, CLI errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from controller.config import default_config
+from rig.protocol import FaultCode, LifecycleState
+from rig.recording import read_run
+from rig.sdnotify import SdNotifier
+from rig.service import Service, ServiceOptions, parse_blending
+
+ROOT = Path(__file__).resolve().parents[1]
+CFG = default_config()
+
+# the child: an emulated rig on the virtual channel (an observer independent of the
+# service: it decodes what the service sent) plus `rig run` in the main thread
+CHILD = textwrap.dedent("""
+    import json, sys, threading
+    from controller.config import default_config
+    from hil.node import RigNode
+    from hil.roads import make_road
+    from rig.bus import open_bus
+    from rig.cli import main
+
+    channel, record, design = sys.argv[1], sys.argv[2], sys.argv[3]
+    cfg = default_config()
+    bus = open_bus(cfg.can, role=None, interface="virtual", channel=channel)
+    node = RigNode(bus, cfg, make_road("rough-course", 11.176, 60.0, cfg.sample_time_s))
+    stop = threading.Event()
+    threading.Thread(target=node.run, args=(stop,), daemon=True).start()
+    rc = main(["run", "--interface", "virtual", "--channel", channel, "--arm",
+               "--record", record, "--design", design, "--no-telemetry", "--no-realtime"])
+    stop.set()
+    node.tick()                      # drain what the service sent last
+    c, f = node.command, node.fault_report
+    print(json.dumps({"rc": rc, "enable": c.enable, "lifecycle": c.lifecycle,
+                      "spool": c.spool_command, "fault_code": f.fault_code,
+                      "fault_state": f.fault_state, "valve_commands": node.stats.valve_commands}))
+    sys.exit(rc)
+""")
+
+
+@pytest.fixture(scope="module")
+def design_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from controller.artifact import save_design
+    from hil.sim import cached_design
+
+    path = tmp_path_factory.mktemp("design") / "design.npz"
+    save_design(cached_design(CFG), path)
+    return path
+
+
+def _wait_for(proc: subprocess.Popen[str], text: str, timeout_s: float,
+              lines: list[str]) -> None:
+    assert proc.stderr is not None
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        line = proc.stderr.readline()
+        if not line:
+            if proc.poll() is not None:
+                break
+            continue
+        lines.append(line)
+        if text in line:
+            return
+    proc.kill()
+    raise AssertionError(f"{text!r} not seen; stderr:\n{''.join(lines)}")
+
+
+@pytest.mark.timeout(120)
+def test_sigterm_exits_0_with_safe_valve_and_complete_recording(design_path: Path,
+                                                                tmp_path: Path) -> None:
+    record = tmp_path / "run.mcap"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env.pop("NOTIFY_SOCKET", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD, f"sigterm-{uuid.uuid4().hex}", str(record),
+         str(design_path)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
+    _wait_for(proc, "-> ACTIVE", 60.0, lines)         # running, armed, valve enabled
+    time.sleep(0.3)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, "".join(lines) + err
+    seen = json.loads(out.strip().splitlines()[-1])
+    assert seen["rc"] == 0 and seen["valve_commands"] > 100
+    # the rig's last valid command: safe state, from a stopping controller
+    assert seen["enable"] == 0 and seen["spool"] == 0.0
+    assert seen["lifecycle"] == LifecycleState.STOPPING
+    assert seen["fault_code"] == FaultCode.SHUTDOWN
+    assert seen["fault_state"] == LifecycleState.STOPPING
+    assert "ACTIVE -> STOPPING" in "".join(lines) + err and "SIGTERM" in err
+    run = read_run(record)
+    assert run.complete, run.stopped_at
+    assert any(r.data["lifecycle"] == "ACTIVE" for r in run.records)
+    last_tx = [f for f in run.frames if not f.is_rx and f.arbitration_id == 0x080][-1]
+    assert last_tx.data[1] & 0x10 == 0                  # Enable bit clear
+    kinds = [(e.kind, e.detail.get("to")) for e in run.events if isinstance(e.detail, dict)]
+    assert ("lifecycle", "STOPPING") in kinds
+    assert "config.toml" in run.attachments and "design.npz" in run.attachments
+
+
+def test_run_cli_bad_bus_exits_2(tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "rig.cli", "run", "--interface", "socketcan", "--channel",
+         "nosuchcan9", "--no-record", "--no-telemetry", "--no-realtime", "--design",
+         str(tmp_path / "missing.npz")], cwd=ROOT, env=env, capture_output=True, text=True,
+        timeout=60)
+    assert proc.returncode == 2
+    assert "missing.npz" in proc.stderr
+
+
+def _service(design_path: Path, **kw: Any) -> Service:
+    opts = ServiceOptions(design_path=str(design_path), interface="virtual",
+                          channel=f"svc-{uuid.uuid4().hex}", recording=False, telemetry=False,
+                          realtime=None, install_signal_handlers=False, **kw)
+    return Service(CFG, opts)
+
+
+def test_sd_notify_ready_watchdog_from_loop_and_stopping(design_path: Path,
+                                                         tmp_path: Path) -> None:
+    sock_path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.settimeout(0.0)
+    notifier = SdNotifier.from_environment({"NOTIFY_SOCKET": sock_path,
+                                            "WATCHDOG_USEC": "40000"})
+    assert notifier.watchdog_period_ns == 20_000_000     # half of WATCHDOG_USEC
+    svc = _service(design_path, duration_s=0.5)
+    svc.notifier = notifier
+    svc.loop.notifier = notifier
+    svc.loop._watchdog_period_ns = notifier.watchdog_period_ns
+    assert svc.run() == 0
+    msgs = []
+    while True:
+        try:
+            msgs.append(server.recv(4096).decode())
+        except BlockingIOError:
+            break
+    server.close()
+    assert msgs[0].startswith("READY=1\nSTATUS=INACTIVE")
+    pings = [m for m in msgs if m == "WATCHDOG=1"]
+    assert 15 <= len(pings) <= 30, len(pings)            # 0.5 s / 20 ms
+    assert msgs[-1].startswith("STOPPING=1")
+
+
+def test_sd_notify_inert_without_socket() -> None:
+    n = SdNotifier.from_environment({})
+    assert not n.enabled and n.watchdog_period_ns == 0
+    assert not n.ready("x") and not n.watchdog()
+    other_pid = SdNotifier.from_environment({"NOTIFY_SOCKET": "@x", "WATCHDOG_USEC": "1000",
+                                             "WATCHDOG_PID": str(os.getpid() + 1)})
+    assert other_pid.watchdog_period_ns == 0
+    other_pid.close()
+
+
+def test_command_handler_and_stop_event(design_path: Path) -> None:
+    svc = _service(design_path)
+    results: dict[str, Any] = {}
+
+    def operator() -> None:
+        time.sleep(0.2)
+        try:
+            svc.command_handler("arm", {})
+        except ValueError as exc:            # no rig on the bus: refused with the reason
+            results["arm"] = str(exc)
+        results["blending"] = svc.command_handler("blending", {"blending": "bayes"})
+        svc.stop_event.set()
+
+    th = threading.Thread(target=operator)
+    th.start()
+    assert svc.run() == 0
+    th.join()
+    assert "no valid SensorData" in results["arm"]
+    assert results["blending"] == "blending 1" and svc.runtime.blending == 1
+    assert svc.exit_reason == "stop requested"
+    assert svc.loop.lifecycle.state is LifecycleState.STOPPING
+
+
+def test_parse_blending() -> None:
+    assert parse_blending("FUZZY") == 0 and parse_blending(3) == 3
+    with pytest.raises(ValueError, match="allowed"):
+        parse_blending("kalman")
