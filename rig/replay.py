@@ -71,6 +71,7 @@ __all__ = [
     "LOG_SUFFIXES",
     "LogReplayBus",
     "McapReplayBus",
+    "PacedRecorder",
     "RecordedRun",
     "RecordingError",
     "ReplayResult",
@@ -593,7 +594,7 @@ class _VirtualClock:
         return self.now_ns
 
 
-class _PacedRecorder:
+class PacedRecorder:
     """A RunRecorder for a replay that runs faster than real time: waits for the writer
     instead of dropping when too many items are queued (public counters only)."""
 
@@ -869,7 +870,7 @@ def replay_recording(path: str | Path, *, cfg: RigConfig | None = None,
     clock = _VirtualClock()
     bus = McapReplayBus(run.rx, channel=f"mcap-replay:{run.path.name}")
     recorder: RunRecorder | None = None
-    paced: _PacedRecorder | None = None
+    paced: PacedRecorder | None = None
     if out is not None:
         offset = int(run.metadata.get("clock_offset_ns", "0") or 0)
         recorder = _open_out(out, cfg, design_bytes, {
@@ -877,7 +878,7 @@ def replay_recording(path: str | Path, *, cfg: RigConfig | None = None,
             "replay_of_run_id": run.metadata.get("run_id", ""),
             "open_loop": not same, "same_controller": same,
             "runtime": settings}, offset)
-        paced = _PacedRecorder(recorder, cfg.recording.queue_size // 2)
+        paced = PacedRecorder(recorder, cfg.recording.queue_size // 2)
     loop = _build_loop(cfg, design, bus, settings, clock, paced)
     period = loop.period_ns
 
@@ -976,12 +977,12 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
     settings = {"blending": 0, "weight_set": cfg.design.weight_set, "warmup_ticks": None,
                 "single_model": None}
     recorder: RunRecorder | None = None
-    paced: _PacedRecorder | None = None
+    paced: PacedRecorder | None = None
     if out is not None:
         recorder = _open_out(out, cfg, design_bytes, {
             "source": "rig replay", "replay_of": str(path), "open_loop": True,
             "runtime": settings}, 0)
-        paced = _PacedRecorder(recorder, cfg.recording.queue_size // 2)
+        paced = PacedRecorder(recorder, cfg.recording.queue_size // 2)
     loop = _build_loop(cfg, design, bus, settings, clock, paced)
     period = loop.period_ns
     t0_ns = round(bus.start_s * 1e9) + period // 2

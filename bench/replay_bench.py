@@ -1,0 +1,183 @@
+"""Replay speed: how much faster than real time ``rig replay`` re-runs a 1 kHz recording.
+
+``python -m bench.replay_bench [--seconds S] [--minutes-target 10]`` records S seconds of
+the controller loop, tick-stepped against the emulated rig on a virtual bus with the
+recorder on (:func:`record_emulated_run`, also used by tests/test_replay.py), replays it
+three times and prints the median replay time, the real-time factor and the time
+scaled to a 10-minute recording (the target: under 12 s, i.e. 50x real time), plus a
+profile split (reading the MCAP vs ticking the loop).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import pstats
+import statistics
+import tempfile
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controller.artifact import save_design
+from controller.bank import BankRuntime
+from controller.config import RigConfig, config_to_toml, default_config
+from controller.design import design_bank
+from controller.force_loop import PIForceLoop
+from hil.faults import FaultSchedule
+from hil.node import RigNode
+from hil.roads import make_road
+from rig.bus import open_bus, shutdown_all
+from rig.loop import ControlLoop
+from rig.recording import RunRecorder
+from rig.replay import PacedRecorder, load_recorded_run, replay_recording
+
+__all__ = ["record_emulated_run"]
+
+
+class _SteppedClock:
+    """Loop clock for a tick-stepped run: tick time + a drawn compute time."""
+
+    def __init__(self) -> None:
+        self.now_ns = 0
+
+    def __call__(self) -> int:
+        return self.now_ns
+
+
+def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | None = None,
+                        design_bytes: bytes | None = None, arm_at_s: float = 0.1,
+                        road: str = "rough-course", seed: int = 1,
+                        commands: dict[int, tuple[str, Any]] | None = None,
+                        late_ticks: dict[int, int] | None = None,
+                        faults: FaultSchedule | None = None,
+                        shutdown: bool = True, warmup_ticks: int = 20,
+                        road_speed_mps: float | None = None) -> Path:
+    """Record ``seconds`` of the loop against :class:`hil.node.RigNode` (virtual bus,
+    tick-stepped, no sleeping) into ``path``.  Wake-up lateness and compute time are
+    drawn (seeded) so that replay has to reproduce the timing-dependent frames too;
+    ``late_ticks`` {tick: lateness_ns} adds overruns, ``commands`` {tick: (name, arg)}
+    operator commands (applied before that tick).  Returns ``path``."""
+    cfg = cfg or default_config()
+    if design_bytes is None:
+        with tempfile.TemporaryDirectory() as d:
+            p = Path(d) / "design.npz"
+            save_design(design_bank(cfg), p)
+            design_bytes = p.read_bytes()
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "design.npz"
+        p.write_bytes(design_bytes)
+        from controller.artifact import load_design
+
+        design = load_design(p)
+    dt = cfg.sample_time_s
+    n = round(seconds / dt)
+    speed = cfg.noise.nominal_speed_mps if road_speed_mps is None else road_speed_mps
+    rd = make_road(road, speed, min(seconds, 120.0), dt, seed)
+    channel = f"replay-bench-{uuid.uuid4().hex}"
+    ctl_bus = open_bus(cfg.can, role="controller", interface="virtual", channel=channel)
+    rig_bus = open_bus(cfg.can, role="rig", interface="virtual", channel=channel)
+    node = RigNode(rig_bus, cfg, rd, faults, seed=seed, record_ticks=16)
+    rt = BankRuntime(design, weight_set=cfg.design.weight_set, cfg=cfg)
+    clock = _SteppedClock()
+    rec = RunRecorder(path, cfg.recording, config_toml=config_to_toml(cfg),
+                      design_bytes=design_bytes,
+                      metadata={"source": "bench.replay_bench", "seed": seed,
+                                "runtime": {"blending": 0,
+                                            "weight_set": cfg.design.weight_set,
+                                            "warmup_ticks": warmup_ticks}},
+                      clock="stepped", clock_offset_ns=1_700_000_000_000_000_000)
+    paced = PacedRecorder(rec, cfg.recording.queue_size // 2)
+    loop = ControlLoop(cfg, ctl_bus, rt, PIForceLoop(cfg.force_loop, dt), recorder=paced,
+                       clock_ns=clock, warmup_ticks=warmup_ticks)
+    rng = np.random.default_rng(seed)
+    lateness = rng.integers(2_000, 90_000, size=n).tolist()
+    compute = rng.integers(15_000, 60_000, size=n).tolist()
+    for k, v in (late_ticks or {}).items():
+        if 0 <= k < n:
+            lateness[k] = v
+    cmds = dict(commands or {})
+    arm_tick = round(arm_at_s / dt)
+    cmds.setdefault(arm_tick, ("arm", None))
+    period = loop.period_ns
+    t = 1_000_000_000
+    try:
+        for k in range(n):
+            node.tick()
+            c = cmds.get(k)
+            if c is not None:
+                loop.request(c[0], c[1], timeout_s=None)
+            clock.now_ns = t + compute[k]
+            loop.tick(t, lateness[k])
+            t += period
+        if shutdown:
+            clock.now_ns = t
+            loop.shutdown("end of recording")
+    finally:
+        rec.close()
+        shutdown_all([ctl_bus, rig_bus])
+    if rec.error or rec.dropped:
+        raise RuntimeError(f"recording failed: {rec.error}, dropped {rec.dropped}")
+    return Path(path)
+
+
+def _profile(path: Path) -> str:
+    pr = cProfile.Profile()
+    pr.enable()
+    replay_recording(path)
+    pr.disable()
+    s = io.StringIO()
+    pstats.Stats(pr, stream=s).sort_stats("tottime").print_stats(12)
+    return s.getvalue()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0, help="recording length [s]")
+    ap.add_argument("--minutes-target", type=float, default=10.0)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--keep", default=None, help="keep the recording at this path")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(args.keep) if args.keep else Path(d) / "bench.mcap"
+        t0 = time.perf_counter()
+        record_emulated_run(path, args.seconds)
+        t_rec = time.perf_counter() - t0
+        size = path.stat().st_size
+        t0 = time.perf_counter()
+        run = load_recorded_run(path)
+        t_read = time.perf_counter() - t0
+        times = []
+        res = None
+        for _ in range(args.repeat):
+            t0 = time.perf_counter()
+            res = replay_recording(path)
+            times.append(time.perf_counter() - t0)
+        assert res is not None
+        med = statistics.median(times)
+        loop_s = statistics.median([res.elapsed_s])
+        factor = args.seconds / med
+        scaled = med * args.minutes_target * 60.0 / args.seconds
+        print(f"recording: {args.seconds:g} s at 1 kHz ({run.tick.size} ticks, "
+              f"{size / 1e6:.1f} MB, {len(run.rx)} rx / {len(run.tx)} tx frames), "
+              f"written in {t_rec:.1f} s")
+        print(f"read (scan + decode): {t_read:.2f} s = {1e6 * t_read / run.tick.size:.1f} "
+              "us/tick")
+        print(f"replay total (median of {args.repeat}): {med:.2f} s = "
+              f"{1e6 * med / run.tick.size:.1f} us/tick; loop part {loop_s:.2f} s")
+        print(f"real-time factor: {factor:.1f}x; scaled to {args.minutes_target:g} min: "
+              f"{scaled:.1f} s (target < 12 s = 50x)")
+        print(f"bit exact: {res.bit_exact} (max_abs_command_diff "
+              f"{res.max_abs_command_diff}, {res.tx_frames_compared} tx frames compared)")
+        if args.profile:
+            print(_profile(path))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,47 @@
+"""`rig demo` smoke test: a short real-time run, JSON summary keys, recording readable."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rig.recording import read_run
+
+ROOT = Path(__file__).resolve().parents[1]
+
+HALF_KEYS = {"ticks", "absorbed_power", "rattlespace_rms_m", "tire_load_rms_ratio",
+             "force_rms_n", "bypass_open_fraction", "lateness_p50_us", "lateness_p99_us",
+             "lateness_max_us", "step_p99_us", "overruns"}
+
+
+@pytest.mark.timeout(180)
+def test_demo_short_run_json(tmp_path: Path) -> None:
+    record = tmp_path / "demo.mcap"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "rig.cli", "demo", "--duration", "3", "--json",
+         "--no-telemetry", "--record", str(record), "--no-realtime"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=170)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert {"passive", "active", "ratios", "faults", "timing", "recording", "realtime",
+            "armed_at_s", "rig", "final_state"} <= set(summary)
+    passive, active = summary["passive"], summary["active"]
+    assert HALF_KEYS <= set(passive) and HALF_KEYS <= set(active)
+    assert passive["ticks"] == 1500
+    assert passive["bypass_open_fraction"] == 1.0 and passive["force_rms_n"] < 50.0
+    assert summary["armed_at_s"] is not None and 1.5 <= summary["armed_at_s"] < 2.5
+    assert active["force_rms_n"] > 100.0            # the actuator works when ACTIVE
+    assert active["bypass_open_fraction"] < 1.0
+    assert summary["final_state"] == "STOPPING"
+    assert "absorbed power" in proc.stderr and "passive" in proc.stderr   # the table
+    run = read_run(record)
+    assert run.complete, run.stopped_at
+    states = {r.data["lifecycle"] for r in run.records}
+    assert {"INACTIVE", "ACTIVE"} <= states
+    assert run.metadata["rig"]["source"] == "rig demo"
