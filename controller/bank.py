@@ -20,16 +20,19 @@ filter in every mode (telemetry; a switch of blending starts warm).
 
 Faults (never raised): a non-finite input returns 0.0 with NONFINITE_INPUT and leaves
 the state untouched.  A filter whose q, estimate or force becomes non-finite (huge
-inputs can overflow) is reset to its equilibrium plus the blended deviation of the healthy
-filters (see :func:`controller.kernels.activate`) and NONFINITE_STATE is set; a non-finite blended force returns 0.0.
-min q over the contributing models above ``safety.estimator_divergence_q`` for
-``safety.divergence_ticks`` ticks sets DIVERGED.  q is clamped to ``Q_MAX``.
+inputs can overflow) is reset to its equilibrium plus the blended deviation of the
+healthy filters (see :func:`controller.kernels.activate`) and NONFINITE_STATE is set; a
+non-finite blended force returns 0.0.  min q over the contributing models above
+``safety.estimator_divergence_q`` for ``safety.divergence_ticks`` ticks sets DIVERGED.
+q is clamped to ``Q_MAX``.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import tomllib
+from pathlib import Path
 from typing import Any
 
 import numba as nb
@@ -83,6 +86,7 @@ from controller.kernels import (
     I_K,
     I_MINLEARN,
     I_MODE,
+    I_NACT,
     I_NB,
     I_NG,
     I_NLEARN,
@@ -101,7 +105,8 @@ from controller.kernels import (
     I_SINGLE,
     I_TICK,
     I_WCURVE,
-    IV_LEN,
+    IV_ACT,
+    IV_HEAD,
     M_A,
     M_B,
     M_BU,
@@ -168,6 +173,29 @@ _NONFINITE_STATE = int(StepFlag.NONFINITE_STATE)
 _NO_RULE_FIRED = int(StepFlag.NO_RULE_FIRED)
 _DIVERGED = int(StepFlag.DIVERGED)
 
+def _drop_stale_kernel_cache() -> None:
+    """numba's on-disk cache checks only the defining file of a function; ``bank_step``
+    compiles in code from kernels.py, moving_bank.py and bayes.py too.  Remove this
+    module's cached kernels when any of those sources changed since they were cached."""
+    here = Path(__file__).resolve().parent
+    cache_dir = here / "__pycache__"
+    try:
+        blob = b"".join((here / f).read_bytes()
+                        for f in ("bank.py", "kernels.py", "moving_bank.py", "bayes.py"))
+        digest = hashlib.sha256(blob).hexdigest()
+        stamp = cache_dir / "bank_kernels.sha256"
+        if stamp.exists() and stamp.read_text() == digest:
+            return
+        for f in cache_dir.glob("bank.*.nb[ic]"):
+            f.unlink(missing_ok=True)
+        cache_dir.mkdir(exist_ok=True)
+        stamp.write_text(digest)
+    except OSError:                       # read-only install: numba falls back as usual
+        pass
+
+
+_drop_stale_kernel_cache()
+
 _SIG_STEP = nb.float64(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
                        nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1],
                        nb.float64, nb.float64, nb.float64)
@@ -188,7 +216,6 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         iv[I_FLAGS] = _NONFINITE_INPUT
         return 0.0
     flags = 0
-    J = st.shape[0]
     blend = iv[I_BLEND]
     sentinel = -1
     if blend == _MOVING and iv[I_MODE] == MODE_AIR:
@@ -201,13 +228,11 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     xf0 = fv[F_XF]
     xf1 = fv[F_XF + 1]
     alpha = fv[F_ALPHA]
-    nupd = 0
-    for j in range(J):
+    nact = iv[I_NACT]
+    for a in range(nact):
+        j = iv[IV_ACT + a]
         st[j, S_CONTRIB] = 0.0
         st[j, S_BAD] = 0.0
-        if not active[j]:
-            continue
-        nupd += 1
         r0 = e0 - vec[j, V_D] * u_in
         r1 = e1 - vec[j, V_D + 1] * u_in
         for i in range(4):
@@ -251,14 +276,15 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             flags |= _NONFINITE_STATE
 
     # ---- blending weights
-    bayes_update(st, S_P, S_Q, S_CONTRIB, vec, V_LLC, fv[F_PFLOOR])
+    bayes_update(st, S_P, S_Q, S_CONTRIB, vec, V_LLC, fv[F_PFLOOR], iv, IV_ACT, nact)
     G = iv[I_G]
     og = iv[I_QGRID]
     oc = iv[I_WCURVE]
     total = 0.0
     best = -1
     qmin = np.inf
-    for j in range(J):
+    for a in range(nact):
+        j = iv[IV_ACT + a]
         if st[j, S_CONTRIB] != 0.0:
             qj = st[j, S_Q]
             if qj < qmin:
@@ -278,7 +304,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             st[j, S_F] = 0.0
             st[j, S_W] = 0.0
     if total > 0.0:
-        for j in range(J):
+        for a in range(nact):
+            j = iv[IV_ACT + a]
             st[j, S_W] = st[j, S_W] / total
     else:
         if best >= 0:          # there are contributing models but none fired
@@ -289,7 +316,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     for i in range(16):
         fv[F_SCR + i] = 0.0
     wsum = 0.0
-    for j in range(J):
+    for a in range(nact):
+        j = iv[IV_ACT + a]
         w = st[j, S_W]
         if w == 0.0 and best == j and total == 0.0:
             w = 1.0                        # passive fallback: the estimate is still the best
@@ -310,7 +338,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             fv[F_XDEVM + i] = fv[F_SCR + 12 + i]
     # ---- recover the filters that went non-finite
     if flags & _NONFINITE_STATE:
-        for j in range(J):
+        for a in range(nact):
+            j = iv[IV_ACT + a]
             if st[j, S_BAD] != 0.0:
                 for i in range(4):
                     x = mat[j, i, M_XBAR]
@@ -340,7 +369,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         flags |= _NONFINITE_STATE
     if blend == _MOVING:
         supervise(st, active, fv, iv, nbr, vec, mat)
-    iv[I_NUPD] = nupd
+    iv[I_NUPD] = nact
     iv[I_TICK] += 1
     iv[I_FLAGS] = flags
     fv[F_OUT] = out
@@ -359,9 +388,9 @@ def bank_configure(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.
     if blend == _SINGLE:
         for j in range(J):
             if active[j] and j != single:
-                deactivate(j, st, active)
+                deactivate(j, st, active, iv)
         if not active[single]:
-            activate(single, st, active, fv, mat, QS_INIT, 1.0)
+            activate(single, st, active, fv, iv, mat, QS_INIT, 1.0)
     elif blend == _MOVING:
         centre = -1
         qbest = np.inf
@@ -375,7 +404,7 @@ def bank_configure(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.
     else:
         for j in range(J):
             if not active[j]:
-                activate(j, st, active, fv, mat, QS_INIT, 1.0 / J)
+                activate(j, st, active, fv, iv, mat, QS_INIT, 1.0 / J)
     total = 0.0
     for j in range(J):
         if active[j]:
@@ -390,6 +419,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
                fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, blend: int) -> None:
     """Initial state: every filter at its equilibrium, p uniform, history cleared."""
     J = st.shape[0]
+    iv[I_NACT] = 0
     for j in range(J):
         active[j] = False
         for c in range(st.shape[1]):
@@ -563,7 +593,7 @@ class BankRuntime:
         fv[F_XINIT:F_XINIT + 4] = x_init
         fv[off_grid:off_grid + G] = design.fuzzy_q_grid
         fv[off_curve:off_curve + G] = design.fuzzy_weight_curve
-        iv = np.zeros(IV_LEN, dtype=np.int64)
+        iv = np.zeros(IV_HEAD + J, dtype=np.int64)
         iv[I_J] = J
         iv[I_G] = G
         iv[I_SINGLE] = self.single_model

@@ -29,16 +29,16 @@ def log_likelihood_constant(logdet_f: float, meas_dim: int) -> float:
 
 @nb.njit(cache=True, nogil=True)
 def bayes_update(st: np.ndarray, col_p: int, col_q: int, col_contrib: int, vec: np.ndarray,
-                 col_llc: int, floor: float) -> None:
-    """In-place MMAE update of st[:, col_p] over the rows with st[:, col_contrib] != 0.
-
-    ``vec[:, col_llc]`` holds log_likelihood_constant per model.  Rows that do not
-    contribute get p = 0.  Allocation-free.
+                 col_llc: int, floor: float, rows: np.ndarray, row0: int, n_rows: int) -> None:
+    """In-place MMAE update of st[:, col_p] over the rows j = rows[row0 : row0 + n_rows]
+    (the running filters); those with st[j, col_contrib] != 0 are updated, the others
+    get p = 0.  ``vec[:, col_llc]`` holds log_likelihood_constant.  Rows not listed are
+    left alone.  Allocation-free.
     """
-    J = st.shape[0]
     lmax = -np.inf
     n = 0
-    for j in range(J):
+    for a in range(n_rows):
+        j = rows[row0 + a]
         if st[j, col_contrib] == 0.0:
             st[j, col_p] = 0.0
         else:
@@ -52,25 +52,29 @@ def bayes_update(st: np.ndarray, col_p: int, col_q: int, col_contrib: int, vec: 
     if n == 0:
         return
     if not (lmax > -np.inf):           # no usable likelihood: uniform
-        for j in range(J):
+        for a in range(n_rows):
+            j = rows[row0 + a]
             if st[j, col_contrib] != 0.0:
                 st[j, col_p] = 1.0 / n
         return
     total = 0.0
-    for j in range(J):
+    for a in range(n_rows):
+        j = rows[row0 + a]
         if st[j, col_contrib] != 0.0:
             e = math.exp(st[j, col_p] - lmax)
             st[j, col_p] = e
             total += e
     total2 = 0.0
-    for j in range(J):
+    for a in range(n_rows):
+        j = rows[row0 + a]
         if st[j, col_contrib] != 0.0:
             pj = st[j, col_p] / total
             if pj < floor:
                 pj = floor
             st[j, col_p] = pj
             total2 += pj
-    for j in range(J):
+    for a in range(n_rows):
+        j = rows[row0 + a]
         if st[j, col_contrib] != 0.0:
             st[j, col_p] = st[j, col_p] / total2
 

@@ -19,6 +19,9 @@ the runtime packs its data into six buffers instead of ~30 named arrays:
 ``nbr`` (J, n_ground) int64: for on-ground model c, the on-ground models by grid
     distance from c (nbr[c, 0] == c); rows of airborne models are -1.
 
+The per-tick loops run over the ascending list of running filters kept in ``iv``
+(maintained by :func:`activate` / :func:`deactivate`), so a tick costs O(k), not O(J).
+
 Everything the kernels touch is preallocated here; the kernels allocate nothing.
 """
 
@@ -61,7 +64,8 @@ MAT_COLS = 14
 V_D, V_FINV, V_LOGDET, V_KF, V_AIR, V_LLC = 0, 2, 6, 7, 9, 10
 VEC_COLS = 11
 # --- st columns
-S_XPRIOR, S_XPOST, S_Q, S_W, S_P, S_U, S_QS, S_F, S_CONTRIB, S_BAD = 0, 4, 8, 9, 10, 11, 12, 13, 14, 15
+S_XPRIOR, S_XPOST, S_Q, S_W, S_P, S_U = 0, 4, 8, 9, 10, 11
+S_QS, S_F, S_CONTRIB, S_BAD = 12, 13, 14, 15
 ST_COLS = 16
 
 # --- fv: scalar parameters
@@ -112,7 +116,9 @@ I_NSWITCH = 30      # set switches since reset
 I_NLEARN = 31       # history samples learnt
 I_NRECENTRE = 32    # re-centres since reset
 I_TICK = 33
-IV_LEN = 40
+I_NACT = 34         # number of running filters
+IV_ACT = 40         # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
+IV_HEAD = 40        # iv has IV_HEAD + J entries
 
 MODE_GROUND = 0
 MODE_AIR = 1
@@ -120,10 +126,9 @@ MODE_AIR = 1
 FALLBACK_PASSIVE = 0
 FALLBACK_BEST = 1
 
-_JIT = {"cache": True, "nogil": True}
 
 
-@nb.njit(**_JIT)
+@nb.njit(cache=True, nogil=True)
 def firing_weight(q: float, fv: np.ndarray, off_grid: int, off_curve: int, G: int) -> float:
     """Tabulated firing weight at q (linear interpolation, clamped to the universe);
     NaN in the table (no rule fired there) reads as 0."""
@@ -150,13 +155,21 @@ def firing_weight(q: float, fv: np.ndarray, off_grid: int, off_curve: int, G: in
     return min(v, 1.0)
 
 
-@nb.njit(**_JIT)
-def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, mat: np.ndarray,
-             qs0: float, p0: float) -> None:
+@nb.njit(cache=True, nogil=True)
+def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
+             mat: np.ndarray, qs0: float, p0: float) -> None:
     """Switch filter j on, bumpless: its prior is its own equilibrium plus the current
     blended deviation from equilibrium (the models' equilibria differ -- each secant
     tire spring carries the weight at its own deflection -- so the deviation, not the
     absolute state, is what carries over between models)."""
+    if not active[j]:
+        n = iv[I_NACT]
+        pos = n
+        while pos > 0 and iv[IV_ACT + pos - 1] > j:   # keep the list ascending
+            iv[IV_ACT + pos] = iv[IV_ACT + pos - 1]
+            pos -= 1
+        iv[IV_ACT + pos] = j
+        iv[I_NACT] = n + 1
     active[j] = True
     for i in range(4):
         st[j, S_XPRIOR + i] = mat[j, i, M_XBAR] + fv[F_XDEVM + i]
@@ -168,11 +181,20 @@ def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, mat: np
     st[j, S_U] = 0.0
     st[j, S_F] = 0.0
     st[j, S_BAD] = 0.0
+    st[j, S_CONTRIB] = 0.0
 
 
-@nb.njit(**_JIT)
-def deactivate(j: int, st: np.ndarray, active: np.ndarray) -> None:
+@nb.njit(cache=True, nogil=True)
+def deactivate(j: int, st: np.ndarray, active: np.ndarray, iv: np.ndarray) -> None:
     """Switch filter j off: it does no work and contributes zero."""
+    if active[j]:
+        n = iv[I_NACT]
+        pos = 0
+        while pos < n and iv[IV_ACT + pos] != j:
+            pos += 1
+        for i in range(pos, n - 1):
+            iv[IV_ACT + i] = iv[IV_ACT + i + 1]
+        iv[I_NACT] = n - 1
     active[j] = False
     st[j, S_Q] = 0.0
     st[j, S_W] = 0.0
@@ -180,3 +202,4 @@ def deactivate(j: int, st: np.ndarray, active: np.ndarray) -> None:
     st[j, S_U] = 0.0
     st[j, S_F] = 0.0
     st[j, S_CONTRIB] = 0.0
+    st[j, S_BAD] = 0.0

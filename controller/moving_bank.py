@@ -61,6 +61,7 @@ from controller.kernels import (
     I_K,
     I_MINLEARN,
     I_MODE,
+    I_NACT,
     I_NB,
     I_NG,
     I_NLEARN,
@@ -74,6 +75,7 @@ from controller.kernels import (
     I_SENTINEL,
     I_SINCE_RECENTRE,
     I_SINCE_SWITCH,
+    IV_ACT,
     M_XBAR,
     MODE_AIR,
     MODE_GROUND,
@@ -107,7 +109,6 @@ HIST_HI_LOG10 = 7.0
 HIST_RECOMPUTE_TICKS = 16   # the quantile is re-read from the histogram this often
 MAX_PROBE_CANDIDATES = 8
 
-_JIT = {"cache": True, "nogil": True}
 
 
 def chi2_threshold_floor(quantile: float, meas_dim: int = 2) -> float:
@@ -139,7 +140,7 @@ def neighbour_table(grid_index: NDArray[np.int64], airborne: NDArray[np.bool_]
 # ---------------------------------------------------------------------------- history
 
 
-@nb.njit(**_JIT)
+@nb.njit(cache=True, nogil=True)
 def history_add(fv: np.ndarray, iv: np.ndarray, s: float) -> None:
     """Add one sample of the switching signal to the exponentially forgotten histogram."""
     off = iv[I_HIST]
@@ -152,17 +153,14 @@ def history_add(fv: np.ndarray, iv: np.ndarray, s: float) -> None:
         fv[F_HTOT] *= scale
         inc = 1.0
     fv[F_HINC] = inc
-    if s > 0.0:
-        b = int((math.log10(s) - fv[F_HLO]) / fv[F_HWIDTH])
-    else:
-        b = 0
+    b = int((math.log10(s) - fv[F_HLO]) / fv[F_HWIDTH]) if s > 0.0 else 0
     b = min(max(b, 0), nb_ - 1)
     fv[off + b] += inc
     fv[F_HTOT] += inc
     iv[I_NLEARN] += 1
 
 
-@nb.njit(**_JIT)
+@nb.njit(cache=True, nogil=True)
 def history_quantile(fv: np.ndarray, iv: np.ndarray, quantile: float) -> float:
     """The ``quantile`` of the learnt history (log-linear inside the bin)."""
     off = iv[I_HIST]
@@ -181,7 +179,7 @@ def history_quantile(fv: np.ndarray, iv: np.ndarray, quantile: float) -> float:
 # ---------------------------------------------------------------------------- subset moves
 
 
-@nb.njit(**_JIT)
+@nb.njit(cache=True, nogil=True)
 def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
              iv: np.ndarray, nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray) -> None:
     """Active set := the k nearest grid models of ``centre`` (no airborne model)."""
@@ -198,18 +196,18 @@ def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
                     if nbr[centre, i] == j:
                         keep = True
             if not keep:
-                deactivate(j, st, active)
+                deactivate(j, st, active, iv)
     for i in range(min(k, ng)):
         j = nbr[centre, i]
         if not active[j]:
-            activate(j, st, active, fv, mat, qs0, p0)
+            activate(j, st, active, fv, iv, mat, qs0, p0)
     iv[I_CENTRE] = centre
     iv[I_SINCE_RECENTRE] = 0
     iv[I_PROBE_PTR] = 0
     iv[I_PROBE_CNT] = 0
 
 
-@nb.njit(**_JIT)
+@nb.njit(cache=True, nogil=True)
 def enter_moving(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
                  nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray, centre: int) -> None:
     """Start the moving bank on the ground, centred on ``centre``."""
@@ -219,7 +217,7 @@ def enter_moving(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndar
     _move_to(centre, st, active, fv, iv, nbr, vec, mat)
 
 
-@nb.njit(**_JIT)
+@nb.njit(cache=True, nogil=True)
 def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
               nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray) -> None:
     """After a tick: learn the threshold, switch sets, re-centre or probe (for next tick)."""
@@ -231,8 +229,9 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
     if iv[I_MODE] == MODE_GROUND:
         best = -1
         s = np.inf
-        for j in range(J):
-            if active[j] and vec[j, V_AIR] == 0.0 and st[j, S_QS] < s:
+        for a in range(iv[I_NACT]):
+            j = iv[IV_ACT + a]
+            if vec[j, V_AIR] == 0.0 and st[j, S_QS] < s:
                 s = st[j, S_QS]
                 best = j
         fv[F_SIGNAL] = s
@@ -246,8 +245,8 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
             # lift-off: the airborne set takes over; the centre stays as zero-weight sentinel
             for j in range(J):
                 if active[j] and j != centre:
-                    deactivate(j, st, active)
-            activate(air, st, active, fv, mat, st[centre, S_QS], 1.0)
+                    deactivate(j, st, active, iv)
+            activate(air, st, active, fv, iv, mat, st[centre, S_QS], 1.0)
             st[centre, S_P] = 0.0
             st[centre, S_W] = 0.0
             iv[I_SENTINEL] = centre
@@ -277,8 +276,8 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
                                 wq = st[j, S_QS]
                                 worst = j
                         if worst >= 0:
-                            deactivate(worst, st, active)
-                            activate(cand, st, active, fv, mat, st[centre, S_QS], 1.0 / k)
+                            deactivate(worst, st, active, iv)
+                            activate(cand, st, active, fv, iv, mat, st[centre, S_QS], 1.0 / k)
                         break
     else:
         sentinel = iv[I_SENTINEL]
@@ -286,7 +285,7 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
         fv[F_SIGNAL] = s
         if iv[I_SINCE_SWITCH] >= dwell and s < fv[F_HYST] * fv[F_THRESH]:
             # touch-down: back to the on-ground subset around the sentinel
-            deactivate(air, st, active)
+            deactivate(air, st, active, iv)
             iv[I_MODE] = MODE_GROUND
             iv[I_SENTINEL] = -1
             iv[I_SINCE_SWITCH] = 0

@@ -92,11 +92,11 @@ class ReferenceBank:
 
     def _neighbours(self) -> dict[int, list[int]]:
         gi = self.d.grid_index
-        out = {}
+        out: dict[int, list[int]] = {}
         for c in self.ground:
-            out[c] = sorted(self.ground, key=lambda j, c=c: (
-                (gi[j, 0] - gi[c, 0]) ** 2 + (gi[j, 1] - gi[c, 1]) ** 2,
-                abs(gi[j, 1] - gi[c, 1]), j))
+            dist = {j: (int((gi[j, 0] - gi[c, 0]) ** 2 + (gi[j, 1] - gi[c, 1]) ** 2),
+                        int(abs(gi[j, 1] - gi[c, 1])), j) for j in self.ground}
+            out[c] = sorted(self.ground, key=dist.__getitem__)
         return out
 
     # ------------------------------------------------------------------ state handling

@@ -10,7 +10,8 @@ could not be had is reported, never raised:
   limit),
 - ``prctl(PR_SET_TIMERSLACK, 1)``: 1 ns timer slack instead of the default 50 us, which
   otherwise makes about half of the wake-ups > 100 us late,
-- ``sys.setswitchinterval`` small so the loop thread gets the GIL back quickly,
+- ``sys.setswitchinterval`` small (100 us): a thread that wakes up waits for the GIL at
+  most about this long while another thread (recorder, telemetry, emulated rig) computes,
 - ``gc.freeze()`` + ``gc.disable()`` after start-up (a full collection of the process
   takes tens of milliseconds; the loop does not allocate in steady state, so nothing
   accumulates).  :func:`restore_gc` undoes it at shutdown.
@@ -42,7 +43,7 @@ class RealtimeRequest:
     cpus: tuple[int, ...] = ()       # empty = keep the affinity
     lock_memory: bool = True
     timer_slack_ns: int = 1          # 0 = keep the default
-    switch_interval_s: float = 0.0005
+    switch_interval_s: float = 0.0001   # GIL hand-over bound for the waking loop thread
     freeze_gc: bool = True
 
 

@@ -25,6 +25,7 @@ corrupt at byte N) and reads a truncated file up to its last complete chunk.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import re
@@ -343,10 +344,6 @@ def _parse_frame(payload: bytes) -> tuple[int, int, int, bytes]:
     return int(d["tick"]), int(d["t_ns"]), int(d["id"]), bytes.fromhex(d["data"])
 
 
-def _num(v: Any) -> float:
-    return math.nan if v is None else float(v)
-
-
 @dataclass
 class RecordedRun:
     """What replay needs of a recording: per-tick times and outputs, frames, events."""
@@ -394,66 +391,114 @@ class RecordedRun:
         return None
 
 
+def _values(joined: bytes, key: str, n: int) -> list[bytes] | None:
+    """The raw JSON values of top-level scalar ``key`` in ``n`` joined messages, or None
+    when the key is not there exactly once per message (then parse each message)."""
+    vals: list[bytes] = re.findall(b'"' + key.encode() + rb'":([^,}\]]*)', joined)
+    return vals if len(vals) == n else None
+
+
+def _columns(payloads: list[bytes], spec: Mapping[str, Callable[[bytes], Any]]
+             ) -> dict[str, list[Any]]:
+    """Columns ``spec`` (key -> converter of the raw JSON value) of JSON messages.
+
+    Fast path: one regex pass per key over all payloads (the recorder writes compact
+    JSON); a key missing from some message falls back to ``json.loads`` per message."""
+    n = len(payloads)
+    joined = b"\n".join(payloads)
+    out: dict[str, list[Any]] = {}
+    for key, conv in spec.items():
+        vals = _values(joined, key, n)
+        if vals is None:
+            vals = [json.dumps(json.loads(p).get(key)).encode() for p in payloads]
+        out[key] = [conv(v) for v in vals]
+    return out
+
+
+def _f64(v: bytes) -> float:
+    return math.nan if v == b"null" else float(v)
+
+
+def _bool01(v: bytes) -> int:
+    return 1 if v == b"true" or v == b"1" else 0
+
+
+def _ns(v: bytes) -> int:
+    return 0 if v == b"null" else round(float(v) * 1e9)
+
+
+def _frames(payloads: list[bytes]) -> list[tuple[int, int, int, bytes]]:
+    joined = b"\n".join(payloads)
+    found = _FRAME_RE.findall(joined)
+    if len(found) != len(payloads):
+        return [_parse_frame(p) for p in payloads]
+    fromhex = bytes.fromhex
+    return [(int(a), int(b), int(c), fromhex(d.decode())) for a, b, c, d, _ in found]
+
+
 def load_recorded_run(path: str | Path) -> RecordedRun:
     """Read what replay needs from a recording (see :func:`scan_recording` for errors)."""
-    ticks: list[int] = []
-    times: list[int] = []
-    late: list[int] = []
-    comp: list[int] = []
-    spool: list[float] = []
-    fref: list[float] = []
-    enable: list[int] = []
-    rx: list[tuple[int, int, int, bytes]] = []
-    tx: list[tuple[int, int, bytes]] = []
-    events: list[dict[str, Any]] = []
-    first_internals: list[dict[str, Any]] = []
-    last_seq = [-1]
-    loads = json.loads
-
-    def on_signals(payload: bytes, seq: int) -> None:
-        d = loads(payload)
-        ticks.append(d["tick"])
-        times.append(d["t_ns"])
-        spool.append(_num(d.get("spool_cmd")))
-        fref.append(_num(d.get("force_ref_n")))
-        enable.append(int(bool(d.get("valve_enable"))))
-        late.append(0)
-        comp.append(0)
-        last_seq[0] = seq
-
-    def on_timing(payload: bytes, seq: int) -> None:
-        if seq != last_seq[0]:
-            return  # its signals message was lost: nothing to attach it to
-        d = loads(payload)
-        w, c = d.get("wake_late_s"), d.get("compute_s")
-        late[-1] = round(w * 1e9) if w is not None else 0
-        comp[-1] = round(c * 1e9) if c is not None else 0
+    sig: list[bytes] = []
+    sig_seq: list[int] = []
+    tim: list[bytes] = []
+    tim_seq: list[int] = []
+    rx: list[bytes] = []
+    tx: list[bytes] = []
+    events: list[bytes] = []
+    first_internals: list[bytes] = []
 
     def on_internals(payload: bytes, seq: int) -> None:
         if not first_internals:
-            first_internals.append(loads(payload))
+            first_internals.append(payload)
 
-    def on_rx(payload: bytes, seq: int) -> None:
-        rx.append(_parse_frame(payload))
+    def on_signals(payload: bytes, seq: int) -> None:
+        sig.append(payload)
+        sig_seq.append(seq)
 
-    def on_tx(payload: bytes, seq: int) -> None:
-        tick, _, fid, data = _parse_frame(payload)
-        tx.append((tick, fid, data))
+    def on_timing(payload: bytes, seq: int) -> None:
+        tim.append(payload)
+        tim_seq.append(seq)
 
-    def on_event(payload: bytes, seq: int) -> None:
-        events.append(loads(payload))
-
-    scan = scan_recording(path, {TOPIC_SIGNALS: on_signals, TOPIC_TIMING: on_timing,
-                                 TOPIC_INTERNALS: on_internals, TOPIC_CAN_RX: on_rx,
-                                 TOPIC_CAN_TX: on_tx, TOPIC_EVENTS: on_event})
+    scan = scan_recording(path, {
+        TOPIC_SIGNALS: on_signals,
+        TOPIC_TIMING: on_timing,
+        TOPIC_INTERNALS: on_internals,
+        TOPIC_CAN_RX: lambda p, s: rx.append(p),
+        TOPIC_CAN_TX: lambda p, s: tx.append(p),
+        TOPIC_EVENTS: lambda p, s: events.append(p)})
+    try:
+        s = _columns(sig, {"tick": int, "t_ns": int, "spool_cmd": _f64, "force_ref_n": _f64,
+                           "valve_enable": _bool01})
+        t = _columns(tim, {"wake_late_s": _ns, "compute_s": _ns})
+        rx_frames = _frames(rx)
+        tx_frames = [(a, c, d) for a, _, c, d in _frames(tx)]
+        ev = [json.loads(p) for p in events]
+        first = json.loads(first_internals[0]) if first_internals else None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise RecordingError(f"{path}: malformed message payload ({type(exc).__name__}: "
+                             f"{exc})") from exc
+    n = len(sig)
+    late = np.zeros(n, dtype=np.int64)
+    comp = np.zeros(n, dtype=np.int64)
+    if tim:
+        if tim_seq == sig_seq:
+            late[:] = t["wake_late_s"]
+            comp[:] = t["compute_s"]
+        else:  # a message was lost: attach timing by sequence number
+            where = {q: i for i, q in enumerate(sig_seq)}
+            for j, q in enumerate(tim_seq):
+                i = where.get(q)
+                if i is not None:
+                    late[i] = t["wake_late_s"][j]
+                    comp[i] = t["compute_s"][j]
     return RecordedRun(
         path=Path(path), scan=scan,
-        tick=np.asarray(ticks, dtype=np.int64), t_ns=np.asarray(times, dtype=np.int64),
-        lateness_ns=np.asarray(late, dtype=np.int64),
-        compute_ns=np.asarray(comp, dtype=np.int64),
-        spool_cmd=np.asarray(spool, dtype=float), force_ref_n=np.asarray(fref, dtype=float),
-        valve_enable=np.asarray(enable, dtype=np.int8), rx=rx, tx=tx, events=events,
-        first_internals=first_internals[0] if first_internals else None)
+        tick=np.asarray(s["tick"], dtype=np.int64), t_ns=np.asarray(s["t_ns"], dtype=np.int64),
+        lateness_ns=late, compute_ns=comp,
+        spool_cmd=np.asarray(s["spool_cmd"], dtype=float),
+        force_ref_n=np.asarray(s["force_ref_n"], dtype=float),
+        valve_enable=np.asarray(s["valve_enable"], dtype=np.int8), rx=rx_frames, tx=tx_frames,
+        events=ev, first_internals=first)
 
 
 # ============================================================================ replay buses
@@ -562,6 +607,7 @@ class LogReplayBus(_ReplayBus):
                                  f"({type(exc).__name__}: {exc})") from exc
         if not msgs:
             raise RecordingError(f"{p}: no CAN frames in the log")
+        msgs.sort(key=lambda m: m.timestamp)   # stable: file order within a timestamp
         self.messages = msgs
         self.start_s = msgs[0].timestamp
         self.end_s = msgs[-1].timestamp
@@ -732,14 +778,18 @@ def recorded_design(run: RecordedRun) -> Design:
 
 def _runtime_settings(run: RecordedRun, cfg: RigConfig) -> dict[str, Any]:
     """Loop/runtime construction arguments of the recorded run: metadata key ``runtime``
-    (JSON, see docs/replay.md) if present, else the first tick record, else defaults."""
+    (a JSON object, see docs/replay.md), else the service's top-level metadata keys
+    ``blending`` / ``weight_set`` / ``warmup_ticks``, else the first tick record, else
+    the defaults."""
     meta: dict[str, Any] = {}
+    for key in ("blending", "weight_set", "warmup_ticks", "single_model"):
+        if key in run.metadata:
+            with contextlib.suppress(json.JSONDecodeError, TypeError):
+                meta[key] = json.loads(run.metadata[key])
     raw = run.metadata.get("runtime")
     if raw:
-        try:
-            meta = dict(json.loads(raw))
-        except (json.JSONDecodeError, TypeError, ValueError):
-            meta = {}
+        with contextlib.suppress(json.JSONDecodeError, TypeError, ValueError):
+            meta.update(dict(json.loads(raw)))
     first = run.first_internals or {}
     blending = meta.get("blending", first.get("blending", 0))
     weight_set = meta.get("weight_set", first.get("weight_set", cfg.design.weight_set))
@@ -867,6 +917,8 @@ def replay_recording(path: str | Path, *, cfg: RigConfig | None = None,
                              + (f" ({run.stopped_at})" if run.stopped_at else ""))
 
     settings = _runtime_settings(run, cfg)
+    if not same_cfg:   # another configuration brings its own weight set
+        settings["weight_set"] = cfg.design.weight_set
     clock = _VirtualClock()
     bus = McapReplayBus(run.rx, channel=f"mcap-replay:{run.path.name}")
     recorder: RunRecorder | None = None
@@ -923,6 +975,7 @@ def replay_recording(path: str | Path, *, cfg: RigConfig | None = None,
             spool[i] = loop.spool_cmd
             fref[i] = loop.force_ref_n
             enable[i] = loop.enable
+        advance(last_tick + 1)   # what the loop does after its last tick
         end_cmds = [c for k, cs in cmds.items() if k > last_tick for c in cs]
         if end_cmds:
             a_, d_ = _apply_commands(loop, end_cmds)
@@ -934,6 +987,7 @@ def replay_recording(path: str | Path, *, cfg: RigConfig | None = None,
             loop.shutdown(str(stop["detail"].get("reason", "shutdown")))
     finally:
         elapsed = time.perf_counter() - started
+        bus.shutdown()
         if recorder is not None:
             recorder.close()
     faults = [tr.fault_code.name for tr in loop.transitions
@@ -986,7 +1040,8 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
     loop = _build_loop(cfg, design, bus, settings, clock, paced)
     period = loop.period_ns
     t0_ns = round(bus.start_s * 1e9) + period // 2
-    n = int((bus.end_s - bus.start_s) * 1e9 // period) + 1
+    span_ns = round((bus.end_s - bus.start_s) * 1e9)
+    n = max(0, span_ns - period // 2 + period - 1) // period + 1   # last frame's tick + 1
     arm_tick = None if arm_at_s is None else round(arm_at_s * 1e9 / period)
     spool, fref = np.empty(n), np.empty(n)
     enable = np.empty(n, dtype=np.int8)
@@ -1007,6 +1062,7 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
             enable[k] = loop.enable
     finally:
         elapsed = time.perf_counter() - started
+        bus.shutdown()
         if recorder is not None:
             recorder.close()
     faults = [tr.fault_code.name for tr in loop.transitions

@@ -174,6 +174,7 @@ def test_single_filter_matches_textbook_kalman_filter(smooth_design: Design,
 
 # ---------------------------------------------------------------------------- invariants
 
+FIXTURE_OK = [HealthCheck.function_scoped_fixture]     # the runtimes are reset per example
 FINITE = st.floats(allow_nan=False, allow_infinity=False)
 MODERATE = st.tuples(st.floats(-0.05, 0.05), st.floats(-50.0, 50.0), st.floats(-5e3, 5e3))
 
@@ -183,7 +184,7 @@ def runtimes(smooth_design: Design) -> dict[Blending, BankRuntime]:
     return {b: BankRuntime(smooth_design, blending=b) for b in Blending}
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=60, deadline=None, suppress_health_check=FIXTURE_OK)
 @given(st.lists(MODERATE, min_size=1, max_size=40), st.sampled_from(list(Blending)))
 def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRuntime],
                                               seq: list[tuple[float, float, float]],
@@ -206,7 +207,7 @@ def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRunti
         assert np.all((raw >= 0.0) & (raw <= 1.0))
 
 
-@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=80, deadline=None, suppress_health_check=FIXTURE_OK)
 @given(st.lists(st.tuples(FINITE, FINITE, FINITE), min_size=1, max_size=20),
        st.sampled_from(list(Blending)))
 def test_any_finite_input_gives_finite_output(runtimes: dict[Blending, BankRuntime],
@@ -230,7 +231,7 @@ def test_any_finite_input_gives_finite_output(runtimes: dict[Blending, BankRunti
 BAD = st.sampled_from([math.nan, math.inf, -math.inf])
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=40, deadline=None, suppress_health_check=FIXTURE_OK)
 @given(BAD, st.integers(0, 2), st.sampled_from(list(Blending)))
 def test_nonfinite_input_flags_and_leaves_state_untouched(
         runtimes: dict[Blending, BankRuntime], bad: float, where: int, mode: Blending) -> None:

@@ -32,7 +32,7 @@ def test_demo_short_run_json(tmp_path: Path) -> None:
     assert {"passive", "active", "ratios", "faults", "timing", "recording", "realtime",
             "armed_at_s", "rig", "final_state"} <= set(summary)
     passive, active = summary["passive"], summary["active"]
-    assert HALF_KEYS <= set(passive) and HALF_KEYS <= set(active)
+    assert set(passive) >= HALF_KEYS and set(active) >= HALF_KEYS
     assert passive["ticks"] == 1500
     assert passive["bypass_open_fraction"] == 1.0 and passive["force_rms_n"] < 50.0
     assert summary["armed_at_s"] is not None and 1.5 <= summary["armed_at_s"] < 2.5

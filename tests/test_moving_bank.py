@@ -12,12 +12,14 @@ from controller.artifact import Design
 from controller.bank import BankRuntime, Blending
 from controller.config import RigConfig, default_config
 from controller.design import design_bank
-from controller.kernels import F_THRESH, I_DWELL, S_QS
+from controller.kernels import I_DWELL, S_QS
 from controller.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
     HIST_LO_LOG10,
     chi2_threshold_floor,
+    history_add,
+    history_quantile,
     neighbour_table,
     supervise,
 )
@@ -75,26 +77,35 @@ def test_neighbour_table_orders_by_grid_distance() -> None:
         assert sorted(nbr[c]) == list(range(9))
 
 
-def test_history_quantile_matches_weighted_empirical_quantile(grid9: tuple) -> None:
-    """The histogram threshold equals the exponentially weighted empirical quantile of
-    the switching signal to within one bin."""
+@pytest.mark.parametrize("quantile", [0.9, 0.99, 0.999])
+def test_history_quantile_matches_weighted_empirical_quantile(grid9: tuple,
+                                                              quantile: float) -> None:
+    """The exponentially forgotten histogram gives the exponentially weighted empirical
+    quantile of what it was fed, to within one bin."""
     cfg, d = grid9
     rt = BankRuntime(d, blending=Blending.MOVING)
-    meas = measurements(cfg, 3000, seed=2)
-    sig = []
-    for k in range(3000):
-        rt.step(meas["rattlespace"][k], meas["accel"][k], meas["force"][k])
-        sig.append(rt.switching_signal)
-    samples = np.array(sig[-rt.counters()["history_samples"]:])   # the learnt ones
+    fv, iv = rt._fv, rt._iv
+    rng = np.random.default_rng(4)
+    samples = np.concatenate([rng.exponential(2.0, 3000), rng.exponential(8.0, 3000)])
+    for x in samples:                      # the second half dominates the window
+        history_add(fv, iv, float(x))
     n_window = cfg.moving_bank.history_window_s / d.dt_s
     wts = (1.0 - 1.0 / n_window) ** np.arange(samples.size)[::-1]
     order = np.argsort(samples)
     cw = np.cumsum(wts[order]) / wts.sum()
-    q_emp = samples[order][np.searchsorted(cw, cfg.moving_bank.threshold_quantile)]
-    learnt = rt._fv[F_THRESH]
-    floor = chi2_threshold_floor(cfg.moving_bank.threshold_quantile)
+    q_emp = samples[order][np.searchsorted(cw, quantile)]
     bin_factor = 10 ** ((HIST_HI_LOG10 - HIST_LO_LOG10) / HIST_BINS)
-    assert learnt == pytest.approx(max(q_emp, floor), rel=bin_factor - 1.0)
+    assert history_quantile(fv, iv, quantile) == pytest.approx(q_emp, rel=bin_factor - 1.0)
+
+
+def test_learnt_threshold_never_below_chi2_floor(grid9: tuple) -> None:
+    cfg, d = grid9
+    rt = BankRuntime(d, blending=Blending.MOVING)
+    meas = measurements(cfg, 2000, seed=2)
+    for k in range(2000):
+        rt.step(meas["rattlespace"][k], meas["accel"][k], meas["force"][k])
+    assert rt.counters()["history_samples"] > 1000
+    assert rt.residual_threshold >= chi2_threshold_floor(cfg.moving_bank.threshold_quantile)
 
 
 def test_lift_off_switches_to_airborne_and_back_without_chattering(grid9: tuple) -> None:

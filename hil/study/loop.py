@@ -67,13 +67,31 @@ class BankController:
         self.rt.set_road(road.speed_mps, gd)
         self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
                          | StepFlag.DIVERGED)
+        self._no_rule = int(StepFlag.NO_RULE_FIRED)
+        self.no_rule_ticks = 0
+        self.ticks = 0
         self.rt.reset()
 
     def reset(self) -> None:
         self.rt.reset()
+        self.no_rule_ticks = 0
+        self.ticks = 0
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
-        return float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
+        u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
+        self.ticks += 1
+        if int(self.rt.flags) & self._no_rule:
+            self.no_rule_ticks += 1
+        return u
+
+    @property
+    def flags(self) -> int:
+        return int(self.rt.flags)
+
+    def diagnostics(self) -> dict[str, float]:
+        """Fraction of ticks in which no fuzzy rule fired (fallback force used)."""
+        return {"no_rule_fired_fraction": self.no_rule_ticks / self.ticks if self.ticks
+                else 0.0}
 
     @property
     def fault(self) -> bool:
@@ -109,13 +127,24 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: StudyController | No
                     delay_ticks: int = 0, seed: int | None = None,
                     params: PlantParams | None = None, settle_s: float = 0.0,
                     lvdt_zero: str = "nominal", record_weights: bool = False,
-                    latch_on_sensor_status: bool = True) -> LoopResult:
+                    latch_on_sensor_status: bool = True,
+                    delay_point: str = "spool") -> LoopResult:
     """Closed-loop run over ``road`` (sampled at ``cfg.sample_time_s``); ``controller``
     None = passive (bypass open).  Same tick and metrics as ``hil.sim.simulate`` plus
     ``tire_deflection_rms_m`` and, with ``record_weights``, the traces ``firing_weight``
-    and ``q`` (ticks x models) of a bank controller."""
+    and ``q`` (ticks x models) of a bank controller.
+
+    ``delay_ticks`` ticks pass between computing and applying.  ``delay_point`` is where
+    that loop delay sits: ``"spool"`` (the valve command is late, as in ``simulate``: the
+    PI force loop runs on the controller side of the bus, so the delay is inside the
+    force loop too) or ``"force_ref"`` (the force reference is late; the PI force loop
+    runs locally at the valve without delay).
+    """
     if delay_ticks < 0:
         raise ValueError(f"delay_ticks must be >= 0, got {delay_ticks}")
+    if delay_point not in ("spool", "force_ref"):
+        raise ValueError(f"delay_point {delay_point!r}: allowed 'spool', 'force_ref'")
+    delay_ref = delay_point == "force_ref" and delay_ticks > 0
     dt = cfg.sample_time_s
     if not math.isclose(road.dt_s, dt, rel_tol=1e-9):
         raise ValueError(f"road sampled at {road.dt_s} s but the controller runs at {dt} s")
@@ -130,17 +159,21 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: StudyController | No
         pi = PIForceLoop(cfg.force_loop, dt)
     keys = ("rattlespace_m", "accel_mps2", "force_n", "force_ref_n", "spool_cmd",
             "tire_force_n", "hydraulic_power_w", "off_ground_s", "bump_stop_s",
-            "tire_deflection_m")
-    tr = {k: np.zeros(n) for k in keys}
-    weights_tr = q_tr = None
+            "tire_deflection_m", "spool_computed")
+    tr: dict[str, Any] = {k: np.zeros(n) for k in keys}
+    weights_tr: FloatArray | None = None
+    q_tr: FloatArray | None = None
     if record_weights and controller is not None and hasattr(controller, "firing_weight"):
-        nm = np.asarray(getattr(controller, "firing_weight")).shape[0]
+        nm = np.asarray(getattr(controller, "firing_weight")).shape[0]  # noqa: B009
         weights_tr, q_tr = np.zeros((n, nm)), np.zeros((n, nm))
-    queue = [0.0] * (delay_ticks + 1)
+    # exactly delay_ticks ticks between computing and applying (hil.sim.simulate's queue
+    # holds delay_ticks + 1 entries, i.e. one tick more: reported to its owner)
+    queue = [0.0] * delay_ticks
     height, velocity = road.height_m, road.velocity_mps
     faulted = False
     n_faults = 0
     fault_tick = -1
+    fault_flags = 0
     sensor_status_ticks = 0
     n_done = n
     for k in range(n):
@@ -155,14 +188,19 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: StudyController | No
                 faulted = True
                 n_faults += 1
                 fault_tick = k
+                fault_flags = int(getattr(controller, "flags", 0)) | (int(rd.status) << 8)
                 fref = 0.0
             else:
+                if delay_ref:
+                    queue.append(fref)
+                    fref = queue.pop(0)
                 spool = pi.step(fref, rd.force_n)
                 bypass = False
             if weights_tr is not None and q_tr is not None:
-                weights_tr[k] = getattr(controller, "firing_weight")
-                q_tr[k] = getattr(controller, "q")
-        if delay_ticks:
+                weights_tr[k] = getattr(controller, "firing_weight")  # noqa: B009
+                q_tr[k] = getattr(controller, "q")  # noqa: B009
+        tr["spool_computed"][k] = spool
+        if delay_ticks and not delay_ref:
             queue.append(spool)
             spool = queue.pop(0)
         plant.advance(dt, spool, bypass, height[k], velocity[k])
@@ -202,6 +240,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: StudyController | No
         "duration_s": n_done * dt,
         "n_faults": float(n_faults),
         "fault_time_s": fault_tick * dt if fault_tick >= 0 else -1.0,
+        "fault_flags": float(fault_flags),
         "sensor_status_ticks": float(sensor_status_ticks),
         "bump_stop_slam": float(slam),
         "nonfinite": float(plant.nonfinite),
@@ -209,6 +248,9 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: StudyController | No
         "tire_deflection_rms_m": float(np.sqrt(np.mean(np.square(x2_dev))))
         if x2_dev.size else math.nan,
     })
+    diag = getattr(controller, "diagnostics", None)
+    if callable(diag):
+        metrics.update(diag())
     if weights_tr is not None and q_tr is not None:
         tr["firing_weight"] = weights_tr
         tr["q"] = q_tr

@@ -115,3 +115,22 @@ def period_stats_s(times: list[float]) -> dict[str, float]:
     return {"n": float(d.size), "median": float(np.median(d)),
             "p01": float(np.percentile(d, 1)), "p99": float(np.percentile(d, 99)),
             "max": float(d.max())}
+
+
+def command_delay_ticks(frames: list[Decoded]) -> np.ndarray:
+    """Per ValveCommand, the loop delay in the offline simulator's terms (``delay_ticks``
+    of ``hil.sim.simulate``): the number of SensorData frames sent between the frame the
+    command echoes and the command.  The rig applies a command at its next tick, so 0 =
+    the command is applied in the tick right after the reading it was computed from."""
+    out = []
+    last_index_by_counter: dict[int, int] = {}
+    n_sd = 0
+    for f in frames:
+        if f.frame_id == SENSOR_DATA and f.crc_ok:
+            last_index_by_counter[f.counter] = n_sd
+            n_sd += 1
+        elif f.frame_id == VALVE_COMMAND and enable(f):
+            k = last_index_by_counter.get(int(f.signals["SensorCounterEcho"]))
+            if k is not None:
+                out.append(n_sd - 1 - k)
+    return np.asarray(out, dtype=int)

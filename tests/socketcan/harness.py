@@ -18,6 +18,7 @@ import os
 import re
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from tests.socketcan.support import (
     PYTHON,
     REPO,
     CapturedFrame,
+    Child,
     Children,
     free_tcp_port,
     read_candump_log,
@@ -47,6 +49,8 @@ WATCHDOG_MS = float(os.environ.get("SOCKETCAN_E2E_WATCHDOG_MS", "100" if IN_UML 
 #: SCHED_FIFO priority of the emulated rig (the service asks for 50 itself): with both
 #: loops real-time, the recording / telemetry threads run in the gaps, not in the loops.
 RIG_RT_PRIORITY = 50
+#: after the service printed its recording path: time for its real-time set-up
+SERVICE_SETTLE_S = 2.0
 
 
 def e2e_config(tmp_path: Path, channel: str, **sections: dict[str, Any]) -> tuple[RigConfig, Path]:
@@ -62,7 +66,10 @@ def e2e_config(tmp_path: Path, channel: str, **sections: dict[str, Any]) -> tupl
                       "listen": True, "mode": "peer", "multicast_scouting": False,
                       "rate_hz": 20.0, "commands_enabled": True},
         "recording": {"enabled": True, "directory": str(tmp_path / "runs")},
-        "safety": {"overrun_threshold_s": 0.5 * period_s if IN_UML else 0.0005},
+        # UML: system-call costs make the guest's scheduling coarse (stalls of tens of ms):
+        # staleness after 100 ms and an overrun streak of 50 instead of 2 ticks / 5
+        "safety": {"overrun_threshold_s": 0.5 * period_s, "stale_ticks": 20,
+                   "overrun_streak": 50} if IN_UML else {},
         "sensors": {"seed": SEED},
     }
     for name, values in sections.items():
@@ -87,59 +94,77 @@ class ScenarioResult:
     rig_status: int
     wall_s: dict[str, float] = field(default_factory=dict)
     cfg: RigConfig = field(default_factory=default_config)
+    notes: dict[str, Any] = field(default_factory=dict)
 
     def samples(self, leaf: str) -> list[dict[str, Any]]:
         return [s["payload"] for s in self.telemetry if s["key"].endswith("/" + leaf)]
 
 
-def rig_argv(cfg_path: Path, channel: str, faults: Path | None, watchdog_ms: float) -> list[str]:
+def rig_argv(cfg_path: Path, channel: str, faults: Path | None, watchdog_ms: float,
+             road: str = ROAD, speed_mps: float = SPEED_MPS) -> list[str]:
     argv = [PYTHON, "-m", "rig.cli", "hil", "--config", str(cfg_path),
-            "--interface", "socketcan", "--channel", channel, "--road", ROAD,
-            "--speed", str(SPEED_MPS), "--seed", str(SEED), "--watchdog-ms", str(watchdog_ms),
+            "--interface", "socketcan", "--channel", channel, "--road", road,
+            "--speed", str(speed_mps), "--seed", str(SEED), "--watchdog-ms", str(watchdog_ms),
             "--rt-priority", str(RIG_RT_PRIORITY)]
     if faults is not None:
         argv += ["--faults", str(faults)]
     return argv
 
 
-def service_argv(cfg_path: Path, channel: str, duration_s: float, arm: bool) -> list[str]:
+def service_argv(cfg_path: Path, channel: str, duration_s: float | None,
+                 arm: bool) -> list[str]:
     argv = [PYTHON, "-m", "rig.cli", "run", "--config", str(cfg_path),
-            "--interface", "socketcan", "--channel", channel, "--duration", str(duration_s)]
+            "--interface", "socketcan", "--channel", channel]
+    if duration_s is not None:
+        argv += ["--duration", str(duration_s)]
     if arm:
         argv.append("--arm")
     return argv
 
 
 def run_scenario(children: Children, tmp_path: Path, cfg: RigConfig, cfg_path: Path, *,
-                 duration_s: float, faults: list[dict[str, Any]] | None = None,
+                 duration_s: float | None, faults: list[dict[str, Any]] | None = None,
                  arm: bool = True, watchdog_ms: float | None = None,
-                 during: Any = None) -> ScenarioResult:
-    """Capture, rig, service (for ``duration_s``), listener; ``during(children, t0)`` runs
-    while the service runs (fault injection from the test)."""
+                 during: Callable[[Scenario], None] | None = None,
+                 road: str = ROAD, speed_mps: float = SPEED_MPS) -> ScenarioResult:
+    """Capture, listener, service, then (once the service loops) the rig.
+
+    The service runs ``duration_s`` of loop time, or (None) until ``during`` returns and
+    it is sent SIGTERM.  ``during(scenario)`` runs in the test while both run."""
     channel = cfg.can.channel
     wall: dict[str, float] = {}
     t_start = time.monotonic()
     capture_path = tmp_path / "capture.log"
-    # candump: every data frame and every error frame, big receive buffer, drop monitor
-    dump = children.start("candump", ["candump", "-L", "-d", "-r", "4194304",
+    # candump: every data frame and every error frame, big receive buffer, drop monitor;
+    # its output goes to a file (line-buffered by stdbuf so the test can follow it)
+    dump = children.start("candump", ["stdbuf", "-oL", "candump", "-L", "-d", "-r", "4194304",
                                       f"{channel},0:0,#FFFFFFFF"])
     endpoint = cfg.telemetry.endpoints[0]
     tel_path = tmp_path / "telemetry.jsonl"
     listener = children.python("zenoh-listener", "-m", "tests.socketcan.zenoh_listener",
-                               "--connect", endpoint, "--prefix", cfg.telemetry.key_prefix,
-                               "--out", str(tel_path))
+                                "--connect", endpoint, "--prefix", cfg.telemetry.key_prefix,
+                                "--out", str(tel_path))
     listener.wait_for_output(r"listener subscribed", timeout_s=60)
     fault_path = None
     if faults:
         fault_path = tmp_path / "faults.json"
         fault_path.write_text(json.dumps({"seed": SEED, "faults": faults}))
     wd_ms = watchdog_ms if watchdog_ms is not None else WATCHDOG_MS
-    rig = children.start("rig-hil", rig_argv(cfg_path, channel, fault_path, wd_ms))
+    # the service first: its start-up (bank design, mlockall) is over before the rig's
+    # drive watchdog is armed by the first ValveCommand
     service = children.start("rig-run", service_argv(cfg_path, channel, duration_s, arm))
     t_service = time.monotonic()
+    service.wait_for_output(r"recording to", timeout_s=180)
+    time.sleep(SERVICE_SETTLE_S)
+    rig = children.start("rig-hil", rig_argv(cfg_path, channel, fault_path, wd_ms, road,
+                                                  speed_mps))
+    scenario = Scenario(cfg, service, rig, dump)
     if during is not None:
-        during(children, t_service)
-    service_status = service.wait(timeout_s=duration_s + 240)
+        during(scenario)
+    if duration_s is None:
+        service_status = service.stop(signal.SIGTERM, grace_s=60)
+    else:
+        service_status = service.wait(timeout_s=duration_s + 240)
     wall["service"] = time.monotonic() - t_service
     time.sleep(0.2)
     rig_status = rig.stop(signal.SIGINT, grace_s=20)
@@ -155,7 +180,18 @@ def run_scenario(children: Children, tmp_path: Path, cfg: RigConfig, cfg_path: P
     recordings = sorted((tmp_path / "runs").rglob("*.mcap"))
     return ScenarioResult(capture_path, frames, decode_all(frames), drops, telemetry,
                           recordings, rig.output(), service.output(), service_status,
-                          rig_status, wall, cfg)
+                          rig_status, wall, cfg, scenario.notes)
+
+
+@dataclass
+class Scenario:
+    """The running parties, for ``during`` callbacks."""
+
+    cfg: RigConfig
+    service: Child
+    rig: Child
+    capture: Child
+    notes: dict[str, Any] = field(default_factory=dict)
 
 
 def service_ready() -> str:

@@ -31,7 +31,7 @@ from tests.socketcan.support import CHANNEL, Children, counter_gaps, record
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600),
               pytest.mark.skipif(bool(service_ready()), reason=service_ready())]
 
-SERVICE_S = 24.0   # service run time (it designs the bank first, then arms when healthy)
+SERVICE_S = 30.0   # service loop time (the rig starts after it, then it arms when healthy)
 SETTLE_S = 2.0     # after arming, before the comparison window
 
 
@@ -116,32 +116,41 @@ def test_closed_loop_matches_the_in_process_simulation(closed_loop: ScenarioResu
     hil_rs = np.array([f.signals["Rattlespace"] for f in sd])
 
     road = make_road(ROAD, SPEED_MPS, MAX_ROAD_S, dt, SEED)
-    active = simulate(cfg, road, "fuzzy", cfg.design.weight_set, delay_ticks=1, seed=SEED)
-    passive = simulate(cfg, road, "passive", seed=SEED)
-    figures = {}
-    for name, acc, rs in (
-            ("hil", hil_acc, hil_rs),
-            ("sim_active", active.traces["meas_accel_mps2"],
-             active.traces["meas_rattlespace_m"]),
-            ("sim_passive", passive.traces["meas_accel_mps2"],
-             passive.traces["meas_rattlespace_m"])):
-        figures[name] = (_absorbed_power(acc, dt, i0, i1), _rms(rs[i0:i1]))
-        record(f"absorbed power, {name}", figures[name][0], "(m/s2)^2",
-               f"ticks {i0}..{i1} at {RATE_HZ:g} Hz")
-        record(f"rattlespace rms, {name}", figures[name][1], "m")
-    # the passive part before arming is the same plant, road and noise: nearly identical
+    delays = cap.command_delay_ticks(r.decoded)
+    hist = np.bincount(np.clip(delays, 0, 3), minlength=4) / max(1, delays.size)
+    record("loop delay 0/1/2/3+ ticks (fraction of commands)", hist[0], "",
+           f"{hist[1]:.3f} / {hist[2]:.3f} / {hist[3]:.3f}")
+    sims = {"passive": simulate(cfg, road, "passive", seed=SEED)}
+    for d in (0, 1):
+        sims[f"delay{d}"] = simulate(cfg, road, "fuzzy", cfg.design.weight_set,
+                                     delay_ticks=d, seed=SEED)
+    figures = {"hil": (_absorbed_power(hil_acc, dt, i0, i1), _rms(hil_rs[i0:i1]))}
+    for name, res in sims.items():
+        figures[name] = (_absorbed_power(res.traces["meas_accel_mps2"], dt, i0, i1),
+                         _rms(res.traces["meas_rattlespace_m"][i0:i1]))
+    for name, (power, rs_rms) in figures.items():
+        record(f"absorbed power, {name}", power, "(m/s2)^2", f"ticks {i0}..{i1}, {RATE_HZ:g} Hz")
+        record(f"rattlespace rms, {name}", 1e3 * rs_rms, "mm")
+
+    # 1. before arming the loop is open (bypass): rig process over CAN == offline plant
+    #    with the same road and noise seed, sample by sample
     n_pre = min(k_arm, round(3.0 / dt))
-    if n_pre > 10:
-        np.testing.assert_allclose(hil_rs[k_arm - n_pre:k_arm],
-                                   passive.traces["meas_rattlespace_m"][k_arm - n_pre:k_arm],
-                                   atol=5e-4)
-    hil_p, hil_r = figures["hil"]
-    act_p, act_r = figures["sim_active"]
-    pas_p, _ = figures["sim_passive"]
-    assert hil_p == pytest.approx(act_p, rel=0.25)
-    assert hil_r == pytest.approx(act_r, rel=0.25)
-    # and the agreement means something: the run is nearer the active than the passive one
-    assert abs(hil_p - act_p) < 0.5 * abs(pas_p - act_p)
+    assert n_pre > 10, "the service armed before the rig had run 50 ms"
+    np.testing.assert_allclose(hil_rs[k_arm - n_pre:k_arm],
+                               sims["passive"].traces["meas_rattlespace_m"][k_arm - n_pre:k_arm],
+                               atol=2e-4)
+    # 2. armed: the controller acted (spool commands, not the safe state)...
+    spools = np.array([f.signals["SpoolCommand"] for f in valves if cap.enable(f)])
+    assert np.count_nonzero(spools) > 0.9 * spools.size
+    # 3. ...and the ride lies in the band the offline closed loop gives for the loop
+    #    delays measured on the bus (0 or 1 tick; a UML guest mixes them)
+    for j, label in ((0, "absorbed power"), (1, "rattlespace rms")):
+        lo = min(figures["delay0"][j], figures["delay1"][j])
+        hi = max(figures["delay0"][j], figures["delay1"][j])
+        assert 0.7 * lo <= figures["hil"][j] <= 1.4 * hi, (label, figures)
+    if hist[0] > 0.95:  # a loop that keeps up (natively): the delay-0 simulation itself
+        assert figures["hil"][0] == pytest.approx(figures["delay0"][0], rel=0.25)
+        assert figures["hil"][1] == pytest.approx(figures["delay0"][1], rel=0.25)
 
 
 def test_loop_timing_on_the_bus(closed_loop: ScenarioResult) -> None:
@@ -192,7 +201,8 @@ def test_mcap_recording_is_complete(closed_loop: ScenarioResult) -> None:
     assert run.complete, run.stopped_at
     ticks = [t.tick for t in run.records]
     assert ticks == list(range(ticks[0], ticks[0] + len(ticks))), "missing tick records"
-    assert len(ticks) >= round(SERVICE_S * RATE_HZ) - 1
+    # the loop skips deadlines it missed by more than a period (counted, not recorded)
+    assert len(ticks) >= 0.8 * SERVICE_S * RATE_HZ, len(ticks)
     assert "config.toml" in run.attachments
     kinds = {e.kind for e in run.events}
     assert "lifecycle" in kinds, kinds

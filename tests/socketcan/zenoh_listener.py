@@ -33,6 +33,60 @@ def session_config(endpoint: str) -> zenoh.Config:
     return conf
 
 
+class Operator:
+    """The operator's side of the service's Zenoh interface (commands and status), as a
+    separate session in the test process."""
+
+    def __init__(self, endpoint: str, prefix: str = "rig") -> None:
+        self.prefix = prefix
+        self.session = zenoh.open(session_config(endpoint))
+
+    def close(self) -> None:
+        self.session.close()
+
+    def _get(self, key: str, payload: str | None, timeout_s: float) -> dict[str, Any] | None:
+        kwargs: dict[str, Any] = {"timeout": timeout_s}
+        if payload is not None:
+            kwargs["payload"] = payload
+        for reply in self.session.get(f"{self.prefix}/{key}", **kwargs):
+            if reply.ok is not None:
+                return dict(json.loads(reply.ok.payload.to_bytes()))
+            if reply.err is not None:
+                return {"accepted": False, "error": reply.err.payload.to_string()}
+        return None
+
+    def status(self, timeout_s: float = 5.0) -> dict[str, Any] | None:
+        return self._get("status", None, timeout_s)
+
+    def command(self, name: str, args: dict[str, Any] | None = None,
+                timeout_s: float = 5.0) -> dict[str, Any] | None:
+        return self._get(f"cmd/{name}", json.dumps(args or {}), timeout_s)
+
+    def until(self, name: str, lifecycle: str, timeout_s: float) -> bool:
+        """Send ``name`` (again every ~0.3 s: a reset is refused while the fault condition
+        lasts, an arm while the estimator warms up) until the service is in ``lifecycle``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            reply = self.command(name, timeout_s=2.0)
+            if reply is not None and reply.get("accepted"):
+                return True
+            st = self.status(timeout_s=2.0)
+            if st is not None and st.get("lifecycle") == lifecycle:
+                return True
+            time.sleep(0.3)
+        return False
+
+    def wait_for(self, lifecycle: str, timeout_s: float) -> dict[str, Any] | None:
+        """Poll the status until the service is in ``lifecycle``; that status or None."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            st = self.status(timeout_s=2.0)
+            if st is not None and st.get("lifecycle") == lifecycle:
+                return st
+            time.sleep(0.1)
+        return None
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--connect", required=True, help="e.g. tcp/127.0.0.1:7447")

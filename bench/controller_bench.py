@@ -1,0 +1,149 @@
+"""Controller step time: ``BankRuntime.step`` per tick, as the 1 kHz loop calls it.
+
+Each case times many single steps with ``time.perf_counter_ns`` around each call (after
+a warm-up, garbage collector disabled during the run) and reports the median, p99 and
+p99.9 in microseconds, plus the kernel-only mean (the same steps called from a compiled
+loop, i.e. without the Python call and numba argument unboxing).  Inputs are the
+measurements of a simulated quarter car (so the moving bank does real work).
+
+Cases: fuzzy J=3 (the thesis's three deflections, no airborne model), fuzzy J=4 (the
+default design, with the airborne model), Bayes J=3, single (plain LQG), and a 9 x 3
+grid + airborne (28 models) run as a moving bank with k = 3.  The goal is a median
+below 10 us and p99.9 below 50 us for fuzzy J=3, and the 28-model moving bank within
+1.3x of fuzzy J=3.  ``python bench/controller_bench.py [--quick]`` prints the table.
+"""
+
+from __future__ import annotations
+
+import gc
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # runnable as a script
+    sys.path.insert(0, str(ROOT))
+
+import numba as nb  # noqa: E402
+import numpy as np  # noqa: E402
+
+from controller.bank import BankRuntime, Blending, bank_step  # noqa: E402
+from controller.config import RigConfig, default_config  # noqa: E402
+from controller.design import design_bank  # noqa: E402
+from controller.reference import quarter_car_measurements  # noqa: E402
+from controller.road_noise import road_velocity_intensity  # noqa: E402
+
+NAME = "controller"
+TITLE = "Controller step (BankRuntime.step, one call per tick), microseconds"
+
+GRID_DEFLECTIONS_M = [0.045, 0.04, 0.035, 0.03, 0.025, 0.02, 0.015, 0.01, 0.005]
+GRID_DAMPING_SCALES = [0.5, 1.0, 2.0]
+
+
+@nb.njit(nogil=True)          # not cached: it compiles bank_step in
+def _kernel_loop(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+                 fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, data: np.ndarray) -> float:
+    acc = 0.0
+    for k in range(data.shape[0]):
+        acc += bank_step(mat, vec, st, active, fv, iv, nbr, data[k, 0], data[k, 1], data[k, 2])
+    return acc
+
+
+def _inputs(cfg: RigConfig, n: int, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    dt = cfg.sample_time_s
+    w = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
+    m = quarter_car_measurements(cfg, dt, rng.normal(0.0, math.sqrt(w / dt), n),
+                                 rng.normal(0.0, 300.0, n), rng)
+    return np.column_stack([m["rattlespace"], m["accel"], m["force"]])
+
+
+def _time_case(rt: BankRuntime, data: np.ndarray) -> dict[str, float]:
+    rows = [(float(a), float(b), float(c)) for a, b, c in data]
+    step = rt.step
+    for r, a, f in rows[: min(2000, len(rows))]:        # warm-up
+        step(r, a, f)
+    rt.reset()
+    times = np.empty(len(rows), dtype=np.int64)
+    updates = 0
+    gc_was = gc.isenabled()
+    gc.disable()
+    try:
+        pc = time.perf_counter_ns
+        for i, (r, a, f) in enumerate(rows):
+            t0 = pc()
+            step(r, a, f)
+            times[i] = pc() - t0
+            updates += rt.filter_updates
+    finally:
+        if gc_was:
+            gc.enable()
+    rt.reset()
+    args = (rt._mat, rt._vec, rt._st, rt._active, rt._fv, rt._iv, rt._nbr)
+    _kernel_loop(*args, data[:10])
+    rt.reset()
+    t0 = time.perf_counter_ns()
+    _kernel_loop(*args, data)
+    kernel_ns = (time.perf_counter_ns() - t0) / len(rows)
+    us = times / 1000.0
+    return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
+            "p99.9_us": float(np.percentile(us, 99.9)), "max_us": float(us.max()),
+            "kernel_mean_us": kernel_ns / 1000.0, "filters_per_tick": updates / len(rows)}
+
+
+def run(quick: bool = False) -> list[dict[str, Any]]:
+    n = 20_000 if quick else 200_000
+    base = default_config()
+    cfg3 = base.replace(design={"include_airborne_model": False})
+    cfg27 = base.replace(design={"linearisation_deflections_m": GRID_DEFLECTIONS_M,
+                                 "tire_damping_scales": GRID_DAMPING_SCALES},
+                         moving_bank={"active_models": 3})
+    d3, d4, d27 = design_bank(cfg3), design_bank(base), design_bank(cfg27)
+    data = _inputs(base, n)
+    cases = [
+        ("fuzzy J=3", d3, Blending.FUZZY),
+        ("fuzzy J=4 (default, +airborne)", d4, Blending.FUZZY),
+        ("bayes J=3", d3, Blending.BAYES),
+        ("single (plain LQG)", d4, Blending.SINGLE),
+        ("moving 9x3+air=28, k=3", d27, Blending.MOVING),
+    ]
+    rows: list[dict[str, Any]] = []
+    for name, d, mode in cases:
+        rt = BankRuntime(d, blending=mode)
+        row: dict[str, Any] = {"case": name, "J": d.n_models}
+        row.update(_time_case(rt, data))
+        rows.append(row)
+    return rows
+
+
+def notes(rows: list[dict[str, Any]]) -> list[str]:
+    by = {r["case"]: r for r in rows}
+    ref, mov = by.get("fuzzy J=3"), by.get("moving 9x3+air=28, k=3")
+    out = []
+    if ref and mov:
+        out.append(f"ratio moving 28 (k=3) / fuzzy J=3: median "
+                   f"{mov['median_us'] / ref['median_us']:.2f}x, kernel "
+                   f"{mov['kernel_mean_us'] / ref['kernel_mean_us']:.2f}x (goal <= 1.3x)")
+        ok = ref["median_us"] < 10.0 and ref["p99.9_us"] < 50.0
+        out.append(f"fuzzy J=3 goal (median < 10 us, p99.9 < 50 us): "
+                   f"{'met' if ok else 'NOT met'}")
+    return out
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    head = f"{'case':<32}{'J':>4}{'median':>9}{'p99':>9}{'p99.9':>9}{'max':>9}" \
+           f"{'kernel':>9}{'filt/tick':>10}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(f"{r['case']:<32}{r['J']:>4}{r['median_us']:>9.2f}{r['p99_us']:>9.2f}"
+                     f"{r['p99.9_us']:>9.2f}{r['max_us']:>9.1f}{r['kernel_mean_us']:>9.3f}"
+                     f"{r['filters_per_tick']:>10.2f}")
+    return "\n".join(lines + notes(rows))
+
+
+if __name__ == "__main__":
+    rows_ = run(quick="--quick" in sys.argv[1:])
+    print(TITLE)
+    print(format_table(rows_))

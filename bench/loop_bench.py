@@ -1,0 +1,252 @@
+"""Loop benchmark: the 1 kHz service loop against the emulated rig, in-process.
+
+    python -m bench.loop_bench [--seconds 60] [--json] [--no-realtime]
+
+Cases (each ``--seconds`` long, after 0.5 s of warm-up that is not counted):
+
+1. ``bare``: loop armed (ACTIVE, fuzzy bank + PI force loop), recording and telemetry off;
+2. ``rec+tel``: the same with the MCAP recording and the Zenoh telemetry on (loopback).
+
+Per case: wake-up lateness ("period jitter" of a loop on absolute deadlines) p50 / p99 /
+p99.9 / max, step time (wake-up to end of tick, CAN I/O included) p50 / p99 / max,
+deadline misses (> 500 us late), skipped deadlines, faults; then the ratio of the p99s.
+Two micro-measurements explain the floor: python-can's virtual-bus cost of one tick's
+frames (3 received + 1 sent) and the wake-up lateness of ``time.sleep`` with the default
+50 us timer slack vs 1 ns.
+
+The rig (RigNode) runs in its own thread, like ``rig demo``: both share the GIL, so the
+numbers include that contention.  Timing goals live here, never in test asserts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import ctypes
+import json
+import math
+import os
+import socket
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from typing import Any
+
+import numpy as np
+
+WARM_S = 0.5
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtime: bool,
+             design_path: str, switch_interval_s: float = 0.0001) -> dict[str, Any]:
+    from hil.node import RigNode
+    from hil.roads import make_road
+    from rig.bus import open_bus
+    from rig.protocol import LifecycleState
+    from rig.realtime import RealtimeRequest, apply_realtime, restore_gc
+    from rig.service import Service, ServiceOptions
+
+    rate = cfg.design.sample_rate_hz
+    channel = f"bench-{uuid.uuid4().hex}"
+    rig_bus = open_bus(cfg.can, role=None, interface="virtual", channel=channel)
+    road = make_road("rough-course", 11.176, seconds + 5.0, cfg.sample_time_s, seed=1)
+    node = RigNode(rig_bus, cfg, road, record_ticks=1000)
+    tmp = tempfile.TemporaryDirectory()
+    svc = Service(cfg, ServiceOptions(
+        design_path=design_path, interface="virtual", channel=channel,
+        record=os.path.join(tmp.name, "bench.mcap") if recording else None,
+        recording=recording, telemetry=telemetry, realtime=None,
+        install_signal_handlers=False, timing_ring=round((seconds + 2 * WARM_S) * rate)))
+    warm = round(WARM_S * rate)
+    end = warm + round(seconds * rate)
+    state = {"rig": -1, "measured_from": -1}
+    stop_rig = threading.Event()
+    rig_thread = threading.Thread(target=node.run, args=(stop_rig,), daemon=True)
+
+    def on_tick(loop: Any) -> None:
+        k = loop.tick_count
+        if state["rig"] < 0:
+            if k >= 100:
+                state["rig"] = k
+                rig_thread.start()
+            return
+        if loop.lifecycle.state is LifecycleState.INACTIVE and not loop.health_problem():
+            loop.request("arm", timeout_s=None)
+        if state["measured_from"] < 0 and k >= state["rig"] + warm:
+            state["measured_from"] = k
+            loop.timing.reset()
+        elif state["measured_from"] >= 0 and k >= state["measured_from"] + end - warm:
+            svc.stop_event.set()
+
+    for _ in range(3):
+        node.tick()
+    while svc.bus.recv(0.0) is not None:
+        pass
+    report = (apply_realtime(RealtimeRequest(switch_interval_s=switch_interval_s))
+              if realtime else None)
+    faults: list[str] = []
+    svc.loop.lifecycle.add_listener(
+        lambda tr: faults.append(tr.fault_code.name) if tr.state is LifecycleState.FAULT
+        else None)
+    try:
+        svc.run(on_tick=on_tick)
+    finally:
+        stop_rig.set()
+        rig_thread.join(5.0)
+        rig_bus.shutdown()
+        if report is not None:
+            restore_gc()
+    lat, step = svc.loop.timing.recent()
+    lat_us, step_us = lat / 1000.0, step / 1000.0
+    out: dict[str, Any] = {
+        "ticks": int(lat.size),
+        "lateness_p50_us": float(np.percentile(lat_us, 50)),
+        "lateness_p99_us": float(np.percentile(lat_us, 99)),
+        "lateness_p99_9_us": float(np.percentile(lat_us, 99.9)),
+        "lateness_max_us": float(lat_us.max()),
+        "step_p50_us": float(np.percentile(step_us, 50)),
+        "step_p99_us": float(np.percentile(step_us, 99)),
+        "step_max_us": float(step_us.max()),
+        "misses_500us": int(np.sum(lat_us > 500.0)),
+        "skipped": svc.loop.timing.skipped,
+        "faults": faults,
+        "active_fraction_end": svc.loop.lifecycle.state.name,
+        "rig_late_ticks": node.stats.late_ticks,
+        "dropped_recording": svc.recorder.dropped if svc.recorder else 0,
+        "dropped_telemetry": svc.telemetry.dropped if svc.telemetry else 0,
+        "realtime": report.as_dict() if report else None,
+    }
+    tmp.cleanup()
+    return out
+
+
+def virtual_bus_cost(n: int = 5000) -> dict[str, float]:
+    """us per tick for python-can's virtual bus: 3 frames received + 1 sent."""
+    import can
+
+    from rig.bus import make_tx_message
+
+    ch = f"cost-{uuid.uuid4().hex}"
+    a = can.Bus(interface="virtual", channel=ch)
+    b = can.Bus(interface="virtual", channel=ch)
+    rx_msgs = [make_tx_message(0x100), make_tx_message(0x100), make_tx_message(0x200)]
+    tx = make_tx_message(0x080)
+    t_recv = t_send = 0
+    for _ in range(n):
+        for m in rx_msgs:
+            b.send(m)
+        t0 = time.perf_counter_ns()
+        while a.recv(0.0) is not None:
+            pass
+        t1 = time.perf_counter_ns()
+        a.send(tx)
+        t2 = time.perf_counter_ns()
+        while b.recv(0.0) is not None:
+            pass
+        t_recv += t1 - t0
+        t_send += t2 - t1
+    a.shutdown()
+    b.shutdown()
+    return {"recv_3_us": t_recv / n / 1000, "send_1_us": t_send / n / 1000,
+            "tick_us": (t_recv + t_send) / n / 1000}
+
+
+def sleep_lateness(slack_ns: int, n: int = 2000) -> dict[str, float]:
+    """Wake-up lateness of absolute-deadline 1 ms sleeps in a thread with ``slack_ns``."""
+    result: dict[str, float] = {}
+
+    def worker() -> None:
+        if hasattr(os, "sched_setscheduler"):   # an ordinary thread: RT threads get no slack
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        try:
+            libc = ctypes.CDLL("libc.so.6", use_errno=True)
+            libc.prctl(29, ctypes.c_ulong(slack_ns), 0, 0, 0)   # PR_SET_TIMERSLACK
+        except OSError:
+            pass
+        late = np.zeros(n)
+        deadline = time.monotonic_ns() + 1_000_000
+        for i in range(n):
+            time.sleep(max(deadline - time.monotonic_ns(), 0) * 1e-9)
+            late[i] = (time.monotonic_ns() - deadline) / 1000.0
+            deadline += 1_000_000
+        result.update({"p50_us": float(np.percentile(late, 50)),
+                       "p99_us": float(np.percentile(late, 99)),
+                       "over_100us_pct": float(100.0 * np.mean(late > 100.0))})
+
+    th = threading.Thread(target=worker)
+    th.start()
+    th.join()
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--no-realtime", action="store_true")
+    ap.add_argument("--switch-interval-us", type=float, default=100.0,
+                    help="sys.setswitchinterval for the run (default 100 us)")
+    args = ap.parse_args(argv)
+    from controller.artifact import save_design
+    from controller.config import default_config
+    from hil.sim import cached_design
+
+    # telemetry on a free loopback port (the design is for this configuration)
+    cfg = default_config().replace(
+        telemetry={"endpoints": [f"tcp/127.0.0.1:{_free_port()}"]})
+    rt = not args.no_realtime
+    with tempfile.TemporaryDirectory() as tmp:
+        design_path = os.path.join(tmp, "design.npz")
+        save_design(cached_design(cfg), design_path)
+        si = args.switch_interval_us * 1e-6
+        cases = {
+            "bare": run_case(cfg, args.seconds, False, False, rt, design_path, si),
+            "rec+tel": run_case(cfg, args.seconds, True, True, rt, design_path, si),
+        }
+    micro = {"virtual_bus": virtual_bus_cost(),
+             "sleep_slack_50us": sleep_lateness(50_000),
+             "sleep_slack_1ns": sleep_lateness(1)}
+    ratio = (cases["rec+tel"]["lateness_p99_us"] / cases["bare"]["lateness_p99_us"]
+             if cases["bare"]["lateness_p99_us"] > 0 else math.nan)
+    step_ratio = cases["rec+tel"]["step_p99_us"] / cases["bare"]["step_p99_us"]
+    if args.json:
+        print(json.dumps({"seconds": args.seconds, "cases": cases, "micro": micro,
+                          "p99_lateness_ratio": ratio, "p99_step_ratio": step_ratio,
+                          "cpus": os.cpu_count(), "load": os.getloadavg()}, indent=2))
+        return 0
+    rows = [("lateness p50 [us]", "lateness_p50_us"), ("lateness p99 [us]", "lateness_p99_us"),
+            ("lateness p99.9 [us]", "lateness_p99_9_us"), ("lateness max [us]",
+                                                             "lateness_max_us"),
+            ("step p50 [us]", "step_p50_us"), ("step p99 [us]", "step_p99_us"),
+            ("step max [us]", "step_max_us"), ("misses > 500 us", "misses_500us"),
+            ("skipped deadlines", "skipped"), ("ticks", "ticks")]
+    print(f"loop benchmark: 1 kHz, {args.seconds:g} s per case, emulated rig in-process, "
+          f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+    print(f"{'':22} {'bare':>10} {'rec+tel':>10}")
+    for label, key in rows:
+        a, b = cases["bare"][key], cases["rec+tel"][key]
+        print(f"{label:22} {a:>10.1f} {b:>10.1f}")
+    print(f"{'faults':22} {','.join(cases['bare']['faults']) or '-':>10} "
+          f"{','.join(cases['rec+tel']['faults']) or '-':>10}")
+    print(f"p99 ratio rec+tel / bare: lateness {ratio:.2f}, step {step_ratio:.2f}")
+    vb = micro["virtual_bus"]
+    print(f"virtual bus per tick: {vb['tick_us']:.1f} us (3 recv {vb['recv_3_us']:.1f}, "
+          f"1 send {vb['send_1_us']:.1f})")
+    for name in ("sleep_slack_50us", "sleep_slack_1ns"):
+        m = micro[name]
+        print(f"{name:22} wake-up p50 {m['p50_us']:.0f} us, p99 {m['p99_us']:.0f} us, "
+              f"> 100 us late {m['over_100us_pct']:.1f} %")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

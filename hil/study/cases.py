@@ -1,0 +1,170 @@
+"""One run of the study matrix: :class:`Case` (picklable spec) -> result row.
+
+A case names the controller, weight set (or custom weights), road, speed, duration,
+seeds, loop delay, sample rate and plant perturbation.  :func:`run_case` builds
+everything inside the worker process (the design is memoised per configuration by
+``hil.sim.cached_design``) and returns a flat row of metrics, optionally with decimated
+traces for the figures.
+
+Roads of one (name, speed, duration, seed) are generated once on a fine
+:data:`ROAD_BASE_RATE_HZ` grid and decimated to the controller rate, so a sample-rate
+sweep drives every rate with the same profile.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from controller.config import RigConfig
+from hil.fullstate import FullStateLQ
+from hil.plant import PlantParams
+from hil.roads import Road, make_road
+from hil.sim import cached_design
+from hil.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
+from hil.study.loop import BankController, StudyController, lq_cost, run_closed_loop
+
+__all__ = ["CONTROLLERS", "ROAD_BASE_RATE_HZ", "TRACE_DECIMATION", "Case", "case_config",
+           "make_controller", "run_case", "study_road"]
+
+CONTROLLERS = ("passive", "skyhook", "lqg", "fuzzy", "bayes", "moving", "fullstate")
+ROAD_BASE_RATE_HZ = 4000.0
+TRACE_DECIMATION = 10
+
+
+@dataclass(frozen=True)
+class Case:
+    group: str
+    controller: str
+    weight_set: int = 1
+    road: str = "rough-course"
+    speed_mps: float = 11.176
+    duration_s: float = 10.0
+    road_seed: int = 1
+    sensor_seed: int = 7
+    delay_ms: float = 0.0
+    delay_point: str = "spool"             # "spool" | "force_ref" (run_closed_loop)
+    rate_hz: float | None = None           # None: the configuration's rate
+    params: PlantParams | None = None
+    param_tag: str = "nominal"
+    weights: tuple[float, float, float, float] | None = None   # custom [rho1..rho4]
+    skyhook: SkyhookGains | None = None
+    settle_s: float = 0.0
+    lvdt_zero: str = "nominal"
+    trace: bool = False
+
+    def __post_init__(self) -> None:
+        if self.controller not in CONTROLLERS:
+            raise ValueError(f"controller {self.controller!r}: allowed {CONTROLLERS}")
+        if self.delay_point not in ("spool", "force_ref"):
+            raise ValueError(f"delay_point {self.delay_point!r}: allowed spool, force_ref")
+        if self.delay_ms < 0 or self.duration_s <= 0:
+            raise ValueError(f"bad case {self}: delay_ms >= 0 and duration_s > 0 needed")
+
+    def ref_key(self) -> tuple[Any, ...]:
+        """Cases with equal keys share one passive reference run."""
+        return (self.road, self.speed_mps, self.duration_s, self.road_seed, self.rate_hz,
+                self.param_tag, self.settle_s, self.lvdt_zero)
+
+    def passive(self) -> Case:
+        return Case(self.group, "passive", 1, self.road, self.speed_mps, self.duration_s,
+                    self.road_seed, self.sensor_seed, 0.0, "spool", self.rate_hz, self.params,
+                    self.param_tag, None, None, self.settle_s, self.lvdt_zero, self.trace)
+
+    @property
+    def label(self) -> str:
+        if self.controller in ("passive", "skyhook"):
+            lab = self.controller
+        elif self.weights is not None:
+            lab = f"{self.controller}-rho"
+        else:
+            lab = f"{self.controller}-{self.weight_set}"
+        return lab + (" (local PI)" if self.delay_point == "force_ref" else "")
+
+
+def case_config(cfg: RigConfig, case: Case) -> RigConfig:
+    """``cfg`` with the case's sample rate and custom weight set applied."""
+    design: dict[str, Any] = {}
+    if case.rate_hz is not None and not math.isclose(case.rate_hz, cfg.design.sample_rate_hz):
+        design["sample_rate_hz"] = float(case.rate_hz)
+    if case.weights is not None:
+        design["weight_sets"] = [[float(w) for w in case.weights]]
+        design["weight_set"] = 1
+    return cfg.replace(design=design) if design else cfg
+
+
+def study_road(name: str, speed_mps: float, duration_s: float, dt_s: float,
+               seed: int) -> Road:
+    """``make_road`` on the :data:`ROAD_BASE_RATE_HZ` grid, decimated to ``dt_s`` when
+    that is an integer multiple of the base step (else generated at ``dt_s``)."""
+    base = 1.0 / ROAD_BASE_RATE_HZ
+    m = round(dt_s / base)
+    if m < 1 or not math.isclose(m * base, dt_s, rel_tol=1e-9):
+        return make_road(name, speed_mps, duration_s, dt_s, seed)
+    fine = make_road(name, speed_mps, duration_s, base, seed)
+    n = round(duration_s / dt_s)
+    edges = np.append(fine.height_m, fine.height_m[-1] + fine.velocity_mps[-1] * base)
+    h = edges[::m][:n + 1]
+    if h.shape[0] < n + 1:
+        raise ValueError("road decimation lost samples")
+    return Road(fine.name, speed_mps, dt_s, np.ascontiguousarray(h[:-1]),
+                np.ascontiguousarray(np.diff(h) / dt_s), fine.roughness_gd,
+                fine.description, dict(fine.extra))
+
+
+def make_controller(case: Case, cfg: RigConfig, road: Road) -> StudyController | None:
+    """The case's controller for ``cfg`` (already :func:`case_config`-ed)."""
+    c = case.controller
+    if c == "passive":
+        return None
+    if c == "skyhook":
+        return SkyhookController(cfg, case.skyhook or DEFAULT_GAINS)
+    design = cached_design(cfg)
+    ws = 1 if case.weights is not None else case.weight_set
+    if c == "fullstate":
+        return FullStateLQ(design, cfg, ws)
+    return BankController(design, cfg, c, ws, road)
+
+
+def _row_fields(case: Case) -> dict[str, Any]:
+    row: dict[str, Any] = {k: v for k, v in asdict(case).items()
+                           if k not in ("params", "skyhook", "weights", "trace")}
+    row["label"] = case.label
+    sk = case.skyhook or (DEFAULT_GAINS if case.controller == "skyhook" else None)
+    row["c_sky_ns_per_m"] = sk.c_sky_ns_per_m if sk else math.nan
+    row["c_ground_ns_per_m"] = sk.c_ground_ns_per_m if sk else math.nan
+    row["damper_cancel"] = sk.damper_cancel if sk else math.nan
+    w = case.weights
+    row["rho1"], row["rho2"] = (w[0], w[1]) if w else (math.nan, math.nan)
+    return row
+
+
+def run_case(case: Case, cfg: RigConfig) -> dict[str, Any]:
+    """Run one case; the row holds the case fields, every metric, the Eq. 2.5 cost for
+    both thesis weight sets (``lq_cost_w1``/``_w2``) and, if ``case.trace``, a
+    ``traces`` dict (decimated by :data:`TRACE_DECIMATION`)."""
+    ccfg = case_config(cfg, case)
+    dt = ccfg.sample_time_s
+    road = study_road(case.road, case.speed_mps, case.duration_s, dt, case.road_seed)
+    ctrl = make_controller(case, ccfg, road)
+    delay_ticks = round(case.delay_ms * 1e-3 / dt)
+    res = run_closed_loop(ccfg, road, ctrl, delay_ticks=delay_ticks, seed=case.sensor_seed,
+                          params=case.params, settle_s=case.settle_s,
+                          lvdt_zero=case.lvdt_zero, record_weights=case.trace,
+                          delay_point=case.delay_point)
+    row = _row_fields(case)
+    row.update({k: float(v) for k, v in res.metrics.items()})
+    row["delay_ticks"] = float(delay_ticks)
+    for i, w in enumerate(cfg.design.weight_sets[:2], start=1):
+        row[f"lq_cost_w{i}"] = lq_cost(res.metrics, w)
+    if case.trace:
+        d = TRACE_DECIMATION
+        full = dict(res.traces)
+        full["int_accel_sq"] = np.cumsum(np.square(full["accel_mps2"])) * dt
+        full["int_filtered_accel_sq"] = np.cumsum(np.square(full["filtered_accel"])) * dt
+        row["traces"] = {k: np.asarray(v[::d]).copy() for k, v in full.items()}
+        row["traces"]["dt_s"] = np.array(dt * d)
+    return row

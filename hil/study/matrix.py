@@ -1,0 +1,215 @@
+"""The study matrix (full and ``--quick``), its parallel execution and the passive ratios.
+
+Groups of cases:
+
+``tune``      skyhook gain search on the rough course (its own road seed)
+``main``      every controller (both weight sets) on the thesis case and the road set
+``mc5/mc15``  Monte Carlo, M m K C Kt Ct ~ nominal x N(1, 5 % / 15 %), rig LVDT zeroed
+              at its own static position (``hil.montecarlo`` convention)
+``mismatch``  tire stiffness law 20 % softer / stiffer than designed
+``delay``     loop delay 0..25 ms (thesis case, fuzzy bank; LQG and skyhook alongside),
+              once before the valve (PI force loop inside the delay, as ``simulate``)
+              and once before a local PI force loop ("local PI")
+``rate``      controller sample rate 250 Hz .. 2 kHz (design redone at each rate)
+``rho``       nonlinear check points of the linear rho2 trade-off (single LQG)
+
+Every non-passive row is divided by the passive row of the same road, speed, duration,
+road seed, rate and plant (:meth:`Case.ref_key`): ``<metric>_ratio``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, replace
+from typing import Any
+
+from controller.config import RigConfig
+from hil.montecarlo import draw_params
+from hil.plant import PlantParams
+from hil.skyhook import DEFAULT_GAINS, TUNING_GRID, SkyhookGains
+from hil.study.cases import Case, run_case
+
+__all__ = ["RATIO_METRICS", "StudyPlan", "add_ratios", "bank_labels", "main_cases",
+           "plan", "run_cases"]
+
+#: metrics reported as closed loop / passive (passive is never zero for these)
+RATIO_METRICS = ("absorbed_power", "wk_rms_mps2", "accel_rms_mps2", "rattlespace_rms_m",
+                 "rattlespace_peak_m", "tire_load_rms_ratio", "tire_deflection_rms_m",
+                 "lq_cost_w1", "lq_cost_w2")
+THESIS_SPEED_MPS = 11.176   # 25 mph
+
+
+@dataclass(frozen=True)
+class StudyPlan:
+    quick: bool
+    thesis_duration_s: float
+    thesis_seeds: tuple[int, ...]
+    road_duration_s: float
+    event_duration_s: float
+    roads: tuple[tuple[str, float], ...]          # (road, speed) besides the thesis case
+    mc_runs: int
+    mc_spreads: tuple[float, ...]
+    mc_duration_s: float
+    mismatch_scales: tuple[float, ...]
+    delays_ms: tuple[float, ...]
+    rates_hz: tuple[float, ...]
+    sweep_duration_s: float
+    rho2_checks: tuple[float, ...]
+    tune_grid: tuple[tuple[float, float, float], ...]
+    tune_duration_s: float
+    settle_s: float
+
+    def describe(self) -> str:
+        return (f"thesis case {len(self.thesis_seeds)} x {self.thesis_duration_s:g} s; other "
+                f"random roads {self.road_duration_s:g} s; bump/pothole "
+                f"{self.event_duration_s:g} s; Monte Carlo {self.mc_runs} runs x "
+                f"{self.mc_duration_s:g} s per controller and spread; delay/rate/mismatch "
+                f"{self.sweep_duration_s:g} s; skyhook search {len(self.tune_grid)} settings "
+                f"x {self.tune_duration_s:g} s; statistics skip the first {self.settle_s:g} s")
+
+
+def plan(quick: bool) -> StudyPlan:
+    if quick:
+        return StudyPlan(True, 3.0, (1,), 2.0, 2.0, (("iso-B", 20.0), ("bump", 10.0)), 2,
+                         (0.05,), 2.0, (0.8, 1.2), (0.0, 10.0), (500.0, 1000.0), 2.0,
+                         (1e-1, 1e2), TUNING_GRID[:: max(1, len(TUNING_GRID) // 3)], 2.0, 0.5)
+    roads = (("iso-B", 10.0), ("iso-B", 20.0), ("iso-B", 30.0), ("iso-D", 10.0),
+             ("iso-D", 20.0), ("iso-D", 30.0), ("iso-F", 5.0), ("iso-F", 10.0),
+             ("bump", 5.0), ("bump", 10.0), ("pothole", 5.0), ("pothole", 10.0))
+    return StudyPlan(False, 60.0, (1, 2, 3), 30.0, 4.0, roads, 20, (0.05, 0.15), 20.0,
+                     (0.8, 1.2), (0.0, 1.0, 2.0, 5.0, 10.0, 15.0, 20.0, 25.0),
+                     (250.0, 500.0, 1000.0, 2000.0), 30.0,
+                     (1e-2, 1e-1, 1e0, 1e1, 1e2, 3e2, 1e3), TUNING_GRID, 20.0, 1.0)
+
+
+def bank_labels() -> list[tuple[str, int]]:
+    """(controller, weight set) of every active configuration in the main comparison."""
+    out: list[tuple[str, int]] = [("skyhook", 1)]
+    for ws in (1, 2):
+        out += [(c, ws) for c in ("lqg", "fuzzy", "bayes", "moving", "fullstate")]
+    return out
+
+
+def tune_cases(p: StudyPlan) -> list[Case]:
+    base = Case("tune", "passive", road="rough-course", speed_mps=THESIS_SPEED_MPS,
+                duration_s=p.tune_duration_s, road_seed=101, settle_s=p.settle_s)
+    return [base] + [replace(base, controller="skyhook", skyhook=SkyhookGains(cs, cg, kc))
+                     for cs, cg, kc in p.tune_grid]
+
+
+def main_cases(p: StudyPlan, skyhook: SkyhookGains) -> list[Case]:
+    cases: list[Case] = []
+    roads: list[tuple[str, float, float, int]] = [
+        ("rough-course", THESIS_SPEED_MPS, p.thesis_duration_s, s) for s in p.thesis_seeds]
+    roads += [(r, v, p.event_duration_s if r in ("bump", "pothole") else p.road_duration_s, 1)
+              for r, v in p.roads]
+    for road, speed, dur, seed in roads:
+        thesis = road == "rough-course" and seed == p.thesis_seeds[0]
+        base = Case("main", "passive", road=road, speed_mps=speed, duration_s=dur,
+                    road_seed=seed, settle_s=p.settle_s if dur > 3 * p.settle_s else 0.0,
+                    trace=thesis)
+        cases.append(base)
+        for c, ws in bank_labels():
+            cases.append(replace(base, controller=c, weight_set=ws,
+                                 skyhook=skyhook if c == "skyhook" else None,
+                                 trace=thesis and c in ("fuzzy", "lqg", "fullstate")))
+    return cases
+
+
+def other_cases(p: StudyPlan, cfg: RigConfig, skyhook: SkyhookGains) -> list[Case]:
+    cases: list[Case] = []
+    thesis = Case("mc", "passive", road="rough-course", speed_mps=THESIS_SPEED_MPS,
+                  duration_s=p.mc_duration_s, road_seed=1, settle_s=p.settle_s)
+    mc_ctrl = [(c, ws) for c, ws in bank_labels() if ws == 1] + [("fuzzy", 2)]
+    for spread in p.mc_spreads:
+        group = f"mc{round(100 * spread)}"
+        for i, prm in enumerate(draw_params(cfg, p.mc_runs, spread, seed=11)):
+            base = replace(thesis, group=group, params=prm, param_tag=f"{group}-{i}",
+                           lvdt_zero="actual", sensor_seed=1000 + i)
+            cases.append(base)
+            for c, ws in mc_ctrl:
+                cases.append(replace(base, controller=c, weight_set=ws,
+                                     skyhook=skyhook if c == "skyhook" else None,
+                                     trace=c == "fuzzy" and ws == 1 and spread == 0.05
+                                     and i < 8))
+    sweep = replace(thesis, group="mismatch", duration_s=p.sweep_duration_s)
+    for scale in p.mismatch_scales:
+        base = replace(sweep, params=PlantParams(tire_stiffness_scale=scale),
+                       param_tag=f"kt{scale:g}")
+        cases.append(base)
+        for c, ws in bank_labels():
+            cases.append(replace(base, controller=c, weight_set=ws,
+                                 skyhook=skyhook if c == "skyhook" else None))
+    base = replace(sweep, group="delay")
+    cases.append(base)
+    for point in ("spool", "force_ref"):
+        for d in p.delays_ms:
+            for c, ws in (("fuzzy", 1), ("fuzzy", 2), ("lqg", 1), ("skyhook", 1)):
+                cases.append(replace(base, controller=c, weight_set=ws, delay_ms=d,
+                                     delay_point=point,
+                                     skyhook=skyhook if c == "skyhook" else None))
+    for rate in p.rates_hz:
+        base = replace(sweep, group="rate", rate_hz=rate)
+        cases.append(base)
+        for c, ws in (("fuzzy", 1), ("fuzzy", 2), ("lqg", 1)):
+            cases.append(replace(base, controller=c, weight_set=ws))
+    base = replace(sweep, group="rho")
+    cases.append(base)
+    for rho1 in (1.0, 10.0):
+        for rho2 in p.rho2_checks:
+            cases.append(replace(base, controller="lqg", weights=(rho1, rho2, 1e-8, 1.0)))
+    return cases
+
+
+def run_cases(cases: Sequence[Case], cfg: RigConfig, jobs: int | None = None,
+              progress: bool = True, desc: str = "study") -> list[dict[str, Any]]:
+    """Run every case (in parallel over ``jobs`` processes), rows in case order."""
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(cases)))
+    rows: list[dict[str, Any] | None] = [None] * len(cases)
+    bar: Any = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(cases), desc=desc, unit="run")
+    # longest first balances the pool
+    order = sorted(range(len(cases)),
+                   key=lambda i: -cases[i].duration_s * (cases[i].rate_hz or 1000.0))
+    if jobs == 1:
+        for i in order:
+            rows[i] = run_case(cases[i], cfg)
+            if bar is not None:
+                bar.update(1)
+    else:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            futs = {pool.submit(run_case, cases[i], cfg): i for i in order}
+            for fut in as_completed(futs):
+                rows[futs[fut]] = fut.result()
+                if bar is not None:
+                    bar.update(1)
+    if bar is not None:
+        bar.close()
+    return [r for r in rows if r is not None]
+
+
+def add_ratios(rows: list[dict[str, Any]], cases: Sequence[Case]) -> None:
+    """Add ``<metric>_ratio`` to every row (passive rows get exactly 1)."""
+    ref: dict[tuple[Any, ...], dict[str, Any]] = {}
+    for row, case in zip(rows, cases, strict=True):
+        if case.controller == "passive":
+            ref.setdefault((case.group, *case.ref_key()), row)
+    for row, case in zip(rows, cases, strict=True):
+        base = ref.get((case.group, *case.ref_key()))
+        for m in RATIO_METRICS:
+            if base is None:
+                row[f"{m}_ratio"] = math.nan
+                continue
+            num, den = float(row[m]), float(base[m])
+            row[f"{m}_ratio"] = num / den if den != 0.0 else math.nan
+
+
+def select_tuned(rows: list[dict[str, Any]], cases: Sequence[Case],
+                 chooser: Callable[[list[dict[str, float]]], SkyhookGains]) -> SkyhookGains:
+    sky = [r for r, c in zip(rows, cases, strict=True) if c.controller == "skyhook"]
+    return chooser(sky) if sky else DEFAULT_GAINS

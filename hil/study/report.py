@@ -1,0 +1,519 @@
+"""Tables (markdown + CSV), thesis-claim checks and figures of the study."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.study.tradeoff import TradeoffGrid
+
+__all__ = ["LABEL_ORDER", "claims", "mean_of", "rows_where", "tables_markdown", "write_csv",
+           "write_figures"]
+
+Row = dict[str, Any]
+LABEL_ORDER = ("passive", "skyhook", "lqg-1", "fuzzy-1", "bayes-1", "moving-1", "fullstate-1",
+               "lqg-2", "fuzzy-2", "bayes-2", "moving-2", "fullstate-2")
+
+
+def rows_where(rows: Iterable[Row], **kw: Any) -> list[Row]:
+    return [r for r in rows if all(r.get(k) == v for k, v in kw.items())]
+
+
+def mean_of(rows: Sequence[Row], key: str) -> float:
+    x = np.array([float(r[key]) for r in rows], dtype=float)
+    return float(np.mean(x)) if x.size else math.nan
+
+
+def _f(x: Any, digits: int = 3) -> str:
+    if x is None or not math.isfinite(float(x)):
+        return "–"
+    return f"{float(x):.{digits}g}"
+
+
+def write_csv(rows: Sequence[Row], path: Path) -> None:
+    keys: list[str] = []
+    for r in rows:
+        for k in r:
+            if k != "traces" and k not in keys:
+                keys.append(k)
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r.get(k, "") for k in keys})
+
+
+def _table(header: Sequence[str], body: Iterable[Sequence[str]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out += ["| " + " | ".join(row) + " |" for row in body]
+    return [*out, ""]
+
+
+def thesis_rows(rows: Sequence[Row]) -> list[Row]:
+    return [r for r in rows if r["group"] == "main" and r["road"] == "rough-course"]
+
+
+def claims(rows: Sequence[Row]) -> list[tuple[str, str, bool]]:
+    """(claim, measured, holds) on the thesis case (means over the road seeds) for the
+    fuzzy-blended bank, the thesis's controller."""
+    t = thesis_rows(rows)
+
+    def m(label: str, key: str) -> float:
+        return mean_of(rows_where(t, label=label), key)
+
+    def worst(label: str, key: str) -> float:
+        sel = rows_where(t, label=label)
+        return max(float(r[key]) for r in sel) if sel else math.nan
+
+    ap1, ap2 = m("fuzzy-1", "absorbed_power_ratio"), m("fuzzy-2", "absorbed_power_ratio")
+    rs1, rs2 = m("fuzzy-1", "rattlespace_rms_m_ratio"), m("fuzzy-2", "rattlespace_rms_m_ratio")
+    pk2 = m("fuzzy-2", "rattlespace_peak_m_ratio")
+    return [
+        ("weight set 1 at least halves absorbed power (ratio <= 0.5, every seed)",
+         f"mean {_f(ap1)}, worst seed {_f(worst('fuzzy-1', 'absorbed_power_ratio'))}",
+         worst("fuzzy-1", "absorbed_power_ratio") <= 0.5),
+        ("weight set 1: rattlespace RMS no larger than passive (ratio <= 1)",
+         f"mean {_f(rs1)}, worst seed {_f(worst('fuzzy-1', 'rattlespace_rms_m_ratio'))}",
+         worst("fuzzy-1", "rattlespace_rms_m_ratio") <= 1.0),
+        ("weight set 2 reduces absorbed power further than set 1",
+         f"set 2 {_f(ap2)} vs set 1 {_f(ap1)}", ap2 < ap1),
+        ("weight set 2: peak travel no larger than passive (ratio <= 1)",
+         f"mean {_f(pk2)}, worst seed {_f(worst('fuzzy-2', 'rattlespace_peak_m_ratio'))}",
+         worst("fuzzy-2", "rattlespace_peak_m_ratio") <= 1.0),
+        ("weight set 2: rattlespace RMS no larger than passive (ratio <= 1)",
+         f"mean {_f(rs2)}, worst seed {_f(worst('fuzzy-2', 'rattlespace_rms_m_ratio'))}",
+         worst("fuzzy-2", "rattlespace_rms_m_ratio") <= 1.0),
+    ]
+
+
+def _headline(rows: Sequence[Row]) -> list[str]:
+    t = thesis_rows(rows)
+    body = []
+    for lab in LABEL_ORDER:
+        sel = rows_where(t, label=lab)
+        if not sel:
+            continue
+        ap = [float(r["absorbed_power_ratio"]) for r in sel]
+        body.append([
+            lab, f"{_f(np.mean(ap))} ({_f(min(ap), 2)}–{_f(max(ap), 2)})",
+            _f(mean_of(sel, "wk_rms_mps2_ratio")), _f(mean_of(sel, "rattlespace_rms_m_ratio")),
+            _f(mean_of(sel, "rattlespace_peak_m_ratio")),
+            _f(mean_of(sel, "tire_load_rms_ratio_ratio")),
+            _f(100 * mean_of(sel, "time_off_ground_fraction"), 2),
+            _f(mean_of(sel, "force_rms_n"), 4), _f(mean_of(sel, "hydraulic_power_mean_w"), 3),
+            str(int(sum(float(r["unstable"]) + float(r["n_faults"]) for r in sel)))])
+    return _table(["controller-weights", "absorbed power (seed range)", "Wk RMS",
+                   "rattlespace RMS", "rattlespace peak", "dyn. tire load RMS",
+                   "off ground [%]", "force RMS [N]", "hydr. power [W]",
+                   "unstable+faults"], body)
+
+
+def _ap_rs(sel: Sequence[Row]) -> str:
+    if not sel:
+        return "–"
+    s = f"{_f(mean_of(sel, 'absorbed_power_ratio'), 2)} / " \
+        f"{_f(mean_of(sel, 'rattlespace_rms_m_ratio'), 2)}"
+    marks = []
+    if any(float(r["nonfinite"]) for r in sel):
+        marks.append("non-finite")
+    elif any(float(r["bump_stop_slam"]) for r in sel):
+        marks.append("slam")
+    if any(float(r["n_faults"]) for r in sel):
+        marks.append("fault")
+    return s + (f" ✗{'+'.join(marks)}" if marks else "")
+
+
+def _roads(rows: Sequence[Row]) -> list[str]:
+    main = [r for r in rows if r["group"] == "main"]
+    keys: list[tuple[str, float]] = []
+    for r in main:
+        k = (r["road"], r["speed_mps"])
+        if k not in keys:
+            keys.append(k)
+    labels = [lab for lab in LABEL_ORDER[1:] if rows_where(main, label=lab)]
+    body = []
+    for road, speed in keys:
+        sel = rows_where(main, road=road, speed_mps=speed)
+        body.append([f"{road} @ {speed:g} m/s"]
+                    + [_ap_rs(rows_where(sel, label=lab)) for lab in labels])
+    return _table(["road", *labels], body)
+
+
+def _mc(rows: Sequence[Row]) -> list[str]:
+    body = []
+    groups = sorted({r["group"] for r in rows if r["group"].startswith("mc")},
+                    key=lambda g: int(g[2:]))
+    for g in groups:
+        sel_g = [r for r in rows if r["group"] == g]
+        for lab in LABEL_ORDER:
+            sel = rows_where(sel_g, label=lab)
+            if not sel:
+                continue
+            ap = np.array([float(r["absorbed_power_ratio"]) for r in sel])
+            rs = np.array([float(r["rattlespace_rms_m_ratio"]) for r in sel])
+            pk = np.array([float(r["rattlespace_peak_m"]) for r in sel])
+            body.append([f"{g[2:]} %", lab, str(len(sel)),
+                         f"{_f(ap.mean())} ± {_f(ap.std(), 2)}",
+                         f"{_f(ap.min(), 2)}–{_f(ap.max(), 2)}",
+                         f"{_f(rs.mean())} ± {_f(rs.std(), 2)}", _f(1000 * pk.max()),
+                         _f(100 * mean_of(sel, "no_rule_fired_fraction"), 2)
+                         if all("no_rule_fired_fraction" in r for r in sel) else "–",
+                         str(int(sum(float(r["unstable"]) for r in sel))),
+                         str(int(sum(float(r["n_faults"]) > 0 for r in sel)))])
+    return _table(["spread", "controller", "runs", "absorbed power", "min–max",
+                   "rattlespace RMS", "max peak [mm]", "no rule fired [%]", "unstable",
+                   "faulted"], body)
+
+
+def _mismatch(rows: Sequence[Row]) -> list[str]:
+    mm = [r for r in rows if r["group"] == "mismatch"]
+    tags = sorted({r["param_tag"] for r in mm})
+    body = []
+    for lab in LABEL_ORDER[1:]:
+        if rows_where(mm, label=lab):
+            body.append([lab] + [_ap_rs(rows_where(mm, label=lab, param_tag=t))
+                                 for t in tags])
+    heads = [f"tire {'stiffer' if float(t[2:]) > 1 else 'softer'} x{t[2:]}" for t in tags]
+    return _table(["controller", *heads], body)
+
+
+def _sweep(rows: Sequence[Row], group: str, key: str, unit: str) -> list[str]:
+    sel = [r for r in rows if r["group"] == group and r["controller"] != "passive"]
+    labels: list[str] = []
+    for r in sel:
+        if r["label"] not in labels:
+            labels.append(r["label"])
+    values = sorted({float(r[key]) for r in sel})
+    body = [[f"{v:g} {unit}"] + [_ap_rs([r for r in rows_where(sel, label=lab)
+                                         if float(r[key]) == v]) for lab in labels]
+            for v in values]
+    return _table([key, *labels], body)
+
+
+def _rho(rows: Sequence[Row], grid: TradeoffGrid | None) -> list[str]:
+    sel = [r for r in rows if r["group"] == "rho" and r["controller"] != "passive"]
+    body = []
+    for r in sorted(sel, key=lambda r: (r["rho1"], r["rho2"])):
+        lin_ap = lin_rs = math.nan
+        if grid is not None and grid.lqg:
+            i = int(np.argmin(np.abs(np.log10(grid.rho1) - math.log10(r["rho1"]))))
+            j = int(np.argmin(np.abs(np.log10(grid.rho2) - math.log10(r["rho2"]))))
+            if math.isclose(grid.rho1[i], r["rho1"]) and math.isclose(grid.rho2[j], r["rho2"]):
+                lin_ap = grid.lqg["absorbed_power"][i, j]
+                lin_rs = grid.lqg["rattlespace_rms"][i, j]
+        body.append([_f(r["rho1"]), _f(r["rho2"]), _f(lin_ap), _f(lin_rs),
+                     _f(r["absorbed_power_ratio"]), _f(r["rattlespace_rms_m_ratio"]),
+                     _f(100 * float(r["time_off_ground_fraction"]), 2)])
+    return _table(["rho1", "rho2", "linear LQG absorbed power", "linear LQG rattlespace",
+                   "nonlinear absorbed power", "nonlinear rattlespace",
+                   "off ground [%]"], body)
+
+
+def _tuning(rows: Sequence[Row], chosen: Any) -> list[str]:
+    sel = [r for r in rows if r["group"] == "tune" and r["controller"] == "skyhook"]
+    sel = sorted(sel, key=lambda r: float(r["absorbed_power_ratio"]))
+    body = []
+    for r in sel:
+        mark = " ◀" if (r["c_sky_ns_per_m"], r["c_ground_ns_per_m"], r["damper_cancel"]) == (
+            chosen.c_sky_ns_per_m, chosen.c_ground_ns_per_m, chosen.damper_cancel) else ""
+        body.append([_f(r["c_sky_ns_per_m"], 4), _f(r["c_ground_ns_per_m"], 4),
+                     _f(r["damper_cancel"]), _f(r["absorbed_power_ratio"]) + mark,
+                     _f(r["rattlespace_rms_m_ratio"]), _f(r["tire_load_rms_ratio_ratio"])])
+    return _table(["c_sky [Ns/m]", "c_ground [Ns/m]", "damper cancel", "absorbed power",
+                   "rattlespace RMS", "dyn. tire load RMS"], body)
+
+
+def tables_markdown(rows: Sequence[Row], grid: TradeoffGrid | None, chosen_skyhook: Any,
+                    describe: str, wall_s: float, jobs: int) -> str:
+    out = ["# Control performance study: results", "",
+           "Generated by `rig study` (hil/study); every ratio is closed loop / passive on the "
+           "same road, seed, rate and plant.  Cells `a / r` = absorbed-power ratio / "
+           "rattlespace-RMS ratio; ✗ marks a run that hit a bump stop hard (slam: more "
+           "than 10 mm into it), latched a fault, or went non-finite.", "",
+           f"Matrix: {describe}.  {len(rows)} runs in {wall_s:.0f} s on {jobs} processes.", "",
+           "## Thesis case: 1.35 in RMS course at 25 mph (mean over road seeds)", ""]
+    out += _headline(rows)
+    out += ["## Thesis claims (fuzzy-blended bank)", ""]
+    out += _table(["claim", "measured", "holds"],
+                  [[c, m, "yes" if ok else "**no**"] for c, m, ok in claims(rows)])
+    out += ["## Roads", "", *_roads(rows)]
+    out += ["## Monte Carlo (thesis case; ratios to the passive run of the same plant)", ""]
+    out += _mc(rows)
+    out += ["## Plant-model mismatch (tire stiffness law scaled, design nominal)", ""]
+    out += _mismatch(rows)
+    out += ["## Loop delay (thesis case)", "", *_sweep(rows, "delay", "delay_ms", "ms")]
+    out += ["## Controller sample rate (design redone per rate)", ""]
+    out += _sweep(rows, "rate", "rate_hz", "Hz")
+    out += ["## rho2 trade-off: linear analysis vs nonlinear check points (single LQG)", ""]
+    out += _rho(rows, grid)
+    out += ["## Skyhook tuning search (rough course, road seed 101)", ""]
+    out += _tuning(rows, chosen_skyhook)
+    return "\n".join(out)
+
+
+# ------------------------------------------------------------------------------- figures
+
+
+def _plt() -> Any:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _save(fig: Any, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    _plt().close(fig)
+    return path
+
+
+def _trace(rows: Sequence[Row], **kw: Any) -> dict[str, Any] | None:
+    for r in rows_where(rows, **kw):
+        if "traces" in r:
+            tr: dict[str, Any] = r["traces"]
+            return tr
+    return None
+
+
+def _fig_thesis(rows: Sequence[Row], out: Path, ws: int, name: str) -> Path | None:
+    t = [r for r in thesis_rows(rows) if "traces" in r]
+    p, c = _trace(t, label="passive"), _trace(t, label=f"fuzzy-{ws}")
+    if p is None or c is None:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+    tp = np.arange(p["accel_mps2"].shape[0]) * float(p["dt_s"])
+    tc = np.arange(c["accel_mps2"].shape[0]) * float(c["dt_s"])
+    ax[0].plot(tp, p["int_accel_sq"], label="open loop (passive)")
+    ax[0].plot(tc, c["int_accel_sq"], label=f"closed loop (fuzzy bank, weight set {ws})")
+    ax[0].set_ylabel("∫ acc² dt [m²/s³]")
+    ax[0].legend(fontsize=8)
+    ax[0].grid(alpha=0.3)
+    ax[1].plot(tp, 1000 * p["rattlespace_m"], lw=0.6, label="open loop")
+    ax[1].plot(tc, 1000 * c["rattlespace_m"], lw=0.6, label="closed loop")
+    ax[1].set_ylabel("working space [mm]")
+    ax[1].set_xlabel("time [s]")
+    ax[1].set_xlim(0, min(tp[-1], 20.0))
+    ax[1].grid(alpha=0.3)
+    ax[0].set_title(f"Fig. {name}: 1.35 in RMS course, 25 mph, weight set {ws}", fontsize=9)
+    return _save(fig, out / f"fig{name.replace('.', '_')}_ws{ws}.png")
+
+
+def _fig_actuation(rows: Sequence[Row], out: Path) -> Path | None:
+    t = [r for r in thesis_rows(rows) if "traces" in r]
+    plt = _plt()
+    fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    found = False
+    for i, ws in enumerate((1, 2)):
+        c = _trace(t, label=f"fuzzy-{ws}")
+        if c is None:
+            continue
+        found = True
+        tc = np.arange(c["force_n"].shape[0]) * float(c["dt_s"])
+        ax[i].plot(tc, c["force_n"] / 1000, lw=0.5)
+        ax[i].set_ylabel("force [kN]")
+        ax[i].set_title(f"Fig. {'5.2' if ws == 1 else '5.4'}: control actuation, weight set "
+                        f"{ws}", fontsize=9)
+        ax[i].grid(alpha=0.3)
+        ax[i].set_xlim(0, min(tc[-1], 20.0))
+    ax[1].set_xlabel("time [s]")
+    if not found:
+        plt.close(fig)
+        return None
+    return _save(fig, out / "fig5_2_5_4_actuation.png")
+
+
+def _fig_firing(rows: Sequence[Row], out: Path, q_grid: np.ndarray, curve: np.ndarray,
+                model_names: Sequence[str]) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ax[0].plot(q_grid, curve)
+    ax[0].set_xlabel("likelihood quotient q")
+    ax[0].set_ylabel("firing weight (centre of area)")
+    ax[0].set_title("Fig. A.4: firing weight vs q", fontsize=9)
+    ax[0].grid(alpha=0.3)
+    c = _trace(thesis_rows(rows), label="fuzzy-1")
+    if c is not None and "firing_weight" in c:
+        w = c["firing_weight"]
+        tc = np.arange(w.shape[0]) * float(c["dt_s"])
+        sel = tc <= 5.0
+        for j in range(w.shape[1]):
+            ax[1].plot(tc[sel], w[sel, j], lw=0.7, label=str(model_names[j]))
+        ax[1].legend(fontsize=7)
+    ax[1].set_xlabel("time [s]")
+    ax[1].set_ylabel("normalised firing weight")
+    ax[1].set_title("firing weight per model, thesis case, weight set 1", fontsize=9)
+    ax[1].grid(alpha=0.3)
+    return _save(fig, out / "figA_4_firing_weight.png")
+
+
+def _fig_mc(rows: Sequence[Row], out: Path) -> list[Path]:
+    plt = _plt()
+    paths = []
+    tr = [r["traces"] for r in rows if r["group"] == "mc5" and r.get("label") == "fuzzy-1"
+          and "traces" in r]
+    if tr:
+        fig, ax = plt.subplots(figsize=(8, 4))
+        for t in tr[:8]:
+            tt = np.arange(t["rattlespace_m"].shape[0]) * float(t["dt_s"])
+            ax.plot(tt, 1000 * t["rattlespace_m"], lw=0.5)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("rattlespace about static [mm]")
+        ax.set_title(f"Fig. 4.1: Monte Carlo, fuzzy bank weight set 1, 5 % spread, "
+                     f"{min(len(tr), 8)} runs", fontsize=9)
+        ax.grid(alpha=0.3)
+        paths.append(_save(fig, out / "fig4_1_montecarlo.png"))
+    groups = sorted({r["group"] for r in rows if r["group"].startswith("mc")},
+                    key=lambda g: int(g[2:]))
+    if groups:
+        fig, axes = plt.subplots(1, len(groups), figsize=(5 * len(groups), 4), sharey=True,
+                                 squeeze=False)
+        for ax, g in zip(axes[0], groups, strict=True):
+            labs = [lab for lab in LABEL_ORDER[1:] if rows_where(rows, group=g, label=lab)]
+            data = [[float(r["absorbed_power_ratio"]) for r in rows_where(rows, group=g,
+                                                                            label=lab)]
+                    for lab in labs]
+            ax.boxplot(data)
+            ax.set_xticks(range(1, len(labs) + 1), labs, rotation=45, fontsize=8)
+            ax.set_title(f"Monte Carlo {g[2:]} % spread", fontsize=9)
+            ax.axhline(1.0, color="k", lw=0.5)
+            ax.grid(alpha=0.3)
+        axes[0][0].set_ylabel("absorbed power / passive")
+        paths.append(_save(fig, out / "fig_montecarlo_spread.png"))
+    return paths
+
+
+def _fig_tradeoff(rows: Sequence[Row], grid: TradeoffGrid, out: Path,
+                  thesis_sets: Sequence[Sequence[float]]) -> list[Path]:
+    plt = _plt()
+    paths = []
+    fig, ax = plt.subplots(figsize=(7, 5))
+    lr1, lr2 = np.log10(grid.rho1), np.log10(grid.rho2)
+    z = np.log10(grid.lq["absorbed_power"])
+    cs = ax.contourf(lr2, lr1, z, levels=20, cmap="viridis")
+    fig.colorbar(cs, ax=ax, label="log10 absorbed power / passive (LQ)")
+    cl = ax.contour(lr2, lr1, grid.lq["rattlespace_rms"], levels=[0.8, 1.0, 1.2],
+                    colors="w", linewidths=0.8)
+    ax.clabel(cl, fmt="rattlespace %.1f", fontsize=7)
+    for i, w in enumerate(thesis_sets[:2], start=1):
+        ax.plot(math.log10(w[1]), math.log10(w[0]), "r*", ms=10)
+        ax.annotate(f"set {i}", (math.log10(w[1]), math.log10(w[0])), color="r",
+                    xytext=(5, 5), textcoords="offset points")
+    ax.set_xlabel("log10 rho2 (rattlespace weight)")
+    ax.set_ylabel("log10 rho1 (tire deflection weight)")
+    ax.set_title(f"Fig. 2.2: absorbed power surface, rho3 = {grid.rho3:g}, model "
+                 f"{grid.model}", fontsize=9)
+    paths.append(_save(fig, out / "fig2_2_absorbed_power_surface.png"))
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    for i, r1 in enumerate(grid.rho1):
+        if r1 not in (1.0, 10.0):
+            continue
+        for kind, d, st in (("LQ", grid.lq, "-"), ("LQG", grid.lqg, "--")):
+            if not d:
+                continue
+            ax[0].semilogx(grid.rho2, d["absorbed_power"][i], st, label=f"{kind}, rho1={r1:g}")
+            ax[1].plot(d["rattlespace_rms"][i], d["absorbed_power"][i], st,
+                       label=f"{kind}, rho1={r1:g}")
+    chk = [r for r in rows if r["group"] == "rho" and r["controller"] != "passive"]
+    if chk:
+        ax[0].semilogx([r["rho2"] for r in chk], [r["absorbed_power_ratio"] for r in chk],
+                       "ko", ms=4, label="nonlinear sim (LQG)")
+        ax[1].plot([r["rattlespace_rms_m_ratio"] for r in chk],
+                   [r["absorbed_power_ratio"] for r in chk], "ko", ms=4,
+                   label="nonlinear sim (LQG)")
+    ax[0].set_xlabel("rho2")
+    ax[0].set_ylabel("absorbed power / passive")
+    ax[0].set_yscale("log")
+    ax[1].set_xlabel("rattlespace RMS / passive")
+    ax[1].set_ylabel("absorbed power / passive")
+    ax[1].set_yscale("log")
+    ax[1].set_xlim(0.4, 1.6)
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7)
+    ax[0].set_title("comfort vs rattlespace weight (rho3 = 1e-8)", fontsize=9)
+    ax[1].set_title("comfort / travel trade-off curve", fontsize=9)
+    paths.append(_save(fig, out / "fig_tradeoff_rho2.png"))
+    return paths
+
+
+def _fig_sweeps(rows: Sequence[Row], out: Path) -> Path | None:
+    plt = _plt()
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    any_ = False
+    for a, group, key, xl in ((ax[0], "delay", "delay_ms", "loop delay [ms]"),
+                              (ax[1], "rate", "rate_hz", "sample rate [Hz]")):
+        sel = [r for r in rows if r["group"] == group and r["controller"] != "passive"]
+        labels = sorted({r["label"] for r in sel})
+        for lab in labels:
+            s = sorted(rows_where(sel, label=lab), key=lambda r: float(r[key]))
+            if not s:
+                continue
+            any_ = True
+            x = [float(r[key]) for r in s]
+            y = [float(r["absorbed_power_ratio"]) if not float(r["unstable"]) else np.nan
+                 for r in s]
+            a.plot(x, y, "o--" if "local" in lab else "o-", label=lab, ms=3)
+        a.axhline(1.0, color="k", lw=0.5)
+        a.set_xlabel(xl)
+        a.set_ylabel("absorbed power / passive")
+        a.set_yscale("log")
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7)
+    if not any_:
+        plt.close(fig)
+        return None
+    ax[1].set_xscale("log")
+    return _save(fig, out / "fig_delay_rate.png")
+
+
+def _fig_controllers(rows: Sequence[Row], out: Path) -> Path:
+    plt = _plt()
+    t = thesis_rows(rows)
+    labs = [lab for lab in LABEL_ORDER[1:] if rows_where(t, label=lab)]
+    keys = (("absorbed_power_ratio", "absorbed power"),
+            ("rattlespace_rms_m_ratio", "rattlespace RMS"),
+            ("tire_load_rms_ratio_ratio", "dyn. tire load RMS"))
+    fig, ax = plt.subplots(figsize=(10, 4))
+    x = np.arange(len(labs))
+    for i, (k, name) in enumerate(keys):
+        ax.bar(x + (i - 1) * 0.27, [mean_of(rows_where(t, label=lab), k) for lab in labs],
+               0.27, label=name)
+    ax.axhline(1.0, color="k", lw=0.6)
+    ax.set_xticks(x, labs, rotation=30, fontsize=8)
+    ax.set_ylabel("ratio to passive")
+    ax.set_title("thesis case (1.35 in RMS, 25 mph): controllers compared", fontsize=9)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="y")
+    return _save(fig, out / "fig_controllers.png")
+
+
+def write_figures(rows: Sequence[Row], out: Path, grid: TradeoffGrid | None,
+                  firing: tuple[np.ndarray, np.ndarray, Sequence[str]],
+                  thesis_sets: Sequence[Sequence[float]]) -> list[Path]:
+    makers: list[Callable[[], Path | list[Path] | None]] = [
+        lambda: _fig_thesis(rows, out, 1, "5.1"),
+        lambda: _fig_thesis(rows, out, 2, "5.3"),
+        lambda: _fig_actuation(rows, out),
+        lambda: _fig_firing(rows, out, *firing),
+        lambda: _fig_mc(rows, out),
+        lambda: _fig_sweeps(rows, out),
+        lambda: _fig_controllers(rows, out),
+    ]
+    if grid is not None:
+        makers.append(lambda: _fig_tradeoff(rows, grid, out, thesis_sets))
+    paths: list[Path] = []
+    for mk in makers:
+        res = mk()
+        if isinstance(res, list):
+            paths += res
+        elif res is not None:
+            paths.append(res)
+    return paths

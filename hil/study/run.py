@@ -1,0 +1,71 @@
+"""``run_study``: skyhook search, the matrix, ratios, linear trade-off, tables, figures."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controller.config import RigConfig
+from hil.sim import cached_design
+from hil.skyhook import SkyhookGains, select_gains
+from hil.study.matrix import add_ratios, main_cases, other_cases, plan, run_cases, tune_cases
+from hil.study.report import claims, tables_markdown, write_csv, write_figures
+from hil.study.tradeoff import TradeoffGrid, tradeoff_grid
+
+__all__ = ["StudyResult", "run_study"]
+
+#: (rho1, rho2) axes of the linear trade-off surface (rho3 = 1e-8, rho4 = 1)
+SURFACE_RHO1 = (1e-2, 1e-1, 1.0, 10.0, 1e2, 1e3, 1e4)
+SURFACE_RHO2 = (*(float(x) for x in np.round(np.logspace(-3, 4, 22), 10)),
+                0.01, 0.1, 1.0, 10.0, 100.0, 300.0, 1000.0)
+
+
+@dataclass
+class StudyResult:
+    rows: list[dict[str, Any]]
+    skyhook: SkyhookGains
+    claims: list[tuple[str, str, bool]]
+    files: list[Path]
+    wall_s: float
+
+
+def run_study(cfg: RigConfig, out_dir: str | Path, *, quick: bool = False,
+              jobs: int | None = None, progress: bool = True) -> StudyResult:
+    """Run the study and write ``results.md``, ``results.csv``, ``claims.json`` and the
+    PNG figures into ``out_dir`` (created)."""
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    p = plan(quick)
+    tcases = tune_cases(p)
+    trows = run_cases(tcases, cfg, jobs, progress, "skyhook search")
+    add_ratios(trows, tcases)
+    sky = select_gains([r for r, c in zip(trows, tcases, strict=True)
+                        if c.controller == "skyhook"])
+    cases = main_cases(p, sky) + other_cases(p, cfg, sky)
+    rows = run_cases(cases, cfg, jobs, progress, "study matrix")
+    add_ratios(rows, cases)
+    rows = trows + rows
+    rho2 = sorted(set(SURFACE_RHO2) | set(p.rho2_checks))
+    grid: TradeoffGrid | None = tradeoff_grid(cfg, SURFACE_RHO1, rho2)
+    design = cached_design(cfg)
+    firing = (np.asarray(design.fuzzy_q_grid), np.asarray(design.fuzzy_weight_curve),
+              [str(n) for n in design.model_names])
+    files = write_figures(rows, out, grid, firing, cfg.design.weight_sets)
+    wall = time.perf_counter() - t0
+    n_jobs = max(1, jobs or __import__("os").cpu_count() or 1)
+    md = tables_markdown(rows, grid, sky, p.describe(), wall, n_jobs)
+    (out / "results.md").write_text(md + "\n", encoding="utf-8")
+    write_csv(rows, out / "results.csv")
+    cl = claims(rows)
+    (out / "claims.json").write_text(json.dumps(
+        {"quick": quick, "skyhook": asdict(sky),
+         "claims": [{"claim": c, "measured": m, "holds": ok} for c, m, ok in cl]},
+        indent=1) + "\n", encoding="utf-8")
+    files = [out / "results.md", out / "results.csv", out / "claims.json", *files]
+    return StudyResult(rows, sky, cl, files, wall)

@@ -1,0 +1,118 @@
+"""``rig replay``: re-run a recorded run (MCAP, or a candump .log/.asc/.blf) through the
+control loop, as fast as the CPU allows (virtual clock).
+
+With the recorded design and configuration the replay must reproduce the recorded
+transmitted frames bit for bit (exit status 1 if it does not).  With ``--design`` or
+``--config`` it compares the two controllers on the same sensor data -- open loop: the
+recorded plant did not react to the replayed commands.  Exit status 2 for a file that
+is not a replayable recording (the message names what is wrong).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from controller.artifact import DesignMismatch, load_design
+from controller.config import load_config
+from rig.replay import LOG_SUFFIXES, RecordingError, ReplayResult, replay_file
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", help="recording (.mcap) or python-can log "
+                   f"({', '.join(LOG_SUFFIXES)})")
+    p.add_argument("--design", metavar="NPZ", default=None,
+                   help="design artifact to replay with (default: the recorded one)")
+    p.add_argument("--out", metavar="MCAP", default=None,
+                   help="write the replay as a new recording (open it with `rig report`)")
+    p.add_argument("--arm-at", type=float, default=None, metavar="S",
+                   help="log files only: arm the controller S seconds after the first frame")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, float) and not math.isfinite(v):
+        return None if math.isnan(v) else ("inf" if v > 0 else "-inf")
+    if isinstance(v, dict):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_jsonable(x) for x in v]
+    return v
+
+
+def _print_text(res: ReplayResult) -> None:
+    s = res.summary()
+    print(f"replayed {s['ticks']} ticks ({s['recorded_s']:.3f} s recorded) in "
+          f"{s['elapsed_s']:.3f} s = {s['realtime_factor']:.1f}x real time; "
+          f"{s['rx_frames_fed']} frames fed; final state {s['final_state']}")
+    if res.kind == "mcap":
+        verdict = "BIT-EXACT" if res.bit_exact else (
+            "DIFFERENT CONTROLLER" if not res.same_controller else "MISMATCH")
+        print(f"{verdict}: tx frames {s['tx_frames_compared']} compared, "
+              f"{s['tx_frames_mismatched']} differ; max |spool command diff| "
+              f"{s['max_abs_command_diff']:.6g}; max |force ref diff| "
+              f"{s['max_abs_force_ref_diff_n']:.6g} N")
+        if s["first_mismatch"] and res.same_controller:
+            print(f"first mismatch: {json.dumps(s['first_mismatch'])}")
+    if res.comparison:
+        c = res.comparison
+        print("comparison (recorded vs replayed controller):")
+        for key in ("force_ref_rms_recorded_n", "force_ref_rms_replayed_n",
+                    "force_ref_rms_difference_n", "force_ref_correlation",
+                    "spool_rms_recorded", "spool_rms_replayed", "active_ticks_recorded",
+                    "active_ticks_replayed", "faults_recorded", "faults_replayed"):
+            v = c[key]
+            print(f"  {key:28s} {v:.6g}" if isinstance(v, float) else f"  {key:28s} {v}")
+    for note in res.notes:
+        print(f"note: {note}")
+    if res.out:
+        print(f"wrote {res.out}")
+
+
+def run(args: argparse.Namespace) -> int:
+    path = Path(args.run)
+    is_log = path.suffix.lower() in LOG_SUFFIXES
+    try:
+        cfg = load_config(args.config) if (args.config or is_log) else None
+        design = design_bytes = None
+        if args.design:
+            design_bytes = Path(args.design).read_bytes()
+            design = load_design(args.design, cfg)
+        elif is_log:
+            from controller.design import design_bank
+
+            assert cfg is not None
+            design = design_bank(cfg)
+        elif cfg is not None:
+            design = _matching_design(path, cfg)
+        res = replay_file(path, cfg=cfg, design=design, design_bytes=design_bytes,
+                          out=args.out, arm_at_s=args.arm_at)
+    except (RecordingError, DesignMismatch) as exc:
+        print(f"rig replay: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(_jsonable(res.summary()), indent=1, default=str))
+    else:
+        _print_text(res)
+    if res.kind == "mcap" and res.same_controller and not res.bit_exact:
+        return 1
+    return 0
+
+
+def _matching_design(path: Path, cfg: Any) -> Any:
+    """--config without --design: the recorded design if it was made for this
+    configuration, else a fresh design for it (``rig design``'s result)."""
+    from controller.config import config_hash
+    from controller.design import design_bank
+    from rig.replay import load_recorded_run, recorded_design
+
+    rec = recorded_design(load_recorded_run(path))
+    if rec.metadata.get("config_hash") == config_hash(cfg):
+        return rec
+    print("rig replay: the recorded design was made for another configuration; "
+          "designing for --config", file=sys.stderr)
+    return design_bank(cfg)

@@ -1,0 +1,30 @@
+"""``rig report RUN.mcap [--out DIR]``: HTML page with PNG plots and summary metrics of a
+recorded run (``rig.report``).  Exit status 2 for a file that is not a recording."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from rig.replay import RecordingError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", help="recording (.mcap)")
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="output directory (default: <RUN stem>-report next to RUN)")
+    p.add_argument("--compare", metavar="MCAP", default=None,
+                   help="another recording of the same data to plot side by side "
+                        "(default for a replay: its source recording)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rig.report import write_report
+
+    try:
+        index = write_report(args.run, args.out, args.compare)
+    except RecordingError as exc:
+        print(f"rig report: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {index}")
+    return 0

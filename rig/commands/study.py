@@ -1,0 +1,37 @@
+"""``rig study``: control performance study -> results.md, results.csv, claims.json, PNGs.
+
+    rig study [--config F] [--out DIR] [--quick] [--jobs N] [--no-progress]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from controller.config import load_config
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", default="docs/study", metavar="DIR",
+                   help="output directory (default docs/study)")
+    p.add_argument("--quick", action="store_true",
+                   help="reduced matrix: short runs, 2 Monte Carlo runs (for tests)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="worker processes (default: all cores)")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.jobs is not None and args.jobs < 1:
+        print(f"rig study: --jobs must be >= 1, got {args.jobs}", file=sys.stderr)
+        return 2
+    cfg = load_config(args.config)
+    from hil.study.run import run_study
+    res = run_study(cfg, args.out, quick=args.quick, jobs=args.jobs,
+                    progress=not args.no_progress)
+    print(f"{len(res.rows)} runs in {res.wall_s:.0f} s; skyhook gains {res.skyhook}")
+    for claim, measured, ok in res.claims:
+        print(f"[{'holds' if ok else 'FAILS'}] {claim}: {measured}")
+    for f in res.files:
+        print(f"wrote {f}")
+    return 0

@@ -1,0 +1,374 @@
+"""Replay: bit-exact re-run of a recorded run, other-design comparison, candump logs,
+truncated / corrupt / foreign files (rig/replay.py, docs/replay.md).
+
+The recordings are produced here by the real loop, tick-stepped against the emulated
+rig (hil.node.RigNode) on a python-can virtual bus with the RunRecorder on
+(bench.replay_bench.record_emulated_run).
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from bench.replay_bench import record_emulated_run
+from controller.artifact import load_design, save_design
+from controller.bank import BankRuntime
+from controller.config import default_config
+from controller.design import design_bank
+from rig.cli import main as rig_main
+from rig.protocol import (
+    SENSOR_DATA,
+    SENSOR_DATA_ID,
+    VALVE_COMMAND,
+    VALVE_COMMAND_ID,
+    DecodeStatus,
+    SensorData,
+    ValveCommand,
+)
+from rig.recording import read_run
+from rig.replay import (
+    LogReplayBus,
+    McapReplayBus,
+    RecordingError,
+    load_recorded_run,
+    replay_log,
+    replay_recording,
+)
+
+pytestmark = pytest.mark.timeout(300)
+CFG = default_config()
+#: operator commands of the main recording: disarm, blending change, re-arm, then an
+#: overrun streak latches FAULT, reset, re-arm; the run ends with a shutdown
+COMMANDS: dict[int, tuple[str, Any]] = {
+    400: ("disarm", None), 450: ("blending", 1), 500: ("arm", None),
+    900: ("reset", None), 950: ("arm", None)}
+LATE = {k: 900_000 for k in range(700, 707)}   # > overrun threshold, streak of 7
+
+
+@pytest.fixture(scope="module")
+def work() -> Any:
+    with tempfile.TemporaryDirectory(prefix="test-replay-") as d:
+        yield Path(d)
+
+
+@pytest.fixture(scope="module")
+def design_blob(work: Path) -> bytes:
+    p = work / "design.npz"
+    save_design(design_bank(CFG), p)
+    return p.read_bytes()
+
+
+@pytest.fixture(scope="module")
+def recording(work: Path, design_blob: bytes) -> Path:
+    """1.2 s with commands, a latched fault, reset and shutdown."""
+    return record_emulated_run(work / "run.mcap", 1.2, cfg=CFG, design_bytes=design_blob,
+                               commands=COMMANDS, late_ticks=LATE)
+
+
+@pytest.fixture(scope="module")
+def plain_recording(work: Path, design_blob: bytes) -> Path:
+    """0.8 s, armed once, no fault: every tick steps the bank with the frame of the tick."""
+    return record_emulated_run(work / "plain.mcap", 0.8, cfg=CFG, design_bytes=design_blob,
+                               seed=3)
+
+
+# ---------------------------------------------------------------------------- bit exact
+
+
+def test_replay_reproduces_the_recorded_frames_bit_for_bit(recording: Path) -> None:
+    res = replay_recording(recording)
+    run = read_run(recording)                     # helper F's reader as the reference
+    tx = [(f.tick, f.arbitration_id, f.data) for f in run.frames if not f.is_rx]
+    assert res.same_controller and res.bit_exact, res.summary()
+    assert res.tx_frames_recorded == len(tx) == res.tx_frames_compared
+    assert res.tx_frames_mismatched == 0 and res.first_mismatch is None
+    assert res.max_abs_command_diff == 0.0 and res.max_abs_force_ref_diff_n == 0.0
+    assert res.valve_frames_compared == sum(1 for t in tx if t[1] == VALVE_COMMAND_ID)
+    # + the arm at 0.1 s
+    assert res.commands_reapplied == len(COMMANDS) + 1 and res.commands_outcome_differs == 0
+    # the run really exercised arming, the overrun fault and the shutdown
+    assert res.faults == ["OVERRUN_STREAK"] and res.final_state == "STOPPING"
+    enabled = [ValveCommand() for t in tx if t[1] == VALVE_COMMAND_ID]
+    for v, t in zip(enabled, [t for t in tx if t[1] == VALVE_COMMAND_ID], strict=True):
+        assert VALVE_COMMAND.decode(bytearray(t[2]), v) is DecodeStatus.OK
+    assert sum(v.enable for v in enabled) > 300
+    rec_spool = np.array([r.data["spool_cmd"] for r in run.records])
+    np.testing.assert_array_equal(res.spool_cmd, rec_spool)
+
+
+def test_a_changed_sensor_frame_is_detected(recording: Path) -> None:
+    """The comparison can fail: one altered rattlespace reading changes the commands."""
+    run = load_recorded_run(recording)
+    k = next(i for i, f in enumerate(run.rx) if f[2] == SENSOR_DATA_ID and f[0] == 600)
+    tick, t_ns, fid, data = run.rx[k]
+    sd = SensorData()
+    assert SENSOR_DATA.decode(bytearray(data), sd) is DecodeStatus.OK
+    buf = bytearray(8)
+    SENSOR_DATA.encode(buf, sd.counter, sd.sensor_status, sd.rattlespace_m + 0.004,
+                       sd.load_cell_force_n, sd.sprung_accel_mps2)
+    run.rx[k] = (tick, t_ns, fid, bytes(buf))
+    res = replay_recording(recording, run=run)
+    assert not res.bit_exact
+    assert res.tx_frames_mismatched > 0 and res.max_abs_command_diff > 0
+    assert res.first_mismatch is not None and res.first_mismatch["replayed"]["tick"] >= 600
+
+
+def test_cli_replay_json(recording: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert rig_main(["replay", str(recording), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["max_abs_command_diff"] == 0 and out["bit_exact"] is True
+    assert out["tx_frames_compared"] == out["tx_frames_recorded"] > 1000
+    assert out["realtime_factor"] > 1
+
+
+def test_replay_bus_is_a_busabc_releasing_frames_by_tick(plain_recording: Path) -> None:
+    run = load_recorded_run(plain_recording)
+    bus = McapReplayBus(run.rx)
+    assert isinstance(bus, can.BusABC)
+    assert bus.recv(0) is None                    # nothing released before tick 0
+    bus.advance(0)
+    got = []
+    while (m := bus.recv(0)) is not None:
+        got.append(m)
+    assert [(0, m.arbitration_id, bytes(m.data)) for m in got] == \
+        [(f[0], f[2], f[3]) for f in run.rx if f[0] == 0]
+    bus.release_all()
+    assert sum(1 for _ in iter(lambda: bus.recv(0), None)) == len(run.rx) - len(got)
+    bus.shutdown()
+
+
+# ---------------------------------------------------------------------------- other design
+
+
+def _bank_alone(run: Any, design: Any, cfg: Any) -> np.ndarray:
+    """Second implementation: BankRuntime stepped directly on the decoded sensor frames
+    (one per tick, no resets in the plain recording)."""
+    rt = BankRuntime(design, weight_set=cfg.design.weight_set, cfg=cfg)
+    sd = SensorData()
+    out = []
+    for _tick, _, fid, data in run.rx:
+        if fid == SENSOR_DATA_ID:
+            assert SENSOR_DATA.decode(bytearray(data), sd) is DecodeStatus.OK
+            out.append(rt.step(sd.rattlespace_m, sd.sprung_accel_mps2, sd.load_cell_force_n))
+    return np.array(out)
+
+
+def test_other_design_is_compared_open_loop_and_written(plain_recording: Path,
+                                                        work: Path) -> None:
+    cfg2 = CFG.replace(design={"weight_set": 2})
+    design2 = design_bank(cfg2)
+    p2 = work / "design2.npz"
+    save_design(design2, p2)
+    out = work / "other.mcap"
+    res = replay_recording(plain_recording, cfg=cfg2, design=load_design(p2, cfg2),
+                           design_bytes=p2.read_bytes(), out=out)
+    assert not res.same_controller and not res.bit_exact
+    c = res.comparison
+    assert c is not None and "open loop" in c["note"]
+    assert any("open loop" in n for n in res.notes)
+    assert c["force_ref_rms_difference_n"] > 0.01 * c["force_ref_rms_recorded_n"] > 0
+    run = load_recorded_run(plain_recording)
+    # the replayed bank output equals the bank run alone on the same sensor data
+    np.testing.assert_array_equal(res.force_ref_n, _bank_alone(run, design2, cfg2))
+    # ... and the recorded one equals the recorded design run alone
+    np.testing.assert_array_equal(run.force_ref_n,
+                                  _bank_alone(run, load_design(work / "design.npz"), CFG))
+    new = read_run(out)
+    assert new.complete
+    meta = new.metadata["rig"]
+    assert meta["replay_of"] == str(plain_recording) and meta["open_loop"] == "true"
+    np.testing.assert_array_equal([r.data["force_ref_n"] for r in new.records],
+                                  res.force_ref_n)
+    # the new recording is itself replayable, bit for bit, with its own design
+    again = replay_recording(out)
+    assert again.bit_exact, again.summary()
+
+
+def test_cli_other_design(plain_recording: Path, work: Path,
+                          capsys: pytest.CaptureFixture[str]) -> None:
+    cfg2 = CFG.replace(design={"weight_set": 2})
+    p2 = work / "design2-cli.npz"
+    save_design(design_bank(cfg2), p2)
+    toml = work / "cfg2.toml"
+    from controller.config import config_to_toml
+
+    toml.write_text(config_to_toml(cfg2))
+    rc = rig_main(["replay", str(plain_recording), "--design", str(p2), "--config", str(toml),
+                   "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["same_controller"] is False
+    assert out["comparison"]["force_ref_rms_replayed_n"] > 0
+
+
+# ---------------------------------------------------------------------------- candump logs
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
+def test_candump_log_replay_matches_the_recording(plain_recording: Path, work: Path,
+                                                  suffix: str) -> None:
+    run = load_recorded_run(plain_recording)
+    path = work / f"plain{suffix}"
+    with can.Logger(str(path)) as logger:
+        for _tick, t_ns, fid, data in run.rx:
+            logger.on_message_received(can.Message(
+                timestamp=t_ns * 1e-9, arbitration_id=fid, data=data, is_extended_id=False))
+        for tick, fid, data in run.tx[:50]:     # the controller's own frames: filtered
+            logger.on_message_received(can.Message(
+                timestamp=(1_000_000_000 + tick * 1_000_000 + 300_000) * 1e-9,
+                arbitration_id=fid, data=data, is_extended_id=False))
+    design = load_design(work / "design.npz")
+    res = replay_log(path, CFG, design)
+    assert res.kind == "log" and res.ticks == run.tick.size
+    assert res.rx_frames_fed == len(run.rx)
+    # INACTIVE all along (a log has no commands), but the bank's force reference is the
+    # recorded one: the same sensor frames reached the same loop code at the same ticks
+    np.testing.assert_array_equal(res.force_ref_n, run.force_ref_n)
+    assert res.valve_enable.sum() == 0 and res.faults == []
+    assert any("open loop" in n for n in res.notes)
+
+
+def test_log_bus_filters_and_rejects_unknown_formats(work: Path) -> None:
+    p = work / "mixed.log"
+    with can.Logger(str(p)) as logger:
+        for i, fid in enumerate((0x100, 0x080, 0x555, 0x200)):
+            logger.on_message_received(can.Message(timestamp=1.0 + i * 1e-3,
+                                                   arbitration_id=fid, data=bytes(8),
+                                                   is_extended_id=False))
+    bus = LogReplayBus(p)
+    bus.advance_time(10.0)
+    ids = [m.arbitration_id for m in iter(lambda: bus.recv(0), None)]
+    assert ids == [0x100, 0x200] and bus.filtered == 2
+    bus.shutdown()
+    bad = work / "x.trc2"
+    bad.write_text("nope")
+    with pytest.raises(RecordingError, match="unknown log format"):
+        LogReplayBus(bad)
+    garbage = work / "garbage.blf"
+    garbage.write_bytes(b"\x00" * 64)
+    with pytest.raises(RecordingError, match=r"not a readable \.blf log"):
+        LogReplayBus(garbage)
+
+
+# ---------------------------------------------------------------------------- bad files
+
+
+def test_truncated_recording_replays_to_its_last_complete_chunk(recording: Path,
+                                                                 work: Path) -> None:
+    full = load_recorded_run(recording)
+    data = recording.read_bytes()
+    cut = work / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    res = replay_recording(cut)
+    assert not res.complete and "truncated at byte" in str(res.stopped_at)
+    assert any("last complete chunk" in n for n in res.notes)
+    assert 0 < res.ticks < full.tick.size
+    # the prefix that was read replays bit for bit
+    assert res.tx_frames_mismatched == 0 and res.tx_frames_compared == res.tx_frames_recorded
+    assert res.max_abs_command_diff == 0.0
+
+
+@settings(max_examples=12, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(frac=st.floats(0.0, 1.0))
+def test_any_truncation_is_a_prefix_or_a_clear_error(recording: Path, frac: float) -> None:
+    data = recording.read_bytes()
+    full = load_recorded_run(recording)
+    n = int(len(data) * frac)
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "t.mcap"
+        p.write_bytes(data[:n])
+        try:
+            run = load_recorded_run(p)
+        except RecordingError as exc:
+            msg = str(exc)
+            assert "not an MCAP" in msg or "nothing to replay" in msg or "missing" in msg
+            return
+    if n < len(data):
+        assert not run.complete and run.stopped_at
+    k = run.tick.size
+    np.testing.assert_array_equal(run.tick, full.tick[:k])
+    assert run.tx == full.tx[: len(run.tx)] and run.rx == full.rx[: len(run.rx)]
+
+
+def test_corrupt_chunk_is_named_and_earlier_chunks_replay(recording: Path, work: Path) -> None:
+    data = bytearray(recording.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 64] = bytes(64)
+    p = work / "corrupt.mcap"
+    p.write_bytes(bytes(data))
+    run = load_recorded_run(p)
+    assert not run.complete and "corrupt Chunk record at byte" in str(run.stopped_at)
+    res = replay_recording(p, run=run)
+    assert res.ticks > 0 and res.tx_frames_mismatched == 0
+
+
+def _mcap(path: Path, topics: list[str], *, library: str, metadata: dict[str, str] | None
+          ) -> Path:
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2", library=library)
+        if metadata is not None:
+            w.add_metadata("rig", metadata)
+        sid = w.register_schema("x", "jsonschema", b"{}")
+        for t in topics:
+            ch = w.register_channel(t, "json", sid)
+            w.add_message(ch, 1, b'{"tick":0,"t_ns":0}', 1)
+        w.finish()
+    return path
+
+
+@pytest.mark.parametrize(("make", "match"), [
+    (lambda p: p.write_text("timestamp,id\n1,2\n"), "not an MCAP file"),
+    (lambda p: _mcap(p, ["/camera/image"], library="ros2-bag", metadata=None),
+     "foreign MCAP .*library 'ros2-bag'.*'/camera/image'"),
+    (lambda p: _mcap(p, ["/can/rx"], library="rig-recorder/1",
+                     metadata={"format_version": "1"}),
+     r"missing channels \['/can/tx', '/rig/signals', '/rig/events'\]"),
+    (lambda p: _mcap(p, ["/can/rx"], library="rig-recorder/9",
+                     metadata={"format_version": "9"}), "format version 9"),
+])
+def test_bad_files_get_a_clear_error(work: Path, make: Any, match: str,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    p = work / "bad.mcap"
+    make(p)
+    with pytest.raises(RecordingError, match=match):
+        load_recorded_run(p)
+    assert rig_main(["replay", str(p)]) == 2
+    assert str(p) in capsys.readouterr().err
+
+
+def test_truncated_before_the_first_chunk(recording: Path, work: Path) -> None:
+    with recording.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    first_chunk = min(c.chunk_start_offset for c in summary.chunk_indexes)
+    p = work / "head.mcap"
+    p.write_bytes(recording.read_bytes()[: first_chunk + 40])
+    with pytest.raises(RecordingError,
+                       match=rf"nothing to replay.*truncated at byte {first_chunk} "):
+        load_recorded_run(p)
+
+
+def test_missing_file_and_directory(work: Path) -> None:
+    with pytest.raises(FileNotFoundError):
+        load_recorded_run(work / "nope.mcap")
+    with pytest.raises(IsADirectoryError):
+        load_recorded_run(work)
+
+
+def test_config_replace_keeps_other_sections() -> None:
+    """Guard for the comparison tests: weight set 2 is a different controller."""
+    cfg2 = CFG.replace(design={"weight_set": 2})
+    assert cfg2.design.weight_set == 2 and replace(cfg2.vehicle) == CFG.vehicle
