@@ -152,26 +152,27 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         run = load_recorded_run(path)
         t_read = time.perf_counter() - t0
-        times = []
-        res = None
-        for _ in range(args.repeat):
-            t0 = time.perf_counter()
-            res = replay_recording(path)
-            times.append(time.perf_counter() - t0)
-        assert res is not None
-        med = statistics.median(times)
-        loop_s = statistics.median([res.elapsed_s])
-        factor = args.seconds / med
-        scaled = med * args.minutes_target * 60.0 / args.seconds
         print(f"recording: {args.seconds:g} s at 1 kHz ({run.tick.size} ticks, "
               f"{size / 1e6:.1f} MB, {len(run.rx)} rx / {len(run.tx)} tx frames), "
               f"written in {t_rec:.1f} s")
-        print(f"read (scan + decode): {t_read:.2f} s = {1e6 * t_read / run.tick.size:.1f} "
-              "us/tick")
-        print(f"replay total (median of {args.repeat}): {med:.2f} s = "
-              f"{1e6 * med / run.tick.size:.1f} us/tick; loop part {loop_s:.2f} s")
-        print(f"real-time factor: {factor:.1f}x; scaled to {args.minutes_target:g} min: "
-              f"{scaled:.1f} s (target < 12 s = 50x)")
+        print(f"read alone (scan + decode): {t_read:.2f} s = "
+              f"{1e6 * t_read / run.tick.size:.1f} us/tick")
+        res = None
+        for label, reader in (("in-process read", False), ("reader process", True)):
+            times, loops = [], []
+            for _ in range(args.repeat):
+                t0 = time.perf_counter()
+                res = replay_recording(path, reader_process=reader)
+                times.append(time.perf_counter() - t0)
+                loops.append(res.elapsed_s)
+            med = statistics.median(times)
+            loop_s = statistics.median(loops)
+            scaled = med * args.minutes_target * 60.0 / args.seconds
+            print(f"{label:16s}: replay {med:.2f} s (median of {args.repeat}) = "
+                  f"{1e6 * med / run.tick.size:.1f} us/tick, {args.seconds / med:.1f}x real "
+                  f"time, scaled to {args.minutes_target:g} min {scaled:.1f} s (target < 12 s);"
+                  f" loop part {loop_s:.2f} s = {1e6 * loop_s / run.tick.size:.1f} us/tick")
+        assert res is not None
         print(f"bit exact: {res.bit_exact} (max_abs_command_diff "
               f"{res.max_abs_command_diff}, {res.tx_frames_compared} tx frames compared)")
         if args.profile:

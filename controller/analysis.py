@@ -14,6 +14,13 @@ roughness).  Three loops, all exact on the sample grid (ZOH force, Van Loan nois
   update uses that force, the propagation uses the new command u_k, which then acts
   during [k, k+1).
 
+With ``design.actuator_model = "hydraulic"`` (default) :func:`analyze` evaluates the
+gains on the loop they are designed for (docs/design.md section 7): the linearised rig
+of :mod:`controller.margins` -- servo-hydraulics under the PI force loop (kp and ki),
+accelerometer low-pass, load-cell noise, ``design.compute_delay_ticks`` ticks between
+the PI and the valve; LQ = true plant and actuator state fed back, LQG = the runtime
+controller (Kalman filter, human filter, spool model).
+
 Stationary covariances come from the discrete Lyapunov equation.  The figures are the
 mean squares at the sample instants of: y_f = Cf xf (F(s)-filtered sprung acceleration,
 whose mean square is proportional to absorbed power; the filter input includes the
@@ -27,12 +34,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import control
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
 from controller.config import RigConfig
-from controller.design import design_models, measurement_noise_cov
+from controller.design import ModelDesign, design_models, measurement_noise_cov
 from controller.human_filter import HumanFilter, discretize_zoh, human_filter
 from controller.kalman import process_noise_cov, steady_state_kalman
 from controller.lq import augmented_plant, lq_gain
@@ -46,6 +54,7 @@ __all__ = [
     "analyze",
     "closed_loop",
     "output_mean_squares",
+    "rig_closed_loop",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -139,6 +148,38 @@ def closed_loop(kind: LoopKind, model: LinearModel, hf: HumanFilter, K: FloatArr
     return ClosedLoop(A, Bw, Bv, Co, Dv, Qw, Rv)
 
 
+def rig_closed_loop(cfg: RigConfig, md: ModelDesign, weights: list[float],
+                    kind: Literal["lq", "lqg"], delay_ticks: int) -> ClosedLoop:
+    """LQ or LQG loop of model j on the linearised rig (:mod:`controller.margins`), with
+    road noise (Van Loan), rattlespace / accelerometer / load-cell noise, and
+    ``delay_ticks`` between the PI and the valve.  Outputs as :data:`OUTPUTS` (the last
+    is the sampled true acceleration)."""
+    from controller import margins as mg
+
+    dt = cfg.sample_time_s
+    parts = mg.loop_parts(cfg, md, weights)
+    plant, Qw = mg.rig_plant_ss(md, cfg, "hydraulic", noise=True)
+    n = Qw.shape[0]
+    close = control.ss([], [], [], [[1.0]], dt, inputs=["fref_out"], outputs=["fref"],
+                       name="close")
+    blocks = [plant, mg.accel_sensor_ss(cfg, noise=True), mg.force_loop_ss(cfg.force_loop, dt),
+              mg.delay_ss(delay_ticks, dt, "s_pi", "s"), close]
+    if kind == "lqg":
+        blocks.append(mg.runtime_controller_ss(md, parts, dt))
+    elif kind == "lq":
+        blocks.append(mg.fullstate_controller_ss(parts, n, dt))
+    else:
+        raise ValueError(f"kind {kind!r}: allowed 'lq', 'lqg'")
+    w_in = [f"w{i}" for i in range(n)]
+    sys = mg.connect(blocks, [*w_in, "v_r", "v_a", "v_F"], ["yf", "rattle", "tire", "a_true"])
+    if np.any(sys.D[:, :n] != 0.0):
+        raise AssertionError("road noise must not feed through to the outputs")
+    noise = cfg.noise
+    Rv = np.diag([noise.rattlespace_std_m**2, noise.accel_std_mps2**2, noise.force_std_n**2])
+    return ClosedLoop(np.asarray(sys.A), np.asarray(sys.B[:, :n]), np.asarray(sys.B[:, n:]),
+                      np.asarray(sys.C), np.asarray(sys.D[:, n:]), Qw, Rv)
+
+
 def output_mean_squares(cl: ClosedLoop) -> FloatArray:
     """Stationary mean squares of the outputs (discrete Lyapunov); inf if unstable."""
     if not cl.spectral_radius < 1.0:
@@ -173,6 +214,10 @@ def analyze(cfg: RigConfig, weight_set: int) -> dict[str, dict[str, dict[str, fl
             closed_loop(kind, model, hf, K, W, Phi=md.dfm.Phi, Gamma_u=md.dfm.Gamma_u,
                         L=kf.L, R=R))
             for kind in ("passive", "lq", "lqg")}
+        if cfg.design.actuator_model == "hydraulic":
+            d = cfg.design.compute_delay_ticks
+            ms["lq"] = output_mean_squares(rig_closed_loop(cfg, md, list(weights), "lq", d))
+            ms["lqg"] = output_mean_squares(rig_closed_loop(cfg, md, list(weights), "lqg", d))
         entry: dict[str, dict[str, float]] = {
             "passive_rms": {name: float(np.sqrt(v)) for name, v in zip(OUTPUTS, ms["passive"],
                                                                        strict=True)}}

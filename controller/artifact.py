@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.config import RigConfig, config_hash, config_to_toml
+from controller.kernels import MAX_DELAY
 
 __all__ = [
     "ARTIFACT_VERSION",
@@ -34,7 +35,7 @@ __all__ = [
 ]
 
 #: Bumped whenever a field is added, removed or changes meaning.
-ARTIFACT_VERSION = 1
+ARTIFACT_VERSION = 2
 
 FloatArray = NDArray[np.float64]
 
@@ -69,6 +70,8 @@ class Design:
     noise_speeds_mps: FloatArray
     noise_roughness_gd: FloatArray
     lq_gain: FloatArray
+    actuator_gain: FloatArray
+    servo_model: FloatArray
     human_filter_Ad: FloatArray  # noqa: N815
     human_filter_Bd: FloatArray  # noqa: N815
     human_filter_Cd: FloatArray  # noqa: N815
@@ -88,6 +91,11 @@ class Design:
     @property
     def n_weight_sets(self) -> int:
         return int(self.lq_gain.shape[0])
+
+    @property
+    def compute_delay_ticks(self) -> int:
+        """D: ticks from the sensor sample to the valve assumed by the gains."""
+        return round(float(self.servo_model[4]))
 
     def noise_index(self, i_speed: int, i_rough: int) -> int:
         """Flat noise-table index s = i_speed * Nr + i_rough."""
@@ -116,12 +124,20 @@ def _expected_shapes(d: Design) -> dict[str, tuple[int, ...]]:
         "innovation_cov_inv": (J, S, 2, 2), "innovation_logdet": (J, S),
         "filter_A": (J, S, 4, 4), "filter_By": (J, S, 4, 2), "filter_Bu": (J, S, 4),
         "filter_b": (J, S, 4), "noise_speeds_mps": (Ns,), "noise_roughness_gd": (Nr,),
-        "lq_gain": (W, J, 6), "human_filter_Ad": (2, 2), "human_filter_Bd": (2,),
+        "lq_gain": (W, J, 6), "actuator_gain": (W, J, 2 + d.compute_delay_ticks),
+        "servo_model": (5,),
+        "human_filter_Ad": (2, 2), "human_filter_Bd": (2,),
         "human_filter_Cd": (2,), "fuzzy_q_grid": (G,), "fuzzy_weight_curve": (G,),
     }
 
 
 def _validate(d: Design) -> None:
+    sm = getattr(d, "servo_model", None)
+    if not (isinstance(sm, np.ndarray) and sm.shape == (5,) and np.all(np.isfinite(sm))):
+        raise DesignMismatch("field 'servo_model' must be 5 finite numbers")
+    if not (0.0 <= sm[0] < 1.0 and sm[1] >= 0.0 and sm[2] > 0.0 and sm[3] > 0.0
+            and sm[4] == round(sm[4]) and 0 <= sm[4] <= MAX_DELAY):
+        raise DesignMismatch(f"field 'servo_model' out of range: {sm.tolist()}")
     for name, shape in _expected_shapes(d).items():
         arr = getattr(d, name)
         if not isinstance(arr, np.ndarray):

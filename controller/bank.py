@@ -6,8 +6,12 @@ Per tick, with y = [rattlespace + M g / K, accel] and u = the measured actuator 
     q_j  = r_j' F_j^-1 r_j                                (4.8, the likelihood quotient)
     x⁺_j = x⁻_j + L_j r_j                                 (3.5, steady-state gain)
     x⁻_j <- A_j x⁻_j + By_j y + Bu_j u + b_j              (fused 3.5 + 3.7, selected noise entry)
-    u_j  = -K_w,j [x⁺_j - x̄_j; x_f]                       (zero for the airborne model)
+    u_j  = -K_w,j [x⁺_j - x̄_j; x_f; x̂_v; u; s_pending]   (zero for the airborne model)
     x_f  <- Ad x_f + Bd accel                             (F(s); u_j uses x_f before the update)
+    x̂_v, s_pending <- spool model (controller/actuator.py) driven by the blended output
+
+The actuator part of the gain (spool estimate x̂_v, measured force u, the D spool commands
+still on their way to the valve) is zero for ``design.actuator_model = "ideal"``.
 
 then the model forces are blended: FUZZY -- firing weight f_j = tabulated App. A curve at
 q_j, normalised over the contributing models (if none fires: ``no_fire_fallback``,
@@ -54,11 +58,16 @@ from controller.kernels import (
     F_HWIDTH,
     F_HYST,
     F_OUT,
+    F_PEND,
     F_PFLOOR,
     F_QUANT,
     F_RECENTRE,
     F_SCR,
+    F_SDECAY,
+    F_SFLIM,
     F_SIGNAL,
+    F_SKP,
+    F_SOLIM,
     F_STATIC,
     F_TFLOOR,
     F_THRESH,
@@ -68,6 +77,7 @@ from controller.kernels import (
     F_XHAT,
     F_XHATM,
     F_XINIT,
+    F_XV,
     F_YOFF,
     FALLBACK_BEST,
     FALLBACK_PASSIVE,
@@ -75,6 +85,7 @@ from controller.kernels import (
     I_AIR,
     I_BLEND,
     I_CENTRE,
+    I_DELAY,
     I_DIVCNT,
     I_DIVTICKS,
     I_DWELL,
@@ -116,6 +127,7 @@ from controller.kernels import (
     M_L,
     M_XBAR,
     MAT_COLS,
+    MAX_DELAY,
     MEAS_DIM,
     MODE_AIR,
     MODE_GROUND,
@@ -135,6 +147,7 @@ from controller.kernels import (
     V_AIR,
     V_D,
     V_FINV,
+    V_KA,
     V_KF,
     V_LLC,
     V_LOGDET,
@@ -144,6 +157,7 @@ from controller.kernels import (
     activate,
     deactivate,
     firing_weight,
+    servo_update,
 )
 from controller.moving_bank import (
     HIST_BINS,
@@ -229,6 +243,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     xf1 = fv[F_XF + 1]
     alpha = fv[F_ALPHA]
     nact = iv[I_NACT]
+    nd = iv[I_DELAY]
     for a in range(nact):
         j = iv[IV_ACT + a]
         st[j, S_CONTRIB] = 0.0
@@ -255,6 +270,9 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         u = 0.0
         if vec[j, V_AIR] == 0.0:
             u = -(vec[j, V_KF] * xf0 + vec[j, V_KF + 1] * xf1)
+            u -= vec[j, V_KA] * fv[F_XV] + vec[j, V_KA + 1] * u_in
+            for i in range(nd):
+                u -= vec[j, V_KA + 2 + i] * fv[F_PEND + i]
             for i in range(4):
                 u -= mat[j, i, M_KX] * (fv[F_SCR + i] - mat[j, i, M_XBAR])
             if not math.isfinite(u):
@@ -367,6 +385,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     if not math.isfinite(out):
         out = 0.0
         flags |= _NONFINITE_STATE
+    servo_update(fv, nd, out, force_meas_n)
     if blend == _MOVING:
         supervise(st, active, fv, iv, nbr, vec, mat)
     iv[I_NUPD] = nact
@@ -427,6 +446,9 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
         st[j, S_QS] = QS_INIT
     fv[F_XF] = 0.0
     fv[F_XF + 1] = 0.0
+    fv[F_XV] = 0.0
+    for i in range(MAX_DELAY):
+        fv[F_PEND + i] = 0.0
     for i in range(4):
         fv[F_XHAT + i] = fv[F_XINIT + i]
         fv[F_XHATM + i] = fv[F_XINIT + i]
@@ -516,6 +538,8 @@ def _pack(design: Design) -> tuple[FloatArray, FloatArray]:
             v[:, V_FINV:V_FINV + 4] = design.innovation_cov_inv[:, s].reshape(J, 4)
             v[:, V_LOGDET] = design.innovation_logdet[:, s]
             v[:, V_KF:V_KF + 2] = design.lq_gain[w, :, 4:6]
+            ka = design.actuator_gain[w]
+            v[:, V_KA:V_KA + ka.shape[1]] = ka
             v[:, V_AIR] = design.airborne.astype(float)
             v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
                            for ld in design.innovation_logdet[:, s]]
@@ -578,6 +602,11 @@ class BankRuntime:
         fv[F_HAD:F_HAD + 4] = np.asarray(design.human_filter_Ad).reshape(4)
         fv[F_HBD:F_HBD + 2] = design.human_filter_Bd
         fv[F_STATIC] = design.static_rattlespace_m
+        n_delay = design.compute_delay_ticks
+        if n_delay > MAX_DELAY:
+            raise ValueError(f"design compute delay {n_delay} ticks: the runtime supports "
+                             f"at most {MAX_DELAY}")
+        fv[F_SDECAY], fv[F_SKP], fv[F_SFLIM], fv[F_SOLIM] = design.servo_model[:4]
         tau = mb.smoothing_time_s
         fv[F_ALPHA] = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
         fv[F_PFLOOR] = prob_floor
@@ -611,6 +640,7 @@ class BankRuntime:
         iv[I_MINLEARN] = max(1, int(n_window // 4))
         iv[I_RECOMP] = HIST_RECOMPUTE_TICKS
         iv[I_NPROBE] = max(0, min(n_ground - k, MAX_PROBE_CANDIDATES))
+        iv[I_DELAY] = n_delay
         self.no_fire_fallback = fallback
         self.prob_floor = float(prob_floor)
         self.active_models_k = k

@@ -137,6 +137,14 @@ class DesignConfig:
                                         doc="on-ground Kalman filters only: pseudo leak on "
                                             "the mass-weighted velocity (0 = pure white-road "
                                             "model; see docs/design.md, bias sensitivity)")
+    actuator_model: str = _f("hydraulic", choices=("hydraulic", "ideal"),
+                             doc="plant the LQ gains are designed on: 'hydraulic' = plant + "
+                                 "linearised servo-valve/actuator under the PI's proportional "
+                                 "path + compute delay; 'ideal' = force source (thesis Ch. II; "
+                                 "fragile with the real actuator, docs/design.md section 7)")
+    compute_delay_ticks: int = _f(1, lo=0, hi=4,
+                                  doc="ticks from the sensor sample to the valve that the "
+                                      "'hydraulic' design assumes (CAN loop: 0 or 1)")
 
 
 @dataclass(frozen=True)
@@ -194,8 +202,11 @@ class MovingBankConfig:
 class ForceLoopConfig:
     """PI force inner loop for the servo valve (output: normalised spool command)."""
 
-    kp_per_n: float = _f(2.0e-4, lo=0.0, hi=1.0)
-    ki_per_ns: float = _f(0.05, lo=0.0, hi=1e3)
+    kp_per_n: float = _f(1.0e-4, lo=0.0, hi=1.0,
+                         doc="force-loop crossover ~30 Hz; phase margin ~69/58/47 deg at 0/1/2 "
+                             "ticks of loop delay (controller/margins.py, docs/design.md 7)")
+    ki_per_ns: float = _f(0.002, lo=0.0, hi=1e3,
+                          doc="integral corner ki/kp = 20 rad/s, a decade below crossover")
     output_limit: float = _f(1.0, lo=0.0, hi=1.0, lo_open=True)
     force_limit_n: float = _f(8000.0, lo=0.0, hi=1e6, lo_open=True,
                               doc="force reference saturation")

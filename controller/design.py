@@ -4,7 +4,9 @@ For every model j of :func:`controller.plant.model_family` (deflection grid x ti
 damping scales, then the airborne model):
 - the ZOH discretisation of the absolute-coordinate filter model (Phi, Gamma_u, Gamma_g),
 - a steady-state Kalman filter for every (speed, roughness) entry of the noise table,
-- an LQ gain on the augmented plant (plant + human filter) for every weight set,
+- an LQ gain on the augmented plant (plant + human filter, and with
+  ``design.actuator_model = "hydraulic"`` the force path of :mod:`controller.actuator`)
+  for every weight set,
 plus the discretised human-body filter and the tabulated fuzzy firing-weight curve.
 Derivations: docs/design.md.
 """
@@ -16,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.actuator import servo_model
 from controller.artifact import Design, build_metadata
 from controller.config import RigConfig
 from controller.fuzzy import firing_weight_curve
@@ -28,7 +31,7 @@ from controller.kalman import (
     fused_prior_update,
     steady_state_kalman,
 )
-from controller.lq import lq_gain
+from controller.lq import actuated_lq_gain, lq_gain
 from controller.plant import LinearModel, model_family
 from controller.road_noise import noise_table_entries
 
@@ -91,7 +94,9 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
     fBy = np.zeros((J, S, 4, 2))
     fBu = np.zeros((J, S, 4))
     fb = np.zeros((J, S, 4))
+    servo = servo_model(cfg)
     gains = np.zeros((W, J, 6))
+    act_gains = np.zeros((W, J, 2 + servo.delay_ticks))
     eq = np.full((J, 4), np.nan)
     for j, md in enumerate(mds):
         if md.model.equilibrium is not None:
@@ -106,7 +111,12 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
             f_logdet[j, s] = kf.logdet
             fA[j, s], fBy[j, s], fBu[j, s], fb[j, s] = fused.A, fused.By, fused.Bu, fused.b
         for w, weights in enumerate(cfg.design.weight_sets):
-            gains[w, j] = lq_gain(md.model, hf, weights)
+            if cfg.design.actuator_model == "hydraulic":
+                k_full = actuated_lq_gain(md.model, hf, weights, servo)
+                gains[w, j] = k_full[:6]
+                act_gains[w, j] = k_full[6:]
+            else:       # thesis design for a force source: no actuator terms
+                gains[w, j] = lq_gain(md.model, hf, weights)
 
     q_grid, w_curve = firing_weight_curve(cfg.fuzzy, fuzzy_points)
     v = cfg.vehicle
@@ -134,6 +144,8 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
         noise_speeds_mps=np.array(cfg.noise.speeds_mps, dtype=float),
         noise_roughness_gd=np.array(cfg.noise.road_roughness_gd, dtype=float),
         lq_gain=gains,
+        actuator_gain=act_gains,
+        servo_model=servo.as_array(),
         human_filter_Ad=hf.Ad.copy(),
         human_filter_Bd=hf.Bd.copy(),
         human_filter_Cd=hf.Cd.copy(),

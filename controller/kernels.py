@@ -10,7 +10,8 @@ the runtime packs its data into six buffers instead of ~30 named arrays:
     reset it -- its LQ gain is zero).
 ``vec`` (J, VEC_COLS) float: [0:2] D_meas, [2:6] F^-1 row major, [6] log|F|,
     [7:9] human-filter part of the LQ gain, [9] airborne (1.0/0.0),
-    [10] log-likelihood constant -(m/2) log 2π - ½ log|F|.
+    [10] log-likelihood constant -(m/2) log 2π - ½ log|F|, [11:13 + MAX_DELAY] the
+    actuator part of the gain: spool estimate, measured force, pending spool commands.
 ``st`` (J, ST_COLS) float, per-model state (the public (J,) views point into it).
 ``active`` (J,) bool: the filters that run this tick.
 ``fv`` float: scalar parameters, then scalar state, then the fuzzy table and the
@@ -61,8 +62,9 @@ QS_INIT = float(MEAS_DIM)   # smoothed q starts at E[q] of a matched filter
 M_A, M_BY, M_BU, M_B, M_L, M_CT, M_KX, M_XBAR = 0, 4, 6, 7, 8, 10, 12, 13
 MAT_COLS = 14
 # --- vec columns
-V_D, V_FINV, V_LOGDET, V_KF, V_AIR, V_LLC = 0, 2, 6, 7, 9, 10
-VEC_COLS = 11
+V_D, V_FINV, V_LOGDET, V_KF, V_AIR, V_LLC, V_KA = 0, 2, 6, 7, 9, 10, 11
+MAX_DELAY = 4       # largest design.compute_delay_ticks the runtime supports
+VEC_COLS = V_KA + 2 + MAX_DELAY
 # --- st columns
 S_XPRIOR, S_XPOST, S_Q, S_W, S_P, S_U = 0, 4, 8, 9, 10, 11
 S_QS, S_F, S_CONTRIB, S_BAD = 12, 13, 14, 15
@@ -96,11 +98,19 @@ F_OUT = 38          # last force reference [N]
 F_SCR = 40          # (16) scratch
 F_XDEV = 56         # (4) blended posterior deviation from the models' equilibria
 F_XDEVM = 60        # (4) blended next-prior deviation (bumpless starts)
-FV_HEAD = 64        # the fuzzy table starts here
+# --- fv: spool model of the force path (controller/actuator.py)
+F_SDECAY = 64       # e^{-T/tau}
+F_SKP = 65          # PI proportional gain [1/N]
+F_SFLIM = 66        # force reference limit [N]
+F_SOLIM = 67        # spool command limit
+F_XV = 68           # spool position estimate
+F_PEND = 69         # (MAX_DELAY) spool commands not yet at the valve, newest first
+FV_HEAD = 80        # the fuzzy table starts here
 
 # --- iv: parameters
 I_J, I_G, I_BLEND, I_SINGLE, I_AIR, I_NG, I_K, I_DWELL, I_PROBE, I_DIVTICKS = range(10)
 I_FALLBACK, I_QGRID, I_WCURVE, I_HIST, I_NB, I_MINLEARN, I_RECOMP, I_NPROBE = range(10, 18)
+I_DELAY = 18        # D, compute delay of the design [ticks]
 # --- iv: state
 I_MODE = 20         # 0 on ground, 1 airborne (moving bank)
 I_CENTRE = 21       # centre of the moving subset
@@ -203,3 +213,22 @@ def deactivate(j: int, st: np.ndarray, active: np.ndarray, iv: np.ndarray) -> No
     st[j, S_F] = 0.0
     st[j, S_CONTRIB] = 0.0
     st[j, S_BAD] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def servo_update(fv: np.ndarray, nd: int, force_ref_n: float, force_meas_n: float) -> None:
+    """Advance the spool model by one tick after the force reference went out:
+    s_k = clip(kp (clip(fref) - F_meas)), the valve gets s_{k-D}, x̂_v follows it (ZOH)."""
+    lim_f = fv[F_SFLIM]
+    fr = min(max(force_ref_n, -lim_f), lim_f)
+    lim = fv[F_SOLIM]
+    s = min(max(fv[F_SKP] * (fr - force_meas_n), -lim), lim)
+    if nd == 0:
+        applied = s
+    else:
+        applied = fv[F_PEND + nd - 1]
+        for i in range(nd - 1, 0, -1):
+            fv[F_PEND + i] = fv[F_PEND + i - 1]
+        fv[F_PEND] = s
+    a = fv[F_SDECAY]
+    fv[F_XV] = a * fv[F_XV] + (1.0 - a) * applied

@@ -30,12 +30,17 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
+from controller.actuator import ServoModel
 from controller.human_filter import HumanFilter, discretize_zoh
 from controller.plant import LinearModel
 
 __all__ = [
+    "ACTUATOR_GAIN_OFFSET",
     "AugmentedPlant",
     "DiscreteLQProblem",
+    "actuated_lq_gain",
+    "actuated_lq_problem",
+    "actuated_plant",
     "augmented_plant",
     "discretize_cost",
     "dlqr_cross",
@@ -161,5 +166,108 @@ def lq_gain(model: LinearModel, hf: HumanFilter,
     if model.airborne:
         return np.zeros(6)
     prob = lq_problem(model, hf, weights)
+    K, _ = dlqr_cross(prob.Ad, prob.Bd, prob.Qd, prob.Rd, prob.Nd)
+    return K
+
+
+#: Gain layout of the actuator-aware design: [Kx (4), Kf (2), K_spool, K_force,
+#: K_pending (D)]; the first 6 entries have the meaning of :func:`lq_gain`'s.
+ACTUATOR_GAIN_OFFSET = 6
+
+
+def actuated_plant(model: LinearModel, hf: HumanFilter, servo: ServoModel
+                   ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Continuous plant + human filter + linearised actuator, states
+    [x (4), xf (2), x_v, F], spool command input: (A (8, 8), B_spool (8,), B1 (8,))."""
+    inv_m = float(model.B2[2])
+    n = 8
+    A8 = np.zeros((n, n))
+    A8[:4, :4] = model.A
+    A8[:4, 7] = model.B2
+    A8[4:6, :4] = np.outer(hf.Bf, model.A[2])
+    A8[4:6, 4:6] = hf.Af
+    A8[4:6, 7] = hf.Bf * inv_m
+    a_act, b_s = servo.continuous()
+    A8[6:8, [0, 1, 2, 3, 6, 7]] = a_act
+    B8 = np.zeros(n)
+    B8[6:8] = b_s
+    B1 = np.zeros(n)
+    B1[:4] = model.B1
+    B1[4:6] = hf.Bf * model.B1[2]
+    return A8, B8, B1
+
+
+def actuated_lq_problem(model: LinearModel, hf: HumanFilter,
+                        weights: tuple[float, float, float, float] | list[float],
+                        servo: ServoModel) -> DiscreteLQProblem:
+    """Sampled LQ problem with the force path of :mod:`controller.actuator` (docs/design.md
+    section 7).  State Z = [x (4), xf (2), x_v, F, s_{k-1}, ..., s_{k-D}], input = the
+    force reference fref_k; the PI's proportional path makes the spool command
+    s_k = kp (fref_k - F_k), the valve gets s_{k-D} (ZOH over the tick).
+
+    The cost is Eq. 2.5 integrated exactly over the tick along the actuated motion (Van
+    Loan with the applied spool as the held input) plus rho3 fref_k^2 T: the thesis's
+    u is the commanded force, with an ideal actuator this is :func:`lq_problem`'s cost.
+    """
+    rho1, rho2, rho3, rho4 = (float(w) for w in weights)
+    if rho3 <= 0.0 or min(rho1, rho2, rho4) < 0.0:
+        raise ValueError(f"weights {list(weights)}: need rho3 > 0 and rho1, rho2, rho4 >= 0")
+    dt = hf.dt_s
+    n = 8
+    A8, B8, _ = actuated_plant(model, hf, servo)
+    e_rattle = np.zeros(n)
+    e_rattle[:2] = [1.0, -1.0]
+    e_tire = np.zeros(n)
+    e_tire[1] = 1.0
+    c_f = np.zeros(n)
+    c_f[4:6] = hf.Cf
+    Qc = rho1 * np.outer(e_tire, e_tire) + rho2 * np.outer(e_rattle, e_rattle) \
+        + rho4 * np.outer(c_f, c_f)
+    base = discretize_cost(A8, B8, Qc, 0.0, dt)
+    D = int(servo.delay_ticks)
+    N = n + D
+    e_force = np.zeros(N)
+    e_force[7] = 1.0
+    s_z = -servo.kp_per_n * e_force          # s_k = s_z Z + s_f fref
+    s_f = servo.kp_per_n
+    if D == 0:
+        a_z, a_f = s_z, s_f
+    else:
+        a_z = np.zeros(N)
+        a_z[n + D - 1] = 1.0
+        a_f = 0.0
+    Ad = np.zeros((N, N))
+    Bd = np.zeros(N)
+    Ad[:n, :n] = base.Ad
+    Ad[:n] += np.outer(base.Bd, a_z)
+    Bd[:n] = base.Bd * a_f
+    if D:
+        Ad[n] = s_z
+        Bd[n] = s_f
+        for i in range(1, D):
+            Ad[n + i, n + i - 1] = 1.0
+    Qbig = np.zeros((n + 1, n + 1))
+    Qbig[:n, :n] = base.Qd
+    Qbig[:n, n] = base.Nd
+    Qbig[n, :n] = base.Nd
+    Qbig[n, n] = base.Rd
+    T = np.zeros((n + 1, N + 1))
+    T[:n, :n] = np.eye(n)
+    T[n, :N] = a_z
+    T[n, N] = a_f
+    C = T.T @ Qbig @ T
+    C[N, N] += rho3 * dt
+    C = 0.5 * (C + C.T)
+    return DiscreteLQProblem(Ad, Bd, C[:N, :N], float(C[N, N]), C[:N, N].copy(), float(dt))
+
+
+def actuated_lq_gain(model: LinearModel, hf: HumanFilter,
+                     weights: tuple[float, float, float, float] | list[float],
+                     servo: ServoModel) -> FloatArray:
+    """The (8 + D,) gain fref = -K Z of :func:`actuated_lq_problem`; zeros if airborne."""
+    D = int(servo.delay_ticks)
+    if model.airborne:
+        return np.zeros(8 + D)
+    prob = actuated_lq_problem(model, hf, weights, servo)
     K, _ = dlqr_cross(prob.Ad, prob.Bd, prob.Qd, prob.Rd, prob.Nd)
     return K

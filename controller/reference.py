@@ -7,7 +7,8 @@ Written straight from the thesis equations rather than from the fused kernel:
     q_j = r_j' F_j^-1 r_j                                      (4.8)
     x⁺_j = x⁻_j + L_j r_j                                      (3.5)
     x⁻_j(next) = Φ_j x⁺_j + Γu_j u + Γg_j g                    (3.7)
-    u_j = -K_j [x⁺_j - x̄_j; x_f]                               (LQ, App. A per model)
+    u_j = -K_j [x⁺_j - x̄_j; x_f; x̂_v; u; s_pending]            (LQ, App. A per model)
+    x̂_v, s_pending: the spool model of controller/actuator.py on the blended output
     p_j: densities of Eq. 4.6 into Eq. 4.2 (:func:`controller.bayes.bayes_update_numpy`)
     f_j: ``np.interp`` on the App. A firing-weight table
 
@@ -112,6 +113,8 @@ class ReferenceBank:
         self.qs = np.full(J, QS_INIT)
         self.active = np.zeros(J, dtype=bool)
         self.xf = np.zeros(2)
+        self.xv = 0.0
+        self.pending: list[float] = [0.0] * self.d.compute_delay_ticks
         self.xhat = self.xinit.copy()
         self.xhatm = self.xinit.copy()
         self.xdev = np.zeros(4)
@@ -199,7 +202,8 @@ class ReferenceBank:
                 xp = self.x_prior[j] + d.kalman_gain[j, s] @ r
                 xn = d.Phi[j] @ xp + d.Gamma_u[j] * u_in + d.Gamma_g[j] * self.g
                 uj = 0.0 if d.airborne[j] else float(
-                    -K[j] @ np.concatenate([xp - self.xbar[j], self.xf]))
+                    -K[j] @ np.concatenate([xp - self.xbar[j], self.xf])
+                    - d.actuator_gain[self.w - 1, j] @ np.array([self.xv, u_in, *self.pending]))
                 if math.isnan(q) or not (np.all(np.isfinite(xp)) and np.all(np.isfinite(xn))
                                          and math.isfinite(uj)):
                     bad[j] = True
@@ -262,10 +266,21 @@ class ReferenceBank:
         if not math.isfinite(out):
             out = 0.0
             flags |= StepFlag.NONFINITE_STATE
+        self._servo(out, u_in)
         if moving:
             self._supervise()
         self.flags = flags
         return out
+
+    def _servo(self, force_ref_n: float, force_meas_n: float) -> None:
+        """Spool model (controller/actuator.py): the PI's proportional command, delayed by
+        D ticks, through the first-order spool."""
+        decay, kp, flim, olim, _ = (float(v) for v in self.d.servo_model)
+        s = float(np.clip(kp * (float(np.clip(force_ref_n, -flim, flim)) - force_meas_n),
+                          -olim, olim))
+        self.pending.insert(0, s)
+        applied = self.pending.pop()
+        self.xv = decay * self.xv + (1.0 - decay) * applied
 
     # ------------------------------------------------------------------ moving bank
     def _move_to(self, centre: int) -> None:

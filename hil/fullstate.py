@@ -5,8 +5,15 @@ gain of the on-ground model nearest the static tire deflection (the single-LQG m
 applied to the true deviation of the nonlinear plant from its own static equilibrium and
 to the human-filter states driven by the true sprung acceleration::
 
-    u_k   = -K_w,j [x_k - x̄; x_f,k]          (x = [x1, x2, x3, x4] of ``RigPlant.state``)
+    u_k   = -K_w,j [x_k - x̄; x_f,k] - Ka_w,j [x_v; F; s_pending]
     x_f,k+1 = Ad x_f,k + Bd zs''_k           (same timing as the bank's runtime)
+
+x = [x1, x2, x3, x4] of ``RigPlant.state``.  Everything else is exactly what the bank's
+runtime does, so full-state LQ vs single LQG isolates the estimation error: x_f is driven
+by the *measured* acceleration, and when the design carries an actuator part
+(``design.actuator_gain``, ``design.actuator_model = "hydraulic"``) the law feeds back the
+runtime's spool model x̂_v, the measured force F and the D spool commands still on their
+way to the valve (``design.servo_model``, as ``controller/reference.py``).
 
 The force still goes through the PI force loop and the servo-hydraulics, so it shares
 the actuator's limits with the other controllers.  It reads the plant, so it exists only
@@ -50,12 +57,29 @@ class FullStateLQ:
         self.ad: FloatArray = np.asarray(design.human_filter_Ad, dtype=float).copy()
         self.bd: FloatArray = np.asarray(design.human_filter_Bd, dtype=float).copy()
         self.xf: FloatArray = np.zeros(2)
+        act = getattr(design, "actuator_gain", None)
+        servo = getattr(design, "servo_model", None)
+        self.ka: FloatArray | None = None
+        self.servo: tuple[float, float, float] = (0.0, 0.0, 1.0)
+        self.spool_decay = 0.0
+        self.xv = 0.0
+        self.pending: list[float] = []
+        if act is not None and servo is not None:
+            self.ka = np.asarray(act[weight_set - 1, j], dtype=float).copy()
+            self.servo = (float(servo[1]), float(servo[2]), float(servo[3]))
+            self.spool_decay = float(servo[0])
+            self.n_pending = round(float(servo[4]))
+        else:
+            self.n_pending = 0
         self._xbar: FloatArray | None = None
         self._plant_id = -1
         self._fault = False
+        self.reset()
 
     def reset(self) -> None:
         self.xf[:] = 0.0
+        self.pending = [0.0] * self.n_pending
+        self.xv = 0.0
         self._xbar = None
         self._plant_id = -1
         self._fault = False
@@ -64,17 +88,27 @@ class FullStateLQ:
     def fault(self) -> bool:
         return self._fault
 
-    def force(self, x: FloatArray, xbar: FloatArray, accel_mps2: float) -> float:
-        """One tick from a state ``x`` (4,), its equilibrium ``xbar`` and zs''; never raises."""
+    def force(self, x: FloatArray, xbar: FloatArray, accel_mps2: float,
+              force_n: float = 0.0) -> float:
+        """One tick from a state ``x`` (4,), its equilibrium ``xbar``, the measured zs''
+        and (actuator part only) the measured actuator force; never raises."""
         u = -float(self.kx @ (x - xbar)) - float(self.kf @ self.xf)
-        if not (math.isfinite(u) and math.isfinite(accel_mps2)):
+        if self.ka is not None:
+            u -= float(self.ka @ np.array([self.xv, force_n, *self.pending]))
+        if not (math.isfinite(u) and math.isfinite(accel_mps2) and math.isfinite(force_n)):
             self._fault = True
             return 0.0
         self.xf[:] = self.ad @ self.xf + self.bd * accel_mps2
+        if self.ka is not None:
+            kp, flim, olim = self.servo
+            s = min(max(kp * (min(max(u, -flim), flim) - force_n), -olim), olim)
+            self.pending.insert(0, s)
+            applied = self.pending.pop()
+            self.xv = self.spool_decay * self.xv + (1.0 - self.spool_decay) * applied
         return u
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
         if self._xbar is None or self._plant_id != id(plant):
             self._xbar = plant.equilibrium()
             self._plant_id = id(plant)
-        return self.force(plant.state[:4], self._xbar, plant.sprung_accel_mps2)
+        return self.force(plant.state[:4], self._xbar, reading.accel_mps2, reading.force_n)

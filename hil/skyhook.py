@@ -53,9 +53,10 @@ class SkyhookGains:
 
 
 #: (c_sky [Ns/m], c_ground [Ns/m], damper_cancel) grid of the tuning search
-TUNING_GRID: tuple[tuple[float, float, float], ...] = tuple(
+#: (0, 0, 0) = zero force reference: what the closed, force-controlled actuator costs
+TUNING_GRID: tuple[tuple[float, float, float], ...] = ((0.0, 0.0, 0.0), *(
     (cs, cg, kc) for cs in (1000.0, 2000.0, 4000.0, 8000.0, 16000.0)
-    for cg in (0.0, 1000.0) for kc in (0.0, 0.25, 0.5, 0.75, 1.0))
+    for cg in (0.0, 1000.0) for kc in (0.0, 0.25, 0.5, 0.75, 1.0)))
 #: ratio-to-passive limits a tuned setting must meet: rattlespace RMS no larger than
 #: passive (the thesis's own constraint for weight set 1) and dynamic tire load RMS at
 #: most 1.5 x passive (no wheel hop traded for comfort)

@@ -25,6 +25,7 @@ corrupt at byte N) and reads a truncated file up to its last complete chunk.
 
 from __future__ import annotations
 
+import binascii
 import contextlib
 import json
 import math
@@ -34,7 +35,7 @@ import tempfile
 import time
 import tomllib
 import zlib
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
@@ -43,7 +44,7 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from controller.artifact import Design, load_design
+from controller.artifact import Design, DesignMismatch, load_design
 from controller.bank import BankRuntime
 from controller.config import RigConfig, config_hash, config_to_toml, parse_config
 from controller.force_loop import PIForceLoop
@@ -82,6 +83,7 @@ __all__ = [
     "replay_log",
     "replay_recording",
     "scan_recording",
+    "split_json",
 ]
 
 #: candump / Vector / python-can log formats read through ``can.LogReader``
@@ -95,7 +97,7 @@ REQUIRED_TOPICS: Final = (TOPIC_CAN_RX, TOPIC_CAN_TX, TOPIC_SIGNALS, TOPIC_EVENT
 RECORDER_LIBRARY_PREFIX: Final = "rig-recorder/"
 
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
-_OP_ATTACHMENT, _OP_METADATA = 9, 12
+_OP_MESSAGE_INDEX, _OP_ATTACHMENT, _OP_METADATA = 7, 9, 12
 _OP_NAMES: Final = {1: "Header", 2: "Footer", 3: "Schema", 4: "Channel", 5: "Message",
                     6: "Chunk", 7: "MessageIndex", 8: "ChunkIndex", 9: "Attachment",
                     10: "AttachmentIndex", 11: "Statistics", 12: "Metadata",
@@ -107,8 +109,10 @@ _U64: Final = struct.Struct("<Q")
 _MSG: Final = struct.Struct("<HIQQ")      # channel id, sequence, log time, publish time
 _CHUNK: Final = struct.Struct("<QQQI")    # start, end, uncompressed size, uncompressed crc
 
-#: callback(payload, sequence) for one message of a wanted topic
-Handler = Callable[[bytes, int], None]
+#: callback(payloads, sequences): the JSON payloads of one chunk's messages of a wanted
+#: topic, concatenated in file order, and their MCAP sequence numbers
+Handler = Callable[[bytes, NDArray[np.uint32]], None]
+_HEAD_BYTES: Final = np.arange(15)        # opcode, length, channel id, sequence
 
 
 class RecordingError(ValueError):
@@ -167,10 +171,17 @@ def _decompress(compression: str, data: bytes | memoryview, size: int) -> bytes:
 
 
 class _Segment:
-    """Walks one file; raises RecordingError for a file that is not a recording."""
+    """Walks one file; raises RecordingError for a file that is not a recording.
+
+    A chunk is handed out per wanted channel as one batch.  When the chunk's
+    MessageIndex records (written right after it) cover every channel, the payloads are
+    gathered with numpy from the indexed offsets; otherwise (first chunk with the
+    Channel records, truncated tail, writer without indexes) the chunk's records are
+    walked one by one."""
 
     def __init__(self, path: Path, result: ScanResult, handlers: Mapping[str, Handler],
-                 first: bool) -> None:
+                 first: bool, after_chunk: Callable[[], None] | None = None) -> None:
+        self.after_chunk = after_chunk
         self.path = path
         self.res = result
         self.handlers = handlers
@@ -185,12 +196,12 @@ class _Segment:
         self.res.topics[topic] = encoding
         self.by_channel[cid] = self.handlers.get(topic)
 
-    def _messages(self, buf: bytes, off: int, end: int) -> int:
-        """Walk the records in buf[off:end] (a chunk's content); returns messages seen."""
+    def _walk(self, buf: bytes) -> int:
+        """Walk a chunk's records; returns the number of messages."""
         unpack_rec = _REC.unpack_from
         unpack_msg = _MSG.unpack_from
-        by_channel = self.by_channel
-        n = 0
+        parts: dict[int, tuple[list[bytes], list[int]]] = {}
+        off, end, n = 0, len(buf), 0
         while off < end:
             op, ln = unpack_rec(buf, off)
             start = off + 9
@@ -198,14 +209,74 @@ class _Segment:
             if op == _OP_MESSAGE:
                 cid, seq, _, _ = unpack_msg(buf, start)
                 n += 1
-                h = by_channel.get(cid)
-                if h is not None:
-                    h(buf[start + 22:off], seq)
+                p = parts.get(cid)
+                if p is None:
+                    p = parts[cid] = ([], [])
+                p[0].append(buf[start + 22:off])
+                p[1].append(seq)
             elif op == _OP_CHANNEL:
                 self._channel(buf, start)
         if off != end:
             raise ValueError("records overrun the chunk")
+        for cid, (payloads, seqs) in parts.items():
+            h = self.by_channel.get(cid)
+            if h is not None:
+                h(b"".join(payloads), np.asarray(seqs, dtype=np.uint32))
         return n
+
+    def _gather(self, buf: bytes, index: dict[int, NDArray[np.uint64]]) -> int | None:
+        """Hand out the chunk's messages using its MessageIndex offsets; None = walk.
+
+        The indexes carry no CRC, so every offset is checked against the (CRC-checked)
+        chunk first -- a Message record of that channel, inside the chunk, records not
+        overlapping -- and nothing is handed out unless all channels pass."""
+        if not index or any(cid not in self.by_channel for cid in index):
+            return None
+        n = sum(int(o.size) for o in index.values())
+        wanted = [(cid, o) for cid, o in index.items()
+                  if self.by_channel[cid] is not None and o.size]
+        if not wanted:
+            return n
+        raw = np.frombuffer(buf, dtype=np.uint8)
+        counts = [int(o.size) for _, o in wanted]
+        label = np.repeat(np.arange(len(wanted)), counts)
+        offs = np.concatenate([o for _, o in wanted]).astype(np.int64)
+        order = np.lexsort((offs, label))          # by channel, then file order
+        offs = offs[order]
+        if offs.min() < 0 or offs.max() + 31 > raw.size:
+            return None
+        head = raw[offs[:, None] + _HEAD_BYTES]    # opcode, length, channel id, sequence
+        if np.any(head[:, 0] != _OP_MESSAGE) or np.any(np.diff(np.sort(offs)) < 31):
+            return None
+        chan = np.ascontiguousarray(head[:, 9:11]).view("<u2").ravel()
+        if np.any(chan != np.array([c for c, _ in wanted])[label]):
+            return None
+        plen = np.ascontiguousarray(head[:, 1:9]).view("<u8").ravel().astype(np.int64) - 22
+        if np.any(plen < 0) or np.any(offs + 31 + plen > raw.size):
+            return None
+        seqs = np.ascontiguousarray(head[:, 11:15]).view("<u4").ravel()
+        starts = (offs + 31).tolist()
+        ends = (offs + 31 + plen).tolist()
+        i = 0
+        for (cid, _), c in zip(wanted, counts, strict=True):
+            h = self.by_channel[cid]
+            assert h is not None
+            h(b"".join([buf[a:b] for a, b in zip(starts[i:i + c], ends[i:i + c],
+                                                  strict=True)]), seqs[i:i + c])
+            i += c
+        return n
+
+    def _chunk(self, buf: bytes, index: dict[int, NDArray[np.uint64]] | None) -> None:
+        n = self._gather(buf, index) if index is not None else None
+        self.res.messages += self._walk(buf) if n is None else n
+        if self.after_chunk is not None:
+            try:
+                self.after_chunk()
+            except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                if isinstance(exc, RecordingError):
+                    raise
+                raise RecordingError(f"{self.path}: malformed message payload "
+                                     f"({type(exc).__name__}: {exc})") from exc
 
     def scan(self) -> None:
         path = self.path
@@ -216,11 +287,13 @@ class _Segment:
                                  f"expected {MCAP_MAGIC!r})")
         res = self.res
         view = memoryview(buf)
+        pending: bytes | None = None          # a decompressed chunk awaiting its indexes
+        index: dict[int, NDArray[np.uint64]] = {}
         off = 8
         while off < size:
             if off + 9 > size:
                 self._stop(f"truncated at byte {off} of {size}: incomplete record header")
-                return
+                break
             op, ln = _REC.unpack_from(buf, off)
             start = off + 9
             end = start + ln
@@ -228,8 +301,20 @@ class _Segment:
             if end > size:
                 self._stop(f"truncated at byte {off} of {size}: {name} record of {ln} bytes "
                            "runs past the end of the file")
-                return
+                break
             try:
+                if op == _OP_MESSAGE_INDEX:
+                    if pending is not None:
+                        (cid,) = _U16.unpack_from(buf, start)
+                        (nbytes,) = _U32.unpack_from(buf, start + 2)
+                        pairs = np.frombuffer(buf, dtype="<u8", count=nbytes // 8,
+                                              offset=start + 6)
+                        index[cid] = pairs[1::2]
+                    off = end
+                    continue
+                if pending is not None:       # the chunk's indexes are complete
+                    self._chunk(pending, index)
+                    pending = None
                 if op == _OP_CHUNK:
                     _, _, usize, crc = _CHUNK.unpack_from(buf, start)
                     compression, o = _str(view, start + 28)
@@ -239,13 +324,9 @@ class _Segment:
                         raise ValueError(f"decompressed {len(raw)} bytes, header says {usize}")
                     if crc and zlib.crc32(raw) != crc:
                         raise ValueError("CRC mismatch")
-                    res.messages += self._messages(raw, 0, len(raw))
+                    pending, index = raw, {}
                 elif op == _OP_MESSAGE:
-                    cid, seq, _, _ = _MSG.unpack_from(buf, start)
-                    res.messages += 1
-                    h = self.by_channel.get(cid)
-                    if h is not None:
-                        h(buf[start + 22:end], seq)
+                    res.messages += self._walk(bytes(buf[off:end]))
                 elif op == _OP_CHANNEL:
                     self._channel(view, start)
                 elif op == _OP_HEADER:
@@ -262,17 +343,21 @@ class _Segment:
                 elif op == _OP_FOOTER:
                     self.footer = True
                     return
-            except (ValueError, struct.error, UnicodeDecodeError) as exc:
-                if isinstance(exc, RecordingError):
-                    raise
-                self._stop(f"corrupt {name} record at byte {off} of {size} ({exc})")
-                return
-            except Exception as exc:  # zstandard.ZstdError, lz4 RuntimeError ...
+            except RecordingError:
+                raise
+            except Exception as exc:  # struct.error, ValueError, zstd / lz4 errors ...
+                pending = None
                 self._stop(f"corrupt {name} record at byte {off} of {size} "
                            f"({type(exc).__name__}: {exc})")
                 return
             off = end
-        self._stop(f"no footer (file ends at byte {size})")
+        else:
+            self._stop(f"no footer (file ends at byte {size})")
+        if pending is not None:   # complete chunk, its indexes possibly cut: walk it
+            try:
+                self._chunk(pending, None)
+            except Exception as exc:
+                self._stop(f"corrupt chunk before byte {off} ({type(exc).__name__}: {exc})")
 
     def _stop(self, why: str) -> None:
         self.res.complete = False
@@ -281,6 +366,9 @@ class _Segment:
 
 def _check_is_recording(res: ScanResult, path: Path) -> None:
     meta = res.rig_metadata
+    if not res.complete and not res.topics and not res.library and not meta:
+        raise RecordingError(f"{path}: nothing to replay: {res.stopped_at} "
+                             "(cut inside the header)")
     if not res.library.startswith(RECORDER_LIBRARY_PREFIX) and not meta:
         raise RecordingError(
             f"{path}: foreign MCAP (profile {res.profile!r}, library {res.library!r}, "
@@ -303,9 +391,12 @@ def _check_is_recording(res: ScanResult, path: Path) -> None:
 
 
 def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
-                   follow_segments: bool = True) -> ScanResult:
+                   follow_segments: bool = True,
+                   after_chunk: Callable[[], None] | None = None,
+                   result: ScanResult | None = None) -> ScanResult:
     """Scan a recording (and its rotation successors), calling ``handlers[topic]`` with
-    each message's raw payload and MCAP sequence, in file order.
+    each chunk's batch of that topic (see :data:`Handler`), in file order, and
+    ``after_chunk()`` after each chunk.
 
     Raises :class:`RecordingError` (not an MCAP / foreign / wrong version / missing
     channels / nothing readable) and ``FileNotFoundError``.  A truncated or corrupt tail
@@ -316,10 +407,10 @@ def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
         raise FileNotFoundError(f"{path}: no such recording")
     if path.is_dir():
         raise IsADirectoryError(f"{path}: is a directory, expected a .mcap recording")
-    res = ScanResult()
+    res = result if result is not None else ScanResult()
     paths = segment_paths(path) if follow_segments else [path]
     for i, p in enumerate(paths):
-        seg = _Segment(p, res, handlers, first=i == 0)
+        seg = _Segment(p, res, handlers, first=i == 0, after_chunk=after_chunk)
         res.segments.append(p)
         seg.scan()
         if i == 0:
@@ -333,15 +424,6 @@ def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
 
 _FRAME_RE: Final = re.compile(
     rb'\{"tick":(\d+),"t_ns":(-?\d+),"id":(\d+),"data":"([0-9a-f]*)","dlc":(\d+)\}')
-
-
-def _parse_frame(payload: bytes) -> tuple[int, int, int, bytes]:
-    """(tick, t_ns, arbitration id, data) of a /can/rx or /can/tx message."""
-    m = _FRAME_RE.fullmatch(payload)
-    if m is not None:
-        return int(m[1]), int(m[2]), int(m[3]), bytes.fromhex(m[4].decode())
-    d = json.loads(payload)  # another key order / extra fields: the slow, general way
-    return int(d["tick"]), int(d["t_ns"]), int(d["id"]), bytes.fromhex(d["data"])
 
 
 @dataclass
@@ -374,131 +456,337 @@ class RecordedRun:
     def metadata(self) -> dict[str, str]:
         return self.scan.rig_metadata
 
-    def commands_by_tick(self) -> dict[int, list[dict[str, Any]]]:
-        out: dict[int, list[dict[str, Any]]] = {}
-        for ev in self.events:
-            if ev["kind"] == "command" and isinstance(ev["detail"], dict):
-                out.setdefault(int(ev["tick"]), []).append(ev)
-        return out
 
-    def stop_event(self) -> dict[str, Any] | None:
-        """The lifecycle transition to STOPPING (a recorded shutdown), if any."""
-        for ev in self.events:
-            d = ev["detail"]
-            if ev["kind"] in ("lifecycle", "fault") and isinstance(d, dict) \
-                    and d.get("to") == LifecycleState.STOPPING.name:
-                return ev
-        return None
+def _raw_columns(joined: bytes, n: int, keys: Sequence[str]) -> dict[str, NDArray[Any]]:
+    """The raw JSON values (bytes array per key) of top-level scalar ``keys`` in ``n``
+    concatenated messages.
+
+    Fast path: one regex pass with the keys in the order of the first message (the
+    recorder writes compact JSON from the loop's record, same key order every tick; a
+    message is one ``{...}`` without nested objects).  Anything else -- a message
+    without one of the keys, another order -- fails the count check and every message
+    is decoded instead."""
+    if n == 0:
+        return {key: np.zeros(0, dtype="S4") for key in keys}
+    end = joined.find(b"}")
+    try:
+        first = json.loads(joined[: end + 1]) if end > 0 else {}
+    except ValueError:
+        first = {}
+    order = [k for k in first if k in keys]
+    if len(order) == len(keys):
+        pattern = re.compile(rb"\{[^{]*?" + rb"[^{]*?".join(
+            b'"' + re.escape(k.encode()) + rb'":([^,}\]]*)' for k in order))
+        found = pattern.findall(joined)
+        if len(found) == n:
+            table = np.array(found).reshape(n, len(order))
+            return {k: table[:, j] for j, k in enumerate(order)}
+    decoded = split_json(joined)
+    return {key: np.array([json.dumps(d.get(key)).encode() for d in decoded])
+            for key in keys}
 
 
-def _values(joined: bytes, key: str, n: int) -> list[bytes] | None:
-    """The raw JSON values of top-level scalar ``key`` in ``n`` joined messages, or None
-    when the key is not there exactly once per message (then parse each message)."""
-    vals: list[bytes] = re.findall(b'"' + key.encode() + rb'":([^,}\]]*)', joined)
-    return vals if len(vals) == n else None
-
-
-def _columns(payloads: list[bytes], spec: Mapping[str, Callable[[bytes], Any]]
-             ) -> dict[str, list[Any]]:
-    """Columns ``spec`` (key -> converter of the raw JSON value) of JSON messages.
-
-    Fast path: one regex pass per key over all payloads (the recorder writes compact
-    JSON); a key missing from some message falls back to ``json.loads`` per message."""
-    n = len(payloads)
-    joined = b"\n".join(payloads)
-    out: dict[str, list[Any]] = {}
-    for key, conv in spec.items():
-        vals = _values(joined, key, n)
-        if vals is None:
-            vals = [json.dumps(json.loads(p).get(key)).encode() for p in payloads]
-        out[key] = [conv(v) for v in vals]
+def split_json(joined: bytes) -> list[dict[str, Any]]:
+    """Decode concatenated JSON objects (a batch of :data:`Handler` payloads)."""
+    text = joined.decode("utf-8")
+    dec = json.JSONDecoder()
+    out: list[dict[str, Any]] = []
+    i, n = 0, len(text)
+    while i < n:
+        obj, i = dec.raw_decode(text, i)
+        out.append(obj)
     return out
 
 
-def _f64(v: bytes) -> float:
-    return math.nan if v == b"null" else float(v)
+def _as_f64(a: NDArray[Any]) -> NDArray[np.float64]:
+    """JSON numbers (null = NaN) -> float64 (numpy parses like float())."""
+    return np.where(a == b"null", b"nan", a).astype(np.float64)
 
 
-def _bool01(v: bytes) -> int:
-    return 1 if v == b"true" or v == b"1" else 0
+def _as_bool(a: NDArray[Any]) -> NDArray[np.int8]:
+    return ((a == b"true") | (a == b"1")).astype(np.int8)
 
 
-def _ns(v: bytes) -> int:
-    return 0 if v == b"null" else round(float(v) * 1e9)
+def _as_ns(a: NDArray[Any]) -> NDArray[np.int64]:
+    """Seconds (as the loop wrote ``ns * 1e-9``) -> integer ns; null -> 0."""
+    return np.nan_to_num(np.rint(_as_f64(a) * 1e9)).astype(np.int64)
 
 
-def _frames(payloads: list[bytes]) -> list[tuple[int, int, int, bytes]]:
-    joined = b"\n".join(payloads)
+def _frames(joined: bytes, n: int) -> list[tuple[int, int, int, bytes]]:
+    """(tick, t_ns, id, data) of concatenated /can/rx or /can/tx messages."""
+    if n == 0:
+        return []
     found = _FRAME_RE.findall(joined)
-    if len(found) != len(payloads):
-        return [_parse_frame(p) for p in payloads]
-    fromhex = bytes.fromhex
-    return [(int(a), int(b), int(c), fromhex(d.decode())) for a, b, c, d, _ in found]
+    if len(found) == n:
+        cols = np.array(found)
+        tick, t_ns, fid = (cols[:, i].astype(np.int64).tolist() for i in range(3))
+        data = list(map(binascii.unhexlify, cols[:, 3].tolist()))
+    else:
+        decoded = split_json(joined)
+        tick = [int(d["tick"]) for d in decoded]
+        t_ns = [int(d["t_ns"]) for d in decoded]
+        fid = [int(d["id"]) for d in decoded]
+        data = [bytes.fromhex(d["data"]) for d in decoded]
+    return list(zip(tick, t_ns, fid, data, strict=True))
+
+
+class _Batches:
+    """Collects the batches of one topic."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+        self.seqs: list[NDArray[np.uint32]] = []
+
+    def __call__(self, joined: bytes, seqs: NDArray[np.uint32]) -> None:
+        self.parts.append(joined)
+        self.seqs.append(seqs)
+
+    @property
+    def n(self) -> int:
+        return sum(int(s.size) for s in self.seqs)
+
+    def joined(self) -> bytes:
+        return b"".join(self.parts)
+
+    def sequence(self) -> NDArray[np.uint32]:
+        return np.concatenate(self.seqs) if self.seqs else np.zeros(0, np.uint32)
+
+    def clear(self) -> None:
+        self.parts.clear()
+        self.seqs.clear()
+
+
+_SIGNAL_COLUMNS: Final = ("tick", "t_ns", "spool_cmd", "force_ref_n", "valve_enable")
+_TIMING_COLUMNS: Final = ("wake_late_s", "compute_s")
+
+
+@dataclass
+class _Piece:
+    """A decoded stretch of a recording: the tick records whose timing is known, and
+    every frame and event read so far (in file order, so the frames and commands of a
+    tick never come after its record)."""
+
+    tick: NDArray[np.int64]
+    t_ns: NDArray[np.int64]
+    lateness_ns: NDArray[np.int64]
+    compute_ns: NDArray[np.int64]
+    spool_cmd: NDArray[np.float64]
+    force_ref_n: NDArray[np.float64]
+    valve_enable: NDArray[np.int8]
+    rx: list[tuple[int, int, int, bytes]]
+    tx: list[tuple[int, int, bytes]]
+    events: list[dict[str, Any]]
+
+
+def _concat(parts: list[NDArray[Any]], dtype: Any) -> NDArray[Any]:
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
+
+
+class _RunDecoder:
+    """Decodes a scan's batches piece by piece (a piece every ``flush_messages`` tick
+    records): the working set stays small however long the recording is, and a reader
+    process can hand pieces to the replay while it reads on (``emit``).
+
+    A tick record's ``/rig/timing`` message (same MCAP sequence) may fall into the next
+    chunk: trailing records whose timing has not been read yet are held back."""
+
+    def __init__(self, flush_messages: int = 16384,
+                 emit: Callable[[_Piece], None] | None = None) -> None:
+        self.flush_messages = flush_messages
+        self.sig, self.tim, self.internals, self.rx, self.tx, self.events = (
+            _Batches() for _ in range(6))
+        self.pieces: list[_Piece] = []
+        self.emit = emit if emit is not None else self.pieces.append
+        self.first: dict[str, Any] | None = None
+        self._held: dict[str, NDArray[Any]] = {}
+        self._held_seq = np.zeros(0, np.uint32)
+
+    def handlers(self) -> dict[str, Handler]:
+        return {TOPIC_SIGNALS: self.sig, TOPIC_TIMING: self.tim,
+                TOPIC_INTERNALS: self._on_internals, TOPIC_CAN_RX: self.rx,
+                TOPIC_CAN_TX: self.tx, TOPIC_EVENTS: self.events}
+
+    def _on_internals(self, joined: bytes, seqs: NDArray[np.uint32]) -> None:
+        if self.first is None and joined:
+            self.first, _ = json.JSONDecoder().raw_decode(joined.decode())
+
+    def after_chunk(self) -> None:
+        if self.sig.n >= self.flush_messages:
+            self.flush()
+
+    def flush(self, final: bool = False) -> None:
+        sig = _raw_columns(self.sig.joined(), self.sig.n, _SIGNAL_COLUMNS)
+        if self._held:
+            sig = {k: np.concatenate((self._held[k], sig[k])) for k in _SIGNAL_COLUMNS}
+        sig_seq = np.concatenate((self._held_seq, self.sig.sequence()))
+        tim = _raw_columns(self.tim.joined(), self.tim.n, _TIMING_COLUMNS)
+        tim_seq = self.tim.sequence()
+        t_late, t_comp = _as_ns(tim["wake_late_s"]), _as_ns(tim["compute_s"])
+        n = sig_seq.size
+        late = np.zeros(n, dtype=np.int64)
+        comp = np.zeros(n, dtype=np.int64)
+        m = tim_seq.size
+        if m <= n and np.array_equal(tim_seq, sig_seq[:m]):
+            late[:m] = t_late
+            comp[:m] = t_comp
+        else:  # a message was lost: attach timing by sequence number
+            where = {int(q): i for i, q in enumerate(sig_seq.tolist())}
+            for j, q in enumerate(tim_seq.tolist()):
+                i = where.get(q)
+                if i is not None:
+                    late[i] = t_late[j]
+                    comp[i] = t_comp[j]
+        keep = n
+        if not final:  # records after the last timing read: their timing comes later
+            keep = int(np.searchsorted(sig_seq, tim_seq.max(), side="right")) if m else 0
+            keep = min(keep, n) if np.all(np.diff(sig_seq.astype(np.int64)) > 0) else n
+        self._held = {k: sig[k][keep:] for k in _SIGNAL_COLUMNS}
+        self._held_seq = sig_seq[keep:]
+        self.emit(_Piece(
+            tick=sig["tick"][:keep].astype(np.int64), t_ns=sig["t_ns"][:keep].astype(np.int64),
+            lateness_ns=late[:keep], compute_ns=comp[:keep],
+            spool_cmd=_as_f64(sig["spool_cmd"][:keep]),
+            force_ref_n=_as_f64(sig["force_ref_n"][:keep]),
+            valve_enable=_as_bool(sig["valve_enable"][:keep]),
+            rx=_frames(self.rx.joined(), self.rx.n),
+            tx=[(a, c, d) for a, _, c, d in _frames(self.tx.joined(), self.tx.n)],
+            events=split_json(self.events.joined())))
+        for b in (self.sig, self.tim, self.rx, self.tx, self.events):
+            b.clear()
+
+
+def _assemble(path: Path, scan: ScanResult, pieces: Sequence[_Piece],
+              first: dict[str, Any] | None) -> RecordedRun:
+    """One RecordedRun from its pieces."""
+    def cat(name: str, dtype: Any) -> NDArray[Any]:
+        return _concat([getattr(p, name) for p in pieces], dtype)
+
+    return RecordedRun(
+        path=path, scan=scan, tick=cat("tick", np.int64), t_ns=cat("t_ns", np.int64),
+        lateness_ns=cat("lateness_ns", np.int64), compute_ns=cat("compute_ns", np.int64),
+        spool_cmd=cat("spool_cmd", float), force_ref_n=cat("force_ref_n", float),
+        valve_enable=cat("valve_enable", np.int8),
+        rx=[f for p in pieces for f in p.rx], tx=[f for p in pieces for f in p.tx],
+        events=[e for p in pieces for e in p.events], first_internals=first)
+
+
+def _as_piece(run: RecordedRun) -> _Piece:
+    return _Piece(run.tick, run.t_ns, run.lateness_ns, run.compute_ns, run.spool_cmd,
+                  run.force_ref_n, run.valve_enable, run.rx, run.tx, run.events)
+
+
+def _malformed(path: str | Path, exc: Exception) -> RecordingError:
+    return RecordingError(f"{path}: malformed message payload ({type(exc).__name__}: "
+                          f"{exc})")
 
 
 def load_recorded_run(path: str | Path) -> RecordedRun:
     """Read what replay needs from a recording (see :func:`scan_recording` for errors)."""
-    sig: list[bytes] = []
-    sig_seq: list[int] = []
-    tim: list[bytes] = []
-    tim_seq: list[int] = []
-    rx: list[bytes] = []
-    tx: list[bytes] = []
-    events: list[bytes] = []
-    first_internals: list[bytes] = []
-
-    def on_internals(payload: bytes, seq: int) -> None:
-        if not first_internals:
-            first_internals.append(payload)
-
-    def on_signals(payload: bytes, seq: int) -> None:
-        sig.append(payload)
-        sig_seq.append(seq)
-
-    def on_timing(payload: bytes, seq: int) -> None:
-        tim.append(payload)
-        tim_seq.append(seq)
-
-    scan = scan_recording(path, {
-        TOPIC_SIGNALS: on_signals,
-        TOPIC_TIMING: on_timing,
-        TOPIC_INTERNALS: on_internals,
-        TOPIC_CAN_RX: lambda p, s: rx.append(p),
-        TOPIC_CAN_TX: lambda p, s: tx.append(p),
-        TOPIC_EVENTS: lambda p, s: events.append(p)})
+    dec = _RunDecoder()
+    scan = scan_recording(path, dec.handlers(), after_chunk=dec.after_chunk)
     try:
-        s = _columns(sig, {"tick": int, "t_ns": int, "spool_cmd": _f64, "force_ref_n": _f64,
-                           "valve_enable": _bool01})
-        t = _columns(tim, {"wake_late_s": _ns, "compute_s": _ns})
-        rx_frames = _frames(rx)
-        tx_frames = [(a, c, d) for a, _, c, d in _frames(tx)]
-        ev = [json.loads(p) for p in events]
-        first = json.loads(first_internals[0]) if first_internals else None
+        dec.flush(final=True)
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise RecordingError(f"{path}: malformed message payload ({type(exc).__name__}: "
-                             f"{exc})") from exc
-    n = len(sig)
-    late = np.zeros(n, dtype=np.int64)
-    comp = np.zeros(n, dtype=np.int64)
-    if tim:
-        if tim_seq == sig_seq:
-            late[:] = t["wake_late_s"]
-            comp[:] = t["compute_s"]
-        else:  # a message was lost: attach timing by sequence number
-            where = {q: i for i, q in enumerate(sig_seq)}
-            for j, q in enumerate(tim_seq):
-                i = where.get(q)
-                if i is not None:
-                    late[i] = t["wake_late_s"][j]
-                    comp[i] = t["compute_s"][j]
-    return RecordedRun(
-        path=Path(path), scan=scan,
-        tick=np.asarray(s["tick"], dtype=np.int64), t_ns=np.asarray(s["t_ns"], dtype=np.int64),
-        lateness_ns=late, compute_ns=comp,
-        spool_cmd=np.asarray(s["spool_cmd"], dtype=float),
-        force_ref_n=np.asarray(s["force_ref_n"], dtype=float),
-        valve_enable=np.asarray(s["valve_enable"], dtype=np.int8), rx=rx_frames, tx=tx_frames,
-        events=ev, first_internals=first)
+        raise _malformed(path, exc) from exc
+    return _assemble(Path(path), scan, dec.pieces, dec.first)
+
+
+# ---------------------------------------------------------------------------- reader process
+
+#: recordings at least this large are read by a reader process while the loop replays
+PIPELINE_MIN_BYTES: Final = 8 * 1024 * 1024
+
+
+def _reader_main(path: str, conn: Any, flush_messages: int) -> None:
+    """Reader process: scan + decode, sending ("head", scan, first internals) after the
+    first chunk, ("piece", _Piece) per piece, ("end", scan) or ("error", exception)."""
+    try:
+        res = ScanResult()
+        dec = _RunDecoder(flush_messages, emit=lambda piece: conn.send(("piece", piece)))
+        head_sent = False
+
+        def after() -> None:
+            nonlocal head_sent
+            if not head_sent and res.topics:
+                _check_is_recording(res, Path(path))
+                conn.send(("head", res, dec.first))
+                head_sent = True
+            dec.after_chunk()
+
+        scan_recording(path, dec.handlers(), after_chunk=after, result=res)
+        try:
+            dec.flush(final=True)
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise _malformed(path, exc) from exc
+        if not head_sent:
+            conn.send(("head", res, dec.first))
+        conn.send(("end", res))
+    except BaseException as exc:  # handed to the replaying process
+        conn.send(("error", exc))
+    finally:
+        conn.close()
+
+
+class _ReaderProcess:
+    """Pieces of a recording from a forked reader process (overlaps reading the MCAP
+    with replaying it: each takes about half the time on one core)."""
+
+    def __init__(self, path: Path, flush_messages: int = 16384) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("fork")
+        self.path = path
+        self._conn, child = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=_reader_main, args=(str(path), child, flush_messages),
+                                 name="rig-replay-reader", daemon=True)
+        self._proc.start()
+        child.close()
+        self.scan: ScanResult | None = None
+        self.first: dict[str, Any] | None = None
+        self.pieces: list[_Piece] = []
+        self._early: list[_Piece] = []
+        self._done = False
+
+    def _recv(self) -> tuple[Any, ...]:
+        try:
+            msg: tuple[Any, ...] = self._conn.recv()
+        except EOFError:
+            self._proc.join(5.0)
+            raise RecordingError(f"{self.path}: reader process ended without a result "
+                                 f"(exit code {self._proc.exitcode})") from None
+        if msg[0] == "error":
+            self._done = True
+            raise msg[1]
+        return msg
+
+    def head(self) -> tuple[ScanResult, dict[str, Any] | None]:
+        while True:
+            msg = self._recv()
+            if msg[0] == "head":
+                return msg[1], msg[2]
+            if msg[0] == "piece":
+                self._early.append(msg[1])
+
+    def __iter__(self) -> Iterator[_Piece]:
+        for piece in self._early:
+            self.pieces.append(piece)
+            yield piece
+        self._early = []
+        while not self._done:
+            msg = self._recv()
+            if msg[0] == "piece":
+                self.pieces.append(msg[1])
+                yield msg[1]
+            elif msg[0] == "end":
+                self.scan = msg[1]
+                self._done = True
+
+    def close(self) -> None:
+        self._conn.close()
+        self._proc.join(2.0)
+        if self._proc.is_alive():
+            self._proc.terminate()   # our own child, by its handle
+            self._proc.join(2.0)
 
 
 # ============================================================================ replay buses
@@ -515,7 +803,7 @@ class _ReplayBus(can.BusABC):
         self._i = 0
         self._release: float = -math.inf
         self._rx_filters = can_filters
-        self.channel_info = f"{channel} ({self._n} frames)"
+        self.channel_info = channel
         #: (release key at the time of sending, arbitration id, data) in send order
         self.sent: list[tuple[int, int, bytes]] = []
         self.fed = 0       # frames handed to the reader
@@ -545,6 +833,11 @@ class _ReplayBus(can.BusABC):
             return msg, True
         return None, True
 
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """The next released frame or None -- never waits: in a replay nothing arrives
+        while the reader waits (BusABC.recv's timeout bookkeeping is skipped)."""
+        return self._recv_internal(timeout)[0]
+
     def _rx_match(self, msg: can.Message) -> bool:
         filters = self._rx_filters
         if not filters:
@@ -569,7 +862,7 @@ class McapReplayBus(_ReplayBus):
 
     def __init__(self, frames: Sequence[tuple[int, int, int, bytes]],
                  channel: str = "mcap-replay") -> None:
-        self._frames = frames
+        self._frames: Sequence[tuple[int, int, int, bytes]] = frames
         super().__init__([f[0] for f in frames], channel)
 
     @classmethod
@@ -579,6 +872,15 @@ class McapReplayBus(_ReplayBus):
 
     def advance(self, tick: int) -> None:
         self._release = tick
+
+    def extend(self, frames: Sequence[tuple[int, int, int, bytes]]) -> None:
+        """More frames (a reader delivers a recording piece by piece)."""
+        if not isinstance(self._frames, list):
+            self._frames = list(self._frames)
+        self._frames.extend(frames)
+        assert isinstance(self._keys, list)
+        self._keys.extend(f[0] for f in frames)
+        self._n = len(self._keys)
 
     def _message(self, i: int) -> can.Message:
         _, t_ns, fid, data = self._frames[i]
@@ -773,7 +1075,12 @@ def recorded_design(run: RecordedRun) -> Design:
     if raw is None:
         raise RecordingError(f"{run.path}: no '{DESIGN_ATTACHMENT}' attachment; "
                              "pass --design")
-    return _design_from_bytes(raw)
+    try:
+        return _design_from_bytes(raw)
+    except DesignMismatch as exc:   # e.g. recorded with an older artifact version
+        why = str(exc).split(": ", 1)[-1]
+        raise RecordingError(f"{run.path}: the recorded design cannot be used ({why}); "
+                             "pass --design") from exc
 
 
 def _runtime_settings(run: RecordedRun, cfg: RigConfig) -> dict[str, Any]:
@@ -884,129 +1191,230 @@ def _series_comparison(rec: RecordedRun, spool: NDArray[np.float64],
     }
 
 
+class _Replayer:
+    """Feeds pieces of a recording through the loop, tick by tick (module docstring)."""
+
+    def __init__(self, loop: ControlLoop, bus: McapReplayBus, clock: _VirtualClock) -> None:
+        self.loop = loop
+        self.bus = bus
+        self.clock = clock
+        self.period = loop.period_ns
+        self.cmds: dict[int, list[dict[str, Any]]] = {}
+        self.stop: dict[str, Any] | None = None
+        self.first_tick: int | None = None
+        self.next_tick = 0
+        self.t_prev = 0
+        self.missing = 0
+        self.applied = 0
+        self.differs = 0
+        self.spool: list[float] = []
+        self.fref: list[float] = []
+        self.enable: list[int] = []
+
+    def _commands(self, cmds: Sequence[dict[str, Any]]) -> None:
+        a, d = _apply_commands(self.loop, cmds)
+        self.applied += a
+        self.differs += d
+
+    def feed(self, piece: _Piece) -> None:
+        self.bus.extend(piece.rx)
+        for ev in piece.events:
+            d = ev.get("detail")
+            if ev.get("kind") == "command" and isinstance(d, dict):
+                self.cmds.setdefault(int(ev["tick"]), []).append(ev)
+            elif ev.get("kind") in ("lifecycle", "fault") and isinstance(d, dict) \
+                    and d.get("to") == LifecycleState.STOPPING.name:
+                self.stop = ev
+        loop, clock, advance, cmds = self.loop, self.clock, self.bus.advance, self.cmds
+        tick_fn = loop.tick
+        put_spool, put_fref, put_enable = self.spool.append, self.fref.append, \
+            self.enable.append
+        period = self.period
+        for k, t, late, comp in zip(piece.tick.tolist(), piece.t_ns.tolist(),
+                                    piece.lateness_ns.tolist(), piece.compute_ns.tolist(),
+                                    strict=True):
+            if self.first_tick is None:
+                self.first_tick = self.next_tick = k
+                loop.tick_count = k
+                self.t_prev = t - period
+            elif k < self.next_tick:     # a repeated tick record: nothing to re-run
+                continue
+            while self.next_tick <= k:
+                kk = self.next_tick
+                if kk < k:               # record lost (recorder queue full)
+                    self.missing += 1
+                    t_k, late_k, comp_k = self.t_prev + period, 0, 0
+                else:
+                    t_k, late_k, comp_k = t, late, comp
+                c = cmds.pop(kk, None)
+                if c is not None:
+                    self._commands(c)
+                advance(kk)
+                clock.now_ns = t_k + comp_k
+                tick_fn(t_k, late_k)
+                put_spool(loop.spool_cmd)
+                put_fref(loop.force_ref_n)
+                put_enable(loop.enable)
+                self.t_prev = t_k
+                self.next_tick = kk + 1
+
+    def finish(self) -> None:
+        """What the loop did after its last recorded tick: commands, shutdown."""
+        if self.first_tick is None:
+            return
+        self.bus.advance(self.next_tick)
+        later = sorted(k for k in self.cmds if k >= self.next_tick)
+        for k in later:
+            self._commands(self.cmds.pop(k))
+        if self.stop is not None:
+            self.clock.now_ns = int(self.stop["t_ns"])
+            self.loop.shutdown(str(self.stop["detail"].get("reason", "shutdown")))
+
+
+def _idle_cpu() -> bool:
+    """A second CPU is free for the reader (1-minute load average below cores - 1);
+    on a busy machine the reader would only slow the loop down."""
+    import os
+
+    try:
+        return os.getloadavg()[0] < (os.cpu_count() or 1) - 1
+    except OSError:
+        return False
+
+
 def replay_recording(path: str | Path, *, cfg: RigConfig | None = None,
                      design: Design | None = None, design_bytes: bytes | None = None,
-                     out: str | Path | None = None,
-                     run: RecordedRun | None = None) -> ReplayResult:
+                     out: str | Path | None = None, run: RecordedRun | None = None,
+                     reader_process: bool | None = None) -> ReplayResult:
     """Replay an MCAP recording through :class:`rig.loop.ControlLoop` (module docstring).
 
     ``cfg`` / ``design`` default to the recording's attachments; given another, the
     result's ``comparison`` compares the two controllers (open loop).  ``out`` writes
-    the replay as a new recording (metadata ``replay_of``, ``open_loop``)."""
-    run = run if run is not None else load_recorded_run(path)
-    rec_cfg_raw = run.scan.attachments.get(CONFIG_ATTACHMENT)
-    rec_design_raw = run.scan.attachments.get(DESIGN_ATTACHMENT)
+    the replay as a new recording (metadata ``replay_of``, ``open_loop``).  ``run``: an
+    already loaded recording.  ``reader_process`` reads the file in a forked process
+    while replaying (default: for files of at least :data:`PIPELINE_MIN_BYTES` when a
+    CPU is idle)."""
+    path = Path(path)
+    reader: _ReaderProcess | None = None
+    if reader_process is None:
+        reader_process = (path.is_file() and path.stat().st_size >= PIPELINE_MIN_BYTES
+                          and _idle_cpu())
+    if run is None and reader_process:
+        reader = _ReaderProcess(path)
+    try:
+        return _replay(path, cfg, design, design_bytes, out, run, reader)
+    finally:
+        if reader is not None:
+            reader.close()
+
+
+def _replay(path: Path, cfg: RigConfig | None, design: Design | None,
+            design_bytes: bytes | None, out: str | Path | None, run: RecordedRun | None,
+            reader: _ReaderProcess | None) -> ReplayResult:
+    if reader is not None:
+        scan, first = reader.head()
+        head = RecordedRun(path, scan, *(np.zeros(0, np.int64),) * 4,
+                           np.zeros(0), np.zeros(0), np.zeros(0, np.int8), [], [], [], first)
+        pieces: Iterable[_Piece] = reader
+    else:
+        head = run if run is not None else load_recorded_run(path)
+        pieces = [_as_piece(head)]
+    rec_cfg_raw = head.scan.attachments.get(CONFIG_ATTACHMENT)
+    rec_design_raw = head.scan.attachments.get(DESIGN_ATTACHMENT)
     if cfg is None:
-        cfg = recorded_config(run)
+        cfg = recorded_config(head)
     if design is None:
         if design_bytes is not None:
             design = _design_from_bytes(design_bytes)
         else:
-            design = recorded_design(run)
+            design = recorded_design(head)
             design_bytes = rec_design_raw
     same_cfg = rec_cfg_raw is not None and config_hash(cfg) == config_hash(
         parse_config(tomllib.loads(rec_cfg_raw.decode())))
     same_design = rec_design_raw is not None and design_bytes == rec_design_raw
     same = same_cfg and same_design
-    notes: list[str] = []
-    if not run.complete:
-        notes.append(f"recording incomplete, replayed up to its last complete chunk: "
-                     f"{run.stopped_at}")
-    if run.tick.size == 0:
-        raise RecordingError(f"{run.path}: no tick records to replay"
-                             + (f" ({run.stopped_at})" if run.stopped_at else ""))
-
-    settings = _runtime_settings(run, cfg)
+    settings = _runtime_settings(head, cfg)
     if not same_cfg:   # another configuration brings its own weight set
         settings["weight_set"] = cfg.design.weight_set
     clock = _VirtualClock()
-    bus = McapReplayBus(run.rx, channel=f"mcap-replay:{run.path.name}")
+    bus = McapReplayBus([], channel=f"mcap-replay:{head.path.name}")
     recorder: RunRecorder | None = None
     paced: PacedRecorder | None = None
     if out is not None:
-        offset = int(run.metadata.get("clock_offset_ns", "0") or 0)
+        offset = int(head.metadata.get("clock_offset_ns", "0") or 0)
         recorder = _open_out(out, cfg, design_bytes, {
-            "source": "rig replay", "replay_of": str(run.path),
-            "replay_of_run_id": run.metadata.get("run_id", ""),
+            "source": "rig replay", "replay_of": str(head.path),
+            "replay_of_run_id": head.metadata.get("run_id", ""),
             "open_loop": not same, "same_controller": same,
             "runtime": settings}, offset)
         paced = PacedRecorder(recorder, cfg.recording.queue_size // 2)
     loop = _build_loop(cfg, design, bus, settings, clock, paced)
-    period = loop.period_ns
-
-    first_tick, last_tick = int(run.tick[0]), int(run.tick[-1])
-    n = last_tick - first_tick + 1
-    index = np.full(n, -1, dtype=np.int64)
-    index[run.tick - first_tick] = np.arange(run.tick.size)
-    missing = int(np.count_nonzero(index < 0))
-    if missing:
-        notes.append(f"{missing} ticks missing from the recording (dropped): replayed with "
-                     "interpolated times and zero lateness")
-    cmds = run.commands_by_tick()
-    spool = np.empty(n)
-    fref = np.empty(n)
-    enable = np.empty(n, dtype=np.int8)
-    t_ns_arr, late_arr, comp_arr = run.t_ns.tolist(), run.lateness_ns.tolist(), \
-        run.compute_ns.tolist()
-    idx = index.tolist()
-    applied = differs = 0
-    loop.tick_count = first_tick
-    tick_fn = loop.tick
-    advance = bus.advance
-    t_prev = int(run.t_ns[0]) - period
+    faults: list[str] = []   # every FAULT transition (loop.transitions keeps the last 256)
+    loop.lifecycle.add_listener(
+        lambda tr: faults.append(tr.fault_code.name) if tr.state is LifecycleState.FAULT
+        else None)
+    rp = _Replayer(loop, bus, clock)
     started = time.perf_counter()
     try:
-        for i in range(n):
-            k = first_tick + i
-            c = cmds.get(k)
-            if c is not None:
-                a_, d_ = _apply_commands(loop, c)
-                applied += a_
-                differs += d_
-            j = idx[i]
-            if j >= 0:
-                t, late, comp = t_ns_arr[j], late_arr[j], comp_arr[j]
-            else:
-                t, late, comp = t_prev + period, 0, 0
-            t_prev = t
-            advance(k)
-            clock.now_ns = t + comp
-            tick_fn(t, late)
-            spool[i] = loop.spool_cmd
-            fref[i] = loop.force_ref_n
-            enable[i] = loop.enable
-        advance(last_tick + 1)   # what the loop does after its last tick
-        end_cmds = [c for k, cs in cmds.items() if k > last_tick for c in cs]
-        if end_cmds:
-            a_, d_ = _apply_commands(loop, end_cmds)
-            applied += a_
-            differs += d_
-        stop = run.stop_event()
-        if stop is not None:
-            clock.now_ns = int(stop["t_ns"])
-            loop.shutdown(str(stop["detail"].get("reason", "shutdown")))
+        for piece in pieces:
+            rp.feed(piece)
+        rp.finish()
     finally:
         elapsed = time.perf_counter() - started
         bus.shutdown()
         if recorder is not None:
             recorder.close()
-    faults = [tr.fault_code.name for tr in loop.transitions
-              if tr.state is LifecycleState.FAULT]
-    compared, mism, first, valves, vspool = _compare_tx(run.tx, bus.sent)
+    if reader is not None:
+        assert reader.scan is not None
+        run = _assemble(path, reader.scan, reader.pieces, head.first_internals)
+    else:
+        run = head
+    if run.tick.size == 0 or rp.first_tick is None:
+        raise RecordingError(f"{run.path}: no tick records to replay"
+                             + (f" ({run.stopped_at})" if run.stopped_at else ""))
+    return _result(run, rp, loop, bus, same, faults, elapsed, recorder, out)
+
+
+def _result(run: RecordedRun, rp: _Replayer, loop: ControlLoop, bus: McapReplayBus,
+            same: bool, faults: list[str], elapsed: float, recorder: RunRecorder | None,
+            out: str | Path | None) -> ReplayResult:
+    """Compare the replay with the recording."""
+    notes: list[str] = []
+    if not run.complete:
+        notes.append(f"recording incomplete, replayed up to its last complete chunk: "
+                     f"{run.stopped_at}")
+    if rp.missing:
+        notes.append(f"{rp.missing} ticks missing from the recording (dropped): replayed "
+                     "with interpolated times and zero lateness")
+    first_tick = int(rp.first_tick or 0)
+    last_tick = rp.next_tick - 1
+    spool = np.asarray(rp.spool, dtype=float)
+    fref = np.asarray(rp.fref, dtype=float)
+    enable = np.asarray(rp.enable, dtype=np.int8)
+    rec_tx, rep_tx = run.tx, bus.sent
+    if not run.complete:  # the cut may fall inside a tick: its frames are incomplete
+        rec_tx = [f for f in run.tx if f[0] <= last_tick]
+        rep_tx = [f for f in bus.sent if f[0] <= last_tick]
+        if len(rec_tx) < len(run.tx) or len(rep_tx) < len(bus.sent):
+            notes.append("frames sent after the last complete tick record were not "
+                         f"compared ({len(run.tx) - len(rec_tx)} recorded, "
+                         f"{len(bus.sent) - len(rep_tx)} replayed)")
+    compared, mism, first, valves, vspool = _compare_tx(rec_tx, rep_tx)
     pos = run.tick - first_tick       # replayed series at the recorded ticks
+    period = rp.period
     res = ReplayResult(
-        source=str(run.path), kind="mcap", same_controller=same, ticks=n,
+        source=str(run.path), kind="mcap", same_controller=same, ticks=spool.size,
         rx_frames_fed=bus.fed, elapsed_s=elapsed,
         recorded_s=(int(run.t_ns[-1]) - int(run.t_ns[0]) + period) * 1e-9,
         complete=run.complete, stopped_at=run.stopped_at,
-        tx_frames_recorded=len(run.tx), tx_frames_replayed=len(bus.sent),
+        tx_frames_recorded=len(rec_tx), tx_frames_replayed=len(rep_tx),
         tx_frames_compared=compared, tx_frames_mismatched=mism, first_mismatch=first,
         valve_frames_compared=valves,
         max_abs_command_diff=_max_abs_diff(run.spool_cmd, spool[pos]),
         max_abs_valve_frame_spool_diff=vspool,
         max_abs_force_ref_diff_n=_max_abs_diff(run.force_ref_n, fref[pos]),
-        commands_reapplied=applied, commands_outcome_differs=differs,
-        ticks_missing_in_recording=missing, final_state=loop.lifecycle.state.name,
+        commands_reapplied=rp.applied, commands_outcome_differs=rp.differs,
+        ticks_missing_in_recording=rp.missing, final_state=loop.lifecycle.state.name,
         faults=faults, out=None if recorder is None else str(recorder.base_path),
         notes=notes, tick=np.arange(first_tick, last_tick + 1, dtype=np.int64),
         spool_cmd=spool, force_ref_n=fref, valve_enable=enable)
@@ -1038,6 +1446,10 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
             "runtime": settings}, 0)
         paced = PacedRecorder(recorder, cfg.recording.queue_size // 2)
     loop = _build_loop(cfg, design, bus, settings, clock, paced)
+    faults: list[str] = []   # every FAULT transition (loop.transitions keeps the last 256)
+    loop.lifecycle.add_listener(
+        lambda tr: faults.append(tr.fault_code.name) if tr.state is LifecycleState.FAULT
+        else None)
     period = loop.period_ns
     t0_ns = round(bus.start_s * 1e9) + period // 2
     span_ns = round((bus.end_s - bus.start_s) * 1e9)
@@ -1065,8 +1477,6 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
         bus.shutdown()
         if recorder is not None:
             recorder.close()
-    faults = [tr.fault_code.name for tr in loop.transitions
-              if tr.state is LifecycleState.FAULT]
     if bus.filtered:
         notes.append(f"{bus.filtered} frames not for the controller (receive filters) "
                      "were skipped")

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from rig.mcap_schema import TOPIC_EVENTS, TOPIC_INTERNALS, TOPIC_SIGNALS, TOPIC_TIMING
 from rig.protocol import LifecycleState
 from rig.recording import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
-from rig.replay import OPEN_LOOP_NOTE, ScanResult, scan_recording
+from rig.replay import OPEN_LOOP_NOTE, ScanResult, scan_recording, split_json
 
 __all__ = ["RunSeries", "load_series", "run_metrics", "write_report"]
 
@@ -77,21 +77,27 @@ def _matrix(rows: list[list[Any] | None], width: int) -> FloatArray:
 def load_series(path: str | Path) -> RunSeries:
     """Decode signals, internals, timing and events of a recording (errors: see
     :func:`rig.replay.scan_recording`)."""
-    recs: list[dict[str, Any]] = []
-    last_seq = [-1]
-    events: list[dict[str, Any]] = []
+    parts: dict[str, list[tuple[bytes, NDArray[np.uint32]]]] = {
+        TOPIC_SIGNALS: [], TOPIC_INTERNALS: [], TOPIC_TIMING: [], TOPIC_EVENTS: []}
 
-    def on_signals(p: bytes, seq: int) -> None:
-        recs.append(json.loads(p))
-        last_seq[0] = seq
+    def collector(topic: str) -> Any:
+        return lambda joined, seqs: parts[topic].append((joined, seqs))
 
-    def on_part(p: bytes, seq: int) -> None:
-        if seq == last_seq[0] and recs:
-            recs[-1].update(json.loads(p))
+    scan = scan_recording(path, {t: collector(t) for t in parts})
 
-    scan = scan_recording(path, {TOPIC_SIGNALS: on_signals, TOPIC_INTERNALS: on_part,
-                                 TOPIC_TIMING: on_part,
-                                 TOPIC_EVENTS: lambda p, s: events.append(json.loads(p))})
+    def decoded(topic: str) -> tuple[list[dict[str, Any]], list[int]]:
+        objs = split_json(b"".join(j for j, _ in parts[topic]))
+        seqs = [int(q) for _, s in parts[topic] for q in s]
+        return objs, seqs
+
+    recs, rec_seqs = decoded(TOPIC_SIGNALS)
+    where = {q: i for i, q in enumerate(rec_seqs)}
+    for topic in (TOPIC_INTERNALS, TOPIC_TIMING):  # parts of the same tick record
+        for obj, q in zip(*decoded(topic), strict=True):
+            i = where.get(q)
+            if i is not None:
+                recs[i].update(obj)
+    events = decoded(TOPIC_EVENTS)[0]
     n = len(recs)
     tick = np.array([r["tick"] for r in recs], dtype=np.int64)
     t_ns = np.array([r["t_ns"] for r in recs], dtype=np.int64)
@@ -207,7 +213,9 @@ def _line(ax: Any, t: FloatArray, y: FloatArray, **kw: Any) -> None:
     if lo is hi:
         ax.plot(tt, lo, lw=0.8, **kw)
     else:
-        ax.fill_between(tt, lo, hi, step="mid", alpha=0.6, lw=0, **kw)
+        color = kw.pop("color", None)
+        poly = ax.fill_between(tt, lo, hi, alpha=0.7, lw=0.6, color=color, **kw)
+        poly.set_edgecolor(poly.get_facecolor())
 
 
 def _shade_active(ax: Any, s: RunSeries) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from controller.actuator import servo_model
 from controller.artifact import (
     ARTIFACT_VERSION,
     Design,
@@ -19,7 +20,7 @@ from controller.config import config_hash, default_config
 from controller.design import design_bank
 from controller.fuzzy import firing_weight
 from controller.human_filter import human_filter
-from controller.lq import lq_gain
+from controller.lq import actuated_lq_gain, lq_gain
 from controller.plant import model_family
 from controller.road_noise import road_velocity_intensity
 from rig.cli import main
@@ -38,6 +39,10 @@ def test_shapes_and_fields(design: Design) -> None:
     assert design.n_models == J == 4
     assert design.n_noise == S == 20
     assert design.lq_gain.shape == (2, J, 6)
+    D = CFG.design.compute_delay_ticks
+    assert design.compute_delay_ticks == D
+    assert design.actuator_gain.shape == (2, J, 2 + D)
+    np.testing.assert_array_equal(design.servo_model, servo_model(CFG).as_array())
     assert design.airborne.tolist() == [False, False, False, True]
     assert design.grid_index.tolist() == [[0, 0], [1, 0], [2, 0], [-1, -1]]
     assert np.all(np.isnan(design.equilibrium[3]))
@@ -56,8 +61,16 @@ def test_gains_and_curve_are_the_component_results(design: Design) -> None:
     hf = human_filter(CFG.design, CFG.sample_time_s)
     for j, model in enumerate(model_family(CFG)):
         for w, ws in enumerate(CFG.design.weight_sets):
-            np.testing.assert_array_equal(design.lq_gain[w, j], lq_gain(model, hf, ws))
+            k = actuated_lq_gain(model, hf, ws, servo_model(CFG))
+            np.testing.assert_array_equal(design.lq_gain[w, j], k[:6])
+            np.testing.assert_array_equal(design.actuator_gain[w, j], k[6:])
     assert np.all(design.lq_gain[:, 3] == 0.0)
+    assert np.all(design.actuator_gain[:, 3] == 0.0)
+    ideal = design_bank(CFG.replace(design={"actuator_model": "ideal"}))
+    for j, model in enumerate(model_family(CFG)):
+        for w, ws in enumerate(CFG.design.weight_sets):
+            np.testing.assert_array_equal(ideal.lq_gain[w, j], lq_gain(model, hf, ws))
+    assert np.all(ideal.actuator_gain == 0.0)
     np.testing.assert_array_equal(design.human_filter_Ad, hf.Ad)
     for i in range(0, design.fuzzy_q_grid.size, 250):
         assert design.fuzzy_weight_curve[i] == firing_weight(float(design.fuzzy_q_grid[i]),

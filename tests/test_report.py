@@ -141,3 +141,23 @@ def test_report_renders_in_headless_chromium(report: Path, work: Path) -> None:
     (broken / "force.png").unlink()
     dom = _dump_dom(browser, broken / "index.html")
     assert f'data-images-loaded="{n - 1}/{n}"' in dom
+
+
+def test_long_series_envelope_keeps_every_extreme() -> None:
+    from rig.report import MAX_PLOT_POINTS, _envelope
+
+    rng = np.random.default_rng(5)
+    n = 3 * MAX_PLOT_POINTS + 7
+    t = np.zeros(n)
+    t[:] = np.arange(n) * 1e-3
+    y = rng.standard_normal(n)
+    y[12345] = 50.0
+    tt, lo, hi = _envelope(t, y)
+    assert tt.size == lo.size == hi.size <= MAX_PLOT_POINTS
+    b = n // tt.size
+    for k in (0, 12345 // b, tt.size - 1):   # reference: min / max of the bucket
+        assert hi[k] == y[k * b:(k + 1) * b].max() and lo[k] == y[k * b:(k + 1) * b].min()
+    assert hi.max() == 50.0
+    short = np.zeros(10)
+    short[:] = range(10)
+    assert _envelope(short, short)[1] is short

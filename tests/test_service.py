@@ -121,15 +121,17 @@ def test_sigterm_exits_0_with_safe_valve_and_complete_recording(design_path: Pat
     assert "config.toml" in run.attachments and "design.npz" in run.attachments
 
 
-def test_run_cli_bad_bus_exits_2(tmp_path: Path) -> None:
+@pytest.mark.parametrize("case", ["missing_design", "no_such_bus"])
+def test_run_cli_errors_exit_2(case: str, design_path: Path, tmp_path: Path) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    design = str(tmp_path / "missing.npz") if case == "missing_design" else str(design_path)
     proc = subprocess.run(
         [sys.executable, "-m", "rig.cli", "run", "--interface", "socketcan", "--channel",
-         "nosuchcan9", "--no-record", "--no-telemetry", "--no-realtime", "--design",
-         str(tmp_path / "missing.npz")], cwd=ROOT, env=env, capture_output=True, text=True,
-        timeout=60)
+         "nosuchcan9", "--no-record", "--no-telemetry", "--no-realtime", "--design", design],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
-    assert "missing.npz" in proc.stderr
+    expected = "missing.npz" if case == "missing_design" else "cannot open the CAN bus"
+    assert expected in proc.stderr and "Traceback" not in proc.stderr
 
 
 def _service(design_path: Path, **kw: Any) -> Service:

@@ -25,13 +25,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.artifact import Design
+from controller.bank import BankRuntime
 from controller.config import RigConfig
+from controller.design import design_bank  # noqa: F401  (one code version per study run)
+from controller.force_loop import PIForceLoop
+from controller.kernels import Blending, StepFlag
 from hil.metrics import compute_metrics, filter_signal, human_filter_tf
 from hil.plant import PlantParams, RigPlant
 from hil.roads import Road
 from hil.sensors import SensorReading, SensorSuite
 from hil.sim import MAX_INNER_STEP_S, SLAM_PENETRATION_M
 
+# modules are imported here, before the study's worker processes fork, so that every run
+# of one study uses the same code even while the tree is being edited
 __all__ = ["BankController", "LoopResult", "StudyController", "lq_cost", "run_closed_loop"]
 
 FloatArray = NDArray[np.float64]
@@ -55,8 +61,6 @@ class BankController:
 
     def __init__(self, design: Design, cfg: RigConfig, blending: str, weight_set: int,
                  road: Road) -> None:
-        from controller.bank import BankRuntime
-        from controller.kernels import Blending, StepFlag
         modes = {"lqg": Blending.SINGLE, "fuzzy": Blending.FUZZY, "bayes": Blending.BAYES,
                  "moving": Blending.MOVING}
         if blending not in modes:
@@ -154,7 +158,6 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: StudyController | No
     sensors = SensorSuite(cfg.sensors, cfg.noise, seed, dt_s=dt)
     pi: Any = None
     if controller is not None:
-        from controller.force_loop import PIForceLoop
         controller.reset()
         pi = PIForceLoop(cfg.force_loop, dt)
     keys = ("rattlespace_m", "accel_mps2", "force_n", "force_ref_n", "spool_cmd",

@@ -10,11 +10,11 @@ from typing import Any
 
 import numpy as np
 
-from controller.config import RigConfig
+from controller.config import RigConfig, config_hash
 from hil.sim import cached_design
 from hil.skyhook import SkyhookGains, select_gains
 from hil.study.matrix import add_ratios, main_cases, other_cases, plan, run_cases, tune_cases
-from hil.study.report import claims, tables_markdown, write_csv, write_figures
+from hil.study.report import claim_values, claims, tables_markdown, write_csv, write_figures
 from hil.study.tradeoff import TradeoffGrid, tradeoff_grid
 
 __all__ = ["StudyResult", "run_study"]
@@ -51,20 +51,24 @@ def run_study(cfg: RigConfig, out_dir: str | Path, *, quick: bool = False,
     rows = run_cases(cases, cfg, jobs, progress, "study matrix")
     add_ratios(rows, cases)
     rows = trows + rows
-    rho2 = sorted(set(SURFACE_RHO2) | set(p.rho2_checks))
-    grid: TradeoffGrid | None = tradeoff_grid(cfg, SURFACE_RHO1, rho2)
+    rho2 = sorted(set(SURFACE_RHO2[::4] if quick else SURFACE_RHO2) | set(p.rho2_checks))
+    grid: TradeoffGrid | None = tradeoff_grid(cfg, SURFACE_RHO1, rho2,
+                                              rig_rho1=(1.0,) if quick else (1.0, 10.0))
     design = cached_design(cfg)
     firing = (np.asarray(design.fuzzy_q_grid), np.asarray(design.fuzzy_weight_curve),
               [str(n) for n in design.model_names])
     files = write_figures(rows, out, grid, firing, cfg.design.weight_sets)
     wall = time.perf_counter() - t0
     n_jobs = max(1, jobs or __import__("os").cpu_count() or 1)
-    md = tables_markdown(rows, grid, sky, p.describe(), wall, n_jobs)
+    md = tables_markdown(rows, grid, sky, p.describe(), wall, n_jobs, cfg)
     (out / "results.md").write_text(md + "\n", encoding="utf-8")
     write_csv(rows, out / "results.csv")
     cl = claims(rows)
     (out / "claims.json").write_text(json.dumps(
-        {"quick": quick, "skyhook": asdict(sky),
+        {"quick": quick, "config_hash": config_hash(cfg),
+         "thesis_case": {"duration_s": p.thesis_duration_s, "seeds": list(p.thesis_seeds),
+                         "settle_s": p.settle_s},
+         "skyhook": asdict(sky), "values": claim_values(rows),
          "claims": [{"claim": c, "measured": m, "holds": ok} for c, m, ok in cl]},
         indent=1) + "\n", encoding="utf-8")
     files = [out / "results.md", out / "results.csv", out / "claims.json", *files]

@@ -5,13 +5,15 @@ white road velocity at the nominal speed and roughness, :func:`tradeoff_grid` ev
 ``controller.analysis.closed_loop`` over a grid of (rho1, rho2) with rho3 and rho4
 fixed: the stationary absorbed-power ratio (F(s)-filtered acceleration mean square,
 closed loop / passive), rattlespace RMS ratio and tire deflection RMS ratio, for the
-full-state LQ loop and the LQG loop (Kalman filter + measured human filter).
+full-state LQ loop and the LQG loop (Kalman filter + measured human filter), with an
+ideal force actuator (the thesis's design view, Fig. 2.2) and, for a few rho1 rows, on the
+linearised rig loop (servo-hydraulics under the PI force loop, the gains designed for it).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -43,11 +45,17 @@ class TradeoffGrid:
     model: str
     lq: dict[str, FloatArray]
     lqg: dict[str, FloatArray]
+    #: the same on the linearised rig loop (servo-hydraulics under the PI force loop,
+    #: compute delay; ``controller.analysis.rig_closed_loop``), rows ``rig_rho1`` only;
+    #: empty when the design assumes an ideal force actuator
+    rig_rho1: FloatArray = field(default_factory=lambda: np.zeros(0))
+    rig_lq: dict[str, FloatArray] = field(default_factory=dict)
+    rig_lqg: dict[str, FloatArray] = field(default_factory=dict)
 
 
 def tradeoff_grid(cfg: RigConfig, rho1: Sequence[float], rho2: Sequence[float],
-                  rho3: float = 1e-8, rho4: float = 1.0, with_lqg: bool = True
-                  ) -> TradeoffGrid:
+                  rho3: float = 1e-8, rho4: float = 1.0, with_lqg: bool = True,
+                  rig_rho1: Sequence[float] = ()) -> TradeoffGrid:
     hf = human_filter(cfg.design, cfg.sample_time_s)
     W = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
     R = measurement_noise_cov(cfg)
@@ -74,5 +82,24 @@ def tradeoff_grid(cfg: RigConfig, rho1: Sequence[float], rho2: Sequence[float],
                 out[kind]["absorbed_power"][i, j] = ratio[0]
                 out[kind]["rattlespace_rms"][i, j] = np.sqrt(ratio[1])
                 out[kind]["tire_deflection_rms"][i, j] = np.sqrt(ratio[2])
+    rr1 = np.asarray(rig_rho1, dtype=float)
+    rig: dict[str, dict[str, FloatArray]] = {}
+    if rr1.size and getattr(cfg.design, "actuator_model", "ideal") == "hydraulic":
+        from controller.analysis import rig_closed_loop
+        delay = int(getattr(cfg.design, "compute_delay_ticks", 0))
+        rig = {k: {n: np.full((rr1.size, r2.size), np.nan) for n in names}
+               for k in ("lq", "lqg")}
+        for i, a in enumerate(rr1):
+            for j, b in enumerate(r2):
+                for kind in ("lq", "lqg"):
+                    try:
+                        cl = rig_closed_loop(cfg, md, [a, b, rho3, rho4], kind, delay)
+                    except ValueError:
+                        continue
+                    ratio = output_mean_squares(cl)[:3] / passive[:3]
+                    rig[kind]["absorbed_power"][i, j] = ratio[0]
+                    rig[kind]["rattlespace_rms"][i, j] = np.sqrt(ratio[1])
+                    rig[kind]["tire_deflection_rms"][i, j] = np.sqrt(ratio[2])
     return TradeoffGrid(r1, r2, float(rho3), float(rho4), model.name, out["lq"],
-                        out.get("lqg", {}))
+                        out.get("lqg", {}), rr1 if rig else np.zeros(0),
+                        rig.get("lq", {}), rig.get("lqg", {}))

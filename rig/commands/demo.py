@@ -47,8 +47,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weight-set", type=int, default=None, metavar="N")
     p.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     p.add_argument("--no-realtime", action="store_true", help="skip the real-time set-up")
-    p.add_argument("--max-rearms", type=int, default=3, metavar="N",
-                   help="reset + re-arm after a fault at most N times (default 3)")
+    p.add_argument("--max-rearms", type=int, default=10, metavar="N",
+                   help="reset + re-arm after a fault at most N times (default 10)")
     p.add_argument("--seed", type=int, default=None, help="road seed (default sensors.seed)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
 
@@ -360,6 +360,11 @@ def run(args: argparse.Namespace) -> int:
     print(_table(passive, active), file=out)
     for f in faults:
         print(f"fault at {f['time_s']:.3f} s: {f['code']} ({f['reason']})", file=out)
+    if active.get("bypass_open_fraction", 1.0) > 0.5:
+        print(f"note: the controller was engaged for only "
+              f"{100 * (1 - active.get('bypass_open_fraction', 1.0)):.0f} % of the second "
+              f"half (faults above); load average {os.getloadavg()[0]:.1f} on "
+              f"{os.cpu_count()} CPUs", file=out)
     if summary["recording"]:
         print(f"recording: {summary['recording']}", file=out)
     if args.json:

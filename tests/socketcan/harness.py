@@ -34,6 +34,7 @@ from tests.socketcan.support import (
     free_tcp_port,
     read_candump_log,
 )
+from tests.socketcan.zenoh_listener import Operator, TelemetryState
 
 IN_UML = os.environ.get("SOCKETCAN_IN_UML") == "1"
 #: The loop rate of the end-to-end runs.  A UML guest has one virtual CPU on which every
@@ -43,14 +44,14 @@ IN_UML = os.environ.get("SOCKETCAN_IN_UML") == "1"
 RATE_HZ = float(os.environ.get("SOCKETCAN_E2E_RATE_HZ", "200" if IN_UML else "1000"))
 ROAD, SPEED_MPS, SEED = "iso-c", 11.176, 4242
 #: The emulated drive's watchdog.  On the rig it is 5 ms; in a UML guest the service's
-#: first ticks after start-up (first bank steps) take long enough to trip it, which the
-#: service then (rightly) latches as RIG_WATCHDOG.  The watchdog test trips it on purpose.
-WATCHDOG_MS = float(os.environ.get("SOCKETCAN_E2E_WATCHDOG_MS", "100" if IN_UML else "5"))
+#: loop stalls for up to ~1.5 s now and then (see RATE_HZ), which would trip it and the
+#: service would (rightly) latch RIG_WATCHDOG.  The watchdog test trips it on purpose.
+WATCHDOG_MS = float(os.environ.get("SOCKETCAN_E2E_WATCHDOG_MS", "3000" if IN_UML else "5"))
 #: SCHED_FIFO priority of the emulated rig (the service asks for 50 itself): with both
 #: loops real-time, the recording / telemetry threads run in the gaps, not in the loops.
 RIG_RT_PRIORITY = 50
-#: after the service printed its recording path: time for its real-time set-up
-SERVICE_SETTLE_S = 2.0
+#: after the rig's first frame: time for its start-up to finish
+RIG_SETTLE_S = 2.0
 
 
 def e2e_config(tmp_path: Path, channel: str, **sections: dict[str, Any]) -> tuple[RigConfig, Path]:
@@ -126,7 +127,8 @@ def run_scenario(children: Children, tmp_path: Path, cfg: RigConfig, cfg_path: P
                  duration_s: float | None, faults: list[dict[str, Any]] | None = None,
                  arm: bool = True, watchdog_ms: float | None = None,
                  during: Callable[[Scenario], None] | None = None,
-                 road: str = ROAD, speed_mps: float = SPEED_MPS) -> ScenarioResult:
+                 road: str = ROAD, speed_mps: float = SPEED_MPS,
+                 rig_first: bool = True) -> ScenarioResult:
     """Capture, listener, service, then (once the service loops) the rig.
 
     The service runs ``duration_s`` of loop time, or (None) until ``during`` returns and
@@ -150,17 +152,38 @@ def run_scenario(children: Children, tmp_path: Path, cfg: RigConfig, cfg_path: P
         fault_path = tmp_path / "faults.json"
         fault_path.write_text(json.dumps({"seed": SEED, "faults": faults}))
     wd_ms = watchdog_ms if watchdog_ms is not None else WATCHDOG_MS
-    # the service first: its start-up (bank design, mlockall) is over before the rig's
-    # drive watchdog is armed by the first ValveCommand
-    service = children.start("rig-run", service_argv(cfg_path, channel, duration_s, arm))
-    t_service = time.monotonic()
-    service.wait_for_output(r"recording to", timeout_s=180)
-    time.sleep(SERVICE_SETTLE_S)
-    rig = children.start("rig-hil", rig_argv(cfg_path, channel, fault_path, wd_ms, road,
+    operator = Operator(endpoint, cfg.telemetry.key_prefix)  # connects when the service is up
+    # In a UML guest a starting Python process stalls the (non-preemptible) guest kernel
+    # for up to seconds.  rig_first: the service starts once the rig's frames flow (its
+    # start-up stalls happen before its loop runs); else the service first (the rig's
+    # fault schedule then starts near the service's arming; the test resets a watchdog
+    # fault the rig's start-up may cause).
+    def start_rig() -> Child:
+        return children.start("rig-hil", rig_argv(cfg_path, channel, fault_path, wd_ms, road,
                                                   speed_mps))
-    scenario = Scenario(cfg, service, rig, dump)
-    if during is not None:
-        during(scenario)
+
+    def start_service() -> Child:
+        svc = children.start("rig-run", service_argv(cfg_path, channel, duration_s, arm))
+        svc.wait_for_output(r"recording to", timeout_s=180)
+        return svc
+
+    if rig_first:
+        rig = start_rig()
+        dump.wait_for_output(r" 100#", timeout_s=180)
+        time.sleep(RIG_SETTLE_S)
+        t_service = time.monotonic()
+        service = start_service()
+    else:
+        t_service = time.monotonic()
+        service = start_service()
+        time.sleep(RIG_SETTLE_S)
+        rig = start_rig()
+    scenario = Scenario(cfg, service, rig, dump, operator, TelemetryState(tel_path))
+    try:
+        if during is not None:
+            during(scenario)
+    finally:
+        operator.close()
     if duration_s is None:
         service_status = service.stop(signal.SIGTERM, grace_s=60)
     else:
@@ -191,6 +214,8 @@ class Scenario:
     service: Child
     rig: Child
     capture: Child
+    operator: Operator
+    state: TelemetryState
     notes: dict[str, Any] = field(default_factory=dict)
 
 

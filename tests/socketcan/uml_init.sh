@@ -69,6 +69,10 @@ hostname uml-socketcan
         modprobe -d "$run_dir" "$m" || exit 1
     done
     ip link set lo up
+    # 8 MiB socket receive buffers (the kernel default, ~200 CAN frames, overflows in
+    # the guest's stalls of up to ~1.5 s: a process would see lost frames that a rig
+    # computer would not; docs/socketcan.md)
+    sysctl -q -w net.core.rmem_default=8388608 net.core.rmem_max=8388608
     for dev in vcan0 vcan1; do
         ip link add dev "$dev" type vcan || exit 1
         ip link set "$dev" mtu 16           # classic CAN frames only, as on the rig
@@ -81,10 +85,12 @@ hostname uml-socketcan
 cd "$repo" || verdict 92 "repository $repo not visible in the guest"
 extra=()
 [[ -f $run_dir/pytest_args ]] && mapfile -d '' -t extra < "$run_dir/pytest_args"
-# run.sh with SOCKETCAN_KEEP_RUN_DIR=1: keep the tests' temporary files in the run directory
-[[ -f $run_dir/keep ]] && extra+=("--basetemp=$run_dir/pytest")
 echo "uml_init: running the SocketCAN suite: pytest tests/socketcan ${extra[*]}" >> "$log"
 "$repo/.venv/bin/python" -m pytest tests/socketcan -q -p no:cacheprovider -rA \
     "${extra[@]}" >> "$log" 2>&1
 rc=$?
+# run.sh with SOCKETCAN_KEEP_RUN_DIR=1: keep the tests' temporary files (captures, MCAPs,
+# process logs).  They are written to the guest's tmpfs during the run (hostfs writes
+# stall the non-preemptible guest kernel) and copied out here.
+[[ -f $run_dir/keep ]] && cp -a /tmp/pytest-of-root "$run_dir/pytest" 2>/dev/null
 verdict "$rc" "pytest finished with exit status $rc"

@@ -11,10 +11,13 @@ Prints ``listener subscribed`` once the subscriber is declared; stops on SIGINT/
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import signal
 import threading
 import time
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -62,29 +65,68 @@ class Operator:
                 timeout_s: float = 5.0) -> dict[str, Any] | None:
         return self._get(f"cmd/{name}", json.dumps(args or {}), timeout_s)
 
-    def until(self, name: str, lifecycle: str, timeout_s: float) -> bool:
-        """Send ``name`` (again every ~0.3 s: a reset is refused while the fault condition
-        lasts, an arm while the estimator warms up) until the service is in ``lifecycle``."""
+    def recover(self, state: Callable[[], tuple[str | None, str | None]],
+                timeout_s: float) -> bool:
+        """Reset (while FAULT) and arm (while INACTIVE) until ``state()`` says ACTIVE for
+        0.5 s (a reset can be accepted in a tick where a slow periodic condition, e.g.
+        RigStatus supply loss at 100 Hz, is not visible, and the fault latches again)."""
         deadline = time.monotonic() + timeout_s
+        active_since: float | None = None
         while time.monotonic() < deadline:
-            reply = self.command(name, timeout_s=2.0)
-            if reply is not None and reply.get("accepted"):
-                return True
-            st = self.status(timeout_s=2.0)
-            if st is not None and st.get("lifecycle") == lifecycle:
-                return True
-            time.sleep(0.3)
+            lifecycle, _ = state()
+            if lifecycle == "ACTIVE":
+                active_since = active_since or time.monotonic()
+                if time.monotonic() - active_since >= 0.5:
+                    return True
+            else:
+                active_since = None
+                if lifecycle == "FAULT":
+                    self.command("reset", timeout_s=2.0)
+                elif lifecycle == "INACTIVE":
+                    self.command("arm", timeout_s=2.0)
+            time.sleep(0.2)
         return False
 
-    def wait_for(self, lifecycle: str, timeout_s: float) -> dict[str, Any] | None:
-        """Poll the status until the service is in ``lifecycle``; that status or None."""
+
+class TelemetryState:
+    """The service's lifecycle and fault as the listener process received them (read
+    from its output file: polling the service's status queryable instead would load
+    the service's interpreter, whose loop thread competes for the GIL)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._offset = 0
+        self._partial = ""
+        self.lifecycle: str | None = None
+        self.fault: str | None = None
+
+    def __call__(self) -> tuple[str | None, str | None]:
+        if self.path.exists():
+            with open(self.path) as fh:
+                fh.seek(self._offset)
+                chunk = fh.read()
+                self._offset = fh.tell()
+            lines = (self._partial + chunk).split("\n")
+            self._partial = lines.pop()
+            for line in lines:
+                with contextlib.suppress(ValueError):
+                    sample = json.loads(line)
+                    payload = sample.get("payload") or {}
+                    if sample["key"].endswith("/lifecycle"):
+                        self.lifecycle = payload.get("lifecycle")
+                    elif sample["key"].endswith("/fault"):
+                        f = payload.get("fault")
+                        self.fault = f.get("code") if isinstance(f, dict) else None
+        return self.lifecycle, self.fault
+
+    def wait_for(self, lifecycle: str, timeout_s: float) -> tuple[str | None, str | None]:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            st = self.status(timeout_s=2.0)
-            if st is not None and st.get("lifecycle") == lifecycle:
-                return st
+            state = self()
+            if state[0] == lifecycle and (lifecycle != "FAULT" or state[1] is not None):
+                return state
             time.sleep(0.1)
-        return None
+        return self()
 
 
 def main() -> int:

@@ -1,0 +1,391 @@
+"""The loop on the linearised rig, and its margins: linear analysis with python-control.
+
+Discrete python-control blocks on the 1 kHz sample grid, joined by
+``control.interconnect`` (docs/design.md section 7):
+
+- ``plant`` (:func:`rig_plant_ss`): linear quarter-car model j in deviation coordinates,
+  with the true human filter F(s) as a state (exact performance output), and either an
+  *ideal* actuator (force = the held command; the load cell at tick k reads the command
+  of tick k-1) or the *hydraulic* actuator of ``hil/hydraulics.py`` linearised at zero
+  load pressure (:mod:`controller.actuator`, ZOH on the spool command).  Sampled at
+  t_k: rattlespace, true acceleration A[2] x + F / M, force, and the performance outputs;
+  optional noise inputs (state noise of the road, sensor noise);
+- ``accel``: the accelerometer low-pass of ``hil/sensors.py`` (Tustin, pre-warped);
+- ``ctrl`` (:func:`runtime_controller_ss`): the runtime bank for model j
+  (``controller/bank.py``): Kalman update and propagation with the measured force,
+  human filter on the measured acceleration, the spool model of ``controller/actuator.py``
+  on its own output, fref = -K [x+; xf] - K_a [x̂_v; F; s_pending];
+- ``pi``: ``controller/force_loop.py`` (backward-Euler PI, unsaturated);
+- ``delay``: ``delay_ticks`` ticks between the PI output and the valve, i.e. inside the
+  force loop too, as in ``hil/sim.py`` and on the CAN loop (the PI runs in the controller).
+
+Timing: with ``delay_ticks = 0`` the sensors sample at t_k and the spool command
+computed from them acts over [t_k, t_k+1) (``hil/sim.py``).  The CAN loop
+(``hil/node.py`` advances the plant with the latest valve command, then samples and
+sends) equals that when the command reaches the rig before its next tick, and is one
+tick later otherwise: 0 or 1, set by the phase of the two free-running 1 kHz timers.
+
+Margins: every gain crossover of the loop gain L(e^{jwT}) broken at the force reference
+(negative-feedback convention, closed loop 1 + L), its phase margin and the delay margin
+PM / w (the extra pure delay at the break point that makes that crossover touch -1).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from typing import Literal
+
+import control
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.actuator import ServoModel, servo_model
+from controller.config import ForceLoopConfig, RigConfig
+from controller.design import ModelDesign, design_models, measurement_noise_cov
+from controller.human_filter import HumanFilter, discretize_zoh, human_filter
+from controller.kalman import process_noise_cov, steady_state_kalman
+from controller.lq import actuated_lq_gain, actuated_plant, augmented_plant, lq_gain
+from controller.road_noise import road_velocity_intensity
+
+__all__ = [
+    "Actuator",
+    "Crossover",
+    "LoopParts",
+    "accel_sensor_ss",
+    "closed_loop_stable",
+    "crossovers",
+    "delay_margin_s",
+    "delay_ss",
+    "force_loop_gain",
+    "force_loop_ss",
+    "fullstate_controller_ss",
+    "loop_parts",
+    "lqg_loop_gain",
+    "margin_table",
+    "rig_plant_ss",
+    "runtime_controller_ss",
+]
+
+FloatArray = NDArray[np.float64]
+Actuator = Literal["ideal", "hydraulic"]
+
+#: plant outputs: sensors, then performance (filtered accel, rattlespace, tire deflection)
+PLANT_OUTPUTS = ("r", "a_true", "Fm", "yf", "rattle", "tire")
+
+
+@dataclass(frozen=True)
+class Crossover:
+    """One gain crossover |L| = 1: frequency, phase margin, delay margin."""
+
+    freq_hz: float
+    phase_margin_deg: float
+    delay_margin_s: float
+
+
+@dataclass(frozen=True)
+class LoopParts:
+    """What the loop of model j needs: human filter, gains, Kalman gain, spool model."""
+
+    hf: HumanFilter
+    K: FloatArray       # (6,)  on [x+ - x̄; xf]
+    Ka: FloatArray      # (2 + D,) on [x̂_v; F_meas; s_{k-1..k-D}]
+    L: FloatArray       # (4, 2)
+    servo: ServoModel
+
+
+def loop_parts(cfg: RigConfig, md: ModelDesign, weights: list[float]) -> LoopParts:
+    """Gains as ``design_bank(cfg)`` makes them (``design.actuator_model``), Kalman gain at
+    the nominal noise entry."""
+    dt = cfg.sample_time_s
+    hf = human_filter(cfg.design, dt)
+    servo = servo_model(cfg)
+    if cfg.design.actuator_model == "hydraulic":
+        k = actuated_lq_gain(md.model, hf, weights, servo)
+        K, Ka = k[:6], k[6:]
+    else:
+        K, Ka = lq_gain(md.model, hf, weights), np.zeros(2 + servo.delay_ticks)
+    W = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
+    L = steady_state_kalman(md.dfm.Phi, md.fm.C, md.dfm.Qd_unit * W,
+                            measurement_noise_cov(cfg)).L
+    return LoopParts(hf, K, Ka, L, servo)
+
+
+def rig_plant_ss(md: ModelDesign, cfg: RigConfig, actuator: Actuator, *,
+                 noise: bool = False) -> tuple[control.StateSpace, FloatArray]:
+    """Discrete plant of model j and its process-noise covariance Qw (white road velocity
+    at the nominal speed and roughness, Van Loan).  Input ``s`` (spool command, or force
+    if ideal); with ``noise``: ``w0..`` added to the state, ``v_r``, ``v_F`` added to the
+    rattlespace and force readings.  Outputs :data:`PLANT_OUTPUTS` then ``z0..`` (state).
+    States: ideal [x (4), xf (2), F_held], hydraulic [x (4), xf (2), x_v, F]."""
+    dt = cfg.sample_time_s
+    hf = human_filter(cfg.design, dt)
+    model = md.model
+    inv_m = float(model.B2[2])
+    W = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
+    n = 7 if actuator == "ideal" else 8
+    Ad = np.zeros((n, n))
+    Bs = np.zeros(n)
+    Qw = np.zeros((n, n))
+    if actuator == "ideal":
+        aug = augmented_plant(model, hf, (0.0, 0.0, 1.0, 0.0))
+        Pa, Ga = discretize_zoh(aug.A, aug.B, dt)
+        Ad[:6, :6] = Pa
+        Bs[:6] = Ga
+        Bs[6] = 1.0
+        Qw[:6, :6] = process_noise_cov(aug.A, aug.B1, W, dt)
+        iF = 6
+    elif actuator == "hydraulic":
+        A8, B8, B1 = actuated_plant(model, hf, servo_model(cfg))
+        Ad, Bs = discretize_zoh(A8, B8, dt)
+        Qw = process_noise_cov(A8, B1, W, dt)
+        iF = 7
+    else:
+        raise ValueError(f"actuator {actuator!r}: allowed 'ideal', 'hydraulic'")
+    C = np.zeros((6 + n, n))
+    C[0, :2] = [1.0, -1.0]
+    C[1, :4] = model.A[2]
+    C[1, iF] = inv_m
+    C[2, iF] = 1.0
+    C[3, 4:6] = hf.Cf
+    C[4, :2] = [1.0, -1.0]
+    C[5, 1] = 1.0
+    C[6:] = np.eye(n)
+    inputs = ["s"]
+    B = Bs.reshape(n, 1)
+    D = np.zeros((6 + n, 1))
+    if noise:
+        inputs += [f"w{i}" for i in range(n)] + ["v_r", "v_F"]
+        B = np.hstack([B, np.eye(n), np.zeros((n, 2))])
+        D = np.zeros((6 + n, 1 + n + 2))
+        D[0, 1 + n] = 1.0
+        D[2, 2 + n] = 1.0
+    sys = control.ss(Ad, B, C, D, dt, inputs=inputs,
+                     outputs=[*PLANT_OUTPUTS, *[f"z{i}" for i in range(n)]], name="plant")
+    return sys, Qw
+
+
+def accel_sensor_ss(cfg: RigConfig, *, noise: bool = False) -> control.StateSpace:
+    """The accelerometer low-pass of ``hil/sensors.py`` (``a_true`` [+ ``v_a``] -> ``a``;
+    the noise is added after the filter, as there)."""
+    dt = cfg.sample_time_s
+    wc = 2.0 * math.pi * cfg.sensors.accel_bandwidth_hz
+    if wc >= 0.999 * math.pi / dt:
+        lp = control.ss([], [], [], [[1.0]], dt)
+    else:
+        k = math.tan(wc * dt / 2.0)
+        b, a = k / (1.0 + k), (k - 1.0) / (1.0 + k)
+        lp = control.ss(control.tf([b, b], [1.0, a], dt))
+    if noise:
+        return control.ss(lp.A, np.hstack([lp.B, np.zeros((lp.nstates, 1))]), lp.C,
+                          np.hstack([lp.D, [[1.0]]]), dt, inputs=["a_true", "v_a"],
+                          outputs=["a"], name="accel")
+    return control.ss(lp.A, lp.B, lp.C, lp.D, dt, inputs=["a_true"], outputs=["a"],
+                      name="accel")
+
+
+def _servo_rows(n: int, n0: int, cu: FloatArray, du: FloatArray, servo: ServoModel,
+                A: FloatArray, B: FloatArray) -> None:
+    """Rows of the spool model x̂_v (index n0) and the pending commands (n0 + 1 ...) given
+    fref = cu z + du [r, a, F]: s = kp (fref - F), applied = s_{k-D}."""
+    D = servo.delay_ticks
+    kp = servo.kp_per_n
+    s_c = kp * cu
+    s_d = kp * du.copy()
+    s_d[2] -= kp
+    if D == 0:
+        ap_c, ap_d = s_c, s_d
+    else:
+        ap_c = np.zeros(n)
+        ap_c[n0 + D] = 1.0
+        ap_d = np.zeros(3)
+    a = servo.spool_decay
+    A[n0] = (1.0 - a) * ap_c
+    A[n0, n0] += a
+    B[n0] = (1.0 - a) * ap_d
+    if D:
+        A[n0 + 1] = s_c
+        B[n0 + 1] = s_d
+        for i in range(1, D):
+            A[n0 + 1 + i, n0 + i] = 1.0
+
+
+def runtime_controller_ss(md: ModelDesign, parts: LoopParts, dt_s: float
+                          ) -> control.StateSpace:
+    """The runtime bank for model j alone: inputs ``r, a, Fm``, output ``fref_out``.
+    States [x⁻ (4), xf (2), x̂_v, s_{k-1..k-D}]."""
+    Phi, Gam, C, Dm = md.dfm.Phi, md.dfm.Gamma_u, md.fm.C, md.fm.D
+    K, Ka, L, hf, servo = parts.K, parts.Ka, parts.L, parts.hf, parts.servo
+    Kx, Kf = K[:4], K[4:6]
+    nd = servo.delay_ticks
+    n = 7 + nd
+    ILC = np.eye(4) - L @ C
+    cu = np.zeros(n)
+    du = np.zeros(3)
+    cu[:4] = -Kx @ ILC
+    du[:2] = -Kx @ L
+    du[2] = Kx @ L @ Dm - Ka[1]
+    cu[4:6] = -Kf
+    cu[6] = -Ka[0]
+    cu[7:] = -Ka[2:]
+    A = np.zeros((n, n))
+    B = np.zeros((n, 3))
+    A[:4, :4] = Phi @ ILC
+    B[:4, :2] = Phi @ L
+    B[:4, 2] = Gam - Phi @ L @ Dm
+    A[4:6, 4:6] = hf.Ad
+    B[4:6, 1] = hf.Bd
+    _servo_rows(n, 6, cu, du, servo, A, B)
+    return control.ss(A, B, cu.reshape(1, n), du.reshape(1, 3), dt_s,
+                      inputs=["r", "a", "Fm"], outputs=["fref_out"], name="ctrl")
+
+
+def fullstate_controller_ss(parts: LoopParts, n_plant: int, dt_s: float
+                            ) -> control.StateSpace:
+    """LQ on the true plant state (hydraulic plant: [x, xf, x_v, F] = ``z0..z7``) with the
+    runtime's own pending spool commands: the estimation-free bound of the LQG loop."""
+    if n_plant != 8:
+        raise ValueError("the full-state loop needs the hydraulic plant (8 states)")
+    servo = parts.servo
+    nd = servo.delay_ticks
+    n = 1 + nd                          # [unused x̂_v slot, pending]; x_v is measured here
+    k_state = np.concatenate([parts.K, parts.Ka[:2]])     # on z0..z7
+    # fref = -k_state z - Kp p ; inputs [z0..z7]; pending driven by s = kp (fref - F)
+    cu = np.zeros(n)
+    cu[1:] = -parts.Ka[2:]
+    dz = -k_state
+    A = np.zeros((n, n))
+    Bz = np.zeros((n, 8))
+    if nd:
+        kp = servo.kp_per_n
+        A[1] = kp * cu
+        Bz[1] = kp * dz
+        Bz[1, 7] -= kp
+        for i in range(1, nd):
+            A[1 + i, i] = 1.0
+    return control.ss(A, Bz, cu.reshape(1, n), dz.reshape(1, 8), dt_s,
+                      inputs=[f"z{i}" for i in range(8)], outputs=["fref_out"], name="ctrl")
+
+
+def force_loop_ss(fl: ForceLoopConfig, dt_s: float) -> control.StateSpace:
+    """The PI of ``controller/force_loop.py`` (unsaturated): ``fref, Fm`` -> ``s_pi``."""
+    kp, ki = fl.kp_per_n, fl.ki_per_ns
+    g = kp + ki * dt_s
+    return control.ss([[1.0]], [[dt_s, -dt_s]], [[ki]], [[g, -g]], dt_s,
+                      inputs=["fref", "Fm"], outputs=["s_pi"], name="pi")
+
+
+def delay_ss(ticks: int, dt_s: float, inp: str, out: str) -> control.StateSpace:
+    """z^-ticks from ``inp`` to ``out``."""
+    if ticks < 0:
+        raise ValueError(f"delay ticks must be >= 0, got {ticks}")
+    name = f"delay_{inp}_{out}"
+    if ticks == 0:
+        return control.ss([], [], [], [[1.0]], dt_s, inputs=[inp], outputs=[out], name=name)
+    A = np.eye(ticks, k=-1)
+    B = np.zeros((ticks, 1))
+    B[0, 0] = 1.0
+    C = np.zeros((1, ticks))
+    C[0, -1] = 1.0
+    return control.ss(A, B, C, [[0.0]], dt_s, inputs=[inp], outputs=[out], name=name)
+
+
+def connect(blocks: list[control.StateSpace], inputs: list[str], outputs: list[str]
+            ) -> control.StateSpace:
+    with warnings.catch_warnings():      # unused plant outputs are expected
+        warnings.simplefilter("ignore", UserWarning)
+        sys = control.interconnect(blocks, inplist=inputs, outlist=outputs)
+    return control.ss(sys.A, sys.B, sys.C, sys.D, sys.dt)
+
+
+def lqg_loop_gain(cfg: RigConfig, md: ModelDesign, weights: list[float],
+                  actuator: Actuator = "hydraulic", delay_ticks: int = 0,
+                  outer_delay_ticks: int = 0) -> control.StateSpace:
+    """Loop gain at the force reference (negative feedback: the closed loop is
+    ``control.feedback(L, 1)``).  ``delay_ticks`` sit between the PI and the valve
+    (inside the force loop, as in ``hil/sim.py``; for the ideal actuator between the
+    command and the force); ``outer_delay_ticks`` only on the force reference."""
+    dt = cfg.sample_time_s
+    parts = loop_parts(cfg, md, weights)
+    plant, _ = rig_plant_ss(md, cfg, actuator)
+    blocks = [plant, accel_sensor_ss(cfg), runtime_controller_ss(md, parts, dt),
+              delay_ss(outer_delay_ticks, dt, "u", "fref")]
+    if actuator == "ideal":
+        blocks.append(delay_ss(delay_ticks, dt, "fref", "s"))
+    else:
+        blocks += [force_loop_ss(cfg.force_loop, dt), delay_ss(delay_ticks, dt, "s_pi", "s")]
+    return -connect(blocks, ["u"], ["fref_out"])
+
+
+def force_loop_gain(cfg: RigConfig, md: ModelDesign, delay_ticks: int = 0
+                    ) -> control.StateSpace:
+    """Loop gain of the PI force loop alone (outer loop open), broken at the spool
+    command, with the quarter car of model j attached (velocity coupling)."""
+    dt = cfg.sample_time_s
+    fl = cfg.force_loop
+    g = fl.kp_per_n + fl.ki_per_ns * dt
+    pi_fb = control.ss([[1.0]], [[dt]], [[fl.ki_per_ns]], [[g]], dt, inputs=["Fm"],
+                       outputs=["c"], name="pi")      # c = PI(+Fm), i.e. -(spool)
+    plant, _ = rig_plant_ss(md, cfg, "hydraulic")
+    return connect([plant, pi_fb, delay_ss(delay_ticks, dt, "s_in", "s")], ["s_in"], ["c"])
+
+
+def crossovers(L: control.StateSpace, n_points: int = 4000) -> list[Crossover]:
+    """Every gain crossover of the discrete loop gain L up to Nyquist (log grid, refined
+    by bisection), with its phase margin in [0, 360) degrees and delay margin PM / w."""
+    dt = float(L.dt)
+    w = np.logspace(-1.0, math.log10(math.pi / dt) - 1e-9, n_points)
+
+    def mag_minus_one(wi: float) -> float:
+        return abs(complex(L(np.exp(1j * wi * dt)))) - 1.0
+
+    f = np.abs(np.asarray(L(np.exp(1j * w * dt))).reshape(-1)) - 1.0
+    out = []
+    for i in np.flatnonzero(np.sign(f[:-1]) * np.sign(f[1:]) < 0):
+        lo, hi = w[i], w[i + 1]
+        flo = f[i]
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            fm = mag_minus_one(mid)
+            if np.sign(fm) == np.sign(flo):
+                lo, flo = mid, fm
+            else:
+                hi = mid
+        wc = 0.5 * (lo + hi)
+        pm = (math.pi + float(np.angle(complex(L(np.exp(1j * wc * dt)))))) % (2 * math.pi)
+        out.append(Crossover(wc / (2 * math.pi), math.degrees(pm), pm / wc))
+    return out
+
+
+def delay_margin_s(L: control.StateSpace) -> float:
+    """Smallest delay margin over the crossovers [s]; inf without a crossover, 0 if the
+    closed loop ``feedback(L, 1)`` is already unstable."""
+    if not closed_loop_stable(L):
+        return 0.0
+    return min((c.delay_margin_s for c in crossovers(L)), default=math.inf)
+
+
+def closed_loop_stable(L: control.StateSpace) -> bool:
+    cl = control.feedback(L, 1)
+    return bool(np.max(np.abs(np.linalg.eigvals(cl.A))) < 1.0)
+
+
+def margin_table(cfg: RigConfig, delays: tuple[int, ...] = (0, 1, 2)
+                 ) -> list[dict[str, object]]:
+    """Rows for docs/design.md section 7: per on-ground model, weight set and delay:
+    the smallest delay margin [ms] of the LQG loop on the hydraulic rig (0 = unstable)
+    and the phase margin of the force loop [deg]."""
+    rows: list[dict[str, object]] = []
+    for md in design_models(cfg):
+        if md.model.airborne:
+            continue
+        for d in delays:
+            inner = crossovers(force_loop_gain(cfg, md, d))
+            pm = min((c.phase_margin_deg for c in inner), default=math.inf)
+            for w, weights in enumerate(cfg.design.weight_sets, start=1):
+                L = lqg_loop_gain(cfg, md, weights, "hydraulic", d)
+                rows.append({"set": w, "model": md.model.name, "delay": d,
+                             "delay_margin_ms": 1e3 * delay_margin_s(L),
+                             "force_loop_pm_deg": pm})
+    return rows
