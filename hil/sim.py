@@ -119,9 +119,10 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
 
     tr: dict[str, FloatArray] = {k: np.zeros(n) for k in (
         "rattlespace_m", "accel_mps2", "force_n", "force_ref_n", "spool_cmd", "tire_force_n",
-        "hydraulic_power_w", "off_ground_s", "bump_stop_s", "meas_rattlespace_m",
+        "hydraulic_power_w", "off_ground_s", "spool_computed", "bump_stop_s", "meas_rattlespace_m",
         "meas_force_n", "meas_accel_mps2")}
-    queue = [0.0] * (delay_ticks + 1)
+    # the valve applies the command computed delay_ticks ticks earlier (exactly)
+    queue = [0.0] * delay_ticks
     height, velocity = road.height_m, road.velocity_mps
     faulted = False
     n_faults = 0
@@ -149,6 +150,7 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
             else:
                 spool = pi.step(fref, rd.force_n)
                 bypass = False
+        tr["spool_computed"][k] = spool
         if delay_ticks:
             queue.append(spool)
             spool = queue.pop(0)

@@ -100,6 +100,9 @@ def test_loop_delay_and_sample_rate_options() -> None:
     ref, spool = res.traces["force_ref_n"], res.traces["spool_cmd"]
     assert np.all(np.isfinite(ref)) and res.metrics["nonfinite"] == 0.0
     assert np.all(spool[:3] == 0.0) and np.any(spool != 0.0)
+    # exactly 3 ticks between computing a command and the valve applying it
+    computed = res.traces["spool_computed"]
+    np.testing.assert_array_equal(spool[3:], computed[:-3])
     # the valve sees the command computed 3 ticks earlier: with no delay the first tick
     # already moves the spool
     assert simulate(CFG, road, "fuzzy", 1).traces["spool_cmd"][0] != 0.0
