@@ -161,8 +161,18 @@ def test_cli_design_writes_artifact_and_json(tmp_path: Path,
     d = load_design(out, CFG)
     m = summary["models"]["x2_25mm"]
     np.testing.assert_allclose(m["lq"]["weight_set_1"]["gain"], d.lq_gain[0, 1])
+    ideal = m["lq"]["weight_set_1"]["ideal_actuator_closed_loop_poles"]
+    assert len(ideal) == 6 and all(p["abs"] < 1.0 for p in ideal)
+    # the whole rig loop: LQG + PI + servo-hydraulics + compute delay, stable, and the
+    # same spectrum as controller.analysis builds for `rig analyze`
+    from controller.analysis import rig_closed_loop
+    from controller.design import design_models
+    md = design_models(CFG)[1]
+    cl = rig_closed_loop(CFG, md, list(CFG.design.weight_sets[0]), "lqg",
+                         CFG.design.compute_delay_ticks)
     poles = m["lq"]["weight_set_1"]["closed_loop_poles"]
-    assert len(poles) == 6 and all(p["abs"] < 1.0 for p in poles)
+    assert len(poles) == cl.A.shape[0] > 6 and all(p["abs"] < 1.0 for p in poles)
+    assert "closed_loop_poles" not in summary["models"]["airborne"]["lq"]["weight_set_1"]
     # continuous equivalent of a discrete pole: |z| = exp(-zeta wn dt)
     for p in poles:
         assert p["abs"] == pytest.approx(np.exp(-p["zeta"] * p["wn_rad_s"] * d.dt_s), rel=1e-9)

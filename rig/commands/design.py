@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from controller.analysis import rig_closed_loop
 from controller.artifact import Design, save_design
 from controller.config import RigConfig, load_config
 from controller.design import design_bank, design_models
@@ -40,7 +41,8 @@ def _poles(mat: np.ndarray, dt_s: float) -> list[dict[str, float]]:
 
 
 def design_summary(design: Design, cfg: RigConfig) -> dict[str, Any]:
-    """Per model: LQ gains and closed-loop poles per weight set, nominal Kalman gain and
+    """Per model: LQ gains and closed-loop poles per weight set (of the whole rig loop and of
+    the ideal-actuator design loop), nominal Kalman gain and
     filter poles."""
     dt = design.dt_s
     hf = human_filter(cfg.design, dt)
@@ -53,10 +55,19 @@ def design_summary(design: Design, cfg: RigConfig) -> dict[str, Any]:
         Pa, Ga = discretize_zoh(aug.A, aug.B, dt)
         for w in range(design.n_weight_sets):
             K = design.lq_gain[w, j]
-            entry["lq"][f"weight_set_{w + 1}"] = {
+            lq: dict[str, Any] = {
                 "gain": K.tolist(),
-                "closed_loop_poles": _poles(Pa - np.outer(Ga, K), dt),
+                "actuator_gain": design.actuator_gain[w, j].tolist(),
+                # the 6-state loop with an ideal force actuator (the thesis's design view)
+                "ideal_actuator_closed_loop_poles": _poles(Pa - np.outer(Ga, K), dt),
             }
+            if not design.airborne[j]:
+                # the loop the rig really runs: LQG + PI force loop + servo-hydraulics +
+                # the design's compute delay (controller.analysis.rig_closed_loop)
+                cl = rig_closed_loop(cfg, md, list(cfg.design.weight_sets[w]), "lqg",
+                                     cfg.design.compute_delay_ticks)
+                lq["closed_loop_poles"] = _poles(cl.A, dt)
+            entry["lq"][f"weight_set_{w + 1}"] = lq
         entry["kalman"] = {
             "noise_entry": s_nom,
             "speed_mps": float(design.noise_speeds_mps[s_nom // design.noise_roughness_gd.size]),
@@ -85,8 +96,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {design.n_models} models, {design.n_noise} noise entries, "
           f"{design.n_weight_sets} weight sets, dt = {design.dt_s * 1e3:g} ms")
     for name, entry in summary["models"].items():
-        radii = [max(p["abs"] for p in v["closed_loop_poles"]) for v in entry["lq"].values()]
+        radii = [max(p["abs"] for p in v.get("closed_loop_poles",
+                                             v["ideal_actuator_closed_loop_poles"]))
+                 for v in entry["lq"].values()]
         frad = max(p["abs"] for p in entry["kalman"]["filter_poles"])
-        print(f"  {name:12s} LQ spectral radius {', '.join(f'{r:.6f}' for r in radii)}; "
+        print(f"  {name:12s} closed-loop spectral radius {', '.join(f'{r:.6f}' for r in radii)}; "
               f"filter {frad:.6f}")
     return 0
