@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from controller.config import RigConfig, config_hash, config_to_toml
+from controller.config import RigConfig, config_hash, config_to_toml, design_config_hash
 from controller.kernels import MAX_DELAY
 
 __all__ = [
@@ -171,6 +171,7 @@ def build_metadata(cfg: RigConfig) -> dict[str, Any]:
     return {
         "artifact_version": ARTIFACT_VERSION,
         "config_hash": config_hash(cfg),
+        "design_config_hash": design_config_hash(cfg),
         "config_toml": config_to_toml(cfg),
         "numpy_version": np.__version__,
         "scipy_version": scipy.__version__,
@@ -229,8 +230,11 @@ def load_design(path: str | Path, cfg: RigConfig | None = None) -> Design:
     design = Design(**kwargs)
     design.validate()
     if cfg is not None:
-        want = config_hash(cfg)
-        have = metadata.get("config_hash")
+        # artifacts written before design_config_hash existed: the full-config hash
+        if "design_config_hash" in metadata:
+            want, have = design_config_hash(cfg), metadata["design_config_hash"]
+        else:
+            want, have = config_hash(cfg), metadata.get("config_hash")
         if have != want:
             raise DesignMismatch(f"{path}: designed for configuration {str(have)[:12]}..., "
                                  f"the given configuration hashes to {want[:12]}... "

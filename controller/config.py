@@ -261,6 +261,12 @@ class SafetyConfig:
     divergence_ticks: int = _f(50, lo=1, hi=100000)
     force_range_n: float = _f(15000.0, lo=1.0, hi=1e6)
     heartbeat_hz: float = _f(10.0, lo=0.1, hi=1000.0)
+    frozen_ticks: int = _f(50, lo=2, hi=100000,
+                           doc="a sensor value bit-identical for more SensorData frames = "
+                           "SENSOR_FROZEN (real sensor noise is ~10 LSB std)")
+    rig_status_stale_ticks: int = _f(50, lo=1, hi=100000,
+                                     doc="no RigStatus for more ticks (5 periods of 100 Hz) "
+                                     "= arm/reset refused")
 
 
 @dataclass(frozen=True)
@@ -269,6 +275,8 @@ class CanConfig:
     channel: str = _f("vcan0")
     bitrate: int = _f(1_000_000, lo=10_000, hi=8_000_000)
     fd: bool = _f(False)
+    receive_buffer_bytes: int = _f(1 << 20, lo=0, hi=1 << 30,
+                                   doc="SocketCAN SO_RCVBUF request (0 = kernel default)")
 
 
 @dataclass(frozen=True)
@@ -525,4 +533,20 @@ def config_to_toml(cfg: RigConfig) -> str:
 def config_hash(cfg: RigConfig) -> str:
     """sha256 of the canonical JSON of the configuration (stable across key order)."""
     blob = json.dumps(config_to_dict(cfg), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+#: the sections a design artifact depends on (controller.design and what it calls read
+#: vehicle, tire, design, noise, fuzzy, actuator and force_loop; moving_bank shapes the
+#: bank built from the artifact).  sensors/safety/can/telemetry/recording do not.
+DESIGN_SECTIONS: tuple[str, ...] = ("vehicle", "tire", "design", "noise", "fuzzy",
+                                    "moving_bank", "force_loop", "actuator")
+
+
+def design_config_hash(cfg: RigConfig) -> str:
+    """sha256 of the canonical JSON of only the :data:`DESIGN_SECTIONS` (the design
+    artifact's check: changing e.g. the telemetry port keeps an artifact valid)."""
+    full = config_to_dict(cfg)
+    blob = json.dumps({k: full[k] for k in DESIGN_SECTIONS}, sort_keys=True,
+                      separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()

@@ -27,6 +27,10 @@ from controller.kernels import StepFlag
 
 __all__ = ["PIForceLoop"]
 
+# built once: StepFlag(...) goes through the enum machinery (~1 us) on every call
+_NO_FLAGS = StepFlag(0)
+_NONFINITE_INPUT = StepFlag.NONFINITE_INPUT
+
 
 class PIForceLoop:
     """Discrete PI force controller with reference saturation and anti-windup."""
@@ -40,23 +44,23 @@ class PIForceLoop:
         self.force_limit_n = float(cfg.force_limit_n)
         self.dt_s = float(dt_s)
         self.integral_ns = 0.0          # I [N s]
-        self.flags = StepFlag(0)
+        self.flags = _NO_FLAGS
         self.saturated = False          # last output was clipped
         self.error_n = 0.0
 
     def reset(self) -> None:
         """Clear the integrator and the flags."""
         self.integral_ns = 0.0
-        self.flags = StepFlag(0)
+        self.flags = _NO_FLAGS
         self.saturated = False
         self.error_n = 0.0
 
     def step(self, force_ref_n: float, force_meas_n: float) -> float:
         """One tick: the spool command in [-output_limit, output_limit]."""
         if not (math.isfinite(force_ref_n) and math.isfinite(force_meas_n)):
-            self.flags = StepFlag.NONFINITE_INPUT
+            self.flags = _NONFINITE_INPUT
             return 0.0
-        self.flags = StepFlag(0)
+        self.flags = _NO_FLAGS
         lim_f = self.force_limit_n
         ref = min(max(force_ref_n, -lim_f), lim_f)
         e = ref - force_meas_n

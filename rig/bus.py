@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import logging
+import socket
 from collections.abc import Collection, Iterator, Sequence
 from typing import Any, Final
 
@@ -34,8 +36,11 @@ __all__ = [
     "open_bus",
     "receive_filters",
     "safe_send",
+    "set_receive_buffer",
     "shutdown_all",
 ]
+
+log = logging.getLogger(__name__)
 
 #: role -> CAN IDs it receives (None = everything, e.g. a logger)
 ROLES: Final[dict[str, tuple[int, ...] | None]] = {
@@ -89,7 +94,9 @@ def open_bus(can_cfg: CanConfig, *, role: str | None = None, **overrides: Any) -
     overrides.setdefault("receive_own_messages", False)
     if interface == "socketcan":
         overrides.setdefault("can_filters", filters)
-        return can.Bus(interface="socketcan", channel=channel, fd=fd, **overrides)
+        bus = can.Bus(interface="socketcan", channel=channel, fd=fd, **overrides)
+        set_receive_buffer(getattr(bus, "socket", None), can_cfg.receive_buffer_bytes)
+        return bus
     if interface == "virtual":
         # no role filters here: python-can filters the virtual bus in software, and then
         # recv(timeout=0) returns None at the first non-matching frame although matching
@@ -97,6 +104,36 @@ def open_bus(can_cfg: CanConfig, *, role: str | None = None, **overrides: Any) -
         # iter_pending / drain_latest).  Explicit ``can_filters=`` are still honoured.
         return can.Bus(interface="virtual", channel=channel, **overrides)
     raise ConfigError("can.interface", interface, "one of 'socketcan', 'virtual'")
+
+
+def set_receive_buffer(sock: Any, size_bytes: int) -> int | None:
+    """Best effort: ask for a ``size_bytes`` SO_RCVBUF on ``sock`` (a SocketCAN bus's
+    ``.socket``) so a late tick does not lose frames; never raises.
+
+    Returns the size the kernel reports afterwards (Linux doubles the request and caps it
+    at ``net.core.rmem_max`` for unprivileged processes; SO_RCVBUFFORCE is tried first),
+    or None when ``size_bytes`` is 0, there is no socket or it refused (logged)."""
+    if size_bytes <= 0 or sock is None:
+        return None
+    force = getattr(socket, "SO_RCVBUFFORCE", None)
+    try:
+        if force is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, force, size_bytes)
+            except OSError:    # needs CAP_NET_ADMIN: fall back to the capped option
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size_bytes)
+        else:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size_bytes)
+        got = int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    except (OSError, AttributeError, TypeError, ValueError) as exc:
+        log.warning("could not set the CAN receive buffer to %d bytes: %s", size_bytes, exc)
+        return None
+    if got < size_bytes:
+        log.warning("CAN receive buffer is %d bytes, %d requested (raise "
+                    "net.core.rmem_max or run with CAP_NET_ADMIN)", got, size_bytes)
+    else:
+        log.info("CAN receive buffer %d bytes", got)
+    return got
 
 
 def make_tx_message(frame_id: int, fd: bool = False) -> can.Message:

@@ -143,14 +143,17 @@ class Lifecycle:
                  code, self.fault_detail)
         return True
 
-    def reset(self, tick: int, t_ns: int, condition: FaultCode) -> CommandResult:
-        """FAULT -> INACTIVE, refused while a fault ``condition`` is present now."""
+    def reset(self, tick: int, t_ns: int, condition: FaultCode,
+              why: str = "") -> CommandResult:
+        """FAULT -> INACTIVE, refused while a fault ``condition`` is present now
+        (``why``: optional explanation added to the refusal)."""
         if self.state is not LifecycleState.FAULT:
             return CommandResult(self.state is LifecycleState.INACTIVE, self.state,
                                  f"nothing to reset in {self.state.name}")
         if condition is not FaultCode.NONE:
             return CommandResult(False, self.state,
-                                 f"reset refused: {condition.name} still present")
+                                 f"reset refused: {condition.name} still present"
+                                 + (f" ({why})" if why else ""))
         cleared = self.fault_code
         self._go(LifecycleState.INACTIVE, tick, t_ns, f"reset (cleared {cleared.name})")
         self.fault_code = FaultCode.NONE

@@ -241,7 +241,8 @@ class ControlLoop:
             elif name == "disarm":
                 res = lc.disarm(tick, t)
             elif name == "reset":
-                res = lc.reset(tick, t, self.monitor.condition)
+                res = lc.reset(tick, t, self.monitor.reset_blocker(),
+                               self.monitor.rig_problem())
                 if res.accepted:
                     self._reset_estimation()
             elif lc.state is _ACTIVE:

@@ -93,6 +93,7 @@ class FaultCode(IntEnum):
     SUPPLY_LOSS = 12
     SENSOR_STATUS = 13
     SHUTDOWN = 14
+    SENSOR_FROZEN = 15
 
 
 class LifecycleState(IntEnum):

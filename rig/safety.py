@@ -14,14 +14,25 @@ Per tick::
     mon.estimator(flags, force_ref_n, q, active) ; mon.overrun(streak) ; mon.exception()
     if mon.code: ...             # FaultCode of the first condition seen this tick
 
-``condition`` is the code of the last completed tick: a reset is refused while it is
-not NONE.  ``detail`` byte per code is tabulated in docs/service.md.
+``condition`` is the code of the last completed tick.  A reset is refused while
+:meth:`FaultMonitor.reset_blocker` is not NONE: the last tick's condition, or the rig's
+state as its *last* RigStatus reported it (supply loss is sticky between the 100 Hz
+RigStatus frames), or a RigStatus missing / stale for more than
+``safety.rig_status_stale_ticks`` ticks.  ``detail`` byte per code is tabulated in
+docs/service.md.
+
+Frozen sensor: a rattlespace, force or acceleration raw value bit-identical in more than
+``safety.frozen_ticks`` consecutive SensorData frames (the counter still advancing)
+raises SENSOR_FROZEN (detail = which signal).  The real sensors' noise (LVDT, load cell
+and accelerometer each ~10 quantisation steps std) makes 51 identical readings in a row
+practically impossible (< 1e-50).
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from controller.config import RigConfig
@@ -36,6 +47,7 @@ __all__ = [
     "DETAIL_RATTLESPACE",
     "DETAIL_RECV",
     "DETAIL_RIG_STATUS",
+    "DETAIL_RIG_STATUS_STALE",
     "DETAIL_SEND",
     "DETAIL_SENSOR_DATA",
     "FaultMonitor",
@@ -51,11 +63,26 @@ DETAIL_ESTIMATOR = 4        # NONFINITE from the bank (StepFlag NONFINITE_*)
 DETAIL_OUTPUT = 5           # NONFINITE force reference or spool command
 DETAIL_SEND = 1             # BUS_ERROR: exception from send
 DETAIL_RECV = 2             # BUS_ERROR: exception from recv
+DETAIL_RIG_STATUS_STALE = 3  # reset/arm refusal only: RigStatus missing or stale
 
 _STEP_NONFINITE = 1 | 2     # StepFlag.NONFINITE_INPUT | NONFINITE_STATE
 _STEP_DIVERGED = 8          # StepFlag.DIVERGED
 
 _NONE = FaultCode.NONE
+
+
+@numba.njit(cache=True, nogil=True)
+def _min_active(q: np.ndarray, active: np.ndarray) -> float:  # pragma: no cover - jitted
+    """min(q[active]) (inf when none is active); NaN in an active entry propagates."""
+    m = math.inf
+    for i in range(q.shape[0]):
+        if active[i]:
+            v = q[i]
+            if v < m or v != v:
+                m = v
+                if v != v:
+                    return v
+    return m
 
 
 class FaultMonitor:
@@ -70,6 +97,8 @@ class FaultMonitor:
         self.overrun_streak_limit = sa.overrun_streak
         self.divergence_q = sa.estimator_divergence_q
         self.divergence_ticks = sa.divergence_ticks
+        self.frozen_ticks = sa.frozen_ticks
+        self.rig_status_stale_ticks = sa.rig_status_stale_ticks
         self.sensor_counter = CounterMonitor()
         self.status_counter = CounterMonitor()
         # the rig holds WatchdogTripped until it is re-enabled (Enable=1), so the fault is
@@ -95,12 +124,26 @@ class FaultMonitor:
         self.fresh = False              # a valid SensorData arrived this tick
         self.diverged_ticks = 0
         self.counts = np.zeros(256, dtype=np.int64)   # conditions seen, per FaultCode
+        # frozen-sensor monitor: last accepted values and how often each repeated
+        self.last_rattlespace_m = math.nan
+        self.last_force_n = math.nan
+        self.last_accel_mps2 = math.nan
+        self.frozen_rattlespace = 0
+        self.frozen_force = 0
+        self.frozen_accel = 0
+        # the rig's state as the last RigStatus (valid CRC) reported it: sticky until the
+        # next one (RigStatus comes at 100 Hz, the loop runs at 1 kHz)
+        self.rig_status_seen = False
+        self.rig_status_age_ticks = 0
+        self.rig_status_fresh = False
+        self.rig_supply_ok = True
 
     # ------------------------------------------------------------------ per tick
     def begin_tick(self) -> None:
         self.code = _NONE
         self.detail = 0
         self.fresh = False
+        self.rig_status_fresh = False
 
     def _flag(self, code: FaultCode, detail: int) -> None:
         self.counts[code] += 1
@@ -135,10 +178,38 @@ class FaultMonitor:
             self._range(accel_mps2, DETAIL_ACCEL)
             usable = False
         if usable:
+            self._frozen(rattlespace_m, force_n, accel_mps2)
             self.fresh = True
             self.sensor_seen = True
             self.sensor_age_ticks = 0
         return usable
+
+    def _frozen(self, rattlespace_m: float, force_n: float, accel_mps2: float) -> None:
+        """Count repeats of bit-identical values per signal (decoding is injective, so
+        equal floats are equal raw values); SENSOR_FROZEN once a value was the same in
+        more than ``frozen_ticks`` consecutive frames (``frozen_ticks`` repeats)."""
+        lim = self.frozen_ticks
+        if rattlespace_m == self.last_rattlespace_m:
+            self.frozen_rattlespace += 1
+            if self.frozen_rattlespace >= lim:
+                self._flag(FaultCode.SENSOR_FROZEN, DETAIL_RATTLESPACE)
+        else:
+            self.frozen_rattlespace = 0
+            self.last_rattlespace_m = rattlespace_m
+        if force_n == self.last_force_n:
+            self.frozen_force += 1
+            if self.frozen_force >= lim:
+                self._flag(FaultCode.SENSOR_FROZEN, DETAIL_FORCE)
+        else:
+            self.frozen_force = 0
+            self.last_force_n = force_n
+        if accel_mps2 == self.last_accel_mps2:
+            self.frozen_accel += 1
+            if self.frozen_accel >= lim:
+                self._flag(FaultCode.SENSOR_FROZEN, DETAIL_ACCEL)
+        else:
+            self.frozen_accel = 0
+            self.last_accel_mps2 = accel_mps2
 
     def _range(self, value: float, which: int) -> None:
         if math.isfinite(value):
@@ -151,6 +222,10 @@ class FaultMonitor:
         if not crc_ok:
             self._flag(FaultCode.SENSOR_CRC, DETAIL_RIG_STATUS)
             return
+        self.rig_status_seen = True
+        self.rig_status_fresh = True
+        self.rig_status_age_ticks = 0
+        self.rig_supply_ok = supply_ok
         st = self.status_counter.check(counter)
         if st is CounterStatus.REPEATED or st is CounterStatus.JUMPED:
             self._flag(FaultCode.SENSOR_COUNTER, DETAIL_RIG_STATUS)
@@ -165,6 +240,8 @@ class FaultMonitor:
 
     def end_receive(self) -> None:
         """After the drain: age the sensor data and check staleness."""
+        if not self.rig_status_fresh:
+            self.rig_status_age_ticks += 1
         if not self.fresh:
             self.sensor_age_ticks += 1
             if self.sensor_seen and self.sensor_age_ticks > self.stale_ticks:
@@ -181,7 +258,7 @@ class FaultMonitor:
             self._flag(FaultCode.ESTIMATOR_DIVERGED, 0)
             return
         # min likelihood quotient over the active models above the limit for long enough
-        q_min = float(np.min(q, initial=math.inf, where=active))
+        q_min = _min_active(q, active)
         if q_min > self.divergence_q:     # NaN compares False: NONFINITE covers it
             self.diverged_ticks += 1
             if self.diverged_ticks >= self.divergence_ticks:
@@ -209,7 +286,30 @@ class FaultMonitor:
     @property
     def sensors_healthy(self) -> bool:
         return (self.sensor_seen and self.sensor_age_ticks <= self.stale_ticks
-                and self.condition is _NONE)
+                and self.condition is _NONE and self.rig_problem() == "")
+
+    def rig_problem(self) -> str:
+        """Why the rig's last reported state forbids arm/reset ('' if it does not)."""
+        if not self.rig_status_seen:
+            return "no valid RigStatus received yet"
+        if self.rig_status_age_ticks > self.rig_status_stale_ticks:
+            return f"RigStatus stale for {self.rig_status_age_ticks} ticks"
+        if not self.rig_supply_ok:
+            return "rig reports hydraulic supply loss"
+        return ""
+
+    def reset_blocker(self) -> FaultCode:
+        """The condition a reset must wait for (NONE: reset allowed).  Besides the last
+        tick's condition, the rig's sticky last-reported supply state and a missing or
+        stale RigStatus block it.  The rig watchdog is an event (its rising edge): the
+        rig holds the flag until re-enabled by arming, so it does not block reset."""
+        if self.condition is not _NONE:
+            return self.condition
+        if not self.rig_status_seen or self.rig_status_age_ticks > self.rig_status_stale_ticks:
+            return FaultCode.SENSOR_STALE
+        if not self.rig_supply_ok:
+            return FaultCode.SUPPLY_LOSS
+        return _NONE
 
     def health_problem(self) -> str:
         """Why the sensors are not healthy ('' if they are); off the hot path."""
@@ -219,4 +319,4 @@ class FaultMonitor:
             return f"SensorData stale for {self.sensor_age_ticks} ticks"
         if self.condition is not _NONE:
             return f"fault condition {self.condition.name} present"
-        return ""
+        return self.rig_problem()

@@ -16,7 +16,7 @@ from controller.artifact import (
     load_design,
     save_design,
 )
-from controller.config import config_hash, default_config
+from controller.config import config_hash, default_config, design_config_hash
 from controller.design import design_bank
 from controller.fuzzy import firing_weight
 from controller.human_filter import human_filter
@@ -117,6 +117,39 @@ def test_config_mismatch_raises(design: Design, tmp_path: Path) -> None:
     with pytest.raises(DesignMismatch, match="rig design"):
         load_design(p, other)
     load_design(p)  # without a config no hash check
+
+
+def test_artifact_check_covers_only_design_sections(design: Design, tmp_path: Path) -> None:
+    """Service-only settings (telemetry, CAN, recording, safety) keep the artifact valid;
+    a design input (vehicle mass, fuzzy, noise) does not."""
+    p = tmp_path / "design.npz"
+    save_design(design, p)
+    assert design.metadata["design_config_hash"] == design_config_hash(CFG)
+    service_only = CFG.replace(telemetry={"endpoints": ["tcp/127.0.0.1:17447"]},
+                               can={"channel": "can3", "interface": "socketcan"},
+                               recording={"directory": "elsewhere"},
+                               safety={"heartbeat_hz": 20.0})
+    assert config_hash(service_only) != config_hash(CFG)
+    assert design_config_hash(service_only) == design_config_hash(CFG)
+    load_design(p, service_only)
+    for changed in (CFG.replace(vehicle={"sprung_mass_kg": CFG.vehicle.sprung_mass_kg + 1}),
+                    CFG.replace(noise={"force_std_n": CFG.noise.force_std_n * 2}),
+                    CFG.replace(force_loop={"kp_per_n": CFG.force_loop.kp_per_n * 2})):
+        assert design_config_hash(changed) != design_config_hash(CFG)
+        with pytest.raises(DesignMismatch, match="rig design"):
+            load_design(p, changed)
+
+
+def test_artifact_without_design_hash_uses_full_config_hash(design: Design,
+                                                            tmp_path: Path) -> None:
+    """Artifacts written before design_config_hash: checked against config_hash."""
+    import dataclasses
+    md = {k: v for k, v in design.metadata.items() if k != "design_config_hash"}
+    p = tmp_path / "old.npz"
+    save_design(dataclasses.replace(design, metadata=md), p)
+    load_design(p, CFG)
+    with pytest.raises(DesignMismatch):
+        load_design(p, CFG.replace(telemetry={"rate_hz": 10.0}))
 
 
 def test_version_and_corruption_detected(design: Design, tmp_path: Path) -> None:

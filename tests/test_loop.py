@@ -91,11 +91,17 @@ class RigSide:
         self.faults: list[FaultReport] = []
         self.status: list[ControllerStatus] = []
 
-    def sensor(self, rattlespace_m: float = 0.001, force_n: float = 10.0,
-               accel_mps2: float = 0.1, status: int = 0, counter: int | None = None,
+    def sensor(self, rattlespace_m: float | None = None, force_n: float | None = None,
+               accel_mps2: float | None = None, status: int = 0, counter: int | None = None,
                corrupt: bool = False) -> None:
+        """Values not given: a nominal value with a one-LSB dither (cycling over 3 frames)
+        so that they are never frozen (the frozen-sensor monitor would trip)."""
         buf = bytearray(8)
         c = self.sd_counter if counter is None else counter
+        d = self.sd_counter % 3
+        rattlespace_m = 0.001 + 5e-6 * d if rattlespace_m is None else rattlespace_m
+        force_n = 10.0 + 0.5 * d if force_n is None else force_n
+        accel_mps2 = 0.1 + 0.005 * d if accel_mps2 is None else accel_mps2
         SENSOR_DATA.encode(buf, c, status, rattlespace_m, force_n, accel_mps2)
         if counter is None:
             self.sd_counter += 1
@@ -283,7 +289,7 @@ def test_tick_allocates_nothing_in_steady_state(harness: LoopHarness) -> None:
     loop, rig = harness.loop, harness.rig
     # the frames are sent beforehand so the loop's tick is all that runs under tracing
     def one() -> None:
-        rig.sensor(rattlespace_m=0.001)
+        rig.sensor()
         loop.tick(harness.t_ns, 0)
         harness.t_ns += PERIOD_NS
         rig.read()

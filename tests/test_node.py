@@ -5,6 +5,7 @@ The harness here (two virtual buses on a unique channel) is reused by test_fault
 
 from __future__ import annotations
 
+import socket
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -20,7 +21,7 @@ from controller.config import RigConfig, default_config
 from hil.faults import FaultSchedule
 from hil.node import RigNode
 from hil.roads import make_road
-from rig.bus import make_tx_message
+from rig.bus import make_tx_message, open_bus, set_receive_buffer
 from rig.protocol import (
     RIG_RX_IDS,
     RIG_STATUS,
@@ -369,3 +370,72 @@ def test_rig_hil_process_stops_on_sigterm() -> None:
             proc.wait()
     assert proc.returncode == 0, err
     assert out.startswith("rig hil: ") and "ticks=" in out
+
+
+# ---------------------------------------------------------------------------- receive buffer
+
+
+class _FakeSocket:
+    """Records setsockopt calls; ``refuse`` = options that raise PermissionError."""
+
+    def __init__(self, refuse: set[int] | None = None) -> None:
+        self.refuse = refuse or set()
+        self.opts: dict[tuple[int, int], int] = {}
+        self.calls: list[tuple[int, int, int]] = []
+
+    def setsockopt(self, level: int, opt: int, value: int) -> None:
+        self.calls.append((level, opt, value))
+        if opt in self.refuse:
+            raise PermissionError(1, "Operation not permitted")
+        self.opts[(level, socket.SO_RCVBUF)] = 2 * value     # Linux doubles the request
+
+    def getsockopt(self, level: int, opt: int) -> int:
+        return self.opts.get((level, opt), 212992)
+
+
+def test_set_receive_buffer_requests_size_and_falls_back() -> None:
+    force = getattr(socket, "SO_RCVBUFFORCE", None)
+    s = _FakeSocket()
+    assert set_receive_buffer(s, 1 << 20) == 2 << 20
+    assert s.calls[0][2] == 1 << 20
+    # without CAP_NET_ADMIN SO_RCVBUFFORCE is refused: plain SO_RCVBUF, still no raise
+    s = _FakeSocket(refuse={force} if force is not None else set())
+    assert set_receive_buffer(s, 1 << 20) == 2 << 20
+    assert s.calls[-1][1:] == (socket.SO_RCVBUF, 1 << 20)
+    assert set_receive_buffer(s, 0) is None and set_receive_buffer(None, 1 << 20) is None
+
+
+def test_set_receive_buffer_refused_is_logged_not_raised(
+        caplog: pytest.LogCaptureFixture) -> None:
+    s = _FakeSocket(refuse={socket.SO_RCVBUF, getattr(socket, "SO_RCVBUFFORCE", -1)})
+    with caplog.at_level("WARNING", logger="rig.bus"):
+        assert set_receive_buffer(s, 1 << 20) is None
+    assert "receive buffer" in caplog.text
+
+
+def test_set_receive_buffer_on_a_real_socket() -> None:
+    """A real (UDP, unbound) socket: the kernel reports at least the default."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        before = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        got = set_receive_buffer(sock, 1 << 20)
+        assert got == sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) >= before
+
+
+def test_open_bus_socketcan_sets_receive_buffer(monkeypatch: pytest.MonkeyPatch) -> None:
+    fake = _FakeSocket()
+
+    class _Bus:
+        socket = fake
+
+    opened: dict[str, Any] = {}
+
+    def fake_bus(**kw: Any) -> Any:
+        opened.update(kw)
+        return _Bus()
+
+    monkeypatch.setattr(can, "Bus", fake_bus)
+    cfg = default_config().replace(can={"interface": "socketcan", "channel": "can7",
+                                        "receive_buffer_bytes": 1 << 21})
+    open_bus(cfg.can, role="controller")
+    assert opened["interface"] == "socketcan" and opened["channel"] == "can7"
+    assert fake.calls and fake.calls[0][2] == 1 << 21

@@ -75,6 +75,8 @@ def test_enums_match_val_tables() -> None:
             {int(x): x.name for x in LifecycleState}
     active = DBC.get_message_by_name("ControllerStatus").get_signal_by_name("ActiveFault")
     assert {k: str(v) for k, v in active.choices.items()} == {int(f): f.name for f in FaultCode}
+    assert str(fault.choices[15]) == str(active.choices[15]) == "SENSOR_FROZEN"
+    assert FaultCode.SENSOR_FROZEN == 15
 
 
 # ----------------------------------------------------------------- encode

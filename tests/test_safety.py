@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import can
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -43,6 +44,7 @@ from rig.safety import (
     DETAIL_SEND,
     DETAIL_SENSOR_DATA,
     FaultMonitor,
+    _min_active,
 )
 from tests.test_loop import LoopHarness, make_harness
 
@@ -175,6 +177,111 @@ def test_rig_status_bad_crc(armed: LoopHarness) -> None:
     h.loop.tick(h.t_ns)
     valves, faults = h.rig.read()
     assert_faulted_now(h, valves, faults, FaultCode.SENSOR_CRC, DETAIL_RIG_STATUS)
+
+
+def test_reset_refused_while_supply_loss_persists_between_rig_status_frames(
+        armed: LoopHarness) -> None:
+    """RigStatus comes every 10th tick: on the ticks between, the supply loss the last
+    RigStatus reported still holds, so a reset is refused until a RigStatus says the
+    supply is back."""
+    h = armed
+    h.step(status=False)
+    h.rig.sensor()
+    h.rig.rig_status(supply_ok=0)
+    h.loop.tick(h.t_ns)
+    h.t_ns += 1_000_000
+    h.rig.read()
+    assert h.loop.lifecycle.fault_code is FaultCode.SUPPLY_LOSS
+    for _ in range(5):                                   # ticks without a RigStatus
+        h.step(status=False)
+        res = h.loop.request("reset", timeout_s=None)
+        assert not res.accepted and "SUPPLY_LOSS" in res.message
+        assert not h.loop.request("arm", timeout_s=None).accepted
+    h.step(status=True)                                  # RigStatus: supply back
+    h.step(status=False)
+    assert h.loop.request("reset", timeout_s=None).accepted
+    h.run(10, status=False)
+    assert h.loop.request("arm", timeout_s=None).accepted
+
+
+def test_stale_rig_status_refuses_arm_and_reset(armed: LoopHarness) -> None:
+    h = armed
+    limit = h.loop.cfg.safety.rig_status_stale_ticks
+    assert h.loop.request("disarm", timeout_s=None).accepted
+    h.step(status=True)
+    h.run(limit - 1, status=False)                       # age == limit: still fresh enough
+    assert h.loop.request("arm", timeout_s=None).accepted
+    assert h.loop.request("disarm", timeout_s=None).accepted
+    h.run(2, status=False)                               # age > limit
+    res = h.loop.request("arm", timeout_s=None)
+    assert not res.accepted and "RigStatus stale" in res.message
+    h.rig.sensor(status=1)                               # any fault, then try to reset
+    h.loop.tick(h.t_ns)
+    h.t_ns += 1_000_000
+    h.run(3, status=False)
+    assert h.loop.lifecycle.state is LifecycleState.FAULT
+    res = h.loop.request("reset", timeout_s=None)
+    assert not res.accepted and "RigStatus stale" in res.message
+    h.step(status=True)
+    assert h.loop.request("reset", timeout_s=None).accepted
+
+
+def test_no_rig_status_yet_refuses_arm() -> None:
+    h = make_harness()
+    try:
+        h.run(30, status=False)
+        res = h.loop.request("arm", timeout_s=None)
+        assert not res.accepted and "no valid RigStatus" in res.message
+        h.step(status=True)
+        assert h.loop.request("arm", timeout_s=None).accepted
+    finally:
+        h.close()
+
+
+# ---------------------------------------------------------------------------- frozen sensor
+
+
+@pytest.mark.parametrize(("signal", "detail"), [
+    ("rattlespace_m", DETAIL_RATTLESPACE),
+    ("force_n", DETAIL_FORCE),
+    ("accel_mps2", DETAIL_ACCEL),
+])
+def test_frozen_sensor_value(armed: LoopHarness, signal: str, detail: int) -> None:
+    """One value bit-identical in ``frozen_ticks`` + 1 consecutive frames (counter
+    advancing, the others varying): SENSOR_FROZEN at exactly that frame (not one
+    earlier), safe command in the same tick."""
+    h = armed
+    limit = h.loop.cfg.safety.frozen_ticks
+    value = {"rattlespace_m": 0.0021, "force_n": -37.5, "accel_mps2": 0.42}[signal]
+    frozen: dict[str, Any] = {signal: value}
+    for _ in range(limit):                    # limit identical frames: fine
+        valves, _ = h.step(**frozen)
+        assert valves[-1].enable == 1
+    valves, faults = h.step(**frozen)          # limit + 1 identical frames
+    assert_faulted_now(h, valves, faults, FaultCode.SENSOR_FROZEN, detail)
+    assert not h.loop.request("reset", timeout_s=None).accepted   # still frozen
+    h.step(**frozen)
+    assert not h.loop.request("reset", timeout_s=None).accepted
+    h.step()                                            # moves again
+    assert h.loop.request("reset", timeout_s=None).accepted
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.sampled_from([1e-3, 2e-3, -0.0125]), min_size=1, max_size=40),
+       st.integers(2, 6))
+def test_frozen_monitor_matches_reference(seq: list[float], limit: int) -> None:
+    """SENSOR_FROZEN iff the rattlespace value was identical in more than ``limit``
+    consecutive frames (reference: direct run length), others varying."""
+    cfg = default_config().replace(safety={"frozen_ticks": limit})
+    mon = FaultMonitor(cfg)
+    flagged = []
+    for k, v in enumerate(seq):
+        mon.begin_tick()
+        mon.sensor_frame(True, k & 0xF, 0, v, float(k), float(-k) * 1e-2)
+        flagged.append(mon.code is FaultCode.SENSOR_FROZEN)
+    ref = [len(set(seq[max(0, k - limit):k + 1])) == 1 and k >= limit
+           for k in range(len(seq))]
+    assert flagged == ref
 
 
 # ---------------------------------------------------------------------------- estimator
@@ -495,6 +602,37 @@ def test_fault_schedule_on_emulated_rig(design: Any, kind: str, params: dict[str
         h.close()
 
 
+def test_frozen_sensor_on_emulated_rig(design: Any) -> None:
+    """hil.faults ``frozen_sensor``: the rig repeats its last SensorData values with the
+    counter advancing; the safe command goes out in the tick the repeat count passes
+    ``safety.frozen_ticks``."""
+    dt = CFG.sample_time_s
+    limit = CFG.safety.frozen_ticks
+    schedule = FaultSchedule.from_list(
+        [(FAULT_TICK * dt, (FAULT_TICK + 2 * limit) * dt, "frozen_sensor", {})])
+    h = make_hil(design, schedule)
+    # frames FAULT_TICK - 1 (the last live one) .. FAULT_TICK + k: k + 2 identical ones
+    observable = FAULT_TICK + limit - 1
+    try:
+        h.step(ARM_TICK)
+        assert h.loop.request("arm", timeout_s=None).accepted
+        h.step(observable - ARM_TICK)
+        assert h.loop.lifecycle.state is LifecycleState.ACTIVE
+        assert h.sent[observable - 1][0][-1].enable == 1
+        h.step()
+        lc = h.loop.lifecycle
+        assert lc.state is LifecycleState.FAULT and lc.fault_code is FaultCode.SENSOR_FROZEN
+        assert lc.fault_tick == observable
+        valves, faults = h.sent[observable]
+        assert valves[-1].enable == 0 and valves[-1].spool_command == 0.0
+        assert faults and faults[0].fault_code == FaultCode.SENSOR_FROZEN
+        assert not h.loop.request("reset", timeout_s=None).accepted   # still frozen
+        h.step(2 * limit)                                             # window over
+        assert h.loop.request("reset", timeout_s=None).accepted
+    finally:
+        h.close()
+
+
 def test_rig_watchdog_trip_from_controller_stall(design: Any) -> None:
     h = make_hil(design)
     try:
@@ -524,3 +662,16 @@ def test_rig_watchdog_trip_from_controller_stall(design: Any) -> None:
         assert not h.node.watchdog_tripped
     finally:
         h.close()
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.one_of(st.floats(allow_nan=True, allow_infinity=True),
+                                    st.just(math.nan)), st.booleans()),
+                min_size=1, max_size=12))
+def test_min_active_matches_numpy(entries: list[tuple[float, bool]]) -> None:
+    """The jitted min over the active models equals numpy's masked min (NaN included)."""
+    q = np.array([e[0] for e in entries])
+    active = np.array([e[1] for e in entries])
+    want = float(np.min(q, initial=math.inf, where=active))
+    got = _min_active(q, active)
+    assert (math.isnan(got) and math.isnan(want)) or got == want
