@@ -17,7 +17,7 @@ way to the valve (``design.servo_model``, as ``controller/reference.py``).
 
 The force still goes through the PI force loop and the servo-hydraulics, so it shares
 the actuator's limits with the other controllers.  It reads the plant, so it exists only
-in simulation (``hil.study.loop.run_closed_loop``).
+in simulation (``hil.sim.run_closed_loop``).
 """
 
 from __future__ import annotations

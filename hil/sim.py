@@ -4,14 +4,27 @@ Per tick k (controller period dt = 1 / sample rate):
 
     1. the sensors sample the plant            (SensorSuite, seeded)
     2. the controller computes a force reference from the readings
-       (BankRuntime.step; passive: no controller, bypass open)
+       (a :class:`LoopController`; passive: no controller, bypass open)
     3. the PI force loop turns it into a spool command (PIForceLoop)
-    4. the command reaches the valve ``delay_ticks`` ticks later (loop delay)
+    4. the command reaches the valve exactly ``delay_ticks`` ticks later (loop delay;
+       ``delay_point="force_ref"`` delays the force reference instead, in front of a PI
+       force loop that runs locally at the valve)
     5. the plant advances one tick with the road's height/velocity of tick k
 
-A controller fault (StepFlag NONFINITE_* / DIVERGED, a sensor status bit) latches the
-safe state like the service does: bypass open, spool centred, for the rest of the run.
-A non-finite plant state ends the run early and marks it unstable.
+A controller fault (``fault``: StepFlag NONFINITE_* / DIVERGED of the bank) or a sensor
+status bit latches the safe state like the service does: bypass open, spool centred, for
+the rest of the run.  A non-finite plant state ends the run early and marks it unstable.
+
+This module holds the one tick loop, :func:`run_closed_loop`, which takes the controller
+as an object::
+
+    ctrl.reset()
+    force_ref_n = ctrl.step(reading, plant)     # SensorReading, RigPlant (read only)
+    ctrl.fault                                  # True: latch the safe state
+
+:class:`BankController` is the LQG bank (``BankRuntime``) behind that interface;
+:func:`simulate` runs a bank mode (or passive) by name.  The study (``hil.study``) adds
+controllers that are not bank modes (skyhook, full-state LQ) through the same loop.
 """
 
 from __future__ import annotations
@@ -19,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,20 +41,42 @@ from controller.config import RigConfig, config_hash
 from hil.metrics import compute_metrics
 from hil.plant import PlantParams, RigPlant
 from hil.roads import Road
-from hil.sensors import SensorSuite
+from hil.sensors import SensorReading, SensorSuite
 
 if TYPE_CHECKING:
     from controller.artifact import Design
 
-__all__ = ["CONTROLLERS", "SimResult", "cached_design", "simulate"]
+__all__ = ["CONTROLLERS", "DELAY_POINTS", "BankController", "LoopController", "SimResult",
+           "cached_design", "run_closed_loop", "simulate"]
 
 FloatArray = NDArray[np.float64]
 
 CONTROLLERS = ("passive", "lqg", "fuzzy", "bayes", "moving")
+#: where the loop delay sits: before the valve (the PI force loop runs on the controller
+#: side of the bus, inside the delay) or before a PI force loop local to the valve
+DELAY_POINTS = ("spool", "force_ref")
 #: penetration into a bump stop beyond which a run counts as slamming (unstable) [m]
 SLAM_PENETRATION_M = 0.01
 #: inner integration step bound of the plant [s]
 MAX_INNER_STEP_S = 5e-5
+#: per-tick traces of every run (true plant signals unless ``meas_``)
+TRACE_KEYS = ("rattlespace_m", "accel_mps2", "force_n", "force_ref_n", "spool_cmd",
+              "spool_computed", "tire_force_n", "tire_deflection_m", "hydraulic_power_w",
+              "off_ground_s", "bump_stop_s", "meas_rattlespace_m", "meas_force_n",
+              "meas_accel_mps2")
+
+
+class LoopController(Protocol):
+    """What :func:`run_closed_loop` needs from a controller."""
+
+    name: str
+
+    def reset(self) -> None: ...
+
+    def step(self, reading: SensorReading, plant: RigPlant) -> float: ...
+
+    @property
+    def fault(self) -> bool: ...
 
 
 @dataclass
@@ -68,24 +103,66 @@ def cached_design(cfg: RigConfig) -> Design:
     return _DESIGNS[key]
 
 
-def _make_runtime(controller: str, design: Design, cfg: RigConfig, weight_set: int,
-                  road: Road) -> Any:
-    from controller.bank import BankRuntime
-    from controller.kernels import Blending
-    blending = {"lqg": Blending.SINGLE, "fuzzy": Blending.FUZZY, "bayes": Blending.BAYES,
-                "moving": Blending.MOVING}[controller]
-    rt = BankRuntime(design, blending=blending, weight_set=weight_set, cfg=cfg)
-    gd = road.roughness_gd if road.roughness_gd is not None else cfg.noise.nominal_roughness_gd
-    rt.set_road(road.speed_mps, gd)
-    rt.reset()
-    return rt
+class BankController:
+    """The LQG bank (``BankRuntime``, mode ``blending``) behind :class:`LoopController`
+    (reads the sensors only).  ``flags`` are the StepFlag bits of the last tick."""
+
+    def __init__(self, design: Design, cfg: RigConfig, blending: str, weight_set: int,
+                 road: Road) -> None:
+        from controller.bank import BankRuntime
+        from controller.kernels import Blending, StepFlag
+        modes = {"lqg": Blending.SINGLE, "fuzzy": Blending.FUZZY, "bayes": Blending.BAYES,
+                 "moving": Blending.MOVING}
+        if blending not in modes:
+            raise ValueError(f"bank blending {blending!r}: allowed {sorted(modes)}")
+        self.name = blending
+        self.weight_set = weight_set
+        self.rt = BankRuntime(design, blending=modes[blending], weight_set=weight_set, cfg=cfg)
+        gd = road.roughness_gd if road.roughness_gd is not None else cfg.noise.nominal_roughness_gd
+        self.rt.set_road(road.speed_mps, gd)
+        self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
+                         | StepFlag.DIVERGED)
+        self._no_rule = int(StepFlag.NO_RULE_FIRED)
+        self.reset()
+
+    def reset(self) -> None:
+        self.rt.reset()
+        self.flags = 0
+        self.no_rule_ticks = 0
+        self.ticks = 0
+
+    def step(self, reading: SensorReading, plant: RigPlant) -> float:
+        u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
+        self.flags = flags = int(self.rt.flags)
+        self.ticks += 1
+        if flags & self._no_rule:
+            self.no_rule_ticks += 1
+        return u
+
+    @property
+    def fault(self) -> bool:
+        return bool(self.flags & self._mask)
+
+    def diagnostics(self) -> dict[str, float]:
+        """Fraction of ticks in which no fuzzy rule fired (fallback force used)."""
+        return {"no_rule_fired_fraction": self.no_rule_ticks / self.ticks if self.ticks
+                else 0.0}
+
+    @property
+    def firing_weight(self) -> FloatArray:
+        return np.asarray(self.rt.firing_weight)
+
+    @property
+    def q(self) -> FloatArray:
+        return np.asarray(self.rt.q)
 
 
 def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: int = 1, *,
              delay_ticks: int = 0, seed: int | None = None, params: PlantParams | None = None,
              design: Design | None = None, settle_s: float = 0.0,
              latch_on_sensor_status: bool = True, lvdt_zero: str = "nominal") -> SimResult:
-    """Closed-loop run of ``controller`` over ``road`` (sampled at the controller rate).
+    """Closed-loop run of the bank mode (or ``"passive"``) ``controller`` over ``road``
+    (sampled at the controller rate): :func:`run_closed_loop` with a :class:`BankController`.
 
     ``params`` perturbs the plant (the controller keeps its nominal design); ``design``
     defaults to ``design_bank(cfg)`` (memoised); ``lvdt_zero`` see :class:`RigPlant`.
@@ -96,8 +173,40 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
                          f"{', '.join(CONTROLLERS)}")
     if weight_set < 1 or weight_set > len(cfg.design.weight_sets):
         raise ValueError(f"weight set {weight_set} not in 1..{len(cfg.design.weight_sets)}")
+    ctrl: BankController | None = None
+    if controller != "passive":
+        design = design if design is not None else cached_design(cfg)
+        ctrl = BankController(design, cfg, controller, weight_set, road)
+    res = run_closed_loop(cfg, road, ctrl, delay_ticks=delay_ticks, seed=seed, params=params,
+                          settle_s=settle_s, lvdt_zero=lvdt_zero,
+                          latch_on_sensor_status=latch_on_sensor_status)
+    res.weight_set = weight_set
+    return res
+
+
+def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | None, *,
+                    delay_ticks: int = 0, delay_point: str = "spool", seed: int | None = None,
+                    params: PlantParams | None = None, settle_s: float = 0.0,
+                    lvdt_zero: str = "nominal", latch_on_sensor_status: bool = True,
+                    record_weights: bool = False) -> SimResult:
+    """Closed-loop run of ``controller`` (None = passive, bypass open) over ``road``
+    (sampled at ``cfg.sample_time_s``); ``controller.reset()`` is called first.
+
+    ``delay_ticks`` ticks pass between computing and applying; ``delay_point`` (one of
+    :data:`DELAY_POINTS`) is what is late: ``"spool"`` the valve command,
+    ``"force_ref"`` the force reference (PI force loop local to the valve, undelayed).
+    ``record_weights`` adds the traces ``firing_weight`` and ``q`` (ticks x models) of a
+    controller that has them (:class:`BankController`).  The metrics are
+    :func:`hil.metrics.compute_metrics` plus run bookkeeping, ``tire_deflection_rms_m``
+    (deviation from static, after ``settle_s``) and the controller's ``diagnostics()``.
+    Raises ValueError on bad arguments.
+    """
     if delay_ticks < 0:
         raise ValueError(f"delay_ticks must be >= 0, got {delay_ticks}")
+    if delay_point not in DELAY_POINTS:
+        raise ValueError(f"delay_point {delay_point!r}: allowed {', '.join(DELAY_POINTS)}")
+    delay_ref = delay_point == "force_ref" and delay_ticks > 0
+    delay_spool = delay_ticks > 0 and not delay_ref
     dt = cfg.sample_time_s
     if not math.isclose(road.dt_s, dt, rel_tol=1e-9):
         raise ValueError(f"road sampled at {road.dt_s} s but the controller runs at {dt} s")
@@ -105,32 +214,33 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
     substeps = max(1, math.ceil(dt / MAX_INNER_STEP_S - 1e-9))
     plant = RigPlant(cfg, params, substeps=substeps, lvdt_zero=lvdt_zero)
     sensors = SensorSuite(cfg.sensors, cfg.noise, seed, dt_s=dt)
-    active = controller != "passive"
-    rt: Any = None
     pi: Any = None
-    if active:
+    ctrl_step: Any = None
+    if controller is not None:
         from controller.force_loop import PIForceLoop
-        from controller.kernels import StepFlag
-        fault_mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
-                         | StepFlag.DIVERGED)
-        design = design if design is not None else cached_design(cfg)
-        rt = _make_runtime(controller, design, cfg, weight_set, road)
+        controller.reset()
         pi = PIForceLoop(cfg.force_loop, dt)
-
-    tr: dict[str, FloatArray] = {k: np.zeros(n) for k in (
-        "rattlespace_m", "accel_mps2", "force_n", "force_ref_n", "spool_cmd", "tire_force_n",
-        "hydraulic_power_w", "off_ground_s", "spool_computed", "bump_stop_s", "meas_rattlespace_m",
-        "meas_force_n", "meas_accel_mps2")}
-    # the valve applies the command computed delay_ticks ticks earlier (exactly)
+        ctrl_step = controller.step
+    tr: dict[str, FloatArray] = {k: np.zeros(n) for k in TRACE_KEYS}
+    weights_tr: FloatArray | None = None
+    q_tr: FloatArray | None = None
+    if record_weights and controller is not None and hasattr(controller, "firing_weight"):
+        nm = np.asarray(getattr(controller, "firing_weight")).shape[0]  # noqa: B009
+        weights_tr, q_tr = np.zeros((n, nm)), np.zeros((n, nm))
+    # the valve (or the local PI) gets what was computed exactly delay_ticks ticks earlier
     queue = [0.0] * delay_ticks
     height, velocity = road.height_m, road.velocity_mps
     faulted = False
     n_faults = 0
     fault_tick = -1
+    fault_flags = 0
     sensor_status_ticks = 0
     n_done = n
     adv = plant.advance
     meas = sensors.measure
+    diag, state = plant.diag, plant.state          # updated in place by the plant
+    (t_r, t_a, t_f, t_fref, t_spool, t_comp, t_tire, t_x2, t_pow, t_off, t_bump, t_mr, t_mf,
+     t_ma) = (tr[k] for k in TRACE_KEYS)
     t0 = time.perf_counter()
     for k in range(n):
         r_true, f_true, a_true = plant.true_signals()
@@ -140,41 +250,54 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
         spool = 0.0
         fref = 0.0
         bypass = True
-        if active and not faulted:
-            fref = rt.step(rd.rattlespace_m, rd.accel_mps2, rd.force_n)
-            if (int(rt.flags) & fault_mask) or (latch_on_sensor_status and rd.status):
+        if controller is not None and not faulted:
+            fref = ctrl_step(rd, plant)
+            if controller.fault or (latch_on_sensor_status and rd.status):
                 faulted = True
                 n_faults += 1
                 fault_tick = k
+                fault_flags = int(getattr(controller, "flags", 0)) | (int(rd.status) << 8)
                 fref = 0.0
             else:
+                if delay_ref:
+                    queue.append(fref)
+                    fref = queue.pop(0)
                 spool = pi.step(fref, rd.force_n)
                 bypass = False
-        tr["spool_computed"][k] = spool
-        if delay_ticks:
+            if weights_tr is not None and q_tr is not None:
+                weights_tr[k] = getattr(controller, "firing_weight")  # noqa: B009
+                q_tr[k] = getattr(controller, "q")  # noqa: B009
+        t_comp[k] = spool
+        if delay_spool:
             queue.append(spool)
             spool = queue.pop(0)
         adv(dt, spool, bypass, height[k], velocity[k])
-        tr["rattlespace_m"][k] = r_true
-        tr["accel_mps2"][k] = a_true
-        tr["force_n"][k] = f_true
-        tr["force_ref_n"][k] = fref
-        tr["spool_cmd"][k] = spool
-        tr["tire_force_n"][k] = plant.diag[0]
-        tr["hydraulic_power_w"][k] = plant.diag[2]
-        tr["off_ground_s"][k] = plant.diag[3]
-        tr["bump_stop_s"][k] = plant.diag[4]
-        tr["meas_rattlespace_m"][k] = rd.rattlespace_m
-        tr["meas_force_n"][k] = rd.force_n
-        tr["meas_accel_mps2"][k] = rd.accel_mps2
+        t_r[k] = r_true
+        t_a[k] = a_true
+        t_f[k] = f_true
+        t_fref[k] = fref
+        t_spool[k] = spool
+        t_tire[k] = diag[0]
+        t_pow[k] = diag[2]
+        t_off[k] = diag[3]
+        t_bump[k] = diag[4]
+        t_x2[k] = state[1]
+        t_mr[k] = rd.rattlespace_m
+        t_mf[k] = rd.force_n
+        t_ma[k] = rd.accel_mps2
         if plant.nonfinite:
             n_done = k + 1
             break
     wall = time.perf_counter() - t0
     if n_done < n:
         tr = {key: v[:n_done] for key, v in tr.items()}
+        if weights_tr is not None and q_tr is not None:
+            weights_tr, q_tr = weights_tr[:n_done], q_tr[:n_done]
     tr["time_s"] = np.arange(n_done, dtype=np.float64) * dt
     tr["road_height_m"] = height[:n_done].copy()
+    if weights_tr is not None and q_tr is not None:
+        tr["firing_weight"] = weights_tr
+        tr["q"] = q_tr
     v = cfg.vehicle
     static_load = (plant.p[0] + plant.p[1]) * v.gravity_mps2
     metrics = compute_metrics(dt, tr["accel_mps2"], tr["rattlespace_m"], tr["tire_force_n"],
@@ -186,16 +309,26 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
     penetration = (float(np.max(np.abs(tr["rattlespace_m"] + zero_offset)))
                    - v.rattlespace_travel_m) if n_done else 0.0
     slam = penetration > SLAM_PENETRATION_M
+    i0 = min(round(settle_s / dt), max(n_done - 1, 0))
+    x2_dev = tr["tire_deflection_m"][i0:] - plant.equilibrium()[1]
     metrics.update({
         "duration_s": n_done * dt,
         "realtime_factor": (n_done * dt / wall) if wall > 0 else math.inf,
         "n_faults": float(n_faults),
         "fault_time_s": fault_tick * dt if fault_tick >= 0 else -1.0,
+        "fault_flags": float(fault_flags),
         "sensor_status_ticks": float(sensor_status_ticks),
         "bump_stop_slam": float(slam),
         "nonfinite": float(plant.nonfinite),
         "unstable": float(plant.nonfinite or slam),
+        "tire_deflection_rms_m": float(np.sqrt(np.mean(np.square(x2_dev))))
+        if x2_dev.size else math.nan,
     })
-    info = {"substeps": substeps, "delay_ticks": delay_ticks, "dt_s": dt,
-            "speed_mps": road.speed_mps, "seed": sensors.seed}
-    return SimResult(metrics, tr, controller, weight_set, road.name, info)
+    diagnostics = getattr(controller, "diagnostics", None)
+    if callable(diagnostics):
+        metrics.update(diagnostics())
+    info = {"substeps": substeps, "delay_ticks": delay_ticks, "delay_point": delay_point,
+            "dt_s": dt, "speed_mps": road.speed_mps, "seed": sensors.seed}
+    name = controller.name if controller is not None else "passive"
+    return SimResult(metrics, tr, name, int(getattr(controller, "weight_set", 0)), road.name,
+                     info)

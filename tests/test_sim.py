@@ -11,9 +11,12 @@ import pytest
 from scipy import signal
 
 from controller.config import default_config
+from controller.force_loop import PIForceLoop
 from hil.metrics import WK_TABLE, compute_metrics, filter_signal, human_filter_tf, wk_tf
+from hil.plant import RigPlant
 from hil.roads import make_road
-from hil.sim import simulate
+from hil.sensors import SensorReading
+from hil.sim import BankController, cached_design, run_closed_loop, simulate
 from rig.cli import main
 
 CFG = default_config()
@@ -115,6 +118,96 @@ def test_loop_delay_and_sample_rate_options() -> None:
     assert res500.metrics["accel_peak_mps2"] == pytest.approx(
         res1k.metrics["accel_peak_mps2"], rel=0.02)
 
+
+
+class _Scripted:
+    """Force reference read from a fixed sequence (ignores the readings); raises its
+    fault flag at tick ``fault_at``."""
+
+    name = "scripted"
+
+    def __init__(self, seq: np.ndarray, fault_at: int = -1) -> None:
+        self.seq, self.fault_at = seq, fault_at
+        self.reset()
+
+    def reset(self) -> None:
+        self.k = 0
+        self._fault = False
+
+    def step(self, reading: SensorReading, plant: RigPlant) -> float:
+        self._fault = self.k == self.fault_at
+        self.k += 1
+        return float(self.seq[self.k - 1])
+
+    @property
+    def fault(self) -> bool:
+        return self._fault
+
+
+def _replay_pi(force_ref: np.ndarray, meas_force: np.ndarray) -> np.ndarray:
+    pi = PIForceLoop(CFG.force_loop, DT)
+    return np.array([pi.step(r, f) for r, f in zip(force_ref, meas_force, strict=True)])
+
+
+@pytest.mark.parametrize("delay_point", ["spool", "force_ref"])
+def test_delay_point_delays_exactly_what_it_names(delay_point: str) -> None:
+    """The PI force loop sees the (delayed or not) reference and the measured force, and
+    exactly d ticks pass between computing and applying, at either delay point."""
+    road = make_road("bump", SPEED_25MPH, 0.8, DT)
+    seq = 400.0 * np.sin(np.arange(road.n_ticks) * 0.05)
+    d = 3
+    tr = run_closed_loop(CFG, road, _Scripted(seq), delay_ticks=d,
+                         delay_point=delay_point).traces
+    fref, spool, computed = tr["force_ref_n"], tr["spool_cmd"], tr["spool_computed"]
+    np.testing.assert_array_equal(computed, _replay_pi(fref, tr["meas_force_n"]))
+    if delay_point == "spool":
+        np.testing.assert_array_equal(fref, seq)
+        np.testing.assert_array_equal(spool[d:], computed[:-d])
+        assert np.all(spool[:d] == 0.0)
+    else:
+        np.testing.assert_array_equal(fref[d:], seq[:-d])
+        assert np.all(fref[:d] == 0.0)
+        np.testing.assert_array_equal(spool, computed)
+    assert np.any(spool != 0.0)
+
+
+def test_delay_points_agree_without_delay_and_differ_with_it() -> None:
+    road = make_road("bump", SPEED_25MPH, 0.8, DT)
+    seq = 400.0 * np.sin(np.arange(road.n_ticks) * 0.05)
+
+    def run(point: str, d: int) -> dict[str, float]:
+        m = run_closed_loop(CFG, road, _Scripted(seq), delay_ticks=d, delay_point=point).metrics
+        m.pop("realtime_factor")
+        return m
+
+    assert run("spool", 0) == run("force_ref", 0)
+    assert run("spool", 5)["force_rms_n"] != run("force_ref", 5)["force_rms_n"]
+    with pytest.raises(ValueError, match="delay_point"):
+        run_closed_loop(CFG, road, None, delay_point="valve")
+
+
+def test_controller_fault_latches_safe_state() -> None:
+    road = make_road("bump", SPEED_25MPH, 0.5, DT)
+    ctrl = _Scripted(np.full(road.n_ticks, 300.0), fault_at=40)
+    res = run_closed_loop(CFG, road, ctrl, delay_ticks=2)
+    m, tr = res.metrics, res.traces
+    assert m["n_faults"] == 1.0 and m["fault_time_s"] == pytest.approx(40 * DT)
+    assert ctrl.k == 41                             # never asked again after the fault
+    assert np.all(tr["force_ref_n"][40:] == 0.0) and np.all(tr["spool_computed"][40:] == 0.0)
+    assert np.all(tr["spool_cmd"][42:] == 0.0) and np.all(tr["spool_cmd"][2:40] != 0.0)
+
+
+def test_bank_controller_weights_traces_and_diagnostics() -> None:
+    road = make_road("rough-course", SPEED_25MPH, 0.5, DT, seed=2)
+    ctrl = BankController(cached_design(CFG), CFG, "fuzzy", 1, road)
+    res = run_closed_loop(CFG, road, ctrl, record_weights=True)
+    w = res.traces["firing_weight"]
+    assert w.shape == (road.n_ticks, len(cached_design(CFG).model_names))
+    assert res.traces["q"].shape == w.shape and np.all(np.isfinite(w))
+    assert 0.0 <= res.metrics["no_rule_fired_fraction"] <= 1.0
+    assert res.controller == "fuzzy" and res.weight_set == 1
+    with pytest.raises(ValueError, match="blending"):
+        BankController(cached_design(CFG), CFG, "skyhook", 1, road)
 
 def test_sensor_fault_latches_safe_state() -> None:
     cfg = CFG.replace(sensors={"lvdt_range_m": 0.005})

@@ -19,16 +19,21 @@ from typing import Any
 
 import numpy as np
 
+# the controller modules are imported here, before the study's worker processes fork, so
+# that every run of one study uses the same code even while the tree is being edited
+import controller.bank
+import controller.design
+import controller.force_loop  # noqa: F401
 from controller.config import RigConfig
 from hil.fullstate import FullStateLQ
+from hil.metrics import filter_signal, human_filter_tf
 from hil.plant import PlantParams
 from hil.roads import Road, make_road
-from hil.sim import cached_design
+from hil.sim import BankController, LoopController, cached_design, run_closed_loop
 from hil.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
-from hil.study.loop import BankController, StudyController, lq_cost, run_closed_loop
 
 __all__ = ["CONTROLLERS", "ROAD_BASE_RATE_HZ", "TRACE_DECIMATION", "Case", "case_config",
-           "make_controller", "run_case", "study_road"]
+           "lq_cost", "make_controller", "run_case", "study_road"]
 
 CONTROLLERS = ("passive", "skyhook", "lqg", "fuzzy", "bayes", "moving", "fullstate")
 ROAD_BASE_RATE_HZ = 4000.0
@@ -46,7 +51,7 @@ class Case:
     road_seed: int = 1
     sensor_seed: int = 7
     delay_ms: float = 0.0
-    delay_point: str = "spool"             # "spool" | "force_ref" (run_closed_loop)
+    delay_point: str = "spool"             # "spool" | "force_ref" (hil.sim.DELAY_POINTS)
     rate_hz: float | None = None           # None: the configuration's rate
     params: PlantParams | None = None
     param_tag: str = "nominal"
@@ -115,7 +120,7 @@ def study_road(name: str, speed_mps: float, duration_s: float, dt_s: float,
                 fine.description, dict(fine.extra))
 
 
-def make_controller(case: Case, cfg: RigConfig, road: Road) -> StudyController | None:
+def make_controller(case: Case, cfg: RigConfig, road: Road) -> LoopController | None:
     """The case's controller for ``cfg`` (already :func:`case_config`-ed)."""
     c = case.controller
     if c == "passive":
@@ -127,6 +132,15 @@ def make_controller(case: Case, cfg: RigConfig, road: Road) -> StudyController |
     if c == "fullstate":
         return FullStateLQ(design, cfg, ws)
     return BankController(design, cfg, c, ws, road)
+
+
+def lq_cost(metrics: dict[str, float], weights: tuple[float, ...] | list[float]) -> float:
+    """The Eq. 2.5 cost rate rho4 <y_f^2> + rho1 <x2^2> + rho2 <r^2> + rho3 <u^2> of a run
+    (deviations from static; y_f = F(s)-filtered true sprung acceleration, u = actuator
+    force) -- what the LQ gain minimises, unlike any single metric."""
+    rho1, rho2, rho3, rho4 = (float(w) for w in weights)
+    return (rho4 * metrics["absorbed_power"] + rho1 * metrics["tire_deflection_rms_m"] ** 2
+            + rho2 * metrics["rattlespace_rms_m"] ** 2 + rho3 * metrics["force_rms_n"] ** 2)
 
 
 def _row_fields(case: Case) -> dict[str, Any]:
@@ -156,13 +170,16 @@ def run_case(case: Case, cfg: RigConfig) -> dict[str, Any]:
                           lvdt_zero=case.lvdt_zero, record_weights=case.trace,
                           delay_point=case.delay_point)
     row = _row_fields(case)
-    row.update({k: float(v) for k, v in res.metrics.items()})
+    row.update({k: float(v) for k, v in res.metrics.items()
+                if k != "realtime_factor"})       # wall-clock: would make rows unrepeatable
     row["delay_ticks"] = float(delay_ticks)
     for i, w in enumerate(cfg.design.weight_sets[:2], start=1):
         row[f"lq_cost_w{i}"] = lq_cost(res.metrics, w)
     if case.trace:
         d = TRACE_DECIMATION
         full = dict(res.traces)
+        num, den = human_filter_tf(ccfg.design.human_filter_num, ccfg.design.human_filter_den)
+        full["filtered_accel"] = filter_signal(full["accel_mps2"], num, den, dt)
         full["int_accel_sq"] = np.cumsum(np.square(full["accel_mps2"])) * dt
         full["int_filtered_accel_sq"] = np.cumsum(np.square(full["filtered_accel"])) * dt
         row["traces"] = {k: np.asarray(v[::d]).copy() for k, v in full.items()}
