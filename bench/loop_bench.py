@@ -5,7 +5,9 @@
 Cases (each ``--seconds`` long, after 0.5 s of warm-up that is not counted):
 
 1. ``bare``: loop armed (ACTIVE, fuzzy bank + PI force loop), recording and telemetry off;
-2. ``rec+tel``: the same with the MCAP recording and the Zenoh telemetry on (loopback).
+2. ``rec`` / ``tel``: the MCAP recording (writer process) or the Zenoh telemetry
+   (loopback) on;
+3. ``rec+tel``: both on.
 
 Per case: wake-up lateness ("period jitter" of a loop on absolute deadlines) p50 / p99 /
 p99.9 / max, step time (wake-up to end of tick, CAN I/O included) p50 / p99 / max,
@@ -37,6 +39,9 @@ from typing import Any
 import numpy as np
 
 WARM_S = 0.5
+#: case -> (recording, telemetry)
+CASES = {"bare": (False, False), "rec": (True, False), "tel": (False, True),
+         "rec+tel": (True, True)}
 
 
 def _free_port() -> int:
@@ -46,12 +51,13 @@ def _free_port() -> int:
 
 
 def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtime: bool,
-             design_path: str, switch_interval_s: float = 0.0001) -> dict[str, Any]:
+             design_path: str, switch_interval_s: float = 0.0001,
+             rig_phase: bool = True, cpus: tuple[int, ...] = ()) -> dict[str, Any]:
     from hil.node import RigNode
     from hil.roads import make_road
     from rig.bus import open_bus
     from rig.protocol import LifecycleState
-    from rig.realtime import RealtimeRequest, apply_realtime, restore_gc
+    from rig.realtime import RealtimeRequest, restore_gc
     from rig.service import Service, ServiceOptions
 
     rate = cfg.design.sample_rate_hz
@@ -69,14 +75,29 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
     end = warm + round(seconds * rate)
     state = {"rig": -1, "measured_from": -1}
     stop_rig = threading.Event()
-    rig_thread = threading.Thread(target=node.run, args=(stop_rig,), daemon=True)
+    rig_threads: list[threading.Thread] = []
+    period_ns = round(1e9 / rate)
+
+    def run_rig(start_ns: int) -> None:
+        """The emulated rig's thread: off the loop's CPU when the loop is pinned (the
+        thread inherits the loop thread's affinity and policy), like other hardware."""
+        if cpus:
+            others = set(range(os.cpu_count() or 1)) - set(cpus)
+            if others:
+                os.sched_setaffinity(0, others)
+        node.run(stop_rig, start_ns=start_ns)
 
     def on_tick(loop: Any) -> None:
         k = loop.tick_count
         if state["rig"] < 0:
             if k >= 100:
                 state["rig"] = k
-                rig_thread.start()
+                # like rig demo: the rig ticks half a period after the loop's deadlines
+                start = loop.t_ns - loop.lateness_ns + period_ns + (
+                    period_ns // 2 if rig_phase else 0)
+                rig_threads.append(threading.Thread(target=run_rig, args=(start,),
+                                                    daemon=True))
+                rig_threads[0].start()
             return
         if loop.lifecycle.state is LifecycleState.INACTIVE and not loop.health_problem():
             loop.request("arm", timeout_s=None)
@@ -90,7 +111,8 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
         node.tick()
     while svc.bus.recv(0.0) is not None:
         pass
-    report = (apply_realtime(RealtimeRequest(switch_interval_s=switch_interval_s))
+    report = (svc.apply_realtime(RealtimeRequest(switch_interval_s=switch_interval_s,
+                                                 cpus=cpus))
               if realtime else None)
     faults: list[str] = []
     svc.loop.lifecycle.add_listener(
@@ -100,7 +122,8 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
         svc.run(on_tick=on_tick)
     finally:
         stop_rig.set()
-        rig_thread.join(5.0)
+        for th in rig_threads:
+            th.join(5.0)
         rig_bus.shutdown()
         if report is not None:
             restore_gc()
@@ -120,6 +143,8 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
         "faults": faults,
         "active_fraction_end": svc.loop.lifecycle.state.name,
         "rig_late_ticks": node.stats.late_ticks,
+        "rig_max_lateness_us": node.stats.max_lateness_s * 1e6,
+        "rig_resyncs": node.stats.resyncs,
         "dropped_recording": svc.recorder.dropped if svc.recorder else 0,
         "dropped_telemetry": svc.telemetry.dropped if svc.telemetry else 0,
         "realtime": report.as_dict() if report else None,
@@ -188,14 +213,9 @@ def sleep_lateness(slack_ns: int, n: int = 2000) -> dict[str, float]:
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--json", action="store_true")
-    ap.add_argument("--no-realtime", action="store_true")
-    ap.add_argument("--switch-interval-us", type=float, default=100.0,
-                    help="sys.setswitchinterval for the run (default 100 us)")
-    args = ap.parse_args(argv)
+def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
+            switch_interval_s: float = 0.0001, cpu: int | None = None) -> dict[str, Any]:
+    """Run the cases one after another in this process; the result of ``--json``."""
     from controller.artifact import save_design
     from controller.config import default_config
     from hil.sim import cached_design
@@ -203,48 +223,107 @@ def main(argv: list[str] | None = None) -> int:
     # telemetry on a free loopback port (the design is for this configuration)
     cfg = default_config().replace(
         telemetry={"endpoints": [f"tcp/127.0.0.1:{_free_port()}"]})
-    rt = not args.no_realtime
     with tempfile.TemporaryDirectory() as tmp:
         design_path = os.path.join(tmp, "design.npz")
         save_design(cached_design(cfg), design_path)
-        si = args.switch_interval_us * 1e-6
-        cases = {
-            "bare": run_case(cfg, args.seconds, False, False, rt, design_path, si),
-            "rec+tel": run_case(cfg, args.seconds, True, True, rt, design_path, si),
-        }
+        cpus = () if cpu is None else (cpu,)
+        cases = {name: run_case(cfg, seconds, CASES[name][0], CASES[name][1], realtime,
+                                design_path, switch_interval_s, cpus=cpus)
+                 for name in case_names}
     micro = {"virtual_bus": virtual_bus_cost(),
              "sleep_slack_50us": sleep_lateness(50_000),
              "sleep_slack_1ns": sleep_lateness(1)}
-    ratio = (cases["rec+tel"]["lateness_p99_us"] / cases["bare"]["lateness_p99_us"]
-             if cases["bare"]["lateness_p99_us"] > 0 else math.nan)
-    step_ratio = cases["rec+tel"]["step_p99_us"] / cases["bare"]["step_p99_us"]
-    if args.json:
-        print(json.dumps({"seconds": args.seconds, "cases": cases, "micro": micro,
-                          "p99_lateness_ratio": ratio, "p99_step_ratio": step_ratio,
-                          "cpus": os.cpu_count(), "load": os.getloadavg()}, indent=2))
-        return 0
-    rows = [("lateness p50 [us]", "lateness_p50_us"), ("lateness p99 [us]", "lateness_p99_us"),
-            ("lateness p99.9 [us]", "lateness_p99_9_us"), ("lateness max [us]",
-                                                             "lateness_max_us"),
-            ("step p50 [us]", "step_p50_us"), ("step p99 [us]", "step_p99_us"),
-            ("step max [us]", "step_max_us"), ("misses > 500 us", "misses_500us"),
-            ("skipped deadlines", "skipped"), ("ticks", "ticks")]
-    print(f"loop benchmark: 1 kHz, {args.seconds:g} s per case, emulated rig in-process, "
-          f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
-    print(f"{'':22} {'bare':>10} {'rec+tel':>10}")
-    for label, key in rows:
-        a, b = cases["bare"][key], cases["rec+tel"][key]
-        print(f"{label:22} {a:>10.1f} {b:>10.1f}")
-    print(f"{'faults':22} {','.join(cases['bare']['faults']) or '-':>10} "
-          f"{','.join(cases['rec+tel']['faults']) or '-':>10}")
-    print(f"p99 ratio rec+tel / bare: lateness {ratio:.2f}, step {step_ratio:.2f}")
-    vb = micro["virtual_bus"]
-    print(f"virtual bus per tick: {vb['tick_us']:.1f} us (3 recv {vb['recv_3_us']:.1f}, "
-          f"1 send {vb['send_1_us']:.1f})")
+    bare, full = cases["bare"], cases["rec+tel"]
+    return {"seconds": seconds, "cases": cases, "micro": micro,
+            "p99_lateness_ratio": (full["lateness_p99_us"] / bare["lateness_p99_us"]
+                                   if bare["lateness_p99_us"] > 0 else math.nan),
+            "p99_step_ratio": full["step_p99_us"] / bare["step_p99_us"],
+            "cpus": os.cpu_count(), "load": os.getloadavg(), "pinned_cpu": cpu}
+
+
+_ROWS = [("lateness p50 [us]", "lateness_p50_us"), ("lateness p99 [us]", "lateness_p99_us"),
+         ("lateness p99.9 [us]", "lateness_p99_9_us"), ("lateness max [us]",
+                                                          "lateness_max_us"),
+         ("step p50 [us]", "step_p50_us"), ("step p99 [us]", "step_p99_us"),
+         ("step max [us]", "step_max_us"), ("misses > 500 us", "misses_500us"),
+         ("skipped deadlines", "skipped"), ("ticks", "ticks"),
+         ("rig thread max late [us]", "rig_max_lateness_us")]
+
+
+def format_report(res: dict[str, Any]) -> str:
+    cases = res["cases"]
+    out = [f"loop benchmark: 1 kHz, {res['seconds']:g} s per case, emulated rig in-process "
+           f"(half a period after the loop), load {res['load'][0]:.1f} on {res['cpus']} CPUs"
+           + (f", loop pinned to CPU {res['pinned_cpu']}" if res["pinned_cpu"] is not None
+              else "")]
+    out.append(f"{'':26}" + "".join(f" {name:>10}" for name in cases))
+    for label, key in _ROWS:
+        out.append(f"{label:26}" + "".join(f" {c[key]:>10.1f}" for c in cases.values()))
+    out.append(f"{'faults':26}" + "".join(f" {','.join(c['faults']) or '-':>10}"
+                                          for c in cases.values()))
+    bare, full = cases["bare"], cases["rec+tel"]
+    out.append(f"rec+tel vs bare: lateness p99 {full['lateness_p99_us']:.1f} vs "
+               f"{bare['lateness_p99_us']:.1f} us (x{res['p99_lateness_ratio']:.2f}), "
+               f"step p99 {full['step_p99_us']:.1f} vs {bare['step_p99_us']:.1f} us "
+               f"(x{res['p99_step_ratio']:.2f}); goal: at most x1.10")
+    for name, c in cases.items():
+        miss_pct = 100.0 * c["misses_500us"] / max(c["ticks"], 1)
+        out.append(f"goals [{name}]: whole tick p99 {c['step_p99_us']:.0f} us "
+                   f"({'met' if c['step_p99_us'] < 100 else 'NOT met'}, < 100 us); periods "
+                   f"> 500 us late {miss_pct:.3f} % "
+                   f"({'met' if miss_pct < 0.1 else 'NOT met'}, < 0.1 %)")
+    vb = res["micro"]["virtual_bus"]
+    out.append(f"virtual bus per tick: {vb['tick_us']:.1f} us (3 recv {vb['recv_3_us']:.1f}, "
+               f"1 send {vb['send_1_us']:.1f})")
     for name in ("sleep_slack_50us", "sleep_slack_1ns"):
-        m = micro[name]
-        print(f"{name:22} wake-up p50 {m['p50_us']:.0f} us, p99 {m['p99_us']:.0f} us, "
-              f"> 100 us late {m['over_100us_pct']:.1f} %")
+        m = res["micro"][name]
+        out.append(f"{name:22} wake-up p50 {m['p50_us']:.0f} us, p99 {m['p99_us']:.0f} us, "
+                   f"> 100 us late {m['over_100us_pct']:.1f} %")
+    return "\n".join(out)
+
+
+NAME = "loop"
+TITLE = "the 1 kHz service loop against the emulated rig (bare, rec, tel, rec+tel)"
+
+
+def run(quick: bool = False) -> list[dict[str, Any]]:
+    """``python -m bench`` entry: one row per case (60 s each; 5 s with ``quick``)."""
+    res = measure(5.0 if quick else 60.0, list(CASES))
+    rows = [{"case": name, **{k: v for k, v in c.items() if not isinstance(v, dict | list)}}
+            for name, c in res["cases"].items()]
+    rows[0]["_report"] = format_report(res)
+    return rows
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    return str(rows[0].get("_report", ""))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--no-realtime", action="store_true")
+    ap.add_argument("--switch-interval-us", type=float, default=100.0,
+                    help="sys.setswitchinterval for the run (default 100 us)")
+    ap.add_argument("--cpu", type=int, default=None,
+                    help="pin the loop thread to this CPU (the emulated rig and the "
+                         "recording writer go to the others), like CPUAffinity= in "
+                         "deploy/rig.service")
+    ap.add_argument("--cases", default="bare,rec,tel,rec+tel",
+                    help=f"comma-separated, from {', '.join(CASES)} (bare and rec+tel "
+                         "are needed for the ratio)")
+    args = ap.parse_args(argv)
+    names = args.cases.split(",")
+    unknown = set(names) - set(CASES)
+    if unknown or not {"bare", "rec+tel"} <= set(names):
+        ap.error(f"--cases: unknown {sorted(unknown)}; bare and rec+tel are required")
+    res = measure(args.seconds, names, realtime=not args.no_realtime,
+                  switch_interval_s=args.switch_interval_us * 1e-6, cpu=args.cpu)
+    if args.json:
+        print(json.dumps(res, indent=2))
+    else:
+        print(format_report(res))
     return 0
 
 

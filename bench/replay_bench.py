@@ -18,9 +18,11 @@ import statistics
 import tempfile
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import can
 import numpy as np
 
 from controller.artifact import save_design
@@ -34,7 +36,7 @@ from hil.roads import make_road
 from rig.bus import open_bus, shutdown_all
 from rig.loop import ControlLoop
 from rig.recording import RunRecorder
-from rig.replay import PacedRecorder, load_recorded_run, replay_recording
+from rig.replay import load_recorded_run, replay_recording
 
 __all__ = ["record_emulated_run"]
 
@@ -56,12 +58,18 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
                         late_ticks: dict[int, int] | None = None,
                         faults: FaultSchedule | None = None,
                         shutdown: bool = True, warmup_ticks: int = 20,
-                        road_speed_mps: float | None = None) -> Path:
+                        road_speed_mps: float | None = None,
+                        wrap_bus: Callable[[can.BusABC], can.BusABC] | None = None,
+                        before_tick: Callable[[int, can.BusABC], None] | None = None
+                        ) -> Path:
     """Record ``seconds`` of the loop against :class:`hil.node.RigNode` (virtual bus,
     tick-stepped, no sleeping) into ``path``.  Wake-up lateness and compute time are
     drawn (seeded) so that replay has to reproduce the timing-dependent frames too;
     ``late_ticks`` {tick: lateness_ns} adds overruns, ``commands`` {tick: (name, arg)}
-    operator commands (applied before that tick).  Returns ``path``."""
+    operator commands (applied before that tick).  ``wrap_bus`` wraps the controller's
+    bus (a test double that raises in recv / send); ``before_tick(k, rig_bus)`` runs
+    after the rig's tick k, before the loop's (e.g. to inject error frames).
+    Returns ``path``."""
     cfg = cfg or default_config()
     if design_bytes is None:
         with tempfile.TemporaryDirectory() as d:
@@ -90,9 +98,10 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
                                 "runtime": {"blending": 0,
                                             "weight_set": cfg.design.weight_set,
                                             "warmup_ticks": warmup_ticks}},
-                      clock="stepped", clock_offset_ns=1_700_000_000_000_000_000)
-    paced = PacedRecorder(rec, cfg.recording.queue_size // 2)
-    loop = ControlLoop(cfg, ctl_bus, rt, PIForceLoop(cfg.force_loop, dt), recorder=paced,
+                      clock="stepped", clock_offset_ns=1_700_000_000_000_000_000,
+                      blocking=True)
+    loop_bus = ctl_bus if wrap_bus is None else wrap_bus(ctl_bus)
+    loop = ControlLoop(cfg, loop_bus, rt, PIForceLoop(cfg.force_loop, dt), recorder=rec,
                        clock_ns=clock, warmup_ticks=warmup_ticks)
     rng = np.random.default_rng(seed)
     lateness = rng.integers(2_000, 90_000, size=n).tolist()
@@ -108,6 +117,8 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     try:
         for k in range(n):
             node.tick()
+            if before_tick is not None:
+                before_tick(k, rig_bus)
             c = cmds.get(k)
             if c is not None:
                 loop.request(c[0], c[1], timeout_s=None)

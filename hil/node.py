@@ -371,18 +371,22 @@ class RigNode:
 
     # ----------------------------------------------------------------- running
     def run(self, stop_event: threading.Event, realtime: bool = True,
-            duration_s: float | None = None, max_lag_s: float = 0.05) -> NodeStats:
+            duration_s: float | None = None, max_lag_s: float = 0.05,
+            start_ns: int | None = None) -> NodeStats:
         """Tick until ``stop_event`` is set or ``duration_s`` of rig time has passed.
 
         Real time: tick k starts at t0 + k dt (absolute deadlines, ``time.sleep`` until
         each); a tick that starts late is counted, and falling more than ``max_lag_s``
         behind resets the schedule (counted in ``resyncs``) instead of bursting frames.
+        ``start_ns`` (``time.monotonic_ns`` clock) sets t0, e.g. half a period after the
+        controller's deadlines when both share a process (``rig demo``): the two threads
+        then take turns with the GIL instead of waking together; default: now.
         """
         period_ns = round(self.dt_s * 1e9)
         max_lag_ns = round(max_lag_s * 1e9)
         end_tick = None if duration_s is None else self.tick_count + round(duration_s / self.dt_s)
         stats = self.stats
-        deadline = time.monotonic_ns()
+        deadline = time.monotonic_ns() if start_ns is None else int(start_ns)
         while not stop_event.is_set():
             if end_tick is not None and self.tick_count >= end_tick:
                 break

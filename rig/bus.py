@@ -31,6 +31,7 @@ __all__ = [
     "classify_bus_exception",
     "classify_error_frame",
     "drain_latest",
+    "errno_of",
     "iter_pending",
     "make_tx_message",
     "open_bus",
@@ -146,7 +147,8 @@ def make_tx_message(frame_id: int, fd: bool = False) -> can.Message:
                        data=bytearray(FRAME_LENGTH), is_fd=fd, check=True)
 
 
-def _errno_of(exc: BaseException) -> int | None:
+def errno_of(exc: BaseException) -> int | None:
+    """The OS errno behind a python-can / OS exception (or its cause), if any."""
     for e in (exc, exc.__cause__, exc.__context__):
         if e is None:
             continue
@@ -158,7 +160,7 @@ def _errno_of(exc: BaseException) -> int | None:
 
 def classify_bus_exception(exc: BaseException) -> FaultCode:
     """BUS_OFF when the interface is down/gone, else BUS_ERROR (queue full, timeout...)."""
-    code = _errno_of(exc)
+    code = errno_of(exc)
     if code is not None and code in _BUS_OFF_ERRNOS:
         return FaultCode.BUS_OFF
     return FaultCode.BUS_ERROR

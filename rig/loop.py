@@ -40,7 +40,7 @@ import can
 import numpy as np
 
 from controller.config import RigConfig
-from rig.bus import classify_bus_exception, classify_error_frame, make_tx_message
+from rig.bus import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
 from rig.lifecycle import CommandResult, Lifecycle, Transition
 from rig.protocol import (
     CONTROLLER_STATUS,
@@ -56,11 +56,13 @@ from rig.protocol import (
     RigStatus,
     SensorData,
 )
+from rig.record_codec import TickLayout
 from rig.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
 from rig.sdnotify import SdNotifier
 from rig.timing import TimingStats
 
-__all__ = ["COMMANDS", "ControlLoop", "Recorder", "Runtime", "Telemetry"]
+__all__ = ["COMMANDS", "ControlLoop", "Recorder", "Runtime", "Telemetry",
+           "tick_record_layout"]
 
 log = logging.getLogger(__name__)
 
@@ -106,8 +108,10 @@ class Recorder(Protocol):
     @property
     def dropped(self) -> int: ...
     def can_frame(self, t_ns: int, tick: int, arbitration_id: int, data: bytes | bytearray,
-                  is_rx: bool) -> bool: ...
-    def tick(self, t_ns: int, record: Any) -> bool: ...
+                  is_rx: bool, error_frame: bool = False, extended_id: bool = False
+                  ) -> bool: ...
+    def set_tick_layout(self, layout: TickLayout) -> None: ...
+    def tick_values(self, t_ns: int, scalars: Any, arrays: Any) -> bool: ...
     def event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool: ...
 
 
@@ -117,6 +121,59 @@ class Telemetry(Protocol):
     @property
     def dropped(self) -> int: ...
     def offer(self, snapshot: Any) -> bool: ...
+
+
+def _bus_exception(where: str, exc: BaseException) -> dict[str, Any]:
+    """The ``note`` event detail of a failed recv / send (replay raises it again)."""
+    errno = errno_of(exc)
+    return {"bus_exception": where, "type": type(exc).__name__, "error": str(exc),
+            "errno": errno}
+
+
+def tick_record_layout(rt: Runtime) -> TickLayout:
+    """The loop's tick record: keys, kinds and array shapes (docs/recording.md).
+
+    :meth:`ControlLoop._record` packs the scalars and the arrays in this order."""
+    lifecycle_names = tuple(s.name for s in LifecycleState)
+    top = max(FaultCode)
+    fault_names = (None, *(FaultCode(v).name if v in FaultCode._value2member_map_
+                           else f"UNKNOWN_{v}" for v in range(1, top + 1)))
+
+    def arr(key: str, a: np.ndarray) -> tuple[str, str, tuple[int, ...]]:
+        return (key, a.dtype.newbyteorder("<").str if a.dtype.kind != "b" else "|b1",
+                tuple(a.shape))
+
+    return TickLayout((
+        ("tick", "int", None),
+        ("rattlespace_m", "float", None),
+        ("sprung_accel_mps2", "float", None),
+        ("force_meas_n", "float", None),
+        ("force_ref_n", "float", None),
+        ("spool_cmd", "float", None),
+        ("valve_enable", "int", None),
+        ("lifecycle", "enum", lifecycle_names),
+        ("fault", "enum", fault_names),
+        ("sensor_counter", "int", None),
+        ("sensor_age_ticks", "int", None),
+        ("wake_late_s", "ns_as_s", None),
+        ("compute_s", "ns_as_s", None),
+        ("period_s", "ns_as_s", None),
+        ("overrun", "bool", None),
+        ("overrun_streak", "int", None),
+        ("overruns_total", "int", None),
+        ("dropped_recording", "int", None),
+        ("dropped_telemetry", "int", None),
+        arr("q", rt.q),
+        arr("firing_weight", rt.firing_weight),
+        arr("probability", rt.probability),
+        arr("u_model", rt.u_model),
+        arr("active", rt.active),
+        ("flags", "int", None),
+        ("blending", "int", None),
+        ("weight_set", "int", None),
+        arr("x_post", rt.x_post),
+        arr("xf", rt.xf),
+    ))
 
 
 class _Request:
@@ -159,6 +216,8 @@ class ControlLoop:
         self.blending = int(blending)
         self.weight_set = int(cfg.design.weight_set if weight_set is None else weight_set)
 
+        if recorder is not None:
+            recorder.set_tick_layout(tick_record_layout(runtime))
         self.lifecycle = Lifecycle()
         self.lifecycle.add_listener(self._on_transition)
         self.monitor = FaultMonitor(cfg)
@@ -393,12 +452,15 @@ class ControlLoop:
                 msg = bus.recv(0.0)
             except (can.CanError, OSError) as exc:
                 mon.bus_error(classify_bus_exception(exc), DETAIL_RECV)
+                if rec is not None:
+                    rec.event(now_ns, tick, "note", _bus_exception("recv", exc))
                 return
             if msg is None:
                 return
             self.rx_frames += 1
             if rec is not None:
-                rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, True)
+                rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, True,
+                              msg.is_error_frame, msg.is_extended_id)
             if msg.is_error_frame:
                 code = classify_error_frame(msg)
                 if code is not _NONE:
@@ -453,6 +515,9 @@ class ControlLoop:
         except (can.CanError, OSError) as exc:
             self.tx_errors += 1
             self.monitor.bus_error(classify_bus_exception(exc), DETAIL_SEND)
+            if self.recorder is not None:
+                self.recorder.event(now_ns, tick, "note", {
+                    **_bus_exception("send", exc), "arbitration_id": msg.arbitration_id})
             return False
         self.tx_frames += 1
         if self.recorder is not None:
@@ -490,7 +555,7 @@ class ControlLoop:
 
     # ------------------------------------------------------------------ outputs
     def _record(self, now_ns: int, tick: int) -> None:
-        """One flat tick record per tick (keys: docs/service.md, docs/recording.md)."""
+        """One tick record per tick, packed (fields: :func:`tick_record_layout`)."""
         rt = self.rt
         timing = self.timing
         lc = self.lifecycle
@@ -499,37 +564,16 @@ class ControlLoop:
         rec = self.recorder
         assert rec is not None
         tel = self.telemetry
-        rec.tick(now_ns, {
-            "tick": tick,
-            "rattlespace_m": self.rattlespace_m,
-            "sprung_accel_mps2": self.accel_mps2,
-            "force_meas_n": self.force_meas_n,
-            "force_ref_n": self.force_ref_n,
-            "spool_cmd": self.spool_cmd,
-            "valve_enable": self.enable,
-            "lifecycle": lc.state.name,
-            "fault": None if lc.fault_code is _NONE else lc.fault_code.name,
-            "sensor_counter": self.sensor_counter,
-            "sensor_age_ticks": self.monitor.sensor_age_ticks,
-            "wake_late_s": self.lateness_ns * 1e-9,
-            "compute_s": self.step_ns * 1e-9,
-            "period_s": (now_ns - wake_prev) * 1e-9 if wake_prev >= 0 else None,
-            "overrun": self.lateness_ns > timing.overrun_threshold_ns,
-            "overrun_streak": timing.overrun_streak,
-            "overruns_total": timing.overruns,
-            "dropped_recording": rec.dropped,
-            "dropped_telemetry": tel.dropped if tel is not None else 0,
-            "q": rt.q.copy(),
-            "firing_weight": rt.firing_weight.copy(),
-            "probability": rt.probability.copy(),
-            "u_model": rt.u_model.copy(),
-            "active": rt.active.copy(),
-            "flags": self.bank_flags,
-            "blending": self.blending,
-            "weight_set": self.weight_set,
-            "x_post": rt.x_post.copy(),
-            "xf": rt.xf.copy(),
-        })
+        lateness = self.lateness_ns
+        rec.tick_values(now_ns, (
+            tick, self.rattlespace_m, self.accel_mps2, self.force_meas_n, self.force_ref_n,
+            self.spool_cmd, self.enable, lc.state, lc.fault_code, self.sensor_counter,
+            self.monitor.sensor_age_ticks, lateness, self.step_ns,
+            now_ns - wake_prev if wake_prev >= 0 else -1,
+            lateness > timing.overrun_threshold_ns, timing.overrun_streak, timing.overruns,
+            rec.dropped, tel.dropped if tel is not None else 0,
+            self.bank_flags, self.blending, self.weight_set,
+        ), (rt.q, rt.firing_weight, rt.probability, rt.u_model, rt.active, rt.x_post, rt.xf))
 
     def snapshot(self) -> dict[str, Any]:
         """Telemetry snapshot (``cfg.telemetry.rate_hz`` and at every transition).

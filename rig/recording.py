@@ -1,11 +1,21 @@
-"""MCAP run recording: raw CAN frames, tick records and events, written off the loop thread.
+"""MCAP run recording: raw CAN frames, tick records and events, written by a process of
+its own so that the control loop never waits for (or competes with) the encoder.
 
-The 1 kHz loop calls :meth:`RunRecorder.can_frame`, :meth:`RunRecorder.tick` and
-:meth:`RunRecorder.event`; each only appends a plain tuple to a bounded deque (no JSON,
-no I/O, no lock) and returns ``False`` (counting :attr:`RunRecorder.dropped`) when the
-queue is full or the writer has failed.  A writer thread encodes JSON, fills MCAP chunks
-(``cfg.chunk_bytes``), flushes every finished chunk to the OS (so a SIGKILL loses at most
-the open chunk) and rotates into numbered files (``rotate_bytes`` / ``rotate_seconds``).
+The 1 kHz loop calls :meth:`RunRecorder.can_frame`, :meth:`RunRecorder.tick_values`
+(or the generic :meth:`RunRecorder.tick`) and :meth:`RunRecorder.event`.  Each packs
+the item into a preallocated batch buffer (no JSON, no I/O); every ``batch_ticks``
+ticks the batch goes to a pipe in one non-blocking ``write``.  The writer process
+(:mod:`rig.record_writer`) reads the pipe, encodes JSON, fills MCAP chunks
+(``cfg.chunk_bytes``), flushes every finished chunk to the OS and rotates into numbered
+files (``rotate_bytes`` / ``rotate_seconds``).  A SIGKILL of the whole service loses at
+most the open chunk; a SIGKILL of the loop process alone loses at most the unsent batch:
+the writer sees the pipe close and finishes the file.
+
+When the writer falls behind, it holds at most ``cfg.queue_size`` items, then the pipe
+(up to ``pipe_bytes``) fills and the loop side drops whole tick batches and counts
+every item in :attr:`RunRecorder.dropped`; events of a dropped batch are kept back
+(up to 1024) and sent with the next batch, so a fault record survives a frame flood.
+``blocking=True`` (offline replay) waits instead of dropping.
 
 Format, channels and the tick-record keys: ``docs/recording.md``.  :func:`read_run`
 reads a run back (tolerating a missing footer / truncated tail) for replay and report.
@@ -14,71 +24,93 @@ reads a run back (tolerating a missing footer / truncated tail) for replay and r
 from __future__ import annotations
 
 import collections
+import contextlib
+import fcntl
 import hashlib
 import json
+import os
 import platform
+import subprocess
+import sys
 import threading
 import time
 import tomllib
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
+import numpy as np
 from mcap.records import Attachment, Channel, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
 
 from controller.config import RecordingConfig
 from rig.mcap_schema import (
-    EVENT_KINDS,
-    MESSAGE_ENCODING,
     RECORDING_FORMAT_VERSION,
-    SCHEMA_ENCODING,
-    SIGNAL_KEYS,
-    TIMING_KEYS,
     TOPIC_CAN_RX,
     TOPIC_CAN_TX,
     TOPIC_EVENTS,
     TOPIC_INTERNALS,
     TOPIC_SIGNALS,
     TOPIC_TIMING,
-    TOPICS,
-    encode_json,
-    schema_bytes,
+)
+from rig.record_codec import (
+    FRAME_ERROR,
+    FRAME_EXTENDED,
+    FRAME_HEAD,
+    FRAME_RX,
+    ITEM_EVENT,
+    ITEM_FRAME,
+    ITEM_HEAD,
+    TickLayout,
+    TickPacker,
+    encode_end,
+    encode_event,
+    encode_header,
+    encode_layout,
+    encode_pickled_tick,
+)
+from rig.record_writer import (
+    CONFIG_ATTACHMENT,
+    DESIGN_ATTACHMENT,
+    METADATA_NAME,
+    PARTS_KEY,
+    segment_path,
 )
 
 __all__ = [
+    "CONFIG_ATTACHMENT",
+    "DESIGN_ATTACHMENT",
+    "METADATA_NAME",
     "CanFrameRecord",
     "EventRecord",
+    "RecorderStartError",
     "RunData",
     "RunRecorder",
+    "TickLayout",
     "TickRecord",
     "read_run",
     "segment_paths",
 ]
 
-CONFIG_ATTACHMENT = "config.toml"
-DESIGN_ATTACHMENT = "design.npz"
-METADATA_NAME = "rig"
 _RECORD_TOPICS = (TOPIC_SIGNALS, TOPIC_INTERNALS, TOPIC_TIMING)
-PARTS_KEY = "record_parts"  # in /rig/signals: how many messages the tick record has
-_RESERVED = frozenset({"tick", "t_ns", PARTS_KEY})
-_FRAME, _TICK, _EVENT = 0, 1, 2
-_EVENT_HEADROOM = 1024  # events may exceed queue_size by this much (they are rare)
+_EVENT_RETRY = 1024        # events of dropped batches kept back for the next batch
+_BATCH_BYTES = 1 << 16     # batch buffer; a fuller one is flushed before the next item
+_FLUSH_BYTES = 1 << 13     # ... and one this full at the end of a tick
+_F_SETPIPE_SZ = 1031       # fcntl.F_SETPIPE_SZ (Linux; named in fcntl from Python 3.10)
 
 
-def _segment_path(base: Path, index: int) -> Path:
-    return base if index == 0 else base.with_name(f"{base.stem}.{index:03d}.mcap")
+class RecorderStartError(OSError):
+    """The writer process could not start or could not open the recording file."""
 
 
 def segment_paths(base: str | Path) -> list[Path]:
     """``base`` and its existing rotation successors ``<stem>.001.mcap``, ... in order."""
     base = Path(base)
     paths = [base]
-    while (nxt := _segment_path(base, len(paths))).exists():
+    while (nxt := segment_path(base, len(paths))).exists():
         paths.append(nxt)
     return paths
 
@@ -110,108 +142,376 @@ class RunRecorder:
     ``t_ns`` arguments must all come from one clock (the loop's; ``clock`` names it for
     the metadata).  MCAP ``log_time`` = ``t_ns + clock_offset_ns`` (default: wall minus
     monotonic at start, so tools show wall time); payloads keep the raw ``t_ns``.
+
+    ``tick_layout`` declares the packed record of :meth:`tick_values`.  The constructor
+    starts the writer process and waits until it has opened the first file: a bad path
+    or a full disk raises :class:`RecorderStartError` here, not later.  Use from one
+    thread (the loop's); the counters may be read from anywhere.
     """
 
     def __init__(self, path_or_dir: str | Path, cfg: RecordingConfig, *, config_toml: str,
                  design_bytes: bytes | None, metadata: Mapping[str, Any],
                  clock: str = "monotonic", clock_offset_ns: int | None = None,
                  compression: str = "zstd", poll_s: float = 0.002,
-                 max_chunk_age_s: float = 1.0) -> None:
+                 max_chunk_age_s: float = 1.0, tick_layout: TickLayout | None = None,
+                 blocking: bool = False, pipe_bytes: int = 1 << 20,
+                 batch_ticks: int = 1, start_timeout_s: float = 60.0) -> None:
         target = Path(path_or_dir)
         if target.suffix != ".mcap":
             stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
             target = target / f"run-{stamp}.mcap"
+        target = target.absolute()    # the writer process runs in another directory
         target.parent.mkdir(parents=True, exist_ok=True)
         if compression not in ("zstd", "lz4", "none"):
             raise ValueError(f"compression {compression!r}: allowed zstd, lz4, none")
         self.base_path = target
         self.paths: list[Path] = []
-        self._cfg = cfg
-        self._compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-                             "none": CompressionType.NONE}[compression]
-        self._config_toml = config_toml
-        self._design = design_bytes
+        self.blocking = blocking
+        if batch_ticks < 1:
+            raise ValueError(f"batch_ticks {batch_ticks}: must be >= 1")
+        self.batch_ticks = int(batch_ticks)
+        self._ticks_in_batch = 0
         if clock_offset_ns is None:
             clock_offset_ns = time.time_ns() - time.monotonic_ns() if clock == "monotonic" else 0
-        self._offset = int(clock_offset_ns)
-        self._meta = self._base_metadata(metadata, clock)
-        self._poll_s = poll_s
-        self._max_chunk_age_s = max_chunk_age_s
-        self._rotate_ns = int(cfg.rotate_seconds * 1e9)
-
-        self._q: collections.deque[tuple[Any, ...]] = collections.deque()
-        self._limit = cfg.queue_size
+        self._packer: TickPacker | None = None
+        header = {
+            "path": str(target), "rotate_bytes": cfg.rotate_bytes,
+            "rotate_seconds": cfg.rotate_seconds, "chunk_bytes": cfg.chunk_bytes,
+            "queue_size": cfg.queue_size, "compression": compression,
+            "clock_offset_ns": int(clock_offset_ns), "poll_s": poll_s,
+            "max_chunk_age_s": max_chunk_age_s, "config_toml": config_toml,
+            "metadata": self._base_metadata(metadata, clock, int(clock_offset_ns),
+                                            config_toml, design_bytes, target),
+        }
+        # counters (loop side)
         self._dropped = 0
-        self._closing = False
-        self._closed = False
-        self._failed = False
-        self.error: str | None = None
+        self.sent = 0                # items handed to the pipe
+        # counters and state reported by the writer process
+        self.written = 0             # items written (frames + records + events)
         self.malformed = 0           # items the writer could not encode (skipped)
         self.last_malformed: str | None = None
-        self.written = 0             # items written (frames + records + events)
-        self._seq = 0
+        self.error: str | None = None
+        self.backlog = 0             # items waiting in the writer process
+        self._failed = False
+        self._closed = False
+        self._progress = threading.Condition()
+        # the batch of the current tick
+        self._batch = bytearray(_BATCH_BYTES)
+        self._mv = memoryview(self._batch)
+        self._n = 0
+        self._items = 0
+        self._events_in_batch = 0
+        self._pending: bytes = b""             # tail of a partially written batch
+        self._retry: collections.deque[bytes] = collections.deque(maxlen=_EVENT_RETRY)
 
-        self._stream: IO[bytes] | None = None
-        self._writer: Writer | None = None
-        self._channels: dict[str, int] = {}
-        self._seg_t0: int | None = None
-        self._open_segment()         # errors (permissions, disk) raise here, not later
-        self._thread = threading.Thread(target=self._run, name="rig-recorder", daemon=True)
-        self._thread.start()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "rig.record_writer"], stdin=subprocess.PIPE,
+            # cwd: where `-m rig.record_writer` finds this very copy of the package
+            stdout=subprocess.PIPE, cwd=Path(__file__).resolve().parents[1],
+            start_new_session=True, text=False)
+        assert self._proc.stdin is not None and self._proc.stdout is not None
+        self._fd = self._proc.stdin.fileno()
+        with contextlib.suppress(OSError):   # best effort: the default pipe is 64 KiB
+            fcntl.fcntl(self._fd, _F_SETPIPE_SZ, max(4096, int(pipe_bytes)))
+        self._ready = threading.Event()
+        self._status_thread = threading.Thread(target=self._read_status,
+                                               name="rig-recorder-status", daemon=True)
+        self._status_thread.start()
+        with contextlib.suppress(OSError):   # if the writer failed, its status says why
+            self._write_all(encode_header(header, design_bytes))
+        if not self._ready.wait(start_timeout_s) or self.error is not None:
+            reason = self.error or f"writer process did not start within {start_timeout_s} s"
+            self._kill_writer()
+            raise RecorderStartError(f"recording {target}: {reason}")
+        if tick_layout is not None:
+            self.set_tick_layout(tick_layout)
+        if not blocking:
+            os.set_blocking(self._fd, False)
 
-    # ------------------------------------------------------------------ loop side (cheap)
-
+    # ------------------------------------------------------------------ status
     @property
     def dropped(self) -> int:
-        """Items not recorded because the queue was full, the writer failed or closed."""
+        """Items not recorded because the writer fell behind, failed or was closed."""
         return self._dropped
 
+    @property
+    def pid(self) -> int:
+        """PID of the writer process."""
+        return self._proc.pid
+
+    def _read_status(self) -> None:
+        out = self._proc.stdout
+        assert out is not None
+        for line in out:
+            try:
+                st = json.loads(line)
+            except ValueError:
+                continue
+            ev = st.get("event")
+            with self._progress:
+                if ev == "error":
+                    self.error = str(st.get("error"))
+                    self._failed = True
+                else:
+                    self.written = int(st.get("written", self.written))
+                    self.malformed = int(st.get("malformed", self.malformed))
+                    self.last_malformed = st.get("last_malformed", self.last_malformed)
+                    self.backlog = int(st.get("backlog", 0))
+                    self.paths = [Path(p) for p in st.get("paths", [])] or self.paths
+                    if st.get("error"):
+                        self.error = str(st["error"])
+                        self._failed = True
+                self._progress.notify_all()
+            if ev in ("ready", "error"):
+                self._ready.set()
+        with self._progress:
+            if not self._closed and self.error is None:
+                self.error = "writer process ended unexpectedly"
+            self._failed = True
+            self._progress.notify_all()
+        self._ready.set()
+
+    # ------------------------------------------------------------------ loop side (cheap)
     def can_frame(self, t_ns: int, tick: int, arbitration_id: int, data: bytes | bytearray,
-                  is_rx: bool) -> bool:
-        """Queue one raw frame (``data`` is copied).  Never blocks; False = dropped."""
-        if len(self._q) >= self._limit or self._failed or self._closing:
+                  is_rx: bool, error_frame: bool = False, extended_id: bool = False) -> bool:
+        """Add one raw frame to this tick's batch (``data`` is copied).  Never blocks;
+        False = dropped (writer failed or closed).  Sent with the next tick record."""
+        if self._failed or self._closed:
             self._dropped += 1
             return False
-        self._q.append((_FRAME, t_ns, tick, arbitration_id, bytes(data), is_rx))
+        dlc = len(data)
+        size = FRAME_HEAD.size + dlc
+        if self._n + size > _BATCH_BYTES:
+            self.flush()
+        n = self._n
+        FRAME_HEAD.pack_into(self._batch, n, size, ITEM_FRAME, t_ns, tick, arbitration_id,
+                             (FRAME_RX if is_rx else 0) | (FRAME_ERROR if error_frame else 0)
+                             | (FRAME_EXTENDED if extended_id else 0), dlc)
+        self._mv[n + FRAME_HEAD.size:n + size] = data
+        self._n = n + size
+        self._items += 1
+        return True
+
+    def set_tick_layout(self, layout: TickLayout) -> None:
+        """Declare the packed record of :meth:`tick_values` (again when it changes, e.g.
+        another design); the writer applies it to the records that follow."""
+        if self._packer is not None and self._packer.layout == layout:
+            return
+        self._packer = TickPacker(layout)
+        if not (self._failed or self._closed):
+            self._send_bytes(encode_layout(layout), event=True)
+
+    def tick_values(self, t_ns: int, scalars: Sequence[Any], arrays: Sequence[np.ndarray]
+                    ) -> bool:
+        """Add the packed tick record (``tick_layout`` order; arrays are copied at once);
+        the tick's items are sent every ``batch_ticks`` ticks.  False = the batch this
+        call sent was dropped."""
+        packer = self._packer
+        if packer is None:
+            raise ValueError("tick_values needs a RunRecorder made with a tick_layout")
+        if self._failed or self._closed:
+            self._dropped += 1
+            return False
+        size = packer.size
+        if self._n + size > _BATCH_BYTES:
+            self.flush()
+        packer.pack(t_ns, scalars, arrays)
+        n = self._n
+        if size > _BATCH_BYTES:
+            self._send_bytes(bytes(packer.buffer))
+            return self.flush()
+        self._mv[n:n + size] = packer.buffer
+        self._n = n + size
+        self._items += 1
+        return self._end_of_tick()
+
+    def _end_of_tick(self) -> bool:
+        self._ticks_in_batch += 1
+        if self._ticks_in_batch >= self.batch_ticks or self._n >= _FLUSH_BYTES:
+            return self.flush()
         return True
 
     def tick(self, t_ns: int, record: Mapping[str, Any]) -> bool:
-        """Queue one tick record (flat dict with ``tick``; keys: docs/recording.md).
-
-        The dict and its values are kept by reference: hand over a fresh dict each tick
-        and copies of arrays that the runtime updates in place."""
-        if len(self._q) >= self._limit or self._failed or self._closing:
+        """Add one tick record given as a flat dict (pickled now: arrays may be reused by
+        the caller afterwards), like :meth:`tick_values`.  The loop uses that one."""
+        if self._failed or self._closed:
             self._dropped += 1
             return False
-        self._q.append((_TICK, t_ns, record))
-        return True
+        try:
+            blob = encode_pickled_tick(t_ns, record)
+        except Exception as exc:                # unpicklable: skipped, counted
+            with self._progress:
+                self.malformed += 1
+                self.last_malformed = f"{type(exc).__name__}: {exc} in tick record"
+            return False
+        self._send_bytes(blob)
+        return self._end_of_tick()
 
     def event(self, t_ns: int, tick: int, kind: str, detail: Mapping[str, Any] | str | None
               ) -> bool:
-        """Queue a lifecycle / command / fault / note event (may use a little headroom
-        beyond ``queue_size`` so rare events survive a frame flood)."""
-        if len(self._q) >= self._limit + _EVENT_HEADROOM or self._failed or self._closing:
+        """Add a lifecycle / command / fault / note event (sent with the tick's batch).
+        An event in a dropped batch is kept back and sent with a later one."""
+        if self._failed or self._closed:
             self._dropped += 1
             return False
-        self._q.append((_EVENT, t_ns, tick, kind, detail))
+        self._send_bytes(encode_event(t_ns, tick, kind, detail), event=True)
         return True
 
+    def _send_bytes(self, blob: bytes, event: bool = False) -> None:
+        if self._n + len(blob) > _BATCH_BYTES:
+            self.flush()
+        if len(blob) > _BATCH_BYTES:            # a huge item: its own write
+            self._items += 1
+            self._events_in_batch += event
+            self._deliver(memoryview(blob), len(blob))
+            return
+        n = self._n
+        self._mv[n:n + len(blob)] = blob
+        self._n = n + len(blob)
+        self._items += 1
+        self._events_in_batch += event
+
+    def flush(self) -> bool:
+        """Send the batch now.  False = it was dropped (pipe full or writer gone)."""
+        self._ticks_in_batch = 0
+        if self._n == 0:
+            return True
+        return self._deliver(self._mv[:self._n], self._n)
+
+    def _deliver(self, data: memoryview, n: int) -> bool:
+        items = self._items
+        ok = True
+        if self._retry and not self._pending:
+            self._push_retry()
+        if self._pending and not self._push_pending():
+            ok = False
+        elif self._retry:
+            ok = False                         # keep the order: events first
+        else:
+            try:
+                w = os.write(self._fd, data) if not self.blocking else self._write_all(data)
+            except BlockingIOError:
+                ok = False
+            except OSError as exc:
+                self._writer_gone(exc)
+                ok = False
+            else:
+                if w < n:
+                    self._pending = bytes(data[w:])
+        if ok:
+            self.sent += items
+        else:
+            self._drop_batch(data, items)
+        self._n = 0
+        self._items = 0
+        self._events_in_batch = 0
+        return ok
+
+    def _drop_batch(self, data: memoryview, items: int) -> None:
+        """Count the batch's items as dropped, keeping its events back for later."""
+        kept = 0
+        if self._events_in_batch and not self._failed:
+            pos = 0
+            while pos < len(data):
+                size, kind = ITEM_HEAD.unpack_from(data, pos)
+                if kind == ITEM_EVENT and len(self._retry) < _EVENT_RETRY:
+                    self._retry.append(bytes(data[pos:pos + size]))
+                    kept += 1
+                pos += size
+        self._dropped += items - kept
+
+    def _push_pending(self) -> bool:
+        try:
+            w = os.write(self._fd, self._pending)
+        except BlockingIOError:
+            return False
+        except OSError as exc:
+            self._writer_gone(exc)
+            return False
+        self._pending = self._pending[w:]
+        return not self._pending
+
+    def _push_retry(self) -> None:
+        while self._retry:
+            blob = self._retry[0]
+            try:
+                w = os.write(self._fd, blob)
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                self._writer_gone(exc)
+                return
+            self._retry.popleft()
+            self.sent += 1
+            if w < len(blob):
+                self._pending = blob[w:]
+                return
+
+    def _write_all(self, data: bytes | memoryview) -> int:
+        view = memoryview(data)
+        done = 0
+        while done < len(view):
+            done += os.write(self._fd, view[done:])
+        return done
+
+    def _writer_gone(self, exc: OSError) -> None:
+        self._failed = True
+        if self.error is None:
+            self.error = f"writer process gone ({type(exc).__name__}: {exc})"
+        self._dropped += len(self._retry)
+        self._retry.clear()
+        self._pending = b""
+
+    # ------------------------------------------------------------------ closing
     def close(self, timeout_s: float = 30.0) -> None:
-        """Drain the queue, write the summary and footer, close the file.  Idempotent."""
+        """Send what is left, let the writer drain and finish the file (summary and
+        footer), wait for it (``timeout_s``).  Idempotent."""
         if self._closed:
             return
-        self._closing = True
-        self._thread.join(timeout_s)
-        if self._thread.is_alive():
-            self.error = self.error or f"writer did not drain within {timeout_s} s"
-            self._failed = True
-            self._thread.join(5.0)
+        self.flush()
         self._closed = True
-        if not self._thread.is_alive():
+        fd_ok = not self._failed
+        if fd_ok:
             try:
-                self._finish_segment()
+                os.set_blocking(self._fd, True)
+                for blob in self._retry:
+                    self._write_all(blob)
+                    self.sent += 1
+                self._retry.clear()
+                if self._pending:
+                    self._write_all(self._pending)
+                self._pending = b""
+                self._write_all(encode_end())
             except OSError as exc:
-                self.error = self.error or f"closing {self.paths[-1]}: {exc}"
+                self._writer_gone(exc)
+        with contextlib.suppress(OSError):
+            assert self._proc.stdin is not None
+            self._proc.stdin.close()
+        try:
+            self._proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.error = self.error or f"writer did not finish within {timeout_s} s"
+            self._kill_writer()
+        self._status_thread.join(5.0)
+        if self._proc.returncode not in (0, None) and self.error is None:
+            self.error = f"writer process exited with status {self._proc.returncode}"
+
+    def _kill_writer(self) -> None:
+        with contextlib.suppress(OSError):
+            self._proc.kill()              # our own child, by its Popen handle
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._proc.wait(5.0)
+
+    def wait_written(self, n: int, timeout_s: float = 10.0) -> bool:
+        """Wait until the writer reports ``n`` items written (tests, tools)."""
+        deadline = time.monotonic() + timeout_s
+        with self._progress:
+            while self.written < n and not self._failed:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._progress.wait(left)
+        return self.written >= n
 
     def __enter__(self) -> RunRecorder:
         return self
@@ -219,158 +519,24 @@ class RunRecorder:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # ------------------------------------------------------------------ writer thread
-
-    def _base_metadata(self, user: Mapping[str, Any], clock: str) -> dict[str, str]:
+    # ------------------------------------------------------------------ metadata
+    @staticmethod
+    def _base_metadata(user: Mapping[str, Any], clock: str, offset: int, config_toml: str,
+                       design: bytes | None, target: Path) -> dict[str, str]:
         meta = {
             "format_version": str(RECORDING_FORMAT_VERSION),
-            "run_id": self.base_path.stem,
+            "run_id": target.stem,
             "created_utc": datetime.now(UTC).isoformat(),
             "clock": clock,
-            "clock_offset_ns": str(self._offset),
-            "config_hash": _config_hash(self._config_toml),
-            "config_toml_sha256": hashlib.sha256(self._config_toml.encode()).hexdigest(),
-            "design_sha256": (hashlib.sha256(self._design).hexdigest()
-                              if self._design is not None else ""),
+            "clock_offset_ns": str(offset),
+            "config_hash": _config_hash(config_toml),
+            "config_toml_sha256": hashlib.sha256(config_toml.encode()).hexdigest(),
+            "design_sha256": hashlib.sha256(design).hexdigest() if design is not None else "",
             "versions": json.dumps(_versions(), sort_keys=True),
         }
         for k, v in user.items():
             meta[str(k)] = v if isinstance(v, str) else json.dumps(v, default=str)
         return meta
-
-    def _open_segment(self) -> None:
-        path = _segment_path(self.base_path, len(self.paths))
-        stream = open(path, "wb")  # noqa: SIM115 (closed in _finish_segment)
-        writer = Writer(stream, chunk_size=self._cfg.chunk_bytes,
-                        compression=self._compression)
-        writer.start(profile="", library=f"rig-recorder/{RECORDING_FORMAT_VERSION}")
-        now = time.time_ns()
-        writer.add_metadata(METADATA_NAME, {**self._meta, "segment": str(len(self.paths))})
-        writer.add_attachment(now, now, CONFIG_ATTACHMENT, "application/toml",
-                              self._config_toml.encode())
-        if self._design is not None:
-            writer.add_attachment(now, now, DESIGN_ATTACHMENT, "application/octet-stream",
-                                  self._design)
-        self._channels = {}
-        for topic, schema in TOPICS.items():
-            sid = writer.register_schema(schema["title"], SCHEMA_ENCODING,
-                                         schema_bytes(schema))
-            self._channels[topic] = writer.register_channel(topic, MESSAGE_ENCODING, sid)
-        stream.flush()
-        self.paths.append(path)
-        self._stream, self._writer = stream, writer
-        self._seg_t0 = None
-        self._last_size = stream.tell()
-        self._last_chunk_mono = time.monotonic()
-
-    def _finish_segment(self) -> None:
-        if self._writer is not None and self._stream is not None:
-            self._writer.finish()
-            self._stream.close()
-        self._writer = self._stream = None
-
-    def _maybe_rotate(self, t_ns: int, check_size: bool) -> None:
-        if self._seg_t0 is None:
-            self._seg_t0 = t_ns
-            return
-        assert self._stream is not None
-        if (t_ns - self._seg_t0 >= self._rotate_ns
-                or (check_size and self._stream.tell() >= self._cfg.rotate_bytes)):
-            self._finish_segment()
-            self._open_segment()
-            self._seg_t0 = t_ns
-
-    def _write(self, item: tuple[Any, ...]) -> None:
-        w = self._writer
-        assert w is not None
-        seq = self._seq & 0xFFFFFFFF
-        kind = item[0]
-        t_ns = int(item[1])
-        log_time = max(t_ns + self._offset, 0)
-        if kind == _FRAME:
-            _, _, tick, arb, data, is_rx = item
-            payload = b'{"tick":%d,"t_ns":%d,"id":%d,"data":"%s","dlc":%d}' % (
-                tick, t_ns, arb, data.hex().encode(), len(data))
-            ch = self._channels[TOPIC_CAN_RX if is_rx else TOPIC_CAN_TX]
-            w.add_message(ch, log_time, payload, log_time, seq)
-        elif kind == _TICK:
-            record: Mapping[str, Any] = item[2]
-            tick = int(record["tick"])
-            sig: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
-            tim: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
-            intl: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
-            for k, v in record.items():
-                if k in SIGNAL_KEYS:
-                    sig[k] = v
-                elif k in TIMING_KEYS:
-                    tim[k] = v
-                elif k not in _RESERVED:
-                    intl[k] = v
-            parts = [(TOPIC_SIGNALS, sig)]
-            parts += [(t, m) for t, m in ((TOPIC_INTERNALS, intl), (TOPIC_TIMING, tim))
-                      if len(m) > 2]
-            sig[PARTS_KEY] = len(parts)   # lets a reader spot a record torn by a crash
-            for topic, msg in parts:
-                w.add_message(self._channels[topic], log_time, encode_json(msg),
-                              log_time, seq)
-        else:
-            _, _, tick, kind_s, detail = item
-            if kind_s not in EVENT_KINDS:
-                detail = {"kind": str(kind_s), "detail": detail}
-                kind_s = "note"
-            if not (detail is None or isinstance(detail, str | Mapping)):
-                detail = str(detail)
-            msg = {"tick": int(tick), "t_ns": t_ns, "kind": kind_s,
-                   "detail": dict(detail) if isinstance(detail, Mapping) else detail}
-            w.add_message(self._channels[TOPIC_EVENTS], log_time, encode_json(msg), log_time, seq)
-        self._seq += 1
-        self.written += 1
-
-    def _flush(self) -> None:
-        """Push finished chunks to the OS; close a chunk older than max_chunk_age_s."""
-        assert self._stream is not None
-        now = time.monotonic()
-        size = self._stream.tell()
-        if size != self._last_size:
-            self._last_size = size
-            self._last_chunk_mono = now
-        elif now - self._last_chunk_mono > self._max_chunk_age_s:
-            # mcap.Writer has no public "close the open chunk"; 1.x names it like this.
-            finalize = getattr(self._writer, "_Writer__finalize_chunk", None)
-            if finalize is not None:
-                finalize()
-            self._last_chunk_mono = now
-            self._last_size = self._stream.tell()
-        self._stream.flush()
-
-    def _run(self) -> None:
-        q = self._q
-        try:
-            while True:
-                closing = self._closing
-                n = 0
-                while q:
-                    item = q.popleft()
-                    try:
-                        self._maybe_rotate(int(item[1]), n % 64 == 0)
-                        self._write(item)
-                    except (KeyError, TypeError, ValueError, OverflowError) as exc:
-                        self.malformed += 1
-                        self.last_malformed = f"{type(exc).__name__}: {exc} in {item[:3]!r}"
-                    n += 1
-                    if n % 256 == 0:
-                        time.sleep(0)  # let the loop thread have the GIL
-                if self._failed:
-                    return
-                self._flush()
-                if closing and not q:
-                    return
-                time.sleep(self._poll_s)
-        except OSError as exc:
-            self.error = f"recording to {self.paths[-1] if self.paths else '?'} failed: {exc}"
-            self._failed = True
-            self._dropped += len(q)
-            q.clear()
 
 
 # ---------------------------------------------------------------------------- reading
@@ -384,6 +550,8 @@ class CanFrameRecord:
     arbitration_id: int
     data: bytes
     is_rx: bool
+    is_error_frame: bool = False
+    is_extended_id: bool = False
 
 
 @dataclass(frozen=True)
@@ -467,7 +635,9 @@ def _read_segment(path: Path, run: RunData, index: int, *, first: bool) -> tuple
                         last_rec = None
                         run.frames.append(CanFrameRecord(
                             index, msg["t_ns"], msg["tick"], msg["id"],
-                            bytes.fromhex(msg["data"]), topic == TOPIC_CAN_RX))
+                            bytes.fromhex(msg["data"]), topic == TOPIC_CAN_RX,
+                            bool(msg.get("error_frame", False)),
+                            bool(msg.get("extended_id", False))))
                     elif topic == TOPIC_EVENTS:
                         last_rec = None
                         run.events.append(EventRecord(index, msg["t_ns"], msg["tick"],

@@ -32,7 +32,14 @@ import can
 
 from controller.config import RigConfig, config_hash, config_to_toml
 from rig.loop import ControlLoop
-from rig.realtime import RealtimeReport, RealtimeRequest, apply_realtime, restore_gc
+from rig.realtime import (
+    RealtimeReport,
+    RealtimeRequest,
+    apply_realtime,
+    release_cpu_latency,
+    restore_gc,
+    set_thread_fifo,
+)
 from rig.sdnotify import SdNotifier
 
 __all__ = ["BLENDING_NAMES", "Service", "ServiceOptions", "design_bytes", "parse_blending"]
@@ -110,6 +117,7 @@ class Service:
             log.info("bank designed at start in %.1f s", time.monotonic() - t0)
         blending = parse_blending(opts.blending)
         weight_set = cfg.design.weight_set if opts.weight_set is None else opts.weight_set
+        warmup_ticks = round(0.05 * cfg.design.sample_rate_hz)   # ControlLoop's default
         self.runtime = BankRuntime(self.design, blending=blending, weight_set=weight_set,
                                    cfg=cfg)
         self.force_loop = PIForceLoop(cfg.force_loop, cfg.sample_time_s)
@@ -135,13 +143,18 @@ class Service:
             target = opts.record or cfg.recording.directory
             meta = {"source": "rig run", "config_hash": config_hash(cfg),
                     "sample_rate_hz": cfg.design.sample_rate_hz, "blending": blending,
-                    "weight_set": weight_set, "models": list(map(str, self.design.model_names))}
+                    "weight_set": weight_set, "models": list(map(str, self.design.model_names)),
+                    # the rest of what replay needs to build the same loop and runtime
+                    "warmup_ticks": warmup_ticks, "single_model": None}
             meta.update(metadata or {})
+            # one pipe write per 8 ticks (8 ms at 1 kHz): fewer wake-ups of the writer
             self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
-                                        design_bytes=self.design_blob, metadata=meta)
+                                        design_bytes=self.design_blob, metadata=meta,
+                                        batch_ticks=8)
         self.loop = ControlLoop(cfg, bus, self.runtime, self.force_loop,
                                 recorder=self.recorder, notifier=self.notifier,
                                 blending=blending, weight_set=weight_set,
+                                warmup_ticks=warmup_ticks,
                                 timing_ring=opts.timing_ring)
         telemetry_on = cfg.telemetry.enabled if opts.telemetry is None else opts.telemetry
         if telemetry_on:
@@ -204,12 +217,22 @@ class Service:
             if not res.accepted:
                 log.warning("arm on start refused: %s", res.message)
 
+    def apply_realtime(self, request: RealtimeRequest) -> RealtimeReport:
+        """Real-time set-up of the calling thread (the loop's) and of the telemetry
+        publisher thread (SCHED_FIFO one below the loop); kept in ``realtime_report``."""
+        report = apply_realtime(request)
+        if self.telemetry is not None:
+            set_thread_fifo(self.telemetry.thread_native_id, request.fifo_priority - 1,
+                            "telemetry", report)
+        self.realtime_report = report
+        return report
+
     def run(self, on_tick: Callable[[ControlLoop], None] | None = None) -> int:
         """Run until SIGTERM / SIGINT / ``stop_event`` / ``duration_s``; returns 0."""
         previous = self._install_signals()
         try:
             if self.opts.realtime is not None:
-                self.realtime_report = apply_realtime(self.opts.realtime)
+                self.apply_realtime(self.opts.realtime)
             self.notifier.ready(f"{self.loop.lifecycle.state.name}; "
                                 f"{self.realtime_report.summary()}")
 
@@ -234,8 +257,10 @@ class Service:
         self._closed = True
         self.notifier.stopping(f"stopping: {self.exit_reason or 'close'}")
         self.loop.shutdown(self.exit_reason or "shutdown")
-        if self.opts.realtime is not None and self.opts.realtime.freeze_gc:
-            restore_gc()
+        if self.opts.realtime is not None:
+            release_cpu_latency()
+            if self.opts.realtime.freeze_gc:
+                restore_gc()
         if self.telemetry is not None:
             self.telemetry.close()
         if self.recorder is not None:

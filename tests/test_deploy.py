@@ -10,6 +10,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import sysconfig
 import tomllib
 from fnmatch import fnmatch
 from pathlib import Path
@@ -294,3 +295,61 @@ def test_dockerfile_structure_and_context() -> None:
                 ["include"]}
     assert packages <= copied and "pyproject.toml" in copied
     assert pyproject["project"]["readme"] in copied
+
+
+def test_dockerfile_build_stage_installs_a_working_rig(tmp_path: Path) -> None:
+    """No container engine runs here, so the build stage is replayed by hand: the files
+    its COPY lines name (nothing else) are put in a fresh context, `pip install .` runs
+    as in the image (dependencies taken from this environment instead of PyPI), and the
+    installed `rig` -- not the source tree -- runs a short recorded demo from another
+    directory.  Catches a package, a data file (the DBC) or a module missing from the
+    image."""
+    ins = dockerfile_instructions(ROOT / "Dockerfile")
+    second_from = [i for i, (op, _) in enumerate(ins) if op == "FROM"][1]
+    ctx = tmp_path / "ctx"
+    ctx.mkdir()
+    for op, args in ins[:second_from]:
+        if op != "COPY":
+            continue
+        *srcs, _dst = shlex.split(args)
+        for src in srcs:
+            s = ROOT / src
+            if s.is_dir():
+                shutil.copytree(s, ctx / src, ignore=shutil.ignore_patterns(
+                    "__pycache__", "*.pyc"))
+            else:
+                shutil.copy2(s, ctx / src)
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    # this environment's packages (the dependencies) behind the image's own: a plain
+    # path line, so the project's editable-install hook there is not run
+    ours = Path(sysconfig.get_paths()["purelib"])
+    site = Path(subprocess.run([venv / "bin" / "python", "-c",
+                                "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                               check=True, capture_output=True, text=True).stdout.strip())
+    (site / "_deps_from_test_env.pth").write_text(f"{ours}\n")
+    pip = subprocess.run([venv / "bin" / "python", "-m", "pip", "install", "--no-deps",
+                          "--no-build-isolation", "--no-index", "--quiet",
+                          "--target", str(site), "."],
+                         cwd=ctx, capture_output=True, text=True, timeout=300)
+    assert pip.returncode == 0, pip.stderr[-3000:]
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    env = {"PATH": f"{venv / 'bin'}:/usr/bin:/bin", "HOME": str(tmp_path),
+           "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    probe = subprocess.run(
+        [venv / "bin" / "python", "-c",
+         "import importlib.resources as r, rig, controller, hil, rig.record_writer; "
+         "print(rig.__file__); print(r.files('rig') / 'rig.dbc')"],
+        cwd=run_dir, env=env, capture_output=True, text=True, timeout=120)
+    assert probe.returncode == 0, probe.stderr[-3000:]
+    installed, dbc = probe.stdout.split()
+    assert str(venv) in installed and str(ROOT) not in installed and Path(dbc).is_file()
+    demo = subprocess.run(
+        [site / "bin" / "rig", "demo", "--duration", "1", "--quiet", "--json",
+         "--no-telemetry", "--no-realtime", "--record", "run.mcap"],
+        cwd=run_dir, env=env, capture_output=True, text=True, timeout=600)
+    assert demo.returncode == 0, demo.stderr[-3000:]
+    out = json.loads(demo.stdout)
+    assert out["recording_dropped"] == 0 and out["recording_error"] is None
+    assert (run_dir / "run.mcap").stat().st_size > 10_000

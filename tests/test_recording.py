@@ -37,7 +37,8 @@ def rcfg(**kw: Any) -> RecordingConfig:
 
 
 def recorder(path: Path, **kw: Any) -> RunRecorder:
-    opts = {k: kw.pop(k) for k in ("poll_s", "compression", "max_chunk_age_s") if k in kw}
+    opts = {k: kw.pop(k) for k in ("poll_s", "compression", "max_chunk_age_s", "pipe_bytes")
+            if k in kw}
     return RunRecorder(path, rcfg(**kw), config_toml=TOML, design_bytes=b"\x93NUMPY-design",
                        metadata={"operator": "test", "seed": 7}, **{"poll_s": 0.001, **opts})
 
@@ -290,14 +291,40 @@ from rig.recording import RunRecorder
 cfg = default_config()
 rec = RunRecorder(sys.argv[1], replace(cfg.recording, chunk_bytes=4096),
                   config_toml=config_to_toml(cfg), design_bytes=None, metadata={})
+print(rec.pid, flush=True)
 k = 0
 while True:
     rec.can_frame(k * 1_000_000, k, 0x100, k.to_bytes(8, "little"), True)
     rec.tick(k * 1_000_000, {"tick": k, "rattlespace_m": k * 1e-6})
     k += 1
-    if k % 50 == 0:
+    if k % 5 == 0:
         time.sleep(0.001)
 """
+
+
+def start_recording_child(path: Path) -> tuple[subprocess.Popen[str], int]:
+    """A process recording as fast as it can; returns it and its writer process's PID
+    once the file has grown past 60 kB."""
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(path)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    writer_pid = int(proc.stdout.readline() or "0")
+    assert writer_pid > 0, proc.stderr.read() if proc.stderr else ""
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        if path.exists() and path.stat().st_size > 60_000:
+            break
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        time.sleep(0.05)
+    return proc, writer_pid
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
 
 
 def raw_complete_chunk_messages(path: Path) -> int:
@@ -332,17 +359,14 @@ def raw_complete_chunk_messages(path: Path) -> int:
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="SIGKILL semantics")
-def test_sigkill_leaves_readable_completed_chunks(tmp_path: Path) -> None:
+def test_sigkill_of_service_and_writer_leaves_readable_completed_chunks(tmp_path: Path
+                                                                        ) -> None:
+    """systemd's final SIGKILL hits every process of the unit: the file has no footer,
+    yet every message of its complete chunks reads back, as a contiguous prefix."""
     path = tmp_path / "killed.mcap"
-    proc = subprocess.Popen([sys.executable, "-c", CHILD, str(path)], cwd=ROOT,
-                            stderr=subprocess.PIPE)
+    proc, writer_pid = start_recording_child(path)
     try:
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            if path.exists() and path.stat().st_size > 60_000:
-                break
-            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-            time.sleep(0.05)
+        os.kill(writer_pid, signal.SIGKILL)     # started by our child, for this test
     finally:
         os.kill(proc.pid, signal.SIGKILL)       # our own child, by PID
         proc.wait()
@@ -359,23 +383,82 @@ def test_sigkill_leaves_readable_completed_chunks(tmp_path: Path) -> None:
     assert run.attachments["config.toml"].decode() == TOML
 
 
+@pytest.mark.skipif(sys.platform != "linux", reason="SIGKILL semantics")
+def test_sigkill_of_the_loop_process_loses_nothing_it_sent(tmp_path: Path) -> None:
+    """The writer outlives a killed loop process: it writes everything it was sent and
+    finishes the file with its footer."""
+    path = tmp_path / "killed.mcap"
+    proc, writer_pid = start_recording_child(path)
+    os.kill(proc.pid, signal.SIGKILL)           # our own child, by PID
+    proc.wait()
+    deadline = time.monotonic() + 30
+    while pid_alive(writer_pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not pid_alive(writer_pid)
+    run = read_run(path)
+    assert run.complete and run.stopped_at is None
+    frames, records = run.frames, run.records
+    assert len(frames) > 500
+    assert [f.tick for f in frames] == list(range(len(frames)))
+    # the last batch (one frame + one record per tick) is whole
+    assert [r.tick for r in records] == list(range(len(frames)))
+    assert "ended without closing" in (proc.stderr.read() if proc.stderr else "")
+
+
 # ----------------------------------------------------------------------- never blocks
 
 
-def test_full_queue_drops_and_counts(tmp_path: Path) -> None:
+def test_writer_behind_drops_whole_batches_keeps_events_and_counts(tmp_path: Path) -> None:
     path = tmp_path / "drop.mcap"
-    rec = recorder(path, queue_size=16, poll_s=2.0)
-    time.sleep(0.05)                      # writer is asleep on an empty queue
-    accepted = [rec.can_frame(k, k, 0x100, b"\x01", True) for k in range(100)]
-    assert accepted == [True] * 16 + [False] * 84
-    assert rec.tick(200, {"tick": 200}) is False
-    assert rec.event(201, 200, "fault", {"code": 3}) is True     # event headroom
-    assert rec.dropped == 85
+    rec = recorder(path, queue_size=16, pipe_bytes=4096)
+    os.kill(rec.pid, signal.SIGSTOP)      # the writer (started by this test) stops reading
+    accepted = []
+    try:
+        for k in range(400):
+            rec.can_frame(k, k, 0x100, b"\x01", True)
+            accepted.append(rec.tick(k, {"tick": k}))
+            if k == 300:
+                rec.event(k, k, "fault", {"code": 3})   # dropped with its batch: kept back
+    finally:
+        os.kill(rec.pid, signal.SIGCONT)
+    n_ok = sum(accepted)
+    assert accepted == [True] * n_ok + [False] * (400 - n_ok) and 10 < n_ok < 200
+    assert rec.dropped == 2 * (400 - n_ok)      # frame + record per lost tick, not the event
     rec.close()
-    assert not rec.can_frame(0, 0, 1, b"", True) and rec.dropped == 86
+    assert rec.error is None
+    assert not rec.can_frame(0, 0, 1, b"", True) and rec.dropped == 2 * (400 - n_ok) + 1
     run = read_run(path)
-    assert [f.tick for f in run.frames] == list(range(16))
-    assert run.events[0].detail == {"code": 3}
+    assert [f.tick for f in run.frames] == list(range(n_ok))
+    assert [r.tick for r in run.records] == list(range(n_ok))
+    assert [(e.tick, e.detail) for e in run.events] == [(300, {"code": 3})]
+
+
+def test_item_larger_than_the_pipe_is_sent_in_pieces(tmp_path: Path) -> None:
+    """A write the pipe takes only in part is finished by later flushes (the stream
+    never tears); the ticks in between are dropped and counted."""
+    path = tmp_path / "big.mcap"
+    big = "x" * 200_000
+    rec = recorder(path, pipe_bytes=4096)
+    rec.event(0, 0, "note", big)
+    sent_ok = []
+    for k in range(1, 3000):
+        rec.can_frame(k, k, 0x100, b"\x02", True)
+        sent_ok.append(rec.tick(k, {"tick": k}))
+        time.sleep(0.0002)
+    rec.close()
+    assert rec.error is None and rec.malformed == 0
+    run = read_run(path)
+    assert run.events[0].detail == big
+    ok_ticks = [k for k, ok in zip(range(1, 3000), sent_ok, strict=True) if ok]
+    assert ok_ticks and [r.tick for r in run.records] == ok_ticks
+    assert rec.dropped == 2 * (2999 - len(ok_ticks))
+
+
+def test_bad_path_raises_at_once(tmp_path: Path) -> None:
+    (tmp_path / "ro").mkdir()
+    (tmp_path / "ro" / "run.mcap").mkdir()       # a directory where the file should go
+    with pytest.raises(OSError, match=r"run\.mcap"):
+        recorder(tmp_path / "ro" / "run.mcap")
 
 
 def test_malformed_record_is_skipped_not_fatal(tmp_path: Path) -> None:
@@ -439,3 +522,12 @@ def test_truncated_anywhere_reads_a_prefix(tmp_path: Path, frac: float,
     assert run.complete == (cut == len(blob))
     if cut < len(blob):
         assert run.stopped_at is not None and str(path) in run.stopped_at
+
+
+def test_relative_path_is_the_callers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The writer process runs elsewhere; a relative path still means the caller's."""
+    monkeypatch.chdir(tmp_path)
+    with recorder(Path("rel.mcap")) as rec:
+        rec.can_frame(1, 0, 0x100, b"\x01", True)
+    assert rec.base_path == tmp_path / "rel.mcap"
+    assert [f.data for f in read_run(tmp_path / "rel.mcap").frames] == [b"\x01"]

@@ -1,5 +1,6 @@
 """Replay: bit-exact re-run of a recorded run, other-design comparison, candump logs,
-truncated / corrupt / foreign files (rig/replay.py, docs/replay.md).
+truncated / corrupt / foreign files, error frames and bus exceptions (rig/replay/,
+docs/replay.md).
 
 The recordings are produced here by the real loop, tick-stepped against the emulated
 rig (hil.node.RigNode) on a python-can virtual bus with the RunRecorder on
@@ -8,6 +9,7 @@ rig (hil.node.RigNode) on a python-can virtual bus with the RunRecorder on
 
 from __future__ import annotations
 
+import errno
 import json
 import tempfile
 from dataclasses import replace
@@ -29,6 +31,7 @@ from controller.config import default_config
 from controller.design import design_bank
 from rig.cli import main as rig_main
 from rig.protocol import (
+    FAULT_REPORT_ID,
     SENSOR_DATA,
     SENSOR_DATA_ID,
     VALVE_COMMAND,
@@ -112,13 +115,13 @@ def test_a_changed_sensor_frame_is_detected(recording: Path) -> None:
     """The comparison can fail: one altered rattlespace reading changes the commands."""
     run = load_recorded_run(recording)
     k = next(i for i, f in enumerate(run.rx) if f[2] == SENSOR_DATA_ID and f[0] == 600)
-    tick, t_ns, fid, data = run.rx[k]
+    tick, t_ns, fid, data, flags = run.rx[k]
     sd = SensorData()
     assert SENSOR_DATA.decode(bytearray(data), sd) is DecodeStatus.OK
     buf = bytearray(8)
     SENSOR_DATA.encode(buf, sd.counter, sd.sensor_status, sd.rattlespace_m + 0.004,
                        sd.load_cell_force_n, sd.sprung_accel_mps2)
-    run.rx[k] = (tick, t_ns, fid, bytes(buf))
+    run.rx[k] = (tick, t_ns, fid, bytes(buf), flags)
     res = replay_recording(recording, run=run)
     assert not res.bit_exact
     assert res.tx_frames_mismatched > 0 and res.max_abs_command_diff > 0
@@ -158,7 +161,7 @@ def _bank_alone(run: Any, design: Any, cfg: Any) -> np.ndarray:
     rt = BankRuntime(design, weight_set=cfg.design.weight_set, cfg=cfg)
     sd = SensorData()
     out = []
-    for _tick, _, fid, data in run.rx:
+    for _tick, _, fid, data, _flags in run.rx:
         if fid == SENSOR_DATA_ID:
             assert SENSOR_DATA.decode(bytearray(data), sd) is DecodeStatus.OK
             out.append(rt.step(sd.rattlespace_m, sd.sprung_accel_mps2, sd.load_cell_force_n))
@@ -221,10 +224,10 @@ def test_candump_log_replay_matches_the_recording(plain_recording: Path, work: P
     run = load_recorded_run(plain_recording)
     path = work / f"plain{suffix}"
     with can.Logger(str(path)) as logger:
-        for _tick, t_ns, fid, data in run.rx:
+        for _tick, t_ns, fid, data, _flags in run.rx:
             logger.on_message_received(can.Message(
                 timestamp=t_ns * 1e-9, arbitration_id=fid, data=data, is_extended_id=False))
-        for tick, fid, data in run.tx[:50]:     # the controller's own frames: filtered
+        for tick, fid, data, _flags in run.tx[:50]:     # the controller's own frames: filtered
             logger.on_message_received(can.Message(
                 timestamp=(1_000_000_000 + tick * 1_000_000 + 300_000) * 1e-9,
                 arbitration_id=fid, data=data, is_extended_id=False))
@@ -381,16 +384,17 @@ def test_config_replace_keeps_other_sections() -> None:
 def test_indexed_gather_and_piecewise_decoding_equal_the_record_walk(recording: Path,
                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """The MessageIndex fast path hands out exactly what walking every record does."""
-    import rig.replay as replay_mod
+    from rig.replay import scan as scan_mod
+    from rig.replay.recorded import RunDecoder, assemble_run
 
     fast = load_recorded_run(recording)
     # decoded in small pieces (a flush every few chunks, as for long recordings)
-    dec = replay_mod._RunDecoder(flush_messages=97)
-    scan = replay_mod.scan_recording(recording, dec.handlers(), after_chunk=dec.after_chunk)
+    dec = RunDecoder(flush_messages=97)
+    scan = scan_mod.scan_recording(recording, dec.handlers(), after_chunk=dec.after_chunk)
     dec.flush(final=True)
-    pieces = replay_mod._assemble(recording, scan, dec.pieces, dec.first)
+    pieces = assemble_run(recording, scan, dec.pieces, dec.first)
     assert len(dec.pieces) > 3
-    monkeypatch.setattr(replay_mod._Segment, "_gather", lambda self, buf, index: None)
+    monkeypatch.setattr(scan_mod._Segment, "_gather", lambda self, buf, index: None)
     slow = load_recorded_run(recording)
     for other in (slow, pieces):
         assert fast.rx == other.rx and fast.tx == other.tx and fast.events == other.events
@@ -452,3 +456,237 @@ def test_reader_process_replay_equals_in_process(recording: Path, work: Path) ->
     foreign = _mcap(work / "foreign-reader.mcap", ["/x"], library="other", metadata=None)
     with pytest.raises(RecordingError, match="foreign MCAP"):
         replay_recording(foreign, reader_process=True)
+
+
+# ---------------------------------------------------------------------------- bus trouble
+
+#: ticks of the bus-trouble recording (1 s, armed at tick 100; heartbeat every 100 ticks)
+EXT_TICK = 150          # an extended-ID frame with SensorData's ID (+ a benign error frame)
+BUSERROR_TICK = 200     # error frame, class CAN_ERR_BUSERROR -> BUS_ERROR
+RECV_OFF_TICK = 350     # recv raises ENETDOWN at its second call -> BUS_OFF
+SEND_TICK = 500         # ValveCommand send raises ENOBUFS (armed) -> BUS_ERROR
+BUSOFF_TICK = 700       # error frame CAN_ERR_BUSOFF on a heartbeat tick -> BUS_OFF; the
+#                         tick's second FaultReport send fails (the first goes out)
+RECV_AGAIN_TICK = 720   # recv raises EAGAIN (BlockingIOError) while latched
+FLAKY_COMMANDS: dict[int, tuple[str, Any]] = {
+    250: ("reset", None), 300: ("arm", None), 400: ("reset", None), 450: ("arm", None),
+    550: ("reset", None), 600: ("arm", None), 760: ("reset", None), 800: ("arm", None)}
+
+
+class FlakyBus(can.BusABC):
+    """The controller's bus with scheduled failures (a test double around the virtual
+    bus): ``recv_errors`` {(tick, n-th recv call of the tick): exception},
+    ``send_errors`` {(tick, frame id, n-th send of that id in the tick): exception}."""
+
+    def __init__(self, inner: can.BusABC, recv_errors: dict[tuple[int, int], Exception],
+                 send_errors: dict[tuple[int, int, int], Exception]) -> None:
+        super().__init__(channel="flaky")
+        self.inner = inner
+        self.recv_errors = dict(recv_errors)
+        self.send_errors = dict(send_errors)
+        self.tick = -1
+        self._recv_calls = 0
+        self._sends: dict[int, int] = {}
+
+    def set_tick(self, k: int) -> None:
+        self.tick, self._recv_calls = k, 0
+        self._sends.clear()
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        n, self._recv_calls = self._recv_calls, self._recv_calls + 1
+        exc = self.recv_errors.pop((self.tick, n), None)
+        if exc is not None:
+            raise exc
+        return self.inner.recv(timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        raise NotImplementedError
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        n = self._sends.get(msg.arbitration_id, 0)
+        self._sends[msg.arbitration_id] = n + 1
+        exc = self.send_errors.pop((self.tick, msg.arbitration_id, n), None)
+        if exc is not None:
+            raise exc
+        self.inner.send(msg, timeout)
+
+
+@pytest.fixture(scope="module")
+def flaky_recording(work: Path, design_blob: bytes) -> Path:
+    """1 s through the real loop with error frames, an extended-ID frame and recv /
+    send exceptions; reset and re-armed after every fault."""
+    from rig.bus import CAN_ERR_BUSERROR, CAN_ERR_BUSOFF, CAN_ERR_LOSTARB
+
+    flaky: list[FlakyBus] = []
+
+    def wrap(bus: can.BusABC) -> can.BusABC:
+        flaky.append(FlakyBus(bus, {
+            (RECV_OFF_TICK, 1): can.CanOperationError("Network is down",
+                                                      error_code=errno.ENETDOWN),
+            (RECV_AGAIN_TICK, 0): OSError(errno.EAGAIN, "Resource temporarily unavailable"),
+        }, {
+            (SEND_TICK, VALVE_COMMAND_ID, 0): OSError(errno.ENOBUFS,
+                                                      "No buffer space available"),
+            (BUSOFF_TICK, FAULT_REPORT_ID, 1): can.CanOperationError("Transmit buffer full"),
+        }))
+        return flaky[0]
+
+    def inject(k: int, rig_bus: can.BusABC) -> None:
+        flaky[0].set_tick(k)
+        error_class = {BUSERROR_TICK: CAN_ERR_BUSERROR, BUSOFF_TICK: CAN_ERR_BUSOFF,
+                       EXT_TICK: CAN_ERR_LOSTARB}.get(k)
+        if error_class is not None:
+            rig_bus.send(can.Message(arbitration_id=error_class, is_error_frame=True,
+                                     is_extended_id=False, data=bytes(8)))
+        if k == EXT_TICK:   # not SensorData: a 29-bit frame that happens to share its ID
+            rig_bus.send(can.Message(arbitration_id=SENSOR_DATA_ID, is_extended_id=True,
+                                     data=bytes(range(8))))
+
+    path = record_emulated_run(work / "flaky.mcap", 1.0, cfg=CFG, design_bytes=design_blob,
+                               commands=FLAKY_COMMANDS, wrap_bus=wrap, before_tick=inject)
+    flaky[0].shutdown()
+    assert not flaky[0].recv_errors and not flaky[0].send_errors   # all happened
+    return path
+
+
+def _fault_events(path: Path) -> list[tuple[int, str]]:
+    return [(e.tick, e.detail["fault"]) for e in read_run(path).events if e.kind == "fault"]
+
+
+def test_bus_trouble_is_recorded(flaky_recording: Path) -> None:
+    """The recording holds what replay needs (lead's reader as the reference)."""
+    run = read_run(flaky_recording)
+    flagged = [(f.tick, f.arbitration_id, f.is_error_frame, f.is_extended_id)
+               for f in run.frames if f.is_rx and (f.is_error_frame or f.is_extended_id)]
+    assert flagged == [(EXT_TICK, 0x002, True, False),
+                       (EXT_TICK, SENSOR_DATA_ID, False, True),
+                       (BUSERROR_TICK, 0x080, True, False), (BUSOFF_TICK, 0x040, True, False)]
+    notes = [(e.tick, e.detail["bus_exception"], e.detail["errno"])
+             for e in run.events if e.kind == "note" and "bus_exception" in e.detail]
+    assert notes == [(RECV_OFF_TICK, "recv", errno.ENETDOWN),
+                     (SEND_TICK, "send", errno.ENOBUFS), (BUSOFF_TICK, "send", None),
+                     (RECV_AGAIN_TICK, "recv", errno.EAGAIN)]
+    assert _fault_events(flaky_recording) == [
+        (BUSERROR_TICK, "BUS_ERROR"), (RECV_OFF_TICK, "BUS_OFF"), (SEND_TICK, "BUS_ERROR"),
+        (BUSOFF_TICK, "BUS_OFF")]
+
+
+@pytest.mark.parametrize("reader_process", [False, True])
+def test_bus_trouble_replays_bit_for_bit(flaky_recording: Path, work: Path,
+                                         reader_process: bool) -> None:
+    """Error frames, an extended-ID frame, recv and send exceptions come back in the
+    recorded ticks: same fault codes at the same ticks, the same frames sent."""
+    out = work / f"flaky-replayed-{reader_process}.mcap"
+    res = replay_recording(flaky_recording, out=out, reader_process=reader_process)
+    assert res.bit_exact, res.summary()
+    assert res.max_abs_command_diff == 0.0 and res.tx_frames_mismatched == 0
+    rec_faults = _fault_events(flaky_recording)
+    assert list(zip(res.fault_ticks, res.faults, strict=True)) == rec_faults
+    assert res.bus_exceptions_recorded == res.bus_exceptions_raised == 4
+    # the replay's own recording (same loop, replay bus) against the original
+    a, b = read_run(flaky_recording), read_run(out)
+
+    def frames(run: Any, rx: bool) -> list[tuple[Any, ...]]:
+        return [(f.tick, f.arbitration_id, f.data, f.is_error_frame, f.is_extended_id)
+                for f in run.frames if f.is_rx is rx]
+
+    assert frames(a, False) == frames(b, False) and frames(a, True) == frames(b, True)
+    assert _fault_events(out) == rec_faults
+
+    def notes(run: Any) -> list[Any]:
+        return [(e.tick, e.detail) for e in run.events if e.kind == "note"]
+
+    assert notes(a) == notes(b) and len(notes(a)) == 4
+    fr = [f for f in a.frames if not f.is_rx and f.tick == BUSOFF_TICK
+          and f.arbitration_id == FAULT_REPORT_ID]
+    assert len(fr) == 1   # the second FaultReport of that tick failed, the first went out
+
+
+def test_bus_trouble_decodes_the_same_in_pieces(flaky_recording: Path) -> None:
+    """Send attempts are numbered across decoding pieces as in one piece."""
+    from rig.replay import scan_recording
+    from rig.replay.recorded import RunDecoder, assemble_run
+
+    whole = load_recorded_run(flaky_recording)
+    dec = RunDecoder(flush_messages=37)
+    scan = scan_recording(flaky_recording, dec.handlers(), after_chunk=dec.after_chunk)
+    dec.flush(final=True)
+    pieces = assemble_run(flaky_recording, scan, dec.pieces, dec.first)
+    assert len(dec.pieces) > 5
+    assert pieces.bus_faults == whole.bus_faults
+    assert [(f.tick, f.where, f.arbitration_id, f.attempt) for f in whole.bus_faults] == [
+        (RECV_OFF_TICK, "recv", None, None), (SEND_TICK, "send", VALVE_COMMAND_ID, 0),
+        (BUSOFF_TICK, "send", FAULT_REPORT_ID, 1), (RECV_AGAIN_TICK, "recv", None, None)]
+
+
+def test_send_attempts_straddling_two_pieces() -> None:
+    """A tick's frames split over two pieces: the attempt counts carry over."""
+    from rig.replay.bus_faults import BusFault, SendAttempts
+
+    fault = BusFault(7, "send", "OSError", "x", None, FAULT_REPORT_ID)
+    sa = SendAttempts()
+    fr = (7, FAULT_REPORT_ID, b"\x00", 0)
+    assert sa.number([(6, FAULT_REPORT_ID, b"", 0), fr], [1, 2], []) == []
+    got = sa.number([(7, VALVE_COMMAND_ID, b"", 0), fr], [3, 5], [(4, fault)])
+    assert [f.attempt for f in got] == [1]     # after the FaultReport of piece one
+    got = sa.number([], [], [(9, fault)])
+    assert [f.attempt for f in got] == [3]     # + piece two's failed and sent one
+
+
+@pytest.mark.parametrize("exc", [
+    can.CanOperationError("Network is down", error_code=errno.ENETDOWN),
+    can.CanOperationError("Transmit buffer full"),
+    OSError(errno.ENOBUFS, "No buffer space available"),
+    OSError(errno.ENODEV, "No such device"),
+    OSError(errno.EAGAIN, "Resource temporarily unavailable"),
+    can.CanTimeoutError("timed out", error_code=errno.ETIMEDOUT),
+    can.CanError("odd interface error"),
+])
+def test_a_recorded_bus_exception_is_rebuilt_alike(exc: Exception) -> None:
+    """Recorded as the loop records it, rebuilt by replay: same class, message, errno
+    and fault classification."""
+    from rig.bus import classify_bus_exception, errno_of
+    from rig.loop import _bus_exception
+    from rig.replay.bus_faults import bus_fault_of
+
+    fault = bus_fault_of({"tick": 3, "kind": "note", "detail": json.loads(json.dumps(
+        _bus_exception("recv", exc)))})
+    assert fault is not None
+    again = fault.exception()
+    assert type(again) is type(exc) and str(again) == str(exc)
+    assert errno_of(again) == errno_of(exc)
+    assert classify_bus_exception(again) is classify_bus_exception(exc)
+
+
+def test_replay_bus_frame_flags() -> None:
+    """Flags become the Message's; a flagless frame with an ID above 0x7FF is an
+    extended one (recordings made before the flags were recorded)."""
+    from rig.replay import ERROR_FRAME, EXTENDED_ID
+
+    bus = McapReplayBus([(0, 1, 0x80, bytes(8), ERROR_FRAME),
+                         (0, 2, 0x100, bytes(8), EXTENDED_ID),
+                         (0, 3, 0x100, bytes(8), 0),
+                         (0, 4, 0x18FF00, bytes(8), 0)])
+    bus.advance(0)
+    got = [(m.arbitration_id, m.is_error_frame, m.is_extended_id)
+           for m in iter(lambda: bus.recv(0), None)]
+    assert got == [(0x80, True, False), (0x100, False, True), (0x100, False, False),
+                   (0x18FF00, False, True)]
+    bus.shutdown()
+
+
+@pytest.mark.parametrize("drop", ["flags", "recv", "send", "attempt"])
+def test_bus_trouble_needs_every_piece(flaky_recording: Path, drop: str) -> None:
+    """Without the frame flags, the recv or send exceptions, or the send attempt
+    numbers the replay differs from the recording (what an older replay did)."""
+    from dataclasses import replace as dc_replace
+
+    run = load_recorded_run(flaky_recording)
+    if drop == "flags":
+        run.rx = [(t, ts, fid, d, 0) for t, ts, fid, d, _ in run.rx]
+    elif drop == "attempt":   # "the first send of the ID in the tick" instead
+        run.bus_faults = [dc_replace(f, attempt=None) for f in run.bus_faults]
+    else:
+        run.bus_faults = [f for f in run.bus_faults if f.where != drop]
+    res = replay_recording(flaky_recording, run=run)
+    assert not res.bit_exact and res.tx_frames_mismatched > 0

@@ -235,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
     from hil.roads import make_road
     from rig.bus import open_bus
     from rig.protocol import LifecycleState
-    from rig.realtime import RealtimeRequest, apply_realtime, restore_gc
+    from rig.realtime import RealtimeRequest, restore_gc
     from rig.service import Service, ServiceOptions
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
@@ -268,8 +268,8 @@ def run(args: argparse.Namespace) -> int:
     faults: list[dict[str, Any]] = []
     state = {"rearms": 0, "armed_at": -1, "rig_started_at": -1}
     stop_rig = threading.Event()
-    rig_thread = threading.Thread(target=node.run, args=(stop_rig,), name="emulated-rig",
-                                  daemon=True)
+    rig_threads: list[threading.Thread] = []
+    period_ns = service.loop.period_ns
 
     def on_tick(loop: Any) -> None:
         """Operator of the demo, in the loop thread (cheap except on events)."""
@@ -279,7 +279,13 @@ def run(args: argparse.Namespace) -> int:
             # loop thread's real-time settings
             if loop.tick_count >= WARM_TICKS:
                 state["rig_started_at"] = loop.tick_count
-                rig_thread.start()
+                # the rig ticks half a period after the loop: in one process the two
+                # threads take turns with the GIL instead of waking together
+                deadline = loop.t_ns - loop.lateness_ns
+                rig_threads.append(threading.Thread(
+                    target=node.run, args=(stop_rig,), name="emulated-rig", daemon=True,
+                    kwargs={"start_ns": deadline + period_ns + period_ns // 2}))
+                rig_threads[0].start()
             return
         k = node.count
         if k >= n_ticks:
@@ -304,9 +310,7 @@ def run(args: argparse.Namespace) -> int:
                            "detail": tr.fault_detail, "reason": tr.reason})
 
     service.loop.lifecycle.add_listener(on_transition)
-    report = None if args.no_realtime else apply_realtime(RealtimeRequest())
-    if report is not None:
-        service.realtime_report = report
+    report = None if args.no_realtime else service.apply_realtime(RealtimeRequest())
     # first rig ticks outside real time (numba / first-call costs): no command has armed the
     # rig's drive watchdog yet, so a slow first tick cannot trip it
     for _ in range(3):
@@ -320,8 +324,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         progress.stop()
         stop_rig.set()
-        if rig_thread.is_alive():
-            rig_thread.join(5.0)
+        for th in rig_threads:
+            th.join(5.0)
         rig_bus.shutdown()
         if report is not None:
             restore_gc()

@@ -56,6 +56,9 @@ def _print_text(res: ReplayResult) -> None:
               f"{s['tx_frames_mismatched']} differ; max |spool command diff| "
               f"{s['max_abs_command_diff']:.6g}; max |force ref diff| "
               f"{s['max_abs_force_ref_diff_n']:.6g} N")
+        if res.bus_exceptions_recorded:
+            print(f"bus exceptions: {res.bus_exceptions_recorded} recorded, "
+                  f"{res.bus_exceptions_raised} raised again")
         if s["first_mismatch"] and res.same_controller:
             print(f"first mismatch: {json.dumps(s['first_mismatch'])}")
     if res.comparison:

@@ -1,0 +1,422 @@
+"""The recording writer process: item stream on stdin -> MCAP files.
+
+Started by :class:`rig.recording.RunRecorder` as ``python -m rig.record_writer``; never
+run by hand.  It reads the stream of :mod:`rig.record_codec` from stdin, encodes JSON,
+fills MCAP chunks, flushes every finished chunk to the OS and rotates segments.  All of
+this used to run on a thread of the control loop's process, where it held the GIL for
+tens of microseconds at a time and delayed the loop's wake-ups; in its own process it
+cannot.
+
+Two threads: a reader drains the pipe into a backlog of at most ``queue_size`` items
+(then it stops reading, the pipe fills and the loop side drops and counts), and the
+writer encodes.  Status goes to stdout as JSON lines (``ready``, ``progress`` about
+every second, ``error``, ``final``).  SIGINT and SIGTERM are ignored: the writer ends
+when the loop closes the stream (an END item) or dies (end of file); either way the
+backlog is written and the segment gets its summary and footer.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import json
+import os
+import signal
+import struct
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.writer import CompressionType, Writer
+
+from rig.mcap_schema import (
+    EVENT_KINDS,
+    MESSAGE_ENCODING,
+    RECORDING_FORMAT_VERSION,
+    SCHEMA_ENCODING,
+    SIGNAL_KEYS,
+    TIMING_KEYS,
+    TOPIC_CAN_RX,
+    TOPIC_CAN_TX,
+    TOPIC_EVENTS,
+    TOPIC_INTERNALS,
+    TOPIC_SIGNALS,
+    TOPIC_TIMING,
+    TOPICS,
+    encode_json,
+    schema_bytes,
+)
+from rig.record_codec import (
+    FRAME_ERROR,
+    FRAME_EXTENDED,
+    FRAME_RX,
+    STREAM_MAGIC,
+    TickDecoder,
+    decode_item,
+    iter_items,
+    split_items,
+)
+
+__all__ = ["McapRunSink", "main", "segment_path"]
+
+CONFIG_ATTACHMENT = "config.toml"
+DESIGN_ATTACHMENT = "design.npz"
+METADATA_NAME = "rig"
+PARTS_KEY = "record_parts"  # in /rig/signals: how many messages the tick record has
+_RESERVED = frozenset({"tick", "t_ns", PARTS_KEY})
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+                "none": CompressionType.NONE}
+
+
+def segment_path(base: Path, index: int) -> Path:
+    return base if index == 0 else base.with_name(f"{base.stem}.{index:03d}.mcap")
+
+
+class McapRunSink:
+    """Decoded items -> MCAP segments (rotation by size / time, chunk flushing)."""
+
+    def __init__(self, base: Path, *, rotate_bytes: int, rotate_seconds: float,
+                 chunk_bytes: int, compression: str, clock_offset_ns: int,
+                 metadata: Mapping[str, str], config_toml: str, design: bytes | None,
+                 max_chunk_age_s: float) -> None:
+        self.base = base
+        self.paths: list[Path] = []
+        self._rotate_bytes = rotate_bytes
+        self._rotate_ns = int(rotate_seconds * 1e9)
+        self._chunk_bytes = chunk_bytes
+        self._compression = _COMPRESSION[compression]
+        self._offset = clock_offset_ns
+        self._meta = dict(metadata)
+        self._config_toml = config_toml
+        self._design = design
+        self._max_chunk_age_s = max_chunk_age_s
+        self._stream: IO[bytes] | None = None
+        self._writer: Writer | None = None
+        self._channels: dict[str, int] = {}
+        self._seg_t0: int | None = None
+        self._seq = 0
+        self._n_since_size_check = 0
+        self.written = 0
+        self.malformed = 0
+        self.last_malformed: str | None = None
+        self._open_segment()
+
+    # ------------------------------------------------------------------ segments
+    def _open_segment(self) -> None:
+        path = segment_path(self.base, len(self.paths))
+        stream = open(path, "wb")  # noqa: SIM115 (closed in finish_segment)
+        writer = Writer(stream, chunk_size=self._chunk_bytes, compression=self._compression)
+        writer.start(profile="", library=f"rig-recorder/{RECORDING_FORMAT_VERSION}")
+        now = time.time_ns()
+        writer.add_metadata(METADATA_NAME, {**self._meta, "segment": str(len(self.paths))})
+        writer.add_attachment(now, now, CONFIG_ATTACHMENT, "application/toml",
+                              self._config_toml.encode())
+        if self._design is not None:
+            writer.add_attachment(now, now, DESIGN_ATTACHMENT, "application/octet-stream",
+                                  self._design)
+        self._channels = {}
+        for topic, schema in TOPICS.items():
+            sid = writer.register_schema(schema["title"], SCHEMA_ENCODING,
+                                         schema_bytes(schema))
+            self._channels[topic] = writer.register_channel(topic, MESSAGE_ENCODING, sid)
+        stream.flush()
+        self.paths.append(path)
+        self._stream, self._writer = stream, writer
+        self._seg_t0 = None
+        self._last_size = stream.tell()
+        self._last_chunk_mono = time.monotonic()
+
+    def finish_segment(self) -> None:
+        if self._writer is not None and self._stream is not None:
+            self._writer.finish()
+            self._stream.close()
+        self._writer = self._stream = None
+
+    def _maybe_rotate(self, t_ns: int) -> None:
+        if self._seg_t0 is None:
+            self._seg_t0 = t_ns
+            return
+        assert self._stream is not None
+        self._n_since_size_check += 1
+        check_size = self._n_since_size_check >= 64
+        if check_size:
+            self._n_since_size_check = 0
+        if (t_ns - self._seg_t0 >= self._rotate_ns
+                or (check_size and self._stream.tell() >= self._rotate_bytes)):
+            self.finish_segment()
+            self._open_segment()
+            self._seg_t0 = t_ns
+
+    def flush(self) -> None:
+        """Push finished chunks to the OS; close a chunk older than max_chunk_age_s."""
+        assert self._stream is not None
+        now = time.monotonic()
+        size = self._stream.tell()
+        if size != self._last_size:
+            self._last_size = size
+            self._last_chunk_mono = now
+        elif now - self._last_chunk_mono > self._max_chunk_age_s:
+            # mcap.Writer has no public "close the open chunk"; 1.x names it like this.
+            finalize = getattr(self._writer, "_Writer__finalize_chunk", None)
+            if finalize is not None:
+                finalize()
+            self._last_chunk_mono = now
+            self._last_size = self._stream.tell()
+        self._stream.flush()
+
+    # ------------------------------------------------------------------ items
+    def write(self, item: tuple[Any, ...]) -> None:
+        """Write one decoded item; a malformed one is skipped and counted."""
+        try:
+            self._maybe_rotate(int(item[1]))
+            self._write(item)
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            self.malformed += 1
+            self.last_malformed = f"{type(exc).__name__}: {exc} in {item[:3]!r}"
+
+    def _write(self, item: tuple[Any, ...]) -> None:
+        w = self._writer
+        assert w is not None
+        seq = self._seq & 0xFFFFFFFF
+        kind = item[0]
+        t_ns = int(item[1])
+        log_time = max(t_ns + self._offset, 0)
+        if kind == "frame":
+            _, _, tick, arb, data, flags = item
+            extra = b""
+            if flags & FRAME_ERROR:
+                extra += b',"error_frame":true'
+            if flags & FRAME_EXTENDED:
+                extra += b',"extended_id":true'
+            payload = b'{"tick":%d,"t_ns":%d,"id":%d,"data":"%s","dlc":%d%s}' % (
+                tick, t_ns, arb, data.hex().encode(), len(data), extra)
+            ch = self._channels[TOPIC_CAN_RX if flags & FRAME_RX else TOPIC_CAN_TX]
+            w.add_message(ch, log_time, payload, log_time, seq)
+        elif kind == "tick":
+            record: Mapping[str, Any] = item[2]
+            tick = int(record["tick"])
+            sig: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
+            tim: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
+            intl: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
+            for k, v in record.items():
+                if k in SIGNAL_KEYS:
+                    sig[k] = v
+                elif k in TIMING_KEYS:
+                    tim[k] = v
+                elif k not in _RESERVED:
+                    intl[k] = v
+            parts = [(TOPIC_SIGNALS, sig)]
+            parts += [(t, m) for t, m in ((TOPIC_INTERNALS, intl), (TOPIC_TIMING, tim))
+                      if len(m) > 2]
+            sig[PARTS_KEY] = len(parts)   # lets a reader spot a record torn by a crash
+            encoded = [(topic, encode_json(msg)) for topic, msg in parts]
+            for topic, blob in encoded:
+                w.add_message(self._channels[topic], log_time, blob, log_time, seq)
+        elif kind == "event":
+            _, _, tick, kind_s, detail = item
+            if kind_s not in EVENT_KINDS:
+                detail = {"kind": str(kind_s), "detail": detail}
+                kind_s = "note"
+            if not (detail is None or isinstance(detail, str | Mapping)):
+                detail = str(detail)
+            msg = {"tick": int(tick), "t_ns": t_ns, "kind": kind_s,
+                   "detail": dict(detail) if isinstance(detail, Mapping) else detail}
+            w.add_message(self._channels[TOPIC_EVENTS], log_time, encode_json(msg),
+                          log_time, seq)
+        else:
+            raise ValueError(f"unknown item {kind!r}")
+        self._seq += 1
+        self.written += 1
+
+
+# ---------------------------------------------------------------------------- process
+
+
+class _Status:
+    """JSON status lines to the parent (stdout)."""
+
+    def __init__(self, out: IO[str]) -> None:
+        self.out = out
+        self.broken = False
+
+    def send(self, event: str, **fields: Any) -> None:
+        if self.broken:
+            return
+        try:
+            self.out.write(json.dumps({"event": event, **fields}, default=str) + "\n")
+            self.out.flush()
+        except (BrokenPipeError, OSError):
+            self.broken = True  # the parent is gone; keep writing the file
+
+
+def _read_exact(fd: int, n: int) -> bytes:
+    out = bytearray()
+    while len(out) < n:
+        chunk = os.read(fd, n - len(out))
+        if not chunk:
+            raise EOFError(f"stream ended after {len(out)} of {n} header bytes")
+        out += chunk
+    return bytes(out)
+
+
+class _Backlog:
+    """Reader thread: pipe -> complete items, at most ``limit`` items waiting."""
+
+    def __init__(self, fd: int, limit: int) -> None:
+        self.fd = fd
+        self.limit = max(1, limit)
+        self.chunks: collections.deque[tuple[bytes, int]] = collections.deque()
+        self.items = 0
+        self.eof = False
+        self.error: str | None = None
+        self.cond = threading.Condition()
+        self.thread = threading.Thread(target=self._run, name="record-reader", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        carry = b""
+        try:
+            while True:
+                with self.cond:
+                    while self.items >= self.limit:
+                        self.cond.wait(0.05)
+                data = os.read(self.fd, 1 << 18)
+                if not data:
+                    if carry:
+                        self.error = f"stream ended inside an item ({len(carry)} bytes lost)"
+                    break
+                buf = carry + data if carry else data
+                end, count = split_items(buf)
+                carry = buf[end:]
+                if count:
+                    with self.cond:
+                        self.chunks.append((buf[:end], count))
+                        self.items += count
+                        self.cond.notify_all()
+        except (OSError, ValueError) as exc:
+            self.error = f"reading the item stream: {exc}"
+        with self.cond:
+            self.eof = True
+            self.cond.notify_all()
+
+    def take(self, timeout_s: float) -> tuple[bytes, int] | None:
+        with self.cond:
+            if not self.chunks and not self.eof:
+                self.cond.wait(timeout_s)
+            if not self.chunks:
+                return None
+            chunk = self.chunks.popleft()
+            self.items -= chunk[1]
+            self.cond.notify_all()
+            return chunk
+
+
+def _online_cpus() -> set[int]:
+    try:
+        text = Path("/sys/devices/system/cpu/online").read_text().strip()
+    except OSError:
+        return set(range(os.cpu_count() or 1))
+    cpus: set[int] = set()
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        cpus.update(range(int(lo), int(hi or lo) + 1))
+    return cpus
+
+
+def _stay_out_of_the_loops_way() -> None:
+    """Ignore the stop signals (the loop process ends the writer), drop a real-time
+    policy inherited from the loop, and leave the loop's CPUs when it is pinned to some
+    (systemd ``CPUAffinity=``) and others exist."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+    if hasattr(os, "sched_setscheduler"):
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    if hasattr(os, "sched_getaffinity"):
+        with contextlib.suppress(OSError, ValueError):
+            inherited = os.sched_getaffinity(0)
+            others = _online_cpus() - inherited
+            if others:
+                os.sched_setaffinity(0, others)
+
+
+def main() -> int:
+    _stay_out_of_the_loops_way()
+    status = _Status(sys.stdout)
+    fd = sys.stdin.fileno()
+    try:
+        magic = _read_exact(fd, len(STREAM_MAGIC))
+        if magic != STREAM_MAGIC:
+            raise ValueError(f"not a recording stream (magic {magic!r})")
+        (hlen,) = struct.unpack("<I", _read_exact(fd, 4))
+        header = json.loads(_read_exact(fd, hlen))
+        (dlen,) = struct.unpack("<I", _read_exact(fd, 4))
+        design = _read_exact(fd, dlen) if dlen else None
+        ticks: TickDecoder | None = None
+        sink = McapRunSink(
+            Path(header["path"]), rotate_bytes=int(header["rotate_bytes"]),
+            rotate_seconds=float(header["rotate_seconds"]),
+            chunk_bytes=int(header["chunk_bytes"]), compression=header["compression"],
+            clock_offset_ns=int(header["clock_offset_ns"]), metadata=header["metadata"],
+            config_toml=header["config_toml"], design=design,
+            max_chunk_age_s=float(header["max_chunk_age_s"]))
+    except (OSError, ValueError, KeyError, EOFError) as exc:
+        status.send("error", error=f"{type(exc).__name__}: {exc}")
+        return 1
+    status.send("ready", paths=[str(p) for p in sink.paths])
+    poll_s = float(header.get("poll_s", 0.002))
+    backlog = _Backlog(fd, int(header["queue_size"]))
+    clean_end = False
+    error: str | None = None
+    last_status = 0.0
+
+    def progress(event: str = "progress") -> None:
+        status.send(event, written=sink.written, malformed=sink.malformed,
+                    last_malformed=sink.last_malformed, paths=[str(p) for p in sink.paths],
+                    error=error, clean_end=clean_end, backlog=backlog.items)
+
+    try:
+        while True:
+            got = backlog.take(poll_s)
+            if got is not None:
+                for raw in iter_items(got[0]):
+                    try:
+                        item = decode_item(raw, ticks)
+                    except Exception as exc:  # undecodable item: skip, count
+                        sink.malformed += 1
+                        sink.last_malformed = f"{type(exc).__name__}: {exc}"
+                        continue
+                    if item[0] == "end":
+                        clean_end = True
+                        continue
+                    if item[0] == "layout":
+                        ticks = TickDecoder(item[1])
+                        continue
+                    sink.write(item)
+            elif backlog.eof:
+                break
+            sink.flush()
+            now = time.monotonic()
+            if now - last_status > 1.0:   # each line costs the loop process a parse
+                last_status = now
+                progress()
+    except OSError as exc:
+        error = f"recording to {sink.paths[-1]} failed: {exc}"
+    try:
+        sink.finish_segment()
+    except OSError as exc:
+        error = error or f"closing {sink.paths[-1]}: {exc}"
+    if backlog.error and not clean_end:
+        error = error or backlog.error
+    if not clean_end and error is None:
+        print(f"rig.record_writer: the loop process ended without closing {sink.base}; "
+              f"everything it sent is written", file=sys.stderr)
+    progress("final")
+    return 0 if error is None else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
