@@ -50,13 +50,20 @@ from controller.kernels import (
     F_ALPHA,
     F_DIVQ,
     F_FORGET,
+    F_GOFF,
+    F_GON,
     F_HAD,
     F_HBD,
     F_HINC,
     F_HLO,
     F_HTOT,
     F_HWIDTH,
-    F_HYST,
+    F_LC,
+    F_LH,
+    F_LINVG,
+    F_LOAD,
+    F_LOFF,
+    F_LON,
     F_OUT,
     F_PEND,
     F_PFLOOR,
@@ -95,12 +102,16 @@ from controller.kernels import (
     I_HIST,
     I_J,
     I_K,
+    I_LCNT,
+    I_LD,
+    I_LPTR,
     I_MINLEARN,
     I_MODE,
     I_NACT,
     I_NB,
     I_NG,
     I_NLEARN,
+    I_NLIFT_LOAD,
     I_NPROBE,
     I_NRECENTRE,
     I_NSWITCH,
@@ -170,6 +181,7 @@ from controller.moving_bank import (
     enter_moving,
     neighbour_table,
     supervise,
+    tire_load_update,
 )
 from controller.plant import static_tire_deflection_m
 from controller.road_noise import nearest_noise_entry
@@ -387,6 +399,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         flags |= _NONFINITE_STATE
     servo_update(fv, nd, out, force_meas_n)
     if blend == _MOVING:
+        tire_load_update(fv, iv, rattlespace_m, accel_mps2)
         supervise(st, active, fv, iv, nbr, vec, mat)
     iv[I_NUPD] = nact
     iv[I_TICK] += 1
@@ -456,13 +469,17 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
         fv[F_XDEVM + i] = 0.0
     fv[F_THRESH] = fv[F_TFLOOR]
     fv[F_SIGNAL] = 0.0
+    fv[F_LOAD] = 1.0
+    fv[F_GOFF] = 0.0
+    fv[F_GON] = 0.0
     fv[F_HINC] = 1.0
     fv[F_HTOT] = 0.0
     fv[F_OUT] = 0.0
-    for b in range(iv[I_NB]):
+    for b in range(iv[I_NB] + 2 * (2 * iv[I_LD] + 1)):   # histogram and tire-load rings
         fv[iv[I_HIST] + b] = 0.0
     for idx in (I_MODE, I_SINCE_SWITCH, I_SINCE_RECENTRE, I_PROBE_PTR, I_PROBE_CNT, I_DIVCNT,
-                I_FLAGS, I_NUPD, I_NSWITCH, I_NLEARN, I_NRECENTRE, I_TICK):
+                I_FLAGS, I_NUPD, I_NSWITCH, I_NLEARN, I_NRECENTRE, I_TICK, I_NLIFT_LOAD,
+                I_LPTR, I_LCNT):
         iv[idx] = 0
     iv[I_SENTINEL] = -1
     iv[I_CENTRE] = iv[I_SINGLE]
@@ -597,7 +614,8 @@ class BankRuntime:
         off_grid = FV_HEAD
         off_curve = off_grid + G
         off_hist = off_curve + G
-        fv = np.zeros(off_hist + HIST_BINS)
+        load_step = max(1, round(mb.load_estimate_window_s / dt))   # Δ [ticks]
+        fv = np.zeros(off_hist + HIST_BINS + 2 * (2 * load_step + 1))
         fv[F_YOFF:F_YOFF + 2] = design.y_offset
         fv[F_HAD:F_HAD + 4] = np.asarray(design.human_filter_Ad).reshape(4)
         fv[F_HBD:F_HBD + 2] = design.human_filter_Bd
@@ -612,7 +630,15 @@ class BankRuntime:
         fv[F_PFLOOR] = prob_floor
         fv[F_DIVQ] = cfg_.safety.estimator_divergence_q
         fv[F_TFLOOR] = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
-        fv[F_HYST] = mb.hysteresis_ratio
+        fv[F_LOFF] = mb.liftoff_load_fraction
+        fv[F_LON] = mb.liftoff_load_fraction / mb.hysteresis_ratio
+        fv[F_LH] = mb.liftoff_load_fraction * max(1, round(mb.liftoff_detection_time_s / dt))
+        veh = cfg_.vehicle
+        if veh.gravity_mps2 > 0.0:          # else no static load: the estimate stays 1
+            fv[F_LINVG] = 1.0 / veh.gravity_mps2
+            fv[F_LC] = veh.unsprung_mass_kg / (
+                (veh.sprung_mass_kg + veh.unsprung_mass_kg) * veh.gravity_mps2
+                * (load_step * dt) ** 2)
         fv[F_QUANT] = mb.threshold_quantile
         n_window = max(2.0, mb.history_window_s / dt)
         fv[F_FORGET] = 1.0 / (1.0 - 1.0 / n_window)
@@ -641,6 +667,7 @@ class BankRuntime:
         iv[I_RECOMP] = HIST_RECOMPUTE_TICKS
         iv[I_NPROBE] = max(0, min(n_ground - k, MAX_PROBE_CANDIDATES))
         iv[I_DELAY] = n_delay
+        iv[I_LD] = load_step
         self.no_fire_fallback = fallback
         self.prob_floor = float(prob_floor)
         self.active_models_k = k
@@ -753,13 +780,32 @@ class BankRuntime:
 
     @property
     def switching_signal(self) -> float:
+        """Moving bank: the smoothed min q of the on-ground set (the sentinel's when
+        airborne)."""
         return float(self._fv[F_SIGNAL])
+
+    @property
+    def tire_load_estimate(self) -> float:
+        """Moving bank: the estimated tire load as a fraction of the static load (M + m) g
+        (model-free, :func:`controller.moving_bank.tire_load_update`; lags Δ ticks)."""
+        return float(self._fv[F_LOAD])
+
+    @property
+    def contact_cusums(self) -> tuple[float, float]:
+        """Moving bank: (lift-off, touch-down) CUSUM statistics of the tire-contact test;
+        a switch needs one to reach ``contact_cusum_threshold``."""
+        return float(self._fv[F_GOFF]), float(self._fv[F_GON])
+
+    @property
+    def contact_cusum_threshold(self) -> float:
+        return float(self._fv[F_LH])
 
     def counters(self) -> dict[str, int]:
         iv = self._iv
         return {"ticks": int(iv[I_TICK]), "set_switches": int(iv[I_NSWITCH]),
                 "recentres": int(iv[I_NRECENTRE]), "history_samples": int(iv[I_NLEARN]),
-                "divergence_ticks": int(iv[I_DIVCNT])}
+                "divergence_ticks": int(iv[I_DIVCNT]),
+                "load_liftoffs": int(iv[I_NLIFT_LOAD])}
 
     def snapshot(self) -> dict[str, Any]:
         """Copies of the state (for tests and telemetry; allocates)."""

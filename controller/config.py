@@ -186,16 +186,30 @@ class FuzzyConfig:
 
 @dataclass(frozen=True)
 class MovingBankConfig:
-    """Ch. VI: on-ground / airborne sets switched on residual thresholds, with hysteresis."""
+    """Ch. VI: on-ground / airborne sets, switched on tire-load CUSUMs and residual thresholds.
+
+    Lift-off and touch-down are decided by two CUSUM tests on a model-free tire-load
+    estimate, plus the learnt residual threshold (controller/moving_bank.py)."""
 
     active_models: int = _f(3, lo=1, hi=64, doc="k, size of the moving subset")
     threshold_quantile: float = _f(0.999, lo=0.5, hi=1.0, hi_open=True,
                                    doc="quantile of learnt q history used as threshold")
     history_window_s: float = _f(2.0, lo=0.01, hi=600.0)
     smoothing_time_s: float = _f(0.005, lo=0.0, hi=1.0)
-    hysteresis_ratio: float = _f(0.5, lo=0.0, hi=1.0, hi_open=True,
-                                 doc="switch back when below ratio x threshold")
+    hysteresis_ratio: float = _f(0.5, lo=0.0, hi=1.0, lo_open=True, hi_open=True,
+                                 doc="Schmitt gap of the tire-contact test: touch-down "
+                                     "reference load = liftoff_load_fraction / ratio")
     dwell_time_s: float = _f(0.01, lo=0.0, hi=10.0, doc="minimum time between switches")
+    liftoff_load_fraction: float = _f(0.2, lo=0.0, hi=1.0, lo_open=True, hi_open=True,
+                                      doc="lift-off CUSUM reference: estimated tire load "
+                                          "as a fraction of the static load (M + m) g")
+    liftoff_detection_time_s: float = _f(0.008, lo=0.0, hi=1.0, lo_open=True,
+                                         doc="time at zero estimated tire load until the "
+                                             "lift-off CUSUM fires (sets its threshold)")
+    load_estimate_window_s: float = _f(0.005, lo=0.0, hi=0.1, lo_open=True,
+                                       doc="difference step of the model-free tire-load "
+                                           "estimate (LVDT second difference): longer = "
+                                           "less noise, more lag")
 
 
 @dataclass(frozen=True)
@@ -460,6 +474,11 @@ def _cross_checks(cfg: RigConfig) -> None:
     if cfg.moving_bank.active_models > n_models:
         raise ConfigError("moving_bank.active_models", cfg.moving_bank.active_models,
                           f"[1, {n_models}] (the number of models in the grid)")
+    mb = cfg.moving_bank
+    if mb.liftoff_load_fraction / mb.hysteresis_ratio >= 1.0:
+        raise ConfigError("moving_bank.liftoff_load_fraction", mb.liftoff_load_fraction,
+                          f"< hysteresis_ratio = {mb.hysteresis_ratio} (the touch-down "
+                          "reference load_fraction / ratio must stay below the static load)")
     if cfg.noise.nominal_speed_mps < min(cfg.noise.speeds_mps) or \
             cfg.noise.nominal_speed_mps > max(cfg.noise.speeds_mps):
         raise ConfigError("noise.nominal_speed_mps", cfg.noise.nominal_speed_mps,

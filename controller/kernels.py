@@ -14,8 +14,10 @@ the runtime packs its data into six buffers instead of ~30 named arrays:
     actuator part of the gain: spool estimate, measured force, pending spool commands.
 ``st`` (J, ST_COLS) float, per-model state (the public (J,) views point into it).
 ``active`` (J,) bool: the filters that run this tick.
-``fv`` float: scalar parameters, then scalar state, then the fuzzy table and the
-    residual-history histogram at offsets stored in ``iv``.
+``fv`` float: scalar parameters, then scalar state (incl. the moving bank's tire-contact
+    test, F_LOFF..F_LC), then the fuzzy table, the residual-history histogram and the
+    tire-load estimator's rings of the last 2Δ+1 rattlespace and acceleration samples at
+    offsets stored in ``iv`` (the rings follow the histogram).
 ``iv`` int64: integer parameters, then integer state (mode, centre, counters, flags).
 ``nbr`` (J, n_ground) int64: for on-ground model c, the on-ground models by grid
     distance from c (nbr[c, 0] == c); rows of airborne models are -1.
@@ -79,7 +81,6 @@ F_ALPHA = 9         # smoothing factor of q (1 - exp(-dt / tau))
 F_PFLOOR = 10       # Bayesian probability floor
 F_DIVQ = 11         # divergence threshold on min q
 F_TFLOOR = 12       # lowest residual threshold (chi-square quantile)
-F_HYST = 13         # hysteresis ratio
 F_QUANT = 14        # threshold quantile
 F_FORGET = 15       # 1 / (1 - 1/N) growth of the history increment (exponential window)
 F_RECENTRE = 16     # re-centre when qs[best] < ratio * qs[centre]
@@ -105,12 +106,22 @@ F_SFLIM = 66        # force reference limit [N]
 F_SOLIM = 67        # spool command limit
 F_XV = 68           # spool position estimate
 F_PEND = 69         # (MAX_DELAY) spool commands not yet at the valve, newest first
-FV_HEAD = 80        # the fuzzy table starts here
+# --- fv: tire-contact test of the moving bank (controller/moving_bank.py)
+F_LOFF = 80         # lift-off CUSUM reference: estimated tire load / static load
+F_LON = 81          # touch-down CUSUM reference (F_LOFF / hysteresis ratio)
+F_LH = 82           # decision threshold of both CUSUMs [load fraction x ticks]
+F_LOAD = 83         # estimated tire load / static load (controller/moving_bank.py)
+F_GOFF = 84         # lift-off CUSUM statistic
+F_GON = 85          # touch-down CUSUM statistic
+F_LINVG = 86        # 1 / g
+F_LC = 87           # m / ((M + m) g (Δ T)^2): weight of the rattlespace second difference
+FV_HEAD = 88        # the fuzzy table starts here
 
 # --- iv: parameters
 I_J, I_G, I_BLEND, I_SINGLE, I_AIR, I_NG, I_K, I_DWELL, I_PROBE, I_DIVTICKS = range(10)
 I_FALLBACK, I_QGRID, I_WCURVE, I_HIST, I_NB, I_MINLEARN, I_RECOMP, I_NPROBE = range(10, 18)
 I_DELAY = 18        # D, compute delay of the design [ticks]
+I_LD = 19           # Δ, difference step of the tire-load estimate [ticks]
 # --- iv: state
 I_MODE = 20         # 0 on ground, 1 airborne (moving bank)
 I_CENTRE = 21       # centre of the moving subset
@@ -127,6 +138,9 @@ I_NLEARN = 31       # history samples learnt
 I_NRECENTRE = 32    # re-centres since reset
 I_TICK = 33
 I_NACT = 34         # number of running filters
+I_NLIFT_LOAD = 35   # lift-offs declared by the tire-load CUSUM since reset
+I_LPTR = 36         # next write position in the tire-load rings
+I_LCNT = 37         # samples in the tire-load rings (saturates at 2Δ+1)
 IV_ACT = 40         # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
 IV_HEAD = 40        # iv has IV_HEAD + J entries
 

@@ -7,18 +7,61 @@ plus the airborne model.  Two sets:
   the k nearest (in grid steps; ties prefer the deflection axis) to the *centre*;
 * **airborne set** -- the airborne model, plus one *sentinel*: the last on-ground centre
   keeps running with zero weight ("even if the filter starts running ... the final
-  output ... is still zero", Ch. VI) so that the return to the ground can be detected.
+  output ... is still zero", Ch. VI), so that the on-ground filters can restart from
+  an on-ground estimate at touch-down.
 
-Switched-off filters do no work and contribute zero.  The switching signal is
-s = smoothed min q of the running on-ground filters (EWMA, ``smoothing_time_s``).
-The threshold T is *learnt from history*: the ``threshold_quantile`` quantile of s over an
-exponential window of ``history_window_s`` (a log-spaced histogram with exponential
-forgetting), learnt only while on the ground and settled, and never below the chi-square
-quantile -2 ln(1 - quantile) that a matched filter's q (m = 2) exceeds with probability
-1 - quantile.  Until enough history is learnt T is that floor.
+Switched-off filters do no work and contribute zero.
 
-    on ground --(s > T, dwell elapsed)--> airborne
-    airborne  --(s_sentinel < hysteresis_ratio * T, dwell elapsed)--> on ground
+**Tire-load estimate** (:func:`tire_load_update`).  The two masses' momentum balance
+gives the tire force without any filter model:  f_t = (M + m)(a + g) + m r'', a = zs''
+measured, r = zu - zs the LVDT rattlespace, r'' its central second difference over
+Δ = ``load_estimate_window_s`` (5 ticks: noise ~0.06 of the static load with the default
+sensors, Δ ticks of lag).  λ = f_t / ((M + m) g) is 1 at rest and 0 with the wheel in
+the air.  Why not the filters' own tire deflection x2⁺ (secant force Kt x2⁺): with a
+rough-road noise entry (the default, ISO D at 11 m/s) the on-ground filters absorb a
+lift-off as a road drop -- x2⁺ follows the truth but so does their residual, q stays
+~2-7 and the residual test never fires -- while with a smooth entry they cannot follow
+(x2⁺ stays at 0.3-0.5 of the static load in the air); either way one statistic is
+blind in one regime.  λ is the same in both.
+
+**Lift-off / touch-down: Page's CUSUM on λ** (a sequential test for a mean shift from
+the ground, λ ≈ 1, to the air, λ = 0), with reference λ_off = ``liftoff_load_fraction``
+and decision threshold h = λ_off x round(``liftoff_detection_time_s`` / T)::
+
+    on ground:  G_off <- max(0, G_off + λ_off - λ)       lift-off when G_off >= h
+    airborne:   G_on  <- max(0, G_on + λ - λ_on)         touch-down when G_on >= h
+
+λ_on = λ_off / ``hysteresis_ratio`` (0.4 with the defaults) is the Schmitt gap: a load
+between the two references feeds neither test.  At zero load the lift-off fires after
+h / λ_off ticks (8; with the Δ lag ~10-16 ms after the wheel leaves the road).  Short
+light-tire phases on a rough road stay below h; a load near zero for ~10 ms or more is
+treated as a lift-off (on ISO D at 11 m/s the tire does leave the road now and then).
+Each CUSUM starts at 0 when its set takes over.
+
+**Residual test** (the thesis's learnt threshold, kept as a second lift-off test):
+s = smoothed min q of the running on-ground filters (EWMA, ``smoothing_time_s``) above
+T switches to the airborne set *if the tire is light*, i.e. the lift-off CUSUM already
+holds half its evidence (G_off >= h / 2): a residual anomaly at a high load is a
+compression peak the secant models do not fit, not a lift-off (on ISO D such peaks
+exceeded T several times per 5 s), and a single noisy λ below λ_off is no light tire.
+T is *learnt from history*: the ``threshold_quantile`` quantile of s over an exponential
+window of ``history_window_s`` (a log-spaced histogram with exponential forgetting),
+learnt only while on the ground and settled, and never below the chi-square quantile
+-2 ln(1 - quantile) that a matched filter's q (m = 2) exceeds with probability
+1 - quantile.  Until enough history is learnt T is that floor.  The residual test
+speeds up detection when the residuals do explode (smooth noise entry).  The touch-down
+is the load test's alone: after a lift-off the sentinel's q is low in the air with a
+rough entry and high for ~50 ms after the landing impact, so a q-based return (the old
+``s_sentinel < hysteresis_ratio * T``) came too early or got stuck until the airborne
+filter tripped the divergence fault.
+
+    on ground --(dwell elapsed and (G_off >= h or (s > T and G_off >= h/2)))--> airborne
+    airborne  --(dwell elapsed and G_on >= h)--> on ground
+
+Not used: a likelihood ratio of the airborne filter against the on-ground ones.  The
+airborne filter has no process noise on the relative motion, so its gain is ~0: it is an
+open-loop predictor whose q grows to 1e2-1e3 within 10 ms of a bumpless start even in a
+genuine flight, so its likelihood says nothing about contact.
 
 Within the on-ground set the subset is re-centred on the best model (min smoothed q) when
 qs[best] < RECENTRE_RATIO * qs[centre] and ``dwell_time_s`` has elapsed since the last
@@ -29,7 +72,8 @@ neighbour list (round robin over the next ``nprobe`` nearest).  A newly activate
 filter starts bumpless -- at its own equilibrium plus the blended deviation from
 equilibrium (:func:`controller.kernels.activate`) -- with the centre's smoothed q; at
 touch-down the blend is the airborne filter's, so the returning on-ground filters start
-from the sentinel's deviation instead (the on-ground view that just passed the test).
+from the sentinel's deviation instead (an on-ground view; the airborne predictor's
+relative states have drifted).
 """
 
 from __future__ import annotations
@@ -42,11 +86,18 @@ from numpy.typing import NDArray
 
 from controller.kernels import (
     F_FORGET,
+    F_GOFF,
+    F_GON,
     F_HINC,
     F_HLO,
     F_HTOT,
     F_HWIDTH,
-    F_HYST,
+    F_LC,
+    F_LH,
+    F_LINVG,
+    F_LOAD,
+    F_LOFF,
+    F_LON,
     F_QUANT,
     F_RECENTRE,
     F_SIGNAL,
@@ -59,12 +110,16 @@ from controller.kernels import (
     I_DWELL,
     I_HIST,
     I_K,
+    I_LCNT,
+    I_LD,
+    I_LPTR,
     I_MINLEARN,
     I_MODE,
     I_NACT,
     I_NB,
     I_NG,
     I_NLEARN,
+    I_NLIFT_LOAD,
     I_NPROBE,
     I_NRECENTRE,
     I_NSWITCH,
@@ -100,6 +155,7 @@ __all__ = [
     "history_quantile",
     "neighbour_table",
     "supervise",
+    "tire_load_update",
 ]
 
 RECENTRE_RATIO = 0.9        # a neighbour must be 10 % better than the centre to take over
@@ -214,13 +270,55 @@ def enter_moving(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndar
     iv[I_MODE] = MODE_GROUND
     iv[I_SENTINEL] = -1
     iv[I_SINCE_SWITCH] = 0
+    fv[F_GOFF] = 0.0
+    fv[F_GON] = 0.0
+    fv[F_LOAD] = 1.0
+    iv[I_LCNT] = 0                 # the rings were not fed outside the moving mode
+    iv[I_LPTR] = 0
     _move_to(centre, st, active, fv, iv, nbr, vec, mat)
+
+
+@nb.njit(cache=True, nogil=True)
+def tire_load_update(fv: np.ndarray, iv: np.ndarray, rattlespace_m: float,
+                     accel_mps2: float) -> float:
+    """Feed one sample to the tire-load estimate and return it (also in ``fv[F_LOAD]``).
+
+    Momentum balance of the two masses, model-free: the tire force is
+    f_t = M (zs'' + g) + m (zu'' + g) = (M + m)(a + g) + m r'' with r = zu - zs the
+    rattlespace (compression positive) and a = zs''.  r'' is the second difference over
+    Δ ticks, centred on tick k - Δ, so the estimate is that of tick k - Δ; as a fraction
+    of the static load (M + m) g:
+
+        λ_k = 1 + a_{k-Δ} / g + m (r_k - 2 r_{k-Δ} + r_{k-2Δ}) / ((M + m) g (Δ T)^2)
+
+    1.0 (no evidence) until 2Δ + 1 samples are in.  Allocation-free: two rings of 2Δ + 1
+    samples in ``fv`` after the residual histogram."""
+    d = iv[I_LD]
+    n = 2 * d + 1
+    off = iv[I_HIST] + iv[I_NB]         # r ring, then a ring, after the histogram
+    p = iv[I_LPTR]
+    fv[off + p] = rattlespace_m
+    fv[off + n + p] = accel_mps2
+    cnt = iv[I_LCNT]
+    if cnt < n:
+        cnt += 1
+        iv[I_LCNT] = cnt
+    load = 1.0
+    if cnt >= n:
+        i1 = (p - d) % n
+        i2 = (p + 1) % n                 # == p - 2Δ (mod n)
+        load = 1.0 + fv[off + n + i1] * fv[F_LINVG] \
+            + fv[F_LC] * (rattlespace_m - 2.0 * fv[off + i1] + fv[off + i2])
+    iv[I_LPTR] = (p + 1) % n
+    fv[F_LOAD] = load
+    return load
 
 
 @nb.njit(cache=True, nogil=True)
 def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
               nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray) -> None:
-    """After a tick: learn the threshold, switch sets, re-centre or probe (for next tick)."""
+    """After a tick: learn the threshold, run the tire-contact CUSUMs, switch sets,
+    re-centre or probe (for next tick)."""
     J = st.shape[0]
     dwell = iv[I_DWELL]
     iv[I_SINCE_SWITCH] += 1
@@ -235,13 +333,18 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
                 s = st[j, S_QS]
                 best = j
         fv[F_SIGNAL] = s
+        centre = iv[I_CENTRE]
+        load = fv[F_LOAD]
+        g = fv[F_GOFF] + (fv[F_LOFF] - load)
+        fv[F_GOFF] = g if g > 0.0 else 0.0          # also 0 for a NaN load
         settled = iv[I_SINCE_SWITCH] >= dwell
         if settled:
             history_add(fv, iv, s)
             if iv[I_NLEARN] >= iv[I_MINLEARN] and iv[I_NLEARN] % iv[I_RECOMP] == 0:
                 fv[F_THRESH] = max(history_quantile(fv, iv, fv[F_QUANT]), fv[F_TFLOOR])
-        centre = iv[I_CENTRE]
-        if air >= 0 and settled and s > fv[F_THRESH]:
+        by_load = fv[F_GOFF] >= fv[F_LH]
+        by_residual = s > fv[F_THRESH] and fv[F_GOFF] >= 0.5 * fv[F_LH]
+        if air >= 0 and settled and (by_load or by_residual):
             # lift-off: the airborne set takes over; the centre stays as zero-weight sentinel
             for j in range(J):
                 if active[j] and j != centre:
@@ -253,6 +356,9 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
             iv[I_MODE] = MODE_AIR
             iv[I_SINCE_SWITCH] = 0
             iv[I_NSWITCH] += 1
+            if by_load:
+                iv[I_NLIFT_LOAD] += 1
+            fv[F_GON] = 0.0
             return
         if best >= 0 and best != centre and iv[I_SINCE_RECENTRE] >= dwell \
                 and st[best, S_QS] < fv[F_RECENTRE] * st[centre, S_QS]:
@@ -281,15 +387,17 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
                         break
     else:
         sentinel = iv[I_SENTINEL]
-        s = st[sentinel, S_QS]
-        fv[F_SIGNAL] = s
-        if iv[I_SINCE_SWITCH] >= dwell and s < fv[F_HYST] * fv[F_THRESH]:
+        fv[F_SIGNAL] = st[sentinel, S_QS]
+        g = fv[F_GON] + (fv[F_LOAD] - fv[F_LON])
+        fv[F_GON] = g if g > 0.0 else 0.0
+        if iv[I_SINCE_SWITCH] >= dwell and fv[F_GON] >= fv[F_LH]:
             # touch-down: back to the on-ground subset around the sentinel
             deactivate(air, st, active, iv)
             iv[I_MODE] = MODE_GROUND
             iv[I_SENTINEL] = -1
             iv[I_SINCE_SWITCH] = 0
             iv[I_NSWITCH] += 1
+            fv[F_GOFF] = 0.0
             # the new on-ground filters start from the sentinel's (on-ground) estimate
             for i in range(4):
                 fv[F_XDEV + i] = st[sentinel, S_XPOST + i] - mat[sentinel, i, M_XBAR]

@@ -13,7 +13,8 @@ Written straight from the thesis equations rather than from the fused kernel:
     f_j: ``np.interp`` on the App. A firing-weight table
 
 and the moving-bank rules of :mod:`controller.moving_bank` re-implemented with Python
-lists and a decaying numpy histogram.  Semantics (flags, fallbacks, bumpless starts)
+lists, a decaying numpy histogram and the two tire-load CUSUMs written as Page's
+recursion g = max(0, g + increment).  Semantics (flags, fallbacks, bumpless starts)
 follow docs/architecture.md "Runtime step" and :mod:`controller.bank`.
 """
 
@@ -75,7 +76,13 @@ class ReferenceBank:
         self.div_q = c.safety.estimator_divergence_q
         self.div_ticks = c.safety.divergence_ticks
         self.t_floor = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
-        self.hyst = mb.hysteresis_ratio
+        self.load_off = mb.liftoff_load_fraction               # lift-off reference
+        self.load_on = mb.liftoff_load_fraction / mb.hysteresis_ratio   # touch-down reference
+        self.cusum_h = mb.liftoff_load_fraction * max(1, round(mb.liftoff_detection_time_s / dt))
+        self.load_step = max(1, round(mb.load_estimate_window_s / dt))      # Δ [ticks]
+        veh = c.vehicle
+        self.mass_sprung, self.mass_unsprung = veh.sprung_mass_kg, veh.unsprung_mass_kg
+        self.gravity = veh.gravity_mps2
         self.quant = mb.threshold_quantile
         n_window = max(2.0, mb.history_window_s / dt)
         self.lam = 1.0 - 1.0 / n_window
@@ -122,6 +129,10 @@ class ReferenceBank:
         self.thresh = self.t_floor
         self.hist = np.zeros(HIST_BINS)
         self.nlearn = 0
+        self.load = 1.0
+        self.g_off = self.g_on = 0.0
+        self.n_lift_load = 0
+        self.samples: list[tuple[float, float]] = []      # (rattlespace, accel), newest last
         self.mode_air = False
         self.sentinel = -1
         self.centre = self.single
@@ -164,6 +175,9 @@ class ReferenceBank:
             running = [j for j in self.ground if self.active[j]]
             centre = min(running, key=lambda j: self.qs[j]) if running else self.single
             self.since_switch = 0
+            self.g_off = self.g_on = 0.0
+            self.load = 1.0
+            self.samples = []
             self._move_to(centre)
         else:
             for j in range(self.J):
@@ -268,6 +282,7 @@ class ReferenceBank:
             flags |= StepFlag.NONFINITE_STATE
         self._servo(out, u_in)
         if moving:
+            self._tire_load_update(rattlespace_m, accel_mps2)
             self._supervise()
         self.flags = flags
         return out
@@ -308,6 +323,23 @@ class ReferenceBank:
         frac = (target - before[b]) / self.hist[b]
         return float(10.0 ** (HIST_LO_LOG10 + (b + frac) * self.width))
 
+    def _tire_load_update(self, rattlespace_m: float, accel_mps2: float) -> None:
+        """Tire force of tick k - Δ from the two masses' momentum balance,
+        f_t = (M + m)(a + g) + m r'' (r'' central second difference over Δ ticks), over
+        the static load (M + m) g; 1.0 while fewer than 2Δ + 1 samples are in."""
+        d = self.load_step
+        self.samples.append((float(rattlespace_m), float(accel_mps2)))
+        if len(self.samples) > 2 * d + 1:
+            self.samples.pop(0)
+        if len(self.samples) < 2 * d + 1 or self.gravity <= 0.0:
+            self.load = 1.0
+            return
+        m, mt, g, dt = self.mass_unsprung, self.mass_sprung + self.mass_unsprung, \
+            self.gravity, self.d.dt_s
+        r_new, (r_mid, a_mid), r_old = self.samples[-1][0], self.samples[d], self.samples[0][0]
+        r_dd = (r_new - 2.0 * r_mid + r_old) / (d * dt) ** 2
+        self.load = (mt * (a_mid + g) + m * r_dd) / (mt * g)
+
     def _supervise(self) -> None:
         self.since_switch += 1
         self.since_recentre += 1
@@ -315,6 +347,8 @@ class ReferenceBank:
             running = [j for j in range(self.J) if self.active[j] and not self.d.airborne[j]]
             best = min(running, key=lambda j: self.qs[j])
             sig = float(self.qs[best])
+            g = self.g_off + (self.load_off - self.load)
+            self.g_off = g if g > 0.0 else 0.0
             settled = self.since_switch >= self.dwell
             if settled:
                 b = int((math.log10(sig) - HIST_LO_LOG10) / self.width) if sig > 0 else 0
@@ -323,7 +357,9 @@ class ReferenceBank:
                 self.nlearn += 1
                 if self.nlearn >= self.min_learn and self.nlearn % HIST_RECOMPUTE_TICKS == 0:
                     self.thresh = max(self._quantile(), self.t_floor)
-            if self.air >= 0 and settled and sig > self.thresh:
+            by_load = self.g_off >= self.cusum_h
+            by_residual = sig > self.thresh and self.g_off >= 0.5 * self.cusum_h
+            if self.air >= 0 and settled and (by_load or by_residual):
                 for j in range(self.J):
                     if self.active[j] and j != self.centre:
                         self._deactivate(j)
@@ -333,6 +369,8 @@ class ReferenceBank:
                 self.sentinel = self.centre
                 self.mode_air = True
                 self.since_switch = 0
+                self.n_lift_load += int(by_load)
+                self.g_on = 0.0
                 return
             if best != self.centre and self.since_recentre >= self.dwell \
                     and self.qs[best] < RECENTRE_RATIO * self.qs[self.centre]:
@@ -354,13 +392,15 @@ class ReferenceBank:
                                 self._activate(cand, self.qs[self.centre], 1.0 / self.k)
                             break
         else:
-            sig = float(self.qs[self.sentinel])
-            if self.since_switch >= self.dwell and sig < self.hyst * self.thresh:
+            g = self.g_on + (self.load - self.load_on)
+            self.g_on = g if g > 0.0 else 0.0
+            if self.since_switch >= self.dwell and self.g_on >= self.cusum_h:
                 self._deactivate(self.air)
                 self.mode_air = False
                 centre = self.sentinel
                 self.sentinel = -1
                 self.since_switch = 0
+                self.g_off = 0.0
                 self.xdev = self.x_post[centre] - self.xbar[centre]
                 self.xdevm = self.x_prior[centre] - self.xbar[centre]
                 self._move_to(centre)

@@ -126,6 +126,16 @@ def test_kernel_matches_reference_on_grid_with_moving_bank(
     assert c["set_switches"] >= 2 and c["recentres"] >= 1    # the comparison covered both
 
 
+def test_kernel_matches_reference_on_default_noise_lift_off(default_design: Design) -> None:
+    """Default (ISO D) noise entry: the lift-off is declared by the tire-load CUSUM and
+    the touch-down by its mirror; kernel and reference agree through both."""
+    cfg = default_config()
+    meas = trajectory(cfg, 2500, seed=7, drop_at=1500)
+    rt, _ = _run_pair(default_design, cfg, Blending.MOVING, meas, junk_seed=8)
+    c = rt.counters()
+    assert c["set_switches"] >= 2 and c["load_liftoffs"] >= 1
+
+
 def test_kernel_matches_reference_across_mode_switches(smooth_design: Design,
                                                        smooth_cfg: RigConfig) -> None:
     meas = trajectory(smooth_cfg, 800, seed=8)
