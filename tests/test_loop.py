@@ -18,6 +18,8 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from controller.config import RigConfig, default_config
 from controller.force_loop import PIForceLoop
@@ -373,6 +375,21 @@ def test_timing_percentiles_match_numpy() -> None:
     recent_late, recent_step = ts.recent()
     np.testing.assert_array_equal(recent_late, late[-4096:])
     np.testing.assert_array_equal(recent_step, steps[-4096:])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(-50_000, 12_000_000), min_size=1, max_size=400),
+       st.integers(1, 30))
+def test_heartbeat_p99_equals_the_full_histogram_percentile(lateness_ns: list[int],
+                                                            hist_max_ms: int) -> None:
+    """The two-level lookup of the heartbeat's p99 gives the bin the whole histogram
+    gives, and numpy's inverted-CDF percentile of the clipped microseconds."""
+    ts = TimingStats(PERIOD_NS, 500_000, ring_size=512, hist_max_us=hist_max_ms * 100)
+    for x in lateness_ns:
+        ts.add(x, 0)
+    clipped = np.clip(np.array(lateness_ns) // 1000, 0, ts.hist_max_us)
+    assert ts.lateness_p99_us() == histogram_percentile_us(ts.lateness_hist, 99)
+    assert ts.lateness_p99_us() == np.percentile(clipped, 99, method="inverted_cdf")
 
 
 def test_timing_overrun_streak_counts_consecutive_late_ticks() -> None:
