@@ -59,6 +59,7 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
     from hil.node import RigNode
     from hil.roads import make_road
     from rig.bus import open_bus
+    from rig.commands.demo import RIG_MAX_LAG_S
     from rig.protocol import LifecycleState
     from rig.realtime import RealtimeRequest, restore_gc
     from rig.service import Service, ServiceOptions
@@ -88,7 +89,7 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
             others = set(range(os.cpu_count() or 1)) - set(cpus)
             if others:
                 os.sched_setaffinity(0, others)
-        node.run(stop_rig, start_ns=start_ns)
+        node.run(stop_rig, start_ns=start_ns, max_lag_s=RIG_MAX_LAG_S)
 
     def on_tick(loop: Any) -> None:
         k = loop.tick_count
