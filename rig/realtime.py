@@ -35,7 +35,7 @@ import sys
 from dataclasses import dataclass, field
 
 __all__ = ["RealtimeReport", "RealtimeRequest", "apply_realtime", "release_cpu_latency",
-           "restore_gc", "set_thread_fifo"]
+           "restore_gc"]
 
 log = logging.getLogger(__name__)
 
@@ -193,28 +193,6 @@ def apply_realtime(request: RealtimeRequest | None = None) -> RealtimeReport:
         report.granted["gc"] = "frozen+disabled"
     log.info(report.summary())
     return report
-
-
-def set_thread_fifo(native_id: int | None, priority: int, name: str,
-                    report: RealtimeReport) -> None:
-    """SCHED_FIFO ``priority`` for another thread of this process (by its native id), e.g.
-    the telemetry publisher: an ordinary thread can be kept off the CPU by other
-    processes and then run at any moment, taking the GIL just when the loop wakes up;
-    one with a real-time priority just below the loop's runs right after the loop hands
-    it work."""
-    key = f"sched_fifo_{name}"
-    if priority <= 0 or native_id is None:
-        return
-    if not hasattr(os, "sched_setscheduler"):
-        report.denied[key] = "not supported on this platform"
-        return
-    try:
-        lo = os.sched_get_priority_min(os.SCHED_FIFO)
-        prio = max(lo, priority)
-        os.sched_setscheduler(native_id, os.SCHED_FIFO, os.sched_param(prio))
-        report.granted[key] = str(prio)
-    except OSError as exc:
-        report.denied[key] = exc.strerror or str(exc)
 
 
 def restore_gc() -> None:

@@ -38,7 +38,6 @@ from rig.realtime import (
     apply_realtime,
     release_cpu_latency,
     restore_gc,
-    set_thread_fifo,
 )
 from rig.sdnotify import SdNotifier
 
@@ -218,14 +217,11 @@ class Service:
                 log.warning("arm on start refused: %s", res.message)
 
     def apply_realtime(self, request: RealtimeRequest) -> RealtimeReport:
-        """Real-time set-up of the calling thread (the loop's) and of the telemetry
-        publisher thread (SCHED_FIFO one below the loop); kept in ``realtime_report``."""
-        report = apply_realtime(request)
-        if self.telemetry is not None:
-            set_thread_fifo(self.telemetry.thread_native_id, request.fifo_priority - 1,
-                            "telemetry", report)
-        self.realtime_report = report
-        return report
+        """Real-time set-up of the calling thread (the loop's), kept in
+        ``realtime_report``.  The telemetry thread stays an ordinary thread: raising it
+        alone would put it above Zenoh's own (ordinary) threads that carry its data."""
+        self.realtime_report = apply_realtime(request)
+        return self.realtime_report
 
     def run(self, on_tick: Callable[[ControlLoop], None] | None = None) -> int:
         """Run until SIGTERM / SIGINT / ``stop_event`` / ``duration_s``; returns 0."""

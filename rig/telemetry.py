@@ -132,11 +132,6 @@ class TelemetryPublisher:
         return True
 
     @property
-    def thread_native_id(self) -> int | None:
-        """OS thread id of the publisher thread (for its scheduling policy)."""
-        return self._thread.native_id
-
-    @property
     def connected(self) -> bool:
         return self._connected.is_set()
 
