@@ -103,7 +103,12 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
                                                     daemon=True))
                 rig_threads[0].start()
             return
-        if loop.lifecycle.state is LifecycleState.INACTIVE and not loop.health_problem():
+        # like the demo's operator: after a fault (a host stall silences the rig now and
+        # then), reset and re-arm as soon as the condition has cleared
+        lc = loop.lifecycle
+        if lc.state is LifecycleState.FAULT and loop.monitor.condition.name == "NONE":
+            loop.request("reset", timeout_s=None)
+        if lc.state is LifecycleState.INACTIVE and not loop.health_problem():
             loop.request("arm", timeout_s=None)
         if state["measured_from"] < 0 and k >= state["rig"] + warm:
             state["measured_from"] = k

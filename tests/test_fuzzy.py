@@ -31,8 +31,9 @@ def _trap(q: float, t: list[float]) -> float:
 
 def _tri(x: np.ndarray, t: list[float]) -> np.ndarray:
     a, p, c = t
-    up = np.ones_like(x) if p == a else (x - a) / (p - a)
-    down = np.ones_like(x) if c == p else (c - x) / (c - p)
+    with np.errstate(over="ignore"):   # a ramp a few ulps wide: inf, clipped to 1 below
+        up = np.ones_like(x) if p == a else (x - a) / (p - a)
+        down = np.ones_like(x) if c == p else (c - x) / (c - p)
     return np.clip(np.minimum(up, down), 0.0, 1.0) * ((x >= a) & (x <= c))
 
 
