@@ -22,7 +22,9 @@ Per tick, in this order (latency from sensor frame to valve command kept short):
 7. systemd watchdog ping, telemetry snapshot (``cfg.telemetry.rate_hz``) and the
    recording (non-blocking, bounded queues on their own threads).
 
-An exception anywhere in 2-6 is caught: EXCEPTION fault, safe command.  The tick
+An exception anywhere in 2-6 is caught: EXCEPTION fault, safe command.  A recording or
+telemetry hand-off that raises is counted (``output_errors``, in ``status()``) and
+logged, and never stops the loop or latches a fault: it is not an actuator problem.  The tick
 allocates no containers in steady state (preallocated messages, decoded frame objects
 and statistics) except what recording and telemetry need (docs/service.md).
 """
@@ -258,6 +260,8 @@ class ControlLoop:
         self.tx_errors = 0
         self.exceptions = 0
         self.last_exception = ""
+        self.output_errors = 0          # recording / telemetry hand-offs that raised
+        self.last_output_error = ""
         self.rig_bypass_open = 1
         self.rig_watchdog_tripped = 0
         self.rig_supply_ok = 1
@@ -324,9 +328,8 @@ class ControlLoop:
         req.result = res
         req.done.set()
         log.info("command %s(%s): %s", name, "" if arg is None else arg, res.message)
-        if self.recorder is not None:
-            self.recorder.event(t, tick, "command",
-                                {"command": name, "argument": arg, **res.as_dict()})
+        self._record_event(t, tick, "command",
+                           {"command": name, "argument": arg, **res.as_dict()})
 
     def health_problem(self) -> str:
         """'' when arming is allowed, else the reason."""
@@ -347,13 +350,23 @@ class ControlLoop:
 
     def _on_transition(self, tr: Transition) -> None:
         self.transitions.append(tr)
+        self._record_event(tr.t_ns, tr.tick, "fault" if tr.state is _FAULT else "lifecycle",
+                           tr.as_dict())
+        try:
+            if self.telemetry is not None:
+                self.telemetry.offer(self.snapshot())
+            if self.notifier is not None:
+                self.notifier.status(f"{tr.state.name}: {tr.reason}")
+        except Exception as exc:
+            self._on_output_error(exc)
+
+    def _record_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> None:
+        """An event to the recording; a failing recorder never disturbs the loop."""
         if self.recorder is not None:
-            kind = "fault" if tr.state is _FAULT else "lifecycle"
-            self.recorder.event(tr.t_ns, tr.tick, kind, tr.as_dict())
-        if self.telemetry is not None:
-            self.telemetry.offer(self.snapshot())
-        if self.notifier is not None:
-            self.notifier.status(f"{tr.state.name}: {tr.reason}")
+            try:
+                self.recorder.event(t_ns, tick, kind, detail)
+            except Exception as exc:
+                self._on_output_error(exc)
 
     # ------------------------------------------------------------------ one tick
     def tick(self, now_ns: int, lateness_ns: int = 0) -> None:
@@ -425,11 +438,23 @@ class ControlLoop:
             # for the next tick's heartbeat, computed here after the valve command went
             # out: a few numpy calls, tens of microseconds with cold caches
             self.lateness_p99_us = timing.lateness_p99_us()
-        if self.recorder is not None:
-            self._record(now_ns, tick)
-        if self.telemetry is not None and tick % self.telemetry_every == 0:
-            self.telemetry.offer(self.snapshot())
+        try:
+            if self.recorder is not None:
+                self._record(now_ns, tick)
+            if self.telemetry is not None and tick % self.telemetry_every == 0:
+                self.telemetry.offer(self.snapshot())
+        except Exception as exc:    # the outputs never stop the control loop
+            self._on_output_error(exc)
         self.tick_count = tick + 1
+
+    def _on_output_error(self, exc: Exception) -> None:
+        """A recording / telemetry hand-off raised: counted, logged (the first and then
+        every 1000th), shown in ``status()``; the valve command of the tick is out."""
+        self.output_errors += 1
+        self.last_output_error = f"{type(exc).__name__}: {exc}"
+        if self.output_errors % 1000 == 1:
+            log.error("recording/telemetry hand-off failed (%d so far): %s",
+                      self.output_errors, self.last_output_error)
 
     def _on_exception(self, exc: Exception, now_ns: int, tick: int) -> None:
         self.exceptions += 1
@@ -457,15 +482,17 @@ class ControlLoop:
                 msg = bus.recv(0.0)
             except (can.CanError, OSError) as exc:
                 mon.bus_error(classify_bus_exception(exc), DETAIL_RECV)
-                if rec is not None:
-                    rec.event(now_ns, tick, "note", _bus_exception("recv", exc))
+                self._record_event(now_ns, tick, "note", _bus_exception("recv", exc))
                 return
             if msg is None:
                 return
             self.rx_frames += 1
             if rec is not None:
-                rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, True,
-                              msg.is_error_frame, msg.is_extended_id)
+                try:
+                    rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, True,
+                                  msg.is_error_frame, msg.is_extended_id)
+                except Exception as exc:
+                    self._on_output_error(exc)
             if msg.is_error_frame:
                 code = classify_error_frame(msg)
                 if code is not _NONE:
@@ -520,13 +547,16 @@ class ControlLoop:
         except (can.CanError, OSError) as exc:
             self.tx_errors += 1
             self.monitor.bus_error(classify_bus_exception(exc), DETAIL_SEND)
-            if self.recorder is not None:
-                self.recorder.event(now_ns, tick, "note", {
-                    **_bus_exception("send", exc), "arbitration_id": msg.arbitration_id})
+            self._record_event(now_ns, tick, "note", {
+                **_bus_exception("send", exc), "arbitration_id": msg.arbitration_id})
             return False
         self.tx_frames += 1
-        if self.recorder is not None:
-            self.recorder.can_frame(now_ns, tick, msg.arbitration_id, msg.data, False)
+        rec = self.recorder
+        if rec is not None:
+            try:
+                rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, False)
+            except Exception as exc:
+                self._on_output_error(exc)
         return True
 
     def _send_valve(self, now_ns: int, tick: int) -> None:
@@ -642,6 +672,8 @@ class ControlLoop:
             "tx_frames": self.tx_frames,
             "tx_errors": self.tx_errors,
             "exceptions": self.exceptions,
+            "output_errors": self.output_errors,
+            "last_output_error": self.last_output_error,
             "timing": self.timing.summary(),
             "dropped_recording": self.recorder.dropped if self.recorder is not None else 0,
             "dropped_telemetry": self.telemetry.dropped if self.telemetry is not None else 0,

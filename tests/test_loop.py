@@ -230,6 +230,42 @@ def test_active_command_follows_pi_force_loop(harness: LoopHarness) -> None:
         assert v.force_reference_n == pytest.approx(-harness.rt.gain * rs, abs=0.6)
 
 
+class BrokenRecorder:
+    """A recorder whose every hand-off raises (a bug, a closed file ...)."""
+
+    dropped = 0
+
+    def set_tick_layout(self, layout: Any) -> None:
+        pass
+
+    def can_frame(self, *args: Any) -> bool:
+        raise OSError("recorder gone")
+
+    def tick_values(self, *args: Any) -> bool:
+        raise ValueError("layout mismatch")
+
+    def event(self, *args: Any) -> bool:
+        raise OSError("recorder gone")
+
+
+def test_a_failing_recorder_never_stops_control() -> None:
+    """A raising recording hand-off is counted and shown in status(); the valve command
+    of every tick still goes out, armed as before, and no fault latches because of it."""
+    h = make_harness(recorder=None)
+    h.loop.recorder = BrokenRecorder()
+    try:
+        h.run(10)
+        h.arm()
+        for _ in range(20):
+            valves, faults = h.step(force_n=50.0)
+            assert len(valves) == 1 and valves[0].enable == 1 and not faults
+        assert h.loop.lifecycle.state is LifecycleState.ACTIVE
+        assert h.loop.output_errors >= 3 * 30      # per tick: a frame in, one out, the record
+        assert h.loop.status()["last_output_error"] == "ValueError: layout mismatch"
+    finally:
+        h.close()
+
+
 def test_disarm_returns_to_safe_state(harness: LoopHarness) -> None:
     harness.run(10)
     harness.arm()

@@ -37,8 +37,8 @@ def rcfg(**kw: Any) -> RecordingConfig:
 
 
 def recorder(path: Path, **kw: Any) -> RunRecorder:
-    opts = {k: kw.pop(k) for k in ("poll_s", "compression", "max_chunk_age_s", "pipe_bytes")
-            if k in kw}
+    opts = {k: kw.pop(k) for k in ("poll_s", "compression", "max_chunk_age_s", "pipe_bytes",
+                                   "tick_layout") if k in kw}
     return RunRecorder(path, rcfg(**kw), config_toml=TOML, design_bytes=b"\x93NUMPY-design",
                        metadata={"operator": "test", "seed": 7}, **{"poll_s": 0.001, **opts})
 
@@ -531,3 +531,101 @@ def test_relative_path_is_the_callers(tmp_path: Path, monkeypatch: pytest.Monkey
         rec.can_frame(1, 0, 0x100, b"\x01", True)
     assert rec.base_path == tmp_path / "rel.mcap"
     assert [f.data for f in read_run(tmp_path / "rel.mcap").frames] == [b"\x01"]
+
+
+# ----------------------------------------------------------------------- packed tick records
+
+_ENUM_NAMES = (None, "ALPHA", "BETA")
+_SCALAR_ST = {
+    "int": st.integers(-2**62, 2**62),
+    "float": st.floats(allow_nan=False, allow_infinity=False, width=64),
+    "bool": st.booleans(),
+    "ns_as_s": st.integers(-5, 10**15),
+    "enum": st.integers(0, len(_ENUM_NAMES) - 1),
+}
+_ARRAY_DTYPES = {"<f8": np.float64, "|b1": np.bool_, "<i8": np.int64, "<i4": np.int32,
+                 "|u1": np.uint8}
+
+
+@st.composite
+def packed_records(draw: st.DrawFn) -> tuple[Any, list[tuple[list[Any], list[np.ndarray]]]]:
+    from rig.record_codec import TickLayout
+
+    fields: list[tuple[str, str, Any]] = [("tick", "int", None)]
+    for i in range(draw(st.integers(0, 6))):
+        if draw(st.booleans()):
+            kind = draw(st.sampled_from(sorted(_SCALAR_ST)))
+            fields.append((f"s{i}", kind, _ENUM_NAMES if kind == "enum" else None))
+        else:
+            dt = draw(st.sampled_from(sorted(_ARRAY_DTYPES)))
+            shape = tuple(draw(st.lists(st.integers(0, 4), min_size=1, max_size=2)))
+            fields.append((f"a{i}", dt, shape))
+    layout = TickLayout(tuple(fields))
+    rows = []
+    for k in range(draw(st.integers(1, 4))):
+        scalars: list[Any] = [k]
+        arrays: list[np.ndarray] = []
+        for _, kind, extra in fields[1:]:
+            if kind in _SCALAR_ST:
+                scalars.append(draw(_SCALAR_ST[kind]))
+            else:
+                n = int(np.prod(extra))
+                dtype = _ARRAY_DTYPES[kind]
+                if dtype is np.float64:
+                    vals = draw(st.lists(st.floats(allow_nan=False, allow_infinity=False),
+                                         min_size=n, max_size=n))
+                elif dtype is np.bool_:
+                    vals = draw(st.lists(st.booleans(), min_size=n, max_size=n))
+                else:
+                    info = np.iinfo(dtype)
+                    vals = draw(st.lists(st.integers(int(info.min), int(info.max)),
+                                         min_size=n, max_size=n))
+                arrays.append(np.array(vals, dtype=dtype).reshape(extra))
+        rows.append((scalars, arrays))
+    return layout, rows
+
+
+def expected_packed(layout: Any, scalars: list[Any], arrays: list[np.ndarray]
+                    ) -> dict[str, Any]:
+    """What the record reads back as, worked out from the layout's documented meaning."""
+    s_it, a_it = iter(scalars), iter(arrays)
+    out: dict[str, Any] = {}
+    for key, kind, extra in layout.fields:
+        if kind in _SCALAR_ST:
+            v = next(s_it)
+            if kind == "ns_as_s":
+                v = v * 1e-9 if v >= 0 else None
+            elif kind == "enum":
+                v = extra[v]
+            out[key] = v
+        else:
+            out[key] = next(a_it).tolist()
+    return out
+
+
+@settings(max_examples=20, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(packed_records())
+def test_packed_tick_records_read_back_as_declared(
+        tmp_path: Path, case: tuple[Any, list[tuple[list[Any], list[np.ndarray]]]]) -> None:
+    layout, rows = case
+    path = tmp_path / f"packed{time.monotonic_ns()}.mcap"
+    with recorder(path, tick_layout=layout) as rec:
+        for k, (scalars, arrays) in enumerate(rows):
+            rec.can_frame(10 * k, k, 0x100, b"\x01", True)
+            assert rec.tick_values(10 * k + 1, scalars, arrays)
+    assert rec.malformed == 0 and rec.error is None and rec.dropped == 0
+    got = [r.data for r in read_run(path).records]
+    assert got == [expected_packed(layout, s, a) for s, a in rows]
+
+
+def test_packed_tick_record_rejects_a_wrong_shape(tmp_path: Path) -> None:
+    from rig.record_codec import TickLayout
+
+    layout = TickLayout((("tick", "int", None), ("q", "<f8", (3,))))
+    with recorder(tmp_path / "shape.mcap", tick_layout=layout) as rec:
+        with pytest.raises(ValueError):
+            rec.tick_values(0, [0], [np.zeros(4)])
+        assert rec.tick_values(1, [1], [np.ones(3)])
+    assert [r.data for r in read_run(tmp_path / "shape.mcap").records] == [
+        {"tick": 1, "q": [1.0, 1.0, 1.0]}]
