@@ -376,7 +376,7 @@ def main() -> int:
     def progress(event: str = "progress") -> None:
         status.send(event, written=sink.written, malformed=sink.malformed,
                     last_malformed=sink.last_malformed, paths=[str(p) for p in sink.paths],
-                    error=error, clean_end=clean_end, backlog=backlog.items)
+                    error=error, clean_end=clean_end)
 
     try:
         while True:

@@ -64,6 +64,7 @@ from rig.record_codec import (
     ITEM_EVENT,
     ITEM_FRAME,
     ITEM_HEAD,
+    ITEM_LAYOUT,
     TickLayout,
     TickPacker,
     encode_end,
@@ -97,9 +98,9 @@ __all__ = [
 
 _RECORD_TOPICS = (TOPIC_SIGNALS, TOPIC_INTERNALS, TOPIC_TIMING)
 _EVENT_RETRY = 1024        # events of dropped batches kept back for the next batch
+_KEPT_BACK = frozenset({ITEM_EVENT, ITEM_LAYOUT})
 _BATCH_BYTES = 1 << 16     # batch buffer; a fuller one is flushed before the next item
 _FLUSH_BYTES = 1 << 13     # ... and one this full at the end of a tick
-_F_SETPIPE_SZ = 1031       # fcntl.F_SETPIPE_SZ (Linux; named in fcntl from Python 3.10)
 
 
 class RecorderStartError(OSError):
@@ -183,24 +184,21 @@ class RunRecorder:
             "metadata": self._base_metadata(metadata, clock, int(clock_offset_ns),
                                             config_toml, design_bytes, target),
         }
-        # counters (loop side)
         self._dropped = 0
-        self.sent = 0                # items handed to the pipe
         # counters and state reported by the writer process
         self.written = 0             # items written (frames + records + events)
         self.malformed = 0           # items the writer could not encode (skipped)
         self.last_malformed: str | None = None
         self.error: str | None = None
-        self.backlog = 0             # items waiting in the writer process
         self._failed = False
         self._closed = False
-        self._progress = threading.Condition()
+        self._lock = threading.Lock()   # the status thread updates the counters above
         # the batch of the current tick
         self._batch = bytearray(_BATCH_BYTES)
         self._mv = memoryview(self._batch)
         self._n = 0
         self._items = 0
-        self._events_in_batch = 0
+        self._kept_in_batch = 0
         self._pending: bytes = b""             # tail of a partially written batch
         self._retry: collections.deque[bytes] = collections.deque(maxlen=_EVENT_RETRY)
 
@@ -212,7 +210,7 @@ class RunRecorder:
         assert self._proc.stdin is not None and self._proc.stdout is not None
         self._fd = self._proc.stdin.fileno()
         with contextlib.suppress(OSError):   # best effort: the default pipe is 64 KiB
-            fcntl.fcntl(self._fd, _F_SETPIPE_SZ, max(4096, int(pipe_bytes)))
+            fcntl.fcntl(self._fd, fcntl.F_SETPIPE_SZ, max(4096, int(pipe_bytes)))
         self._ready = threading.Event()
         self._status_thread = threading.Thread(target=self._read_status,
                                                name="rig-recorder-status", daemon=True)
@@ -248,7 +246,7 @@ class RunRecorder:
             except ValueError:
                 continue
             ev = st.get("event")
-            with self._progress:
+            with self._lock:
                 if ev == "error":
                     self.error = str(st.get("error"))
                     self._failed = True
@@ -256,19 +254,16 @@ class RunRecorder:
                     self.written = int(st.get("written", self.written))
                     self.malformed = int(st.get("malformed", self.malformed))
                     self.last_malformed = st.get("last_malformed", self.last_malformed)
-                    self.backlog = int(st.get("backlog", 0))
                     self.paths = [Path(p) for p in st.get("paths", [])] or self.paths
                     if st.get("error"):
                         self.error = str(st["error"])
                         self._failed = True
-                self._progress.notify_all()
             if ev in ("ready", "error"):
                 self._ready.set()
-        with self._progress:
+        with self._lock:
             if not self._closed and self.error is None:
                 self.error = "writer process ended unexpectedly"
             self._failed = True
-            self._progress.notify_all()
         self._ready.set()
 
     # ------------------------------------------------------------------ loop side (cheap)
@@ -299,7 +294,7 @@ class RunRecorder:
             return
         self._packer = TickPacker(layout)
         if not (self._failed or self._closed):
-            self._send_bytes(encode_layout(layout), event=True)
+            self._send_bytes(encode_layout(layout), keep=True)
 
     def tick_values(self, t_ns: int, scalars: Sequence[Any], arrays: Sequence[np.ndarray]
                     ) -> bool:
@@ -340,7 +335,7 @@ class RunRecorder:
         try:
             blob = encode_pickled_tick(t_ns, record)
         except Exception as exc:                # unpicklable: skipped, counted
-            with self._progress:
+            with self._lock:
                 self.malformed += 1
                 self.last_malformed = f"{type(exc).__name__}: {exc} in tick record"
             return False
@@ -354,22 +349,22 @@ class RunRecorder:
         if self._failed or self._closed:
             self._dropped += 1
             return False
-        self._send_bytes(encode_event(t_ns, tick, kind, detail), event=True)
+        self._send_bytes(encode_event(t_ns, tick, kind, detail), keep=True)
         return True
 
-    def _send_bytes(self, blob: bytes, event: bool = False) -> None:
+    def _send_bytes(self, blob: bytes, keep: bool = False) -> None:
         if self._n + len(blob) > _BATCH_BYTES:
             self.flush()
         if len(blob) > _BATCH_BYTES:            # a huge item: its own write
             self._items += 1
-            self._events_in_batch += event
+            self._kept_in_batch += keep
             self._deliver(memoryview(blob), len(blob))
             return
         n = self._n
         self._mv[n:n + len(blob)] = blob
         self._n = n + len(blob)
         self._items += 1
-        self._events_in_batch += event
+        self._kept_in_batch += keep
 
     def flush(self) -> bool:
         """Send the batch now.  False = it was dropped (pipe full or writer gone)."""
@@ -398,23 +393,22 @@ class RunRecorder:
             else:
                 if w < n:
                     self._pending = bytes(data[w:])
-        if ok:
-            self.sent += items
-        else:
+        if not ok:
             self._drop_batch(data, items)
         self._n = 0
         self._items = 0
-        self._events_in_batch = 0
+        self._kept_in_batch = 0
         return ok
 
     def _drop_batch(self, data: memoryview, items: int) -> None:
-        """Count the batch's items as dropped, keeping its events back for later."""
+        """Count the batch's items as dropped, keeping its events and tick layout back
+        for later (without its layout the writer could not decode what follows)."""
         kept = 0
-        if self._events_in_batch and not self._failed:
+        if self._kept_in_batch and not self._failed:
             pos = 0
             while pos < len(data):
                 size, kind = ITEM_HEAD.unpack_from(data, pos)
-                if kind == ITEM_EVENT and len(self._retry) < _EVENT_RETRY:
+                if kind in _KEPT_BACK and len(self._retry) < _EVENT_RETRY:
                     self._retry.append(bytes(data[pos:pos + size]))
                     kept += 1
                 pos += size
@@ -442,7 +436,6 @@ class RunRecorder:
                 self._writer_gone(exc)
                 return
             self._retry.popleft()
-            self.sent += 1
             if w < len(blob):
                 self._pending = blob[w:]
                 return
@@ -476,7 +469,6 @@ class RunRecorder:
                 os.set_blocking(self._fd, True)
                 for blob in self._retry:
                     self._write_all(blob)
-                    self.sent += 1
                 self._retry.clear()
                 if self._pending:
                     self._write_all(self._pending)
@@ -501,17 +493,6 @@ class RunRecorder:
             self._proc.kill()              # our own child, by its Popen handle
         with contextlib.suppress(subprocess.TimeoutExpired):
             self._proc.wait(5.0)
-
-    def wait_written(self, n: int, timeout_s: float = 10.0) -> bool:
-        """Wait until the writer reports ``n`` items written (tests, tools)."""
-        deadline = time.monotonic() + timeout_s
-        with self._progress:
-            while self.written < n and not self._failed:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._progress.wait(left)
-        return self.written >= n
 
     def __enter__(self) -> RunRecorder:
         return self

@@ -629,3 +629,31 @@ def test_packed_tick_record_rejects_a_wrong_shape(tmp_path: Path) -> None:
         assert rec.tick_values(1, [1], [np.ones(3)])
     assert [r.data for r in read_run(tmp_path / "shape.mcap").records] == [
         {"tick": 1, "q": [1.0, 1.0, 1.0]}]
+
+
+def test_a_dropped_batch_keeps_its_tick_layout(tmp_path: Path) -> None:
+    """The layout declared while the pipe is full is kept back like an event: the packed
+    records sent once the writer catches up still decode."""
+    from rig.record_codec import TickLayout
+
+    path = tmp_path / "layout.mcap"
+    rec = recorder(path, pipe_bytes=4096)
+    os.kill(rec.pid, signal.SIGSTOP)      # the writer (started by this test) stops reading
+    try:
+        for k in range(200):              # fill the pipe
+            rec.tick(k, {"tick": k})
+        rec.set_tick_layout(TickLayout((("tick", "int", None), ("x", "float", None))))
+        assert rec.tick_values(1000, [1000, 0.5], []) is False      # dropped with its batch
+    finally:
+        os.kill(rec.pid, signal.SIGCONT)
+    sent = []
+    for k in range(1001, 3000):
+        if rec.tick_values(k, [k, 1.5], []):
+            sent.append(k)
+        if len(sent) >= 3:
+            break
+        time.sleep(0.001)
+    rec.close()
+    assert rec.malformed == 0 and rec.error is None
+    packed = [r.data for r in read_run(path).records if r.tick >= 1000]
+    assert packed == [{"tick": k, "x": 1.5} for k in sent]
