@@ -53,28 +53,37 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtime: bool,
-             design_path: str, switch_interval_s: float = 0.0001,
-             rig_phase: bool = True, cpus: tuple[int, ...] = ()) -> dict[str, Any]:
+def _rig_and_service(cfg: Any, design_path: str, road_s: float, **options: Any
+                     ) -> tuple[Any, Any, Any]:
+    """The emulated rig (bus, node) and the service on a fresh virtual channel."""
     from hil.node import RigNode
     from hil.roads import make_road
     from rig.bus import open_bus
-    from rig.commands.demo import RIG_MAX_LAG_S
-    from rig.protocol import LifecycleState
-    from rig.realtime import RealtimeRequest, restore_gc
     from rig.service import Service, ServiceOptions
 
-    rate = cfg.design.sample_rate_hz
     channel = f"bench-{uuid.uuid4().hex}"
     rig_bus = open_bus(cfg.can, role=None, interface="virtual", channel=channel)
-    road = make_road("rough-course", 11.176, seconds + 5.0, cfg.sample_time_s, seed=1)
+    road = make_road("rough-course", 11.176, road_s, cfg.sample_time_s, seed=1)
     node = RigNode(rig_bus, cfg, road, record_ticks=1000)
+    svc = Service(cfg, ServiceOptions(design_path=design_path, interface="virtual",
+                                      channel=channel, realtime=None,
+                                      install_signal_handlers=False, **options))
+    return rig_bus, node, svc
+
+
+def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtime: bool,
+             design_path: str, switch_interval_s: float = 0.0001,
+             cpus: tuple[int, ...] = ()) -> dict[str, Any]:
+    from rig.protocol import LifecycleState
+    from rig.realtime import RealtimeRequest, restore_gc
+
+    rate = cfg.design.sample_rate_hz
     tmp = tempfile.TemporaryDirectory()
-    svc = Service(cfg, ServiceOptions(
-        design_path=design_path, interface="virtual", channel=channel,
+    rig_bus, node, svc = _rig_and_service(
+        cfg, design_path, seconds + 5.0,
         record=os.path.join(tmp.name, "bench.mcap") if recording else None,
-        recording=recording, telemetry=telemetry, realtime=None,
-        install_signal_handlers=False, timing_ring=round((seconds + 2 * WARM_S) * rate)))
+        recording=recording, telemetry=telemetry,
+        timing_ring=round((seconds + 2 * WARM_S) * rate))
     warm = round(WARM_S * rate)
     end = warm + round(seconds * rate)
     state = {"rig": -1, "measured_from": -1}
@@ -89,7 +98,7 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
             others = set(range(os.cpu_count() or 1)) - set(cpus)
             if others:
                 os.sched_setaffinity(0, others)
-        node.run(stop_rig, start_ns=start_ns, max_lag_s=RIG_MAX_LAG_S)
+        node.run(stop_rig, start_ns=start_ns)
 
     def on_tick(loop: Any) -> None:
         k = loop.tick_count
@@ -97,8 +106,7 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
             if k >= 100:
                 state["rig"] = k
                 # like rig demo: the rig ticks half a period after the loop's deadlines
-                start = loop.t_ns - loop.lateness_ns + period_ns + (
-                    period_ns // 2 if rig_phase else 0)
+                start = loop.t_ns - loop.lateness_ns + period_ns + period_ns // 2
                 rig_threads.append(threading.Thread(target=run_rig, args=(start,),
                                                     daemon=True))
                 rig_threads[0].start()
@@ -178,24 +186,12 @@ def _summarise(segments: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def tick_hot_and_cold(design_path: str, n: int = 4000) -> dict[str, float]:
+def tick_hot_and_cold(cfg: Any, design_path: str, n: int = 4000) -> dict[str, float]:
     """``ControlLoop.tick`` (armed, virtual bus, one rig tick before each) timed back to
     back ("hot") and 0.8 ms apart ("cold": what the loop sees after its sleep), in one
     thread: the floor of the step time and what cold caches add to it."""
-    from controller.config import default_config
-    from hil.node import RigNode
-    from hil.roads import make_road
-    from rig.bus import open_bus
-    from rig.service import Service, ServiceOptions
-
-    cfg = default_config()
-    channel = f"tick-{uuid.uuid4().hex}"
-    rig_bus = open_bus(cfg.can, role=None, interface="virtual", channel=channel)
-    node = RigNode(rig_bus, cfg, make_road("rough-course", 11.176, 2 * n / 1000 + 5,
-                                           cfg.sample_time_s, seed=1), record_ticks=16)
-    svc = Service(cfg, ServiceOptions(design_path=design_path, interface="virtual",
-                                      channel=channel, recording=False, telemetry=False,
-                                      realtime=None, install_signal_handlers=False))
+    rig_bus, node, svc = _rig_and_service(cfg, design_path, 2 * n / 1000 + 5,
+                                          recording=False, telemetry=False)
     loop = svc.loop
     t = time.monotonic_ns()
     for _ in range(200):
@@ -305,7 +301,7 @@ def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
                     cfg, seconds / rounds, CASES[name][0], CASES[name][1], realtime,
                     design_path, switch_interval_s, cpus=cpus))
         cases = {name: _summarise(segs) for name, segs in segments.items()}
-        tick = tick_hot_and_cold(design_path)
+        tick = tick_hot_and_cold(cfg, design_path)
     micro = {"virtual_bus": virtual_bus_cost(), "tick": tick,
              "sleep_slack_50us": sleep_lateness(50_000),
              "sleep_slack_1ns": sleep_lateness(1)}

@@ -371,18 +371,22 @@ class RigNode:
 
     # ----------------------------------------------------------------- running
     def run(self, stop_event: threading.Event, realtime: bool = True,
-            duration_s: float | None = None, max_lag_s: float = 0.05,
+            duration_s: float | None = None, max_lag_s: float | None = None,
             start_ns: int | None = None) -> NodeStats:
         """Tick until ``stop_event`` is set or ``duration_s`` of rig time has passed.
 
         Real time: tick k starts at t0 + k dt (absolute deadlines, ``time.sleep`` until
         each); a tick that starts late is counted, and falling more than ``max_lag_s``
-        behind resets the schedule (counted in ``resyncs``) instead of bursting frames.
+        behind resets the schedule (counted in ``resyncs``) instead of bursting through
+        the missed ticks.  Default: half the drive watchdog window, since a burst passes
+        rig time without any command being able to arrive and would trip the watchdog.
         ``start_ns`` (``time.monotonic_ns`` clock) sets t0, e.g. half a period after the
         controller's deadlines when both share a process (``rig demo``): the two threads
         then take turns with the GIL instead of waking together; default: now.
         """
         period_ns = round(self.dt_s * 1e9)
+        if max_lag_s is None:
+            max_lag_s = (self._wd_ticks // 2) * self.dt_s
         max_lag_ns = round(max_lag_s * 1e9)
         end_tick = None if duration_s is None else self.tick_count + round(duration_s / self.dt_s)
         stats = self.stats

@@ -142,8 +142,7 @@ def tick_record_layout(rt: Runtime) -> TickLayout:
                            else f"UNKNOWN_{v}" for v in range(1, top + 1)))
 
     def arr(key: str, a: np.ndarray) -> tuple[str, str, tuple[int, ...]]:
-        return (key, a.dtype.newbyteorder("<").str if a.dtype.kind != "b" else "|b1",
-                tuple(a.shape))
+        return (key, a.dtype.str, tuple(a.shape))   # the packer copies the native bytes
 
     return TickLayout((
         ("tick", "int", None),

@@ -281,7 +281,7 @@ def decode_item(item: bytes | memoryview, ticks: TickDecoder | None
         t_ns, record = ticks.decode(item)
         return ("tick", t_ns, record)
     if kind == ITEM_PICKLED:
-        (t_ns,) = struct.unpack_from("<q", item, 5)
+        _, _, t_ns = _T_NS.unpack_from(item, 0)
         return ("tick", t_ns, pickle.loads(item[_T_NS.size:]))
     if kind == ITEM_EVENT:
         _, _, t_ns, tick = _EVENT_HEAD.unpack_from(item, 0)

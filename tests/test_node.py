@@ -439,3 +439,28 @@ def test_open_bus_socketcan_sets_receive_buffer(monkeypatch: pytest.MonkeyPatch)
     open_bus(cfg.can, role="controller")
     assert opened["interface"] == "socketcan" and opened["channel"] == "can7"
     assert fake.calls and fake.calls[0][2] == 1 << 21
+
+
+def test_a_stalled_rig_resyncs_instead_of_bursting_past_its_watchdog() -> None:
+    """After a 10 ms stall the node does not run the missed ticks back to back (that
+    would pass milliseconds of rig time with no command able to arrive, and trip its own
+    drive watchdog): by default it re-syncs once it is half a watchdog window behind."""
+    import threading
+    import time
+
+    with harness() as h:
+        node = h.node
+        starts: list[int] = []
+        tick = node.tick
+
+        def slow_tick() -> None:
+            starts.append(time.monotonic_ns())
+            if len(starts) == 5:
+                time.sleep(0.010)
+            tick()
+
+        node.tick = slow_tick  # type: ignore[method-assign]
+        stats = node.run(threading.Event(), realtime=True, duration_s=0.03)
+        gaps_after_stall_ms = np.diff(starts[5:]) / 1e6
+        assert stats.resyncs == 1
+        assert gaps_after_stall_ms.min() > 0.5

@@ -30,10 +30,6 @@ from controller.config import RigConfig, load_config
 
 SETTLE_S = 0.5     # skipped at the start of each half (start-up / switching transients)
 WARM_TICKS = 200   # loop ticks before the emulated rig starts
-# the emulated rig re-syncs instead of catching up when its thread falls this far behind:
-# a burst of catch-up ticks would run milliseconds of rig time in microseconds, without
-# the commands that real time would have brought, and trip its drive watchdog
-RIG_MAX_LAG_S = 0.002
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -288,8 +284,7 @@ def run(args: argparse.Namespace) -> int:
                 deadline = loop.t_ns - loop.lateness_ns
                 rig_threads.append(threading.Thread(
                     target=node.run, args=(stop_rig,), name="emulated-rig", daemon=True,
-                    kwargs={"start_ns": deadline + period_ns + period_ns // 2,
-                            "max_lag_s": RIG_MAX_LAG_S}))
+                    kwargs={"start_ns": deadline + period_ns + period_ns // 2}))
                 rig_threads[0].start()
             return
         k = node.count
