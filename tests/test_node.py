@@ -462,5 +462,7 @@ def test_a_stalled_rig_resyncs_instead_of_bursting_past_its_watchdog() -> None:
         node.tick = slow_tick  # type: ignore[method-assign]
         stats = node.run(threading.Event(), realtime=True, duration_s=0.03)
         gaps_after_stall_ms = np.diff(starts[5:]) / 1e6
-        assert stats.resyncs == 1
-        assert gaps_after_stall_ms.min() > 0.5
+        assert stats.resyncs >= 1
+        # a burst would run the ~9 missed ticks back to back; a late tick on a busy
+        # machine may legitimately catch up one or two
+        assert int((gaps_after_stall_ms < 0.2).sum()) <= 2
