@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import ipaddress
 import json
 import math
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -296,16 +298,22 @@ class CanConfig:
 @dataclass(frozen=True)
 class TelemetryConfig:
     enabled: bool = _f(True)
-    endpoints: list[str] = _f(["tcp/127.0.0.1:7447"])
+    endpoints: list[str] = _f(["tcp/127.0.0.1:7447"],
+                              doc="Zenoh locators: tcp|udp|tls|quic|ws/<host>:<port>, "
+                              "unixsock-stream/<absolute path>")
     mode: str = _f("peer", choices=("peer", "client", "router"))
     listen: bool = _f(True, doc="listen on endpoints (else connect to them)")
     multicast_scouting: bool = _f(False)
-    key_prefix: str = _f("rig")
+    key_prefix: str = _f("rig", doc="Zenoh key expression of '/'-separated chunks, "
+                         "no wildcards (* $) and no # ? or spaces")
     rate_hz: float = _f(50.0, lo=0.1, hi=1000.0)
     queue_size: int = _f(256, lo=1, hi=1_000_000)
     commands_enabled: bool = _f(False)
     zenoh_config_file: str = _f("", doc="json5 file merged first (TLS, access_control); "
                                 "mode/endpoints/scouting above override it")
+    session_attempts: int = _f(5, lo=1, hi=1000,
+                               doc="attempts to open the Zenoh session (1 s, 2 s, 4 s ... "
+                               "up to 30 s apart) before telemetry gives up; control goes on")
 
 
 @dataclass(frozen=True)
@@ -489,6 +497,54 @@ def _cross_checks(cfg: RigConfig) -> None:
     if sorted(cfg.noise.road_roughness_gd) != cfg.noise.road_roughness_gd:
         raise ConfigError("noise.road_roughness_gd", cfg.noise.road_roughness_gd,
                           "increasing values")
+    _telemetry_checks(cfg.telemetry)
+
+
+_HOST_NAME = r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+_PARAMS = r"[A-Za-z0-9_]+=[^;#?\s]*(?:;[A-Za-z0-9_]+=[^;#?\s]*)*"
+_IP_ENDPOINT = re.compile(
+    rf"(?P<proto>tcp|udp|tls|quic|ws)/(?P<host>\[[0-9A-Fa-f:.]+\]|{_HOST_NAME}"
+    rf"(?:\.{_HOST_NAME})*):(?P<port>[0-9]{{1,5}})(?:\?{_PARAMS})?(?:#{_PARAMS})?")
+_UNIX_ENDPOINT = re.compile(rf"unixsock-stream//[^\s?#]+(?:\?{_PARAMS})?(?:#{_PARAMS})?")
+_ENDPOINT_FORM = ("<tcp|udp|tls|quic|ws>/<IPv4, [IPv6] or host name>:<port 1-65535>"
+                  "[?key=value;...][#key=value;...] or unixsock-stream/<absolute path>")
+_KEY_CHUNK = re.compile(r"[^*$#?\s/]+")
+
+
+def _endpoint_problem(endpoint: str) -> str:
+    """'' for a well-formed Zenoh locator (as the service uses them), else what is wrong."""
+    if _UNIX_ENDPOINT.fullmatch(endpoint):
+        return ""
+    m = _IP_ENDPOINT.fullmatch(endpoint)
+    if m is None:
+        return _ENDPOINT_FORM
+    host, port = m["host"], int(m["port"])
+    if not 1 <= port <= 65535:
+        return f"a port in [1, 65535] ({_ENDPOINT_FORM})"
+    try:
+        if host.startswith("["):
+            ipaddress.IPv6Address(host[1:-1])
+        elif host.replace(".", "").isdigit():
+            ipaddress.IPv4Address(host)
+    except ValueError:
+        return f"a valid IP address ({_ENDPOINT_FORM})"
+    return ""
+
+
+def _telemetry_checks(t: TelemetryConfig) -> None:
+    for i, endpoint in enumerate(t.endpoints):
+        problem = _endpoint_problem(endpoint)
+        if problem:
+            raise ConfigError(f"telemetry.endpoints[{i}]", endpoint, problem)
+    chunks = t.key_prefix.split("/")
+    if len(t.key_prefix) > 128 or not all(_KEY_CHUNK.fullmatch(c) for c in chunks) \
+            or chunks[0].startswith("@"):
+        raise ConfigError("telemetry.key_prefix", t.key_prefix,
+                          "a Zenoh key of 1-128 characters: '/'-separated non-empty chunks "
+                          "without wildcards (* $), # ? or spaces, not starting with @")
+    if t.mode == "client" and t.listen:
+        raise ConfigError("telemetry.listen", t.listen,
+                          "false in client mode (a Zenoh client connects, it cannot listen)")
 
 
 def parse_config(data: Mapping[str, Any]) -> RigConfig:

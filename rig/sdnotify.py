@@ -10,6 +10,7 @@ Usage::
     notifier.watchdog_period_ns                   # half of WATCHDOG_USEC, or 0
     notifier.watchdog()                           # WATCHDOG=1 (called from the loop)
     notifier.stopping()                           # STOPPING=1
+    notifier.set_note("telemetry", "FAILED: ...") # appended to every STATUS= until None
 
 The watchdog datagram is pre-encoded and sent with a non-blocking ``sendto`` so the
 control loop can ping it without allocating or blocking.
@@ -39,6 +40,8 @@ class SdNotifier:
     def __init__(self, notify_socket: str | None, watchdog_usec: int = 0,
                  watchdog_pid: int | None = None) -> None:
         self._address: str | bytes | None = None
+        self._notes: dict[str, str] = {}   # standing conditions appended to STATUS=
+        self._last_status = ""
         self._sock: socket.socket | None = None
         self.errors = 0
         if notify_socket:
@@ -81,15 +84,35 @@ class SdNotifier:
             return False
         return True
 
+    def _status_text(self, status: str) -> str:
+        self._last_status = status
+        notes = list(self._notes.items())
+        if not notes:
+            return status
+        return "; ".join([status, *(f"{k} {v}" for k, v in notes)] if status else
+                         [f"{k} {v}" for k, v in notes])
+
     def ready(self, status: str = "") -> bool:
-        text = "READY=1" + (f"\nSTATUS={status}" if status else "")
-        return self.notify(text)
+        text = self._status_text(status)
+        return self.notify("READY=1" + (f"\nSTATUS={text}" if text else ""))
 
     def status(self, status: str) -> bool:
-        return self.notify(f"STATUS={status}")
+        return self.notify(f"STATUS={self._status_text(status)}")
 
     def stopping(self, status: str = "") -> bool:
-        return self.notify("STOPPING=1" + (f"\nSTATUS={status}" if status else ""))
+        text = self._status_text(status)
+        return self.notify("STOPPING=1" + (f"\nSTATUS={text}" if text else ""))
+
+    def set_note(self, key: str, text: str | None) -> bool:
+        """A standing condition (e.g. ``telemetry`` -> ``FAILED: ...``) appended to
+        every STATUS= from now on (None removes it); the last status is sent again with
+        it at once.  Any thread."""
+        if text is None:
+            if self._notes.pop(key, None) is None:
+                return False
+        else:
+            self._notes[key] = text
+        return self.status(self._last_status)
 
     def watchdog(self) -> bool:
         """``WATCHDOG=1`` with a pre-encoded message (allocation-free, non-blocking)."""

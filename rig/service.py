@@ -160,8 +160,11 @@ class Service:
             from rig.telemetry import TelemetryPublisher
 
             self.telemetry = TelemetryPublisher(cfg.telemetry, self.status,
-                                                self.command_handler)
+                                                self.command_handler,
+                                                on_state=self._telemetry_state)
             self.loop.telemetry = self.telemetry
+        #: how long a telemetry command waits for the loop to apply it [s]
+        self.command_timeout_s = 0.05
         self._arm_pending = opts.arm
         self._arm_after_ticks = round(opts.arm_after_s * cfg.design.sample_rate_hz)
         self._closed = False
@@ -176,17 +179,29 @@ class Service:
         s = self.loop.status()
         s["realtime"] = self.realtime_report.as_dict()
         s["recording"] = str(self.recording_path) if self.recording_path else None
+        s["telemetry"] = {"state": "off"} if self.telemetry is None \
+            else self.telemetry.status()
         return s
 
+    def _telemetry_state(self, state: str, error: str | None) -> None:
+        """Telemetry thread: a failing session shows in systemd's STATUS= (and the log,
+        by the publisher) while control goes on."""
+        if state == "connected":
+            self.notifier.set_note("telemetry", None)
+        elif state in ("retrying", "failed"):
+            self.notifier.set_note("telemetry", f"{state.upper()}: {error}")
+
     def command_handler(self, name: str, args: dict[str, Any]) -> str:
-        """Telemetry command -> the loop (waits <= 50 ms); ValueError when refused."""
+        """Telemetry command (validated by ``rig.telemetry.validate_command``) -> the
+        loop (waits up to ``command_timeout_s``); ValueError when refused."""
+        arg: Any = None
         if name == "weight_set":
-            arg: Any = int(args["weight_set"])
+            arg = int(args["weight_set"])
         elif name == "blending":
             arg = parse_blending(args["blending"])
-        else:
-            arg = None
-        res = self.loop.request(name, arg, timeout_s=0.05)
+        elif name == "road":
+            arg = (float(args["speed_mps"]), float(args["roughness_gd"]))
+        res = self.loop.request(name, arg, timeout_s=self.command_timeout_s)
         if not res.accepted:
             raise ValueError(res.message)
         return res.message

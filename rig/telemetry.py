@@ -2,16 +2,22 @@
 
 The loop calls :meth:`TelemetryPublisher.offer` (usually when :meth:`due` says so); it
 never blocks: a full queue drops the snapshot and counts it in :attr:`dropped`.  A
-publisher thread opens the Zenoh session (retrying while the network is down), encodes
-JSON and publishes under ``<key_prefix>/...``.  Key tree, snapshot layout, command
-semantics and the TLS / access-control set-up for a rig network: ``docs/telemetry.md``.
+publisher thread opens the Zenoh session, encodes JSON and publishes under
+``<key_prefix>/...``.  A session that cannot be opened is retried ``session_attempts``
+times with growing pauses, every failure logged and shown in :meth:`status` (and via
+``on_state`` to the service's systemd STATUS); then telemetry gives up while control
+goes on.  The session connects only to the configured endpoints: gossip scouting and
+autoconnect are off.  Key tree, snapshot layout, command semantics and the TLS /
+access-control set-up for a rig network: ``docs/telemetry.md``.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import queue
+import re
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -22,7 +28,10 @@ import zenoh
 from controller.config import TelemetryConfig
 from rig.mcap_schema import encode_json
 
-__all__ = ["COMMANDS", "TelemetryPublisher", "validate_command", "zenoh_config"]
+__all__ = ["COMMANDS", "MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "TelemetryPublisher",
+           "validate_command", "zenoh_config"]
+
+log = logging.getLogger(__name__)
 
 #: command -> {argument: accepted types}; no other arguments are accepted.
 COMMANDS: dict[str, dict[str, tuple[type, ...]]] = {
@@ -34,40 +43,85 @@ COMMANDS: dict[str, dict[str, tuple[type, ...]]] = {
     "road": {"speed_mps": (int, float), "roughness_gd": (int, float)},
 }
 _PERIODIC_S = 1.0  # lifecycle / fault are re-published at least this often
+_RETRY_MAX_S = 30.0  # longest pause between two attempts to open the session
+#: command arguments larger than this are refused unread
+MAX_ARGUMENT_BYTES = 1024
+#: error texts in command replies are cut to this length (never echo large input)
+MAX_ERROR_CHARS = 200
+_NAME_CHARS = 40      # an unknown command name is shown cut to this length
+_RUST_SOURCE = re.compile(r" at /\S+\.rs:\d+\.?")
+
+
+def _brief(value: object, limit: int = _NAME_CHARS) -> str:
+    """repr(value), cut to ``limit`` characters (error texts never echo large input)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 3]}..."
+
+
+def _cap(text: str, limit: int = MAX_ERROR_CHARS) -> str:
+    return text if len(text) <= limit else f"{text[:limit - 3]}..."
+
+
+def _zenoh_error(exc: BaseException) -> str:
+    """One line of a Zenoh error without the Rust source locations."""
+    text = _RUST_SOURCE.sub("", str(exc)).strip().replace("\n", " ")
+    return _cap(text or type(exc).__name__, 300)
 
 
 def zenoh_config(cfg: TelemetryConfig) -> zenoh.Config:
     """The session configuration: ``cfg.zenoh_config_file`` (if any) overridden by mode,
-    endpoints (listen or connect) and multicast scouting from ``cfg``.
+    endpoints (listen or connect) and multicast scouting from ``cfg``, with gossip
+    scouting and every autoconnect off (whatever the file says): the session talks
+    only to the configured endpoints and to who connects to them.
 
     When connecting, ``listen/endpoints`` is set empty (a Zenoh peer would otherwise
-    listen on ``tcp/[::]:0``, i.e. every interface)."""
-    conf = zenoh.Config.from_file(cfg.zenoh_config_file) if cfg.zenoh_config_file \
-        else zenoh.Config()
-    conf.insert_json5("mode", json.dumps(cfg.mode))
-    conf.insert_json5("listen/endpoints", json.dumps(cfg.endpoints if cfg.listen else []))
-    conf.insert_json5("connect/endpoints", json.dumps([] if cfg.listen else cfg.endpoints))
-    conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    listen on ``tcp/[::]:0``, i.e. every interface).  Raises ``ValueError`` naming the
+    file or key when the configuration cannot be built."""
+    if cfg.zenoh_config_file:
+        try:
+            conf = zenoh.Config.from_file(cfg.zenoh_config_file)
+        except Exception as exc:   # zenoh.ZError: missing, unreadable, bad json5
+            raise ValueError(f"zenoh_config_file {cfg.zenoh_config_file}: "
+                             f"{_zenoh_error(exc)}") from exc
+    else:
+        conf = zenoh.Config()
+    no_autoconnect: dict[str, list[str]] = {"router": [], "peer": []}
+    for key, value in (
+            ("mode", cfg.mode),
+            ("listen/endpoints", cfg.endpoints if cfg.listen else []),
+            ("connect/endpoints", [] if cfg.listen else cfg.endpoints),
+            ("scouting/multicast/enabled", cfg.multicast_scouting),
+            ("scouting/multicast/autoconnect", no_autoconnect),
+            ("scouting/gossip/enabled", False),
+            ("scouting/gossip/autoconnect", no_autoconnect)):
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except Exception as exc:   # zenoh.ZError: e.g. an endpoint it cannot parse
+            raise ValueError(f"zenoh {key} = {_brief(value, 120)}: {_zenoh_error(exc)}"
+                             ) from exc
     return conf
 
 
 def validate_command(name: str, args: object) -> dict[str, Any]:
     """Check a command name and its argument object; ValueError names what is wrong."""
     if name not in COMMANDS:
-        raise ValueError(f"unknown command {name!r}: allowed {', '.join(COMMANDS)}")
+        raise ValueError(f"unknown command {_brief(name)}: allowed {', '.join(COMMANDS)}")
     if not isinstance(args, dict):
-        raise ValueError(f"command {name!r}: arguments must be a JSON object, got {args!r}")
+        raise ValueError(f"command {name!r}: arguments must be a JSON object, "
+                         f"got {_brief(args)}")
     spec = COMMANDS[name]
     extra = set(args) - set(spec)
     if extra:
-        raise ValueError(f"command {name!r}: unknown argument(s) {sorted(extra)}; "
+        shown = ", ".join(_brief(k) for k in sorted(extra)[:3])
+        more = f" and {len(extra) - 3} more" if len(extra) > 3 else ""
+        raise ValueError(f"command {name!r}: unknown argument(s) {shown}{more}; "
                          f"allowed {sorted(spec) or 'none'}")
     for key, types in spec.items():
         if key not in args:
             raise ValueError(f"command {name!r}: missing argument {key!r}")
         v = args[key]
         if isinstance(v, bool) or not isinstance(v, types):
-            raise ValueError(f"command {name!r}: {key}={v!r} must be "
+            raise ValueError(f"command {name!r}: {key}={_brief(v)} must be "
                              f"{' or '.join(t.__name__ for t in types)}")
         if isinstance(v, float) and not math.isfinite(v):
             raise ValueError(f"command {name!r}: {key}={v!r} must be finite")
@@ -81,14 +135,19 @@ class TelemetryPublisher:
     return a fresh dict of plain values).  ``command_handler(name, args) -> str`` is only
     wired when ``cfg.commands_enabled``; it runs on a Zenoh thread, must not block (queue
     the command for the loop) and raises ``ValueError`` to reject a command.
+    ``on_state(state, error)`` is called on the publisher thread at every change of
+    :attr:`state` (``connecting``, ``connected``, ``retrying``, ``failed``); it must not
+    block either.
     """
 
     def __init__(self, cfg: TelemetryConfig, status_provider: Callable[[], Mapping[str, Any]],
                  command_handler: Callable[[str, dict[str, Any]], str] | None = None,
-                 *, retry_s: float = 1.0) -> None:
+                 *, retry_s: float = 1.0,
+                 on_state: Callable[[str, str | None], None] | None = None) -> None:
         self.cfg = cfg
         self._status_provider = status_provider
         self._command_handler = command_handler
+        self._on_state = on_state
         self._retry_s = retry_s
         self._prefix = cfg.key_prefix.rstrip("/")
         self._q: queue.Queue[Mapping[str, Any]] = queue.Queue(maxsize=cfg.queue_size)
@@ -99,9 +158,12 @@ class TelemetryPublisher:
         self.dropped = 0
         self.published = 0
         self.commands_received = 0
-        self.error: str | None = None
+        self.attempts = 0              # attempts to open the session so far
+        self.state = "connecting"
+        self.error: str | None = None  # why the session is not up (last failure)
         self._session: zenoh.Session | None = None
         self._connected = threading.Event()
+        self._finished = threading.Event()   # connected, failed for good or closed
         self._declared: list[Any] = []
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._last_lifecycle: tuple[Any, float] = (object(), 0.0)
@@ -120,7 +182,7 @@ class TelemetryPublisher:
 
     def offer(self, snapshot: Mapping[str, Any]) -> bool:
         """Queue a snapshot for publishing.  Never blocks; False (and ``dropped`` += 1)
-        when the queue is full or the publisher is closed."""
+        when the queue is full or the publisher is closed or has failed."""
         if self._stop.is_set():
             self.dropped += 1
             return False
@@ -135,8 +197,26 @@ class TelemetryPublisher:
     def connected(self) -> bool:
         return self._connected.is_set()
 
+    @property
+    def failed(self) -> bool:
+        """True once telemetry has given up (the session could not be opened)."""
+        return self.state == "failed"
+
     def wait_connected(self, timeout_s: float) -> bool:
         return self._connected.wait(timeout_s)
+
+    def wait_settled(self, timeout_s: float) -> bool:
+        """Wait until the session is up or telemetry has given up; False on timeout."""
+        return self._finished.wait(timeout_s)
+
+    def status(self) -> dict[str, Any]:
+        """State of the telemetry itself (plain values; any thread)."""
+        return {"state": self.state, "error": self.error, "attempts": self.attempts,
+                "session_attempts": self.cfg.session_attempts,
+                "endpoints": list(self.cfg.endpoints), "listen": self.cfg.listen,
+                "published": self.published, "dropped": self.dropped,
+                "commands_enabled": self.cfg.commands_enabled,
+                "commands_received": self.commands_received}
 
     def close(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
@@ -153,8 +233,18 @@ class TelemetryPublisher:
     def _key(self, leaf: str) -> str:
         return f"{self._prefix}/{leaf}"
 
-    def _open(self) -> zenoh.Session:
-        session = zenoh.open(zenoh_config(self.cfg))
+    def _set_state(self, state: str, error: str | None) -> None:
+        self.state, self.error = state, error
+        if state in ("connected", "failed"):
+            self._finished.set()
+        if self._on_state is not None:
+            try:
+                self._on_state(state, error)
+            except Exception:
+                log.exception("telemetry state callback")
+
+    def _open(self, conf: zenoh.Config) -> zenoh.Session:
+        session = zenoh.open(conf)
         try:
             self._declare(session)
         except Exception:
@@ -176,15 +266,48 @@ class TelemetryPublisher:
             self._declared.append(
                 session.declare_subscriber(self._key("cmd/**"), self._on_command_put))
 
-    def _run(self) -> None:
-        while not self._stop.is_set() and self._session is None:
+    def _give_up(self, error: str) -> None:
+        self._stop.set()          # offers are dropped and counted from now on
+        log.error("telemetry off: %s; control goes on without it", error)
+        self._set_state("failed", error)
+
+    def _connect(self) -> bool:
+        """Open the session (retrying); False when telemetry gave up or was closed."""
+        try:
+            conf = zenoh_config(self.cfg)
+        except ValueError as exc:          # retrying cannot help
+            self.attempts = 1
+            self._give_up(str(exc))
+            return False
+        limit = self.cfg.session_attempts
+        pause = self._retry_s
+        while not self._stop.is_set():
+            self.attempts += 1
             try:
-                self._session = self._open()
-                self.error = None
-                self._connected.set()
-            except Exception as exc:  # zenoh.ZError, bad config file...: keep retrying
-                self.error = f"zenoh session: {exc}"
-                self._stop.wait(self._retry_s)
+                self._session = self._open(conf)
+            except Exception as exc:       # zenoh.ZError: busy port, bad address, TLS...
+                error = f"zenoh session: {_zenoh_error(exc)}"
+                if self.attempts >= limit:
+                    self._give_up(f"{error} ({self.attempts} of {limit} attempts)")
+                    return False
+                self._set_state("retrying", error)
+                log.warning("telemetry: %s (attempt %d of %d, next in %.0f s)", error,
+                            self.attempts, limit, pause)
+                self._stop.wait(pause)
+                pause = min(2.0 * pause, _RETRY_MAX_S)
+                continue
+            self._set_state("connected", None)
+            log.info("telemetry: Zenoh session up (%s %s, key prefix %r)",
+                     "listening on" if self.cfg.listen else "connecting to",
+                     ", ".join(self.cfg.endpoints), self._prefix)
+            self._connected.set()
+            return True
+        return False
+
+    def _run(self) -> None:
+        if not self._connect():
+            self._finished.set()
+            return
         while not self._stop.is_set():
             try:
                 snap = self._q.get(timeout=0.1)
@@ -194,7 +317,7 @@ class TelemetryPublisher:
                 self._publish(snap)
                 self.published += 1
             except Exception as exc:  # a bad snapshot must not kill telemetry
-                self.error = f"publish: {type(exc).__name__}: {exc}"
+                self.error = f"publish: {type(exc).__name__}: {_cap(str(exc))}"
         if self._session is not None:
             for d in self._declared:
                 d.undeclare()
@@ -223,46 +346,65 @@ class TelemetryPublisher:
 
     def _status(self) -> dict[str, Any]:
         status = dict(self._status_provider())
-        status["telemetry"] = {"dropped": self.dropped, "published": self.published,
-                               "commands_enabled": self.cfg.commands_enabled,
-                               "error": self.error}
+        status["telemetry"] = self.status()
         return status
 
     def _on_status(self, query: zenoh.Query) -> None:
+        # the reply goes out on the concrete key, whatever the query's key expression
         try:
-            query.reply(query.key_expr, encode_json(self._status()),
+            query.reply(self._key("status"), encode_json(self._status()),
                         encoding=zenoh.Encoding.APPLICATION_JSON)
         except Exception as exc:
-            query.reply_err(json.dumps({"error": f"status: {type(exc).__name__}: {exc}"}))
+            query.reply_err(json.dumps(
+                {"error": _cap(f"status: {type(exc).__name__}: {exc}")}))
 
-    def _handle(self, key: str, payload: bytes) -> tuple[bool, dict[str, Any]]:
-        """Validate and run one command; (accepted, reply object)."""
+    def _command_name(self, key: str) -> str | None:
+        """The command of a ``<prefix>/cmd/<name>`` key; None for a key expression with
+        wildcards (a query such as ``rig/**`` is not a command and gets no reply)."""
+        if "*" in key or "$" in key:
+            return None
+        return key[len(self._key("cmd/")):]
+
+    def _handle(self, name: str, payload: bytes) -> tuple[bool, dict[str, Any]]:
+        """Validate and run one command; (accepted, reply object).  Error texts are cut
+        to :data:`MAX_ERROR_CHARS` and never repeat more than a few characters of the
+        input."""
         with self._lock:
             self.commands_received += 1
-        name = key[len(self._key("cmd/")):]
+        shown = name if name in COMMANDS else _brief(name)
         try:
+            if len(payload) > MAX_ARGUMENT_BYTES:
+                raise ValueError(f"command {shown}: arguments of {len(payload)} bytes, "
+                                 f"at most {MAX_ARGUMENT_BYTES}")
             args = json.loads(payload) if payload.strip() else {}
             validate_command(name, args)
             assert self._command_handler is not None
             result = self._command_handler(name, args)
         except (ValueError, json.JSONDecodeError) as exc:
-            return False, {"command": name, "accepted": False, "error": str(exc)}
+            return False, {"command": shown, "accepted": False, "error": _cap(str(exc))}
         except Exception as exc:
-            return False, {"command": name, "accepted": False,
-                           "error": f"internal: {type(exc).__name__}: {exc}"}
-        return True, {"command": name, "accepted": True, "result": str(result)}
+            return False, {"command": shown, "accepted": False,
+                           "error": _cap(f"internal: {type(exc).__name__}: {exc}")}
+        return True, {"command": name, "accepted": True, "result": _cap(str(result))}
 
     def _on_command_query(self, query: zenoh.Query) -> None:
+        name = self._command_name(str(query.key_expr))
+        if name is None:
+            return
         payload = query.payload.to_bytes() if query.payload is not None else b""
-        ok, reply = self._handle(str(query.key_expr), payload)
+        ok, reply = self._handle(name, payload)
         if ok:
-            query.reply(query.key_expr, json.dumps(reply),
+            query.reply(self._key(f"cmd/{name}"), json.dumps(reply),
                         encoding=zenoh.Encoding.APPLICATION_JSON)
         else:
             query.reply_err(json.dumps(reply), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def _on_command_put(self, sample: zenoh.Sample) -> None:
-        _, reply = self._handle(str(sample.key_expr), sample.payload.to_bytes())
+        name = self._command_name(str(sample.key_expr))
+        if name is None:
+            return
+        _, reply = self._handle(name, sample.payload.to_bytes())
+        leaf = name if name in COMMANDS else "invalid"
         if self._session is not None:
-            self._session.put(self._key(f"ack/{reply['command']}"), json.dumps(reply),
+            self._session.put(self._key(f"ack/{leaf}"), json.dumps(reply),
                               encoding=zenoh.Encoding.APPLICATION_JSON)

@@ -6,6 +6,7 @@ import json
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -414,3 +415,521 @@ def test_tls_and_access_control_from_deploy_config(tmp_path: Path, port: int) ->
         assert seen == ["arm"]
     finally:
         tp.close()
+
+
+# ---------------------------------------------------------------------------- hardening
+
+
+def _peer_config(listen: list[str], connect: list[str], **keys: Any) -> zenoh.Config:
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("listen/endpoints", json.dumps(listen))
+    c.insert_json5("connect/endpoints", json.dumps(connect))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    for key, value in keys.items():
+        c.insert_json5(key.replace("__", "/"), json.dumps(value))
+    return c
+
+
+def _zids(session: zenoh.Session) -> set[str]:
+    return {str(z) for z in session.info.peers_zid()}
+
+
+_RIG_ZID = "f0f0f0f0f0f0f0f0"     # above the advertised peer's: the rig's side would dial
+
+
+def test_session_config_turns_gossip_and_autoconnect_off(tmp_path: Path, port: int) -> None:
+    """Whatever the json5 file says, the rig's session scouts no peers and dials none."""
+    f = tmp_path / "z.json5"
+    f.write_text('{ scouting: { gossip: { enabled: true, autoconnect: { peer: ["router", '
+                 '"peer"] } }, multicast: { autoconnect: { peer: ["router", "peer"] } } } }')
+    conf = zenoh_config(replace(tcfg(port), zenoh_config_file=str(f)))
+    scouting = json.loads(conf.get_json("scouting"))
+    assert scouting["gossip"]["enabled"] is False
+    for how in ("gossip", "multicast"):
+        assert scouting[how]["autoconnect"] == {"router": [], "peer": []}
+    assert scouting["multicast"]["enabled"] is False
+
+
+def test_rig_connects_only_to_configured_endpoints(tmp_path: Path) -> None:
+    """A local peer B connected to the rig and to a peer C gossips C's locator: a Zenoh
+    peer with gossip and autoconnect on (Zenoh's defaults) dials C on its own.  The rig's
+    session must not.  The first half shows the scenario does make a default peer dial."""
+    id_file = tmp_path / "id.json5"
+    id_file.write_text(f'{{ id: "{_RIG_ZID}" }}')
+
+    def scenario(open_rig: Callable[[int], Callable[[], None]], wait_s: float) -> bool:
+        p_rig, p_c = free_port(), free_port()
+        close_rig = open_rig(p_rig)
+        c = zenoh.open(_peer_config([f"tcp/127.0.0.1:{p_c}"], [], id="1111111111111111",
+                                    scouting__gossip__autoconnect={"peer": [], "router": []}))
+        b = zenoh.open(_peer_config([], [f"tcp/127.0.0.1:{p_rig}", f"tcp/127.0.0.1:{p_c}"]))
+        try:
+            b_zid = str(b.info.zid())
+            assert wait_for(lambda: b_zid in _zids(c), 10)
+            return wait_for(lambda: _RIG_ZID in _zids(c), wait_s)
+        finally:
+            b.close()
+            c.close()
+            close_rig()
+
+    def default_peer(p: int) -> Callable[[], None]:
+        conf = _peer_config([f"tcp/127.0.0.1:{p}"], [], id=_RIG_ZID)
+        s = zenoh.open(conf)
+        return s.close
+
+    def rig(p: int) -> Callable[[], None]:
+        tp = TelemetryPublisher(replace(tcfg(p), zenoh_config_file=str(id_file)), dict)
+        assert tp.wait_connected(10), tp.error
+        assert tp._session is not None and str(tp._session.info.zid()) == _RIG_ZID
+        return tp.close
+
+    t0 = time.monotonic()
+    assert scenario(default_peer, 20.0), "a default peer did not dial the gossiped peer"
+    dialled_after = time.monotonic() - t0
+    assert not scenario(rig, max(3.0, 3 * dialled_after))
+
+
+def test_status_replies_on_the_concrete_key(port: int) -> None:
+    r = Rig(port, commands_enabled=True)
+    assert r.tp.wait_connected(10), r.tp.error
+    s2 = client_session(port)
+    try:
+        assert wait_for(lambda: bool(query(s2, "rig/status")))
+        for selector in ("rig/status", "rig/*", "rig/**", "**"):
+            replies = list(s2.get(selector, timeout=3.0))
+            assert len(replies) == 1, selector     # the status; the command queryable is quiet
+            assert replies[0].ok is not None
+            assert str(replies[0].ok.key_expr) == "rig/status", selector
+        assert r.commands == []                    # a wildcard query is never a command
+        reply = next(iter(s2.get("rig/cmd/reset", timeout=3.0)))
+        assert reply.ok is not None and str(reply.ok.key_expr) == "rig/cmd/reset"
+    finally:
+        s2.close()
+        r.tp.close()
+
+
+def test_error_replies_are_short_and_never_echo_large_input(port: int) -> None:
+    r = Rig(port, commands_enabled=True)
+    assert r.tp.wait_connected(10), r.tp.error
+    s2 = client_session(port)
+    acks: list[bytes] = []
+    sub = s2.declare_subscriber("rig/ack/**", lambda smp: acks.append(smp.payload.to_bytes()))
+    big = "x" * 50_000
+    try:
+        assert wait_for(lambda: bool(query(s2, "rig/status")))
+        cases = [
+            ("rig/cmd/" + "n" * 5000, ""),                               # long name
+            ("rig/cmd/blending", json.dumps({"blending": 1, big: 1})),    # too large
+            ("rig/cmd/weight_set", json.dumps({"weight_set": "y" * 900})),  # wrong type
+            ("rig/cmd/arm", json.dumps({"z" * 300: 1, "w" * 300: 2})),   # unknown keys
+            ("rig/cmd/arm", json.dumps(["q" * 900])),                    # not an object
+            ("rig/cmd/arm", "{" + "[" * 900),                            # not JSON
+        ]
+        for key, payload in cases:
+            raw = list(s2.get(key, payload=payload, timeout=3.0))
+            assert len(raw) == 1 and raw[0].err is not None, key[:40]
+            body = raw[0].err.payload.to_bytes()
+            assert len(body) < 400, (key[:40], body[:120])
+            reply = json.loads(body)
+            assert not reply["accepted"] and len(reply["error"]) <= 200
+        assert f"{len(cases[1][1])} bytes, at most 1024" in json.loads(
+            next(iter(s2.get(cases[1][0], payload=cases[1][1], timeout=3.0))).err
+            .payload.to_bytes())["error"]
+        s2.put("rig/cmd/" + "m" * 3000, "{}")
+        assert wait_for(lambda: bool(acks))
+        assert len(acks[0]) < 400 and json.loads(acks[0])["accepted"] is False
+        assert r.commands == []
+    finally:
+        sub.undeclare()
+        s2.close()
+        r.tp.close()
+
+
+@pytest.mark.parametrize("prefix", ["rig", "lab/rig-1", "a", "x_y/z.w", "été/1"])
+def test_valid_key_prefixes_are_concrete_zenoh_keys(prefix: str) -> None:
+    from controller.config import parse_config
+
+    cfg = parse_config({"telemetry": {"key_prefix": prefix}}).telemetry
+    for leaf in ("status", "state", "cmd/arm"):
+        assert str(zenoh.KeyExpr(f"{cfg.key_prefix}/{leaf}")) == f"{prefix}/{leaf}"
+
+
+@given(prefix=st.text(alphabet=st.sampled_from("ab/*$#? @-_.é"), max_size=10))
+def test_key_prefix_validation_agrees_with_zenoh(prefix: str) -> None:
+    """What the config accepts is a valid Zenoh key without wildcards; what Zenoh
+    refuses, the config refuses (with the key named)."""
+    from controller.config import ConfigError, parse_config
+
+    try:
+        parse_config({"telemetry": {"key_prefix": prefix}})
+    except ConfigError as exc:
+        assert exc.key == "telemetry.key_prefix"
+        return
+    ke = zenoh.KeyExpr(prefix)
+    assert "*" not in prefix and "$" not in prefix and str(ke) == prefix
+
+
+@pytest.mark.parametrize("endpoint", [
+    "tcp/127.0.0.1:7447", "tcp/[::1]:7447", "tls/rig.local:7447", "udp/192.0.2.10:7447",
+    "quic/10.0.0.1:1", "ws/127.0.0.1:65535", "tcp/127.0.0.1:7447?iface=lo",
+    "tcp/127.0.0.1:7447#so_sndbuf=65536", "unixsock-stream//run/rig/zenoh.sock"])
+def test_valid_endpoints_are_accepted_by_zenoh(endpoint: str) -> None:
+    from controller.config import parse_config
+
+    cfg = parse_config({"telemetry": {"endpoints": [endpoint]}}).telemetry
+    conf = zenoh_config(cfg)
+    assert json.loads(conf.get_json("listen/endpoints")) == [endpoint]
+
+
+def test_offer_drops_and_counts_after_giving_up(tmp_path: Path, port: int) -> None:
+    cfg = replace(tcfg(port), zenoh_config_file=str(tmp_path / "missing.json5"))
+    tp = TelemetryPublisher(cfg, dict)
+    try:
+        assert tp.wait_settled(10) and tp.failed
+        assert not any(tp.offer(snapshot(k)) for k in range(10))
+        assert tp.dropped == 10
+    finally:
+        tp.close()
+
+
+def _busy_port() -> tuple[socket.socket, int]:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen()
+    return s, int(s.getsockname()[1])
+
+
+@pytest.mark.parametrize("case", ["busy_port", "missing_file", "unassignable_address",
+                                  "bad_json5"])
+def test_a_failing_session_is_reported_and_given_up(case: str, tmp_path: Path,
+                                                    caplog: pytest.LogCaptureFixture) -> None:
+    """Each failure: a log line, ``status()``, the state callback; a bounded number of
+    attempts, then telemetry stops trying."""
+    holder, busy = _busy_port()
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ mode: ")
+    cfg, expected = {
+        "busy_port": (tcfg(busy), "Address already in use"),
+        "missing_file": (replace(tcfg(free_port()), zenoh_config_file=str(tmp_path / "no.json5")),
+                         f"zenoh_config_file {tmp_path / 'no.json5'}: No such file"),
+        # binding only: nothing is sent to that (documentation-range) address
+        "unassignable_address": (replace(tcfg(0), endpoints=["tcp/192.0.2.1:7447"]),
+                                 "Cannot assign requested address"),
+        "bad_json5": (replace(tcfg(free_port()), zenoh_config_file=str(bad)),
+                      f"zenoh_config_file {bad}"),
+    }[case]
+    cfg = replace(cfg, session_attempts=3)
+    states: list[tuple[str, str | None]] = []
+    try:
+        with caplog.at_level("WARNING", logger="rig.telemetry"):
+            tp = TelemetryPublisher(cfg, dict, retry_s=0.05,
+                                    on_state=lambda s, e: states.append((s, e)))
+            try:
+                assert tp.wait_settled(20)
+                st_ = tp.status()
+            finally:
+                tp.close()
+    finally:
+        holder.close()
+    assert st_["state"] == "failed" and expected in str(st_["error"]), st_
+    assert ".rs:" not in str(st_["error"])                 # no Rust source locations
+    retried = case in ("busy_port", "unassignable_address")
+    assert st_["attempts"] == (3 if retried else 1)
+    assert states[-1] == ("failed", st_["error"])
+    assert [s for s, _ in states] == ["retrying"] * (2 if retried else 0) + ["failed"]
+    errors = [r for r in caplog.records if r.levelname == "ERROR"]
+    assert len(errors) == 1 and "telemetry off" in errors[0].getMessage()
+    assert expected in errors[0].getMessage()
+
+
+# ---------------------------------------------------------------------------- the service
+
+
+class _SteppedService:
+    """The service's loop stepped tick by tick against the emulated rig on a virtual
+    bus, in a thread: commands over Zenoh reach the loop as they would live, while no
+    real-time deadline depends on the machine's load (lateness is given, not measured).
+    """
+
+    def __init__(self, port: int) -> None:
+        import uuid
+
+        from controller.artifact import load_design, save_design
+        from hil.node import RigNode
+        from hil.roads import make_road
+        from hil.sim import cached_design
+        from rig.bus import open_bus
+        from rig.service import Service, ServiceOptions
+
+        cfg = default_config().replace(telemetry={
+            "endpoints": [f"tcp/127.0.0.1:{port}"], "commands_enabled": True})
+        self.cfg = cfg
+        channel = f"tel-e2e-{uuid.uuid4().hex}"
+        self.rig_bus = open_bus(cfg.can, role="rig", interface="virtual", channel=channel)
+        self.ctl_bus = open_bus(cfg.can, role="controller", interface="virtual",
+                                channel=channel)
+        self.node = RigNode(self.rig_bus, cfg,
+                            make_road("rough-course", 11.176, 30.0, cfg.sample_time_s))
+        self._design_dir = Path(tempfile.mkdtemp(prefix="tel-e2e-"))
+        design = self._design_dir / "design.npz"
+        save_design(cached_design(cfg), design)
+        load_design(design, cfg)
+        self.svc = Service(cfg, ServiceOptions(
+            design_path=str(design), recording=False, telemetry=True, realtime=None,
+            install_signal_handlers=False), bus=self.ctl_bus)
+        self.svc.command_timeout_s = 30.0      # the stepping thread may be descheduled
+        self.late_ticks = 0                    # ticks to come with an overrun
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._step, daemon=True)
+        self._thread.start()
+
+    def _step(self) -> None:
+        loop = self.svc.loop
+        period = loop.period_ns
+        t = time.monotonic_ns()
+        while not self._stop.is_set():
+            self.node.tick()
+            late = 0
+            if self.late_ticks:
+                self.late_ticks -= 1
+                late = 5 * period
+            loop.tick(t, late)
+            t += period
+            if loop.tick_count % 20 == 0:
+                time.sleep(0.001)              # let the Zenoh threads in
+
+    def close(self) -> None:
+        import shutil
+
+        self._stop.set()
+        self._thread.join(10)
+        self.svc.close()
+        self.rig_bus.shutdown()
+        self.ctl_bus.shutdown()
+        shutil.rmtree(self._design_dir, ignore_errors=True)
+
+
+def test_every_operator_command_end_to_end(port: int) -> None:
+    """Every command of ``rig.telemetry.COMMANDS`` from a second Zenoh session through
+    the service's handler into the running loop, accepted and refused."""
+    rig = _SteppedService(port)
+    svc, loop = rig.svc, rig.svc.loop
+    s2 = client_session(port)
+
+    def cmd(name: str, args: dict[str, Any] | None = None) -> tuple[bool, dict[str, Any]]:
+        payload = None if args is None else json.dumps(args)
+        got = query(s2, f"rig/cmd/{name}", payload)
+        assert len(got) == 1, (name, got)
+        return got[0]
+
+    def status() -> dict[str, Any]:
+        got = query(s2, "rig/status")
+        return got[0][1] if got else {}
+
+    try:
+        assert svc.telemetry.wait_connected(10), svc.telemetry.error
+        assert wait_for(lambda: status().get("health") == "ok", 60), status()
+        assert status()["telemetry"]["state"] == "connected"
+
+        assert cmd("arm") == (True, {"command": "arm", "accepted": True, "result": "armed"})
+        assert loop.lifecycle.state.name == "ACTIVE"
+        ok, body = cmd("road", {"speed_mps": 20.0, "roughness_gd": 256e-6})
+        assert not ok and body["error"] == "road: disarm first"
+        ok, body = cmd("weight_set", {"weight_set": 2})
+        assert not ok and body["error"] == "weight_set: disarm first"
+        assert cmd("disarm")[0] and loop.lifecycle.state.name == "INACTIVE"
+
+        ok, body = cmd("road", {"speed_mps": 20.0, "roughness_gd": 256e-6})
+        assert ok, body
+        speeds = rig.cfg.noise.speeds_mps
+        rough = rig.cfg.noise.road_roughness_gd
+        assert svc.runtime.noise_index == svc.design.noise_index(speeds.index(20.0),
+                                                                 rough.index(256e-6))
+        ok, body = cmd("road", {"speed_mps": 5, "roughness_gd": 16e-6})   # integers too
+        assert ok and svc.runtime.noise_index == svc.design.noise_index(0, 0), body
+        assert cmd("blending", {"blending": "bayes"}) == (
+            True, {"command": "blending", "accepted": True, "result": "blending 1"})
+        assert svc.runtime.blending == 1 and status()["blending"] == 1
+        ok, body = cmd("blending", {"blending": "kalman"})
+        assert not ok and "allowed fuzzy, bayes, moving, single" in body["error"]
+        assert cmd("weight_set", {"weight_set": 2})[0] and loop.weight_set == 2
+        ok, body = cmd("weight_set", {"weight_set": 99})
+        assert not ok and body["error"].startswith("weight_set:")
+
+        ok, body = cmd("reset")
+        assert ok and body["result"] == "nothing to reset in INACTIVE"
+        rig.late_ticks = 2 * rig.cfg.safety.overrun_streak     # an overrun streak
+        assert wait_for(lambda: loop.lifecycle.state.name == "FAULT", 30)
+        assert status()["fault"] == "OVERRUN_STREAK"
+        ok, body = cmd("arm")
+        assert not ok and body["error"] == "cannot arm from FAULT"
+        assert wait_for(lambda: rig.late_ticks == 0 and loop.timing.overrun_streak == 0, 30)
+        assert cmd("reset") == (True, {"command": "reset", "accepted": True,
+                                       "result": "reset, cleared OVERRUN_STREAK"})
+        assert wait_for(lambda: status().get("health") == "ok", 60), status()
+        acks: list[dict[str, Any]] = []
+        sub = s2.declare_subscriber("rig/ack/arm",
+                                    lambda smp: acks.append(json.loads(smp.payload.to_bytes())))
+        try:
+            s2.put("rig/cmd/arm", "{}")                       # fire and forget
+            assert wait_for(lambda: bool(acks), 30)
+        finally:
+            sub.undeclare()
+        assert acks == [{"command": "arm", "accepted": True, "result": "armed"}]
+        assert loop.lifecycle.state.name == "ACTIVE"
+        names = [t.reason for t in loop.transitions]
+        assert names.count("armed") == 2
+        assert {"arm", "disarm", "reset", "weight_set", "blending", "road"} == set(COMMANDS)
+    finally:
+        s2.close()
+        rig.close()
+
+
+def test_service_reports_a_failed_session(tmp_path: Path) -> None:
+    """status(), systemd STATUS= and the control loop going on."""
+    import uuid
+
+    from hil.sim import cached_design
+    from rig.sdnotify import SdNotifier
+    from rig.service import Service, ServiceOptions
+
+    sock_path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(sock_path)
+    server.settimeout(5.0)
+    cfg = default_config().replace(telemetry={
+        "endpoints": [f"tcp/127.0.0.1:{free_port()}"],
+        "zenoh_config_file": str(tmp_path / "missing.json5")})
+    from controller.artifact import save_design
+
+    design = tmp_path / "design.npz"
+    save_design(cached_design(cfg), design)
+    svc = Service(cfg, ServiceOptions(
+        design_path=str(design), interface="virtual", channel=f"tf-{uuid.uuid4().hex}",
+        recording=False, telemetry=True, realtime=None, install_signal_handlers=False,
+        duration_s=0.3), notifier=SdNotifier.from_environment({"NOTIFY_SOCKET": sock_path}))
+    try:
+        assert svc.telemetry.wait_settled(10)
+        st_ = svc.status()["telemetry"]
+        assert st_["state"] == "failed" and "missing.json5" in st_["error"]
+        assert svc.run() == 0
+        assert svc.loop.tick_count > 0
+        msgs = []
+        with pytest.raises(TimeoutError):
+            while True:
+                msgs.append(server.recv(4096).decode())
+                server.settimeout(0.5)
+    finally:
+        svc.close()
+        server.close()
+    status_lines = [m for m in msgs if "STATUS=" in m]
+    assert status_lines and all("telemetry FAILED: zenoh_config_file" in m
+                                for m in status_lines), msgs
+    assert any(m.startswith("READY=1") for m in msgs)
+
+
+def test_rig_run_json_reports_telemetry_failure(tmp_path: Path) -> None:
+    holder, busy = _busy_port()
+    conf = tmp_path / "rig.toml"
+    conf.write_text(f'[telemetry]\nendpoints = ["tcp/127.0.0.1:{busy}"]\n')
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "rig.cli", "run", "--config", str(conf), "--interface",
+             "virtual", "--channel", f"tel-json-{busy}", "--duration", "0.5", "--json",
+             "--no-record", "--no-realtime"],
+            cwd=ROOT, capture_output=True, text=True, timeout=120)
+    finally:
+        holder.close()
+    assert proc.returncode == 0, proc.stderr
+    status = json.loads(proc.stdout)
+    tel = status["telemetry"]
+    assert tel["state"] in ("retrying", "failed") and "Address already in use" in tel["error"]
+    assert status["tick"] > 0
+    assert "telemetry" in proc.stderr and "Address already in use" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.skipif(subprocess.run(["which", "openssl"], capture_output=True).returncode != 0,
+                    reason="openssl not installed (needed to make test certificates)")
+def test_acl_viewers_can_only_read(tmp_path: Path, port: int) -> None:
+    """deploy/zenoh/rig-tls-acl.json5: a viewer can neither publish on the telemetry keys
+    (spoofing state for other viewers or the rig), nor answer status queries, nor
+    command; it still reads.  Viewer and operator connect as Zenoh clients, so
+    everything between them goes through the rig's session and its access control."""
+    subprocess.run(["bash", "-c", CERTS], cwd=tmp_path, check=True, capture_output=True)
+    text = (ROOT / "deploy/zenoh/rig-tls-acl.json5").read_text()
+    conf = tmp_path / "rig.json5"
+    conf.write_text(text.replace("/etc/rig/zenoh", str(tmp_path)).replace('"eth1"', '"lo"'))
+    seen: list[str] = []
+
+    def handler(name: str, args: dict[str, Any]) -> str:
+        seen.append(name)
+        return "queued"
+
+    cfg = replace(tcfg(port, commands_enabled=True), endpoints=[f"tls/127.0.0.1:{port}"],
+                  zenoh_config_file=str(conf))
+    tp = TelemetryPublisher(cfg, lambda: {"lifecycle": "INACTIVE"}, handler)
+    assert tp.wait_connected(10), tp.error
+    assert tp._session is not None
+    inside: list[tuple[str, bytes]] = []        # what reaches the rig's own session
+    spy = tp._session.declare_subscriber(
+        "rig/**", lambda smp: inside.append((str(smp.key_expr), smp.payload.to_bytes())))
+
+    def client(cn: str) -> zenoh.Session:
+        c = zenoh.Config()
+        c.insert_json5("mode", '"client"')
+        c.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("transport/link/tls/root_ca_certificate",
+                       json.dumps(str(tmp_path / "ca.pem")))
+        c.insert_json5("transport/link/tls/enable_mtls", "true")
+        c.insert_json5("transport/link/tls/connect_certificate",
+                       json.dumps(f"{tmp_path}/{cn}.pem"))
+        c.insert_json5("transport/link/tls/connect_private_key",
+                       json.dumps(f"{tmp_path}/{cn}.key"))
+        return zenoh.open(c)
+
+    operator, viewer = client("rig-operator"), client("rig-viewer")
+    got: dict[str, list[Any]] = {"operator": [], "viewer": []}
+    subs = [s.declare_subscriber(
+        "rig/state", lambda smp, who=who: got[who].append(json.loads(smp.payload.to_bytes())))
+        for who, s in (("operator", operator), ("viewer", viewer))]
+    fake = viewer.declare_queryable(
+        "rig/status", lambda q: q.reply("rig/status", '{"lifecycle": "SPOOFED"}'))
+    try:
+        assert wait_for(lambda: bool(query(operator, "rig/status")), 10)
+        assert wait_for(lambda: bool(query(viewer, "rig/status")), 10)
+        k = 0
+        while not (got["operator"] and got["viewer"]) and k < 200:   # both read telemetry
+            tp.offer({"tick": k, "t_ns": k, "state": {"k": k}})
+            k += 1
+            time.sleep(0.02)
+        assert got["operator"] and got["viewer"]
+        for _ in range(20):                  # the viewer tries to publish and command
+            viewer.put("rig/state", json.dumps({"tick": -1, "spoofed": True}))
+            viewer.put("rig/lifecycle", json.dumps({"tick": -1, "lifecycle": "SPOOFED"}))
+            viewer.put("rig/cmd/arm", "{}")
+            viewer.delete("rig/state")
+            time.sleep(0.01)
+        assert query(viewer, "rig/cmd/arm") == []
+        # the operator's own command still gets through (the policy is not deny-all)
+        assert query(operator, "rig/cmd/disarm") == [
+            (True, {"command": "disarm", "accepted": True, "result": "queued"})]
+        statuses = query(operator, "rig/status")
+        tp.offer({"tick": 10_000, "t_ns": 0, "state": {"k": 0}})
+        assert wait_for(lambda: any(m["tick"] == 10_000 for m in got["operator"]), 5)
+    finally:
+        fake.undeclare()
+        for s in subs:
+            s.undeclare()
+        operator.close()
+        viewer.close()
+        spy.undeclare()
+        tp.close()
+    assert all(m["tick"] >= 0 for m in got["operator"]), "viewer's put reached the operator"
+    assert all(not key.startswith("rig/state") or b"spoofed" not in data
+               for key, data in inside)
+    assert not any(b"SPOOFED" in data for _, data in inside)
+    assert [b["lifecycle"] for _, b in statuses] == ["INACTIVE"]
+    assert seen == ["disarm"]

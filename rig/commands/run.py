@@ -78,5 +78,6 @@ def run(args: argparse.Namespace) -> int:
         status["exit_reason"] = service.exit_reason
         status["recording"] = str(service.recording_path) if service.recording_path else None
         status["realtime"] = service.realtime_report.as_dict()
+        status["telemetry"] = service.status()["telemetry"]
         print(json.dumps(status, indent=2, default=str))
     return code
