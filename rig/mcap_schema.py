@@ -40,7 +40,9 @@ __all__ = [
 ]
 
 #: Bumped when a channel, field meaning or attachment name changes incompatibly.
-RECORDING_FORMAT_VERSION: Final = 1
+#: 2: segment identity and end records (run id, index, sequence / tick ranges) and the
+#: data-section CRC (rig.record_segments)
+RECORDING_FORMAT_VERSION: Final = 2
 SCHEMA_ENCODING: Final = "jsonschema"
 MESSAGE_ENCODING: Final = "json"
 

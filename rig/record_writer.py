@@ -59,6 +59,7 @@ from rig.record_codec import (
     iter_items,
     split_items,
 )
+from rig.record_segments import SEGMENT_END_NAME, segment_path
 
 __all__ = ["McapRunSink", "main", "segment_path"]
 
@@ -69,10 +70,6 @@ PARTS_KEY = "record_parts"  # in /rig/signals: how many messages the tick record
 _RESERVED = frozenset({"tick", "t_ns", PARTS_KEY})
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
-
-
-def segment_path(base: Path, index: int) -> Path:
-    return base if index == 0 else base.with_name(f"{base.stem}.{index:03d}.mcap")
 
 
 class McapRunSink:
@@ -98,6 +95,8 @@ class McapRunSink:
         self._channels: dict[str, int] = {}
         self._seg_t0: int | None = None
         self._seq = 0
+        self._seg_seq0 = 0                       # sequence of the segment's first item
+        self._seg_ticks: list[int] = []          # [first, last] tick of the segment
         self._n_since_size_check = 0
         self.written = 0
         self.malformed = 0
@@ -105,13 +104,23 @@ class McapRunSink:
         self._open_segment()
 
     # ------------------------------------------------------------------ segments
-    def _open_segment(self) -> None:
+    def _open_segment(self, first_tick: int | None = None) -> None:
+        """Start segment ``len(paths)``; its ``rig`` metadata names the run, the segment
+        index, the sequence number and tick of its first item (rig.record_segments)."""
         path = segment_path(self.base, len(self.paths))
         stream = open(path, "wb")  # noqa: SIM115 (closed in finish_segment)
-        writer = Writer(stream, chunk_size=self._chunk_bytes, compression=self._compression)
+        # enable_data_crcs: the DataEnd record carries the CRC of the whole data section
+        # (metadata and index records have no CRC of their own)
+        writer = Writer(stream, chunk_size=self._chunk_bytes, compression=self._compression,
+                        enable_data_crcs=True)
         writer.start(profile="", library=f"rig-recorder/{RECORDING_FORMAT_VERSION}")
         now = time.time_ns()
-        writer.add_metadata(METADATA_NAME, {**self._meta, "segment": str(len(self.paths))})
+        self._seg_seq0 = self._seq
+        self._seg_ticks = []
+        writer.add_metadata(METADATA_NAME, {
+            **self._meta, "segment": str(len(self.paths)), "first_segment": self.base.name,
+            "sequence_start": str(self._seq),
+            "first_tick": "" if first_tick is None else str(first_tick)})
         writer.add_attachment(now, now, CONFIG_ATTACHMENT, "application/toml",
                               self._config_toml.encode())
         if self._design is not None:
@@ -129,13 +138,34 @@ class McapRunSink:
         self._last_size = stream.tell()
         self._last_chunk_mono = time.monotonic()
 
-    def finish_segment(self) -> None:
+    def _finalize_chunk(self) -> None:
+        # mcap.Writer has no public "close the open chunk"; 1.x names it like this.
+        finalize = getattr(self._writer, "_Writer__finalize_chunk", None)
+        if finalize is not None:
+            finalize()
+
+    def finish_segment(self, final: bool = True) -> None:
+        """Close the segment: its last chunk, the ``rig_segment_end`` record (``final``
+        or the next segment's file name, the sequence after its last item, its first and
+        last tick), summary and footer."""
         if self._writer is not None and self._stream is not None:
+            self._finalize_chunk()      # the end record comes after every message
+            ticks = self._seg_ticks
+            self._writer.add_metadata(SEGMENT_END_NAME, {
+                "run_id": str(self._meta.get("run_id", "")),
+                "segment": str(len(self.paths) - 1),
+                "final": "true" if final else "false",
+                "next_segment": "" if final else segment_path(self.base, len(self.paths)).name,
+                "sequence_end": str(self._seq),
+                "items": str(self._seq - self._seg_seq0),
+                "first_tick": str(ticks[0]) if ticks else "",
+                "last_tick": str(ticks[-1]) if ticks else ""})
             self._writer.finish()
             self._stream.close()
         self._writer = self._stream = None
 
-    def _maybe_rotate(self, t_ns: int) -> None:
+    def _maybe_rotate(self, item: tuple[Any, ...]) -> None:
+        t_ns = int(item[1])
         if self._seg_t0 is None:
             self._seg_t0 = t_ns
             return
@@ -146,8 +176,8 @@ class McapRunSink:
             self._n_since_size_check = 0
         if (t_ns - self._seg_t0 >= self._rotate_ns
                 or (check_size and self._stream.tell() >= self._rotate_bytes)):
-            self.finish_segment()
-            self._open_segment()
+            self.finish_segment(final=False)
+            self._open_segment(_item_tick(item))
             self._seg_t0 = t_ns
 
     def flush(self) -> None:
@@ -159,10 +189,7 @@ class McapRunSink:
             self._last_size = size
             self._last_chunk_mono = now
         elif now - self._last_chunk_mono > self._max_chunk_age_s:
-            # mcap.Writer has no public "close the open chunk"; 1.x names it like this.
-            finalize = getattr(self._writer, "_Writer__finalize_chunk", None)
-            if finalize is not None:
-                finalize()
+            self._finalize_chunk()
             self._last_chunk_mono = now
             self._last_size = self._stream.tell()
         self._stream.flush()
@@ -171,7 +198,7 @@ class McapRunSink:
     def write(self, item: tuple[Any, ...]) -> None:
         """Write one decoded item; a malformed one is skipped and counted."""
         try:
-            self._maybe_rotate(int(item[1]))
+            self._maybe_rotate(item)
             self._write(item)
         except (KeyError, TypeError, ValueError, OverflowError) as exc:
             self.malformed += 1
@@ -230,6 +257,25 @@ class McapRunSink:
             raise ValueError(f"unknown item {kind!r}")
         self._seq += 1
         self.written += 1
+        tick = _item_tick(item)
+        if tick is not None:
+            ticks = self._seg_ticks
+            if ticks:
+                ticks[-1] = tick
+            else:
+                ticks[:] = [tick, tick]
+
+
+def _item_tick(item: tuple[Any, ...]) -> int | None:
+    """The loop tick of a decoded item (None when it has none)."""
+    try:
+        if item[0] == "tick":
+            return int(item[2]["tick"])
+        if item[0] in ("frame", "event"):
+            return int(item[2])
+    except (KeyError, TypeError, ValueError, IndexError):
+        return None
+    return None
 
 
 # ---------------------------------------------------------------------------- process

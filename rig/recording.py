@@ -35,6 +35,7 @@ import sys
 import threading
 import time
 import tomllib
+import uuid
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -43,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcap.records import Attachment, Channel, Footer, Message, Metadata
+from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader
 
 from controller.config import RecordingConfig
@@ -73,12 +74,19 @@ from rig.record_codec import (
     encode_layout,
     encode_pickled_tick,
 )
+from rig.record_segments import (
+    SEGMENT_END_NAME,
+    SegmentChain,
+    SegmentEnd,
+    SegmentHead,
+    segment_path,
+    tail_problem,
+)
 from rig.record_writer import (
     CONFIG_ATTACHMENT,
     DESIGN_ATTACHMENT,
     METADATA_NAME,
     PARTS_KEY,
-    segment_path,
 )
 
 __all__ = [
@@ -506,7 +514,8 @@ class RunRecorder:
                        design: bytes | None, target: Path) -> dict[str, str]:
         meta = {
             "format_version": str(RECORDING_FORMAT_VERSION),
-            "run_id": target.stem,
+            "run_id": uuid.uuid4().hex,      # one per run, in every segment
+            "run_name": target.stem,
             "created_utc": datetime.now(UTC).isoformat(),
             "clock": clock,
             "clock_offset_ns": str(offset),
@@ -560,8 +569,9 @@ class RunData:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # first segment
     attachments: dict[str, bytes] = field(default_factory=dict)        # first segment
     segments: list[Path] = field(default_factory=list)
-    complete: bool = True          # every segment had its footer
+    complete: bool = True          # every segment present, intact, with its footer
     stopped_at: str | None = None  # where and why reading stopped early
+    notes: list[str] = field(default_factory=list)  # e.g. a stale file after the run
 
     def timeline(self) -> Iterator[CanFrameRecord | TickRecord | EventRecord]:
         """Frames, records and events merged in recording order."""
@@ -573,28 +583,98 @@ class RunData:
 def read_run(path: str | Path, *, follow_segments: bool = True) -> RunData:
     """Read a recording (and its rotation successors).  A truncated file (no footer,
     partial chunk) yields everything up to the last complete chunk; ``complete`` is
-    False and ``stopped_at`` says where reading stopped.  Reading stops at the first
-    incomplete segment (later segments cannot follow a gap)."""
+    False and ``stopped_at`` says where and why reading stopped.
+
+    With ``follow_segments`` the run is read from its first segment on, segment by
+    segment as each one's end record names the next, and a segment is used only when it
+    belongs (same run id, next index, sequence numbers continuing,
+    :mod:`rig.record_segments`).  Reading stops at the first incomplete, damaged,
+    missing or foreign segment, and ``stopped_at`` says which and what is missing.
+    ``ValueError`` when ``path`` is a later segment of its run (read from the first)."""
+    path = Path(path)
     run = RunData()
-    paths = segment_paths(path) if follow_segments else [Path(path)]
+    chain = SegmentChain(path) if follow_segments else None
     index = 0
-    for seg_no, p in enumerate(paths):
+    p: Path | None = path
+    while p is not None:
         run.segments.append(p)
-        index, ok = _read_segment(p, run, index, first=seg_no == 0)
-        if not ok:
+        seg = _read_segment(p, run, index, chain=chain, first=len(run.segments) == 1)
+        index = seg.index
+        if seg.refused:
+            run.segments.pop()
+        if not seg.ok or chain is None or not chain.run_id:
             break
+        p, problem = chain.next_path(p, SegmentEnd.parse(seg.end))
+        if problem:
+            run.complete = False
+            run.stopped_at = problem
+    if chain is not None:
+        run.notes.extend(chain.notes)
+    _strip_t_ns(run)
     return run
 
 
-def _read_segment(path: Path, run: RunData, index: int, *, first: bool) -> tuple[int, bool]:
+@dataclass
+class _Segment:
+    index: int                             # run-wide index after this segment
+    ok: bool = False                       # read whole, intact, identity accepted
+    refused: bool = False                  # not the run's next segment: nothing used
+    end: dict[str, str] | None = None      # its rig_segment_end metadata
+
+
+def _read_segment(path: Path, run: RunData, index: int, *, chain: SegmentChain | None,
+                  first: bool) -> _Segment:
     topics: dict[int, str] = {}
     last_rec: tuple[int, dict[str, Any]] | None = None  # (sequence, merged record data)
     parts = [0, 0]  # of the last record: messages expected, messages seen
     n_msgs = 0
     footer = False
+    data_end_at: int | None = None
+    accepted = chain is None or first     # a later segment: only after its identity
+    wrong_start = ""
+    seg = _Segment(index)
+
+    def stop(why: str) -> _Segment:
+        run.complete = False
+        run.stopped_at = why + _drop_torn_record(run, parts)
+        seg.index = index
+        return seg
+
     with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
         try:
             for rec in StreamReader(f, validate_crcs=True).records:
+                if isinstance(rec, Metadata):
+                    meta = dict(rec.metadata)
+                    if first:
+                        run.metadata[rec.name] = meta
+                    if rec.name == METADATA_NAME and chain is not None:
+                        head = SegmentHead.parse(meta)
+                        if first:
+                            problem = chain.check_first(head) if meta.get(
+                                "format_version") == str(RECORDING_FORMAT_VERSION) else ""
+                            if problem:
+                                wrong_start = problem
+                                break
+                        else:
+                            problem = chain.check_head(path, head)
+                            if problem:
+                                seg.refused = True
+                                return stop(problem)
+                            accepted = True
+                    elif rec.name == SEGMENT_END_NAME:
+                        seg.end = meta
+                    continue
+                if isinstance(rec, DataEnd):
+                    data_end_at = f.tell()
+                    continue
+                if isinstance(rec, Footer):
+                    footer = True
+                    continue
+                if not accepted and isinstance(rec, Channel | Message):
+                    assert chain is not None
+                    seg.refused = True
+                    return stop(chain.check_head(path, None))
                 if isinstance(rec, Channel):
                     topics[rec.id] = rec.topic
                 elif isinstance(rec, Message):
@@ -626,25 +706,28 @@ def _read_segment(path: Path, run: RunData, index: int, *, first: bool) -> tuple
                     else:
                         continue
                     index += 1
-                elif first and isinstance(rec, Metadata):
-                    run.metadata[rec.name] = dict(rec.metadata)
                 elif first and isinstance(rec, Attachment):
                     run.attachments[rec.name] = bytes(rec.data)
-                elif isinstance(rec, Footer):
-                    footer = True
         except Exception as exc:  # truncated / corrupt tail: keep what was complete
-            run.complete = False
-            run.stopped_at = (f"{path}: {type(exc).__name__} {exc} after {n_msgs} messages "
-                              f"(offset {f.tell()} of {path.stat().st_size} bytes)"
-                              + _drop_torn_record(run, parts))
-            _strip_t_ns(run)
-            return index, False
+            if data_end_at is None:
+                return stop(f"{path}: {type(exc).__name__} {exc} after {n_msgs} messages "
+                            f"(offset {f.tell()} of {size} bytes)")
+        if wrong_start:
+            raise ValueError(wrong_start)
+        if data_end_at is None:
+            return stop(f"{path}: no footer after {n_msgs} messages")
+
+        def read(offset: int, n: int) -> bytes:
+            f.seek(offset)
+            return f.read(n)
+
+        tail = tail_problem(read, size, data_end_at)
+    if tail:
+        return stop(f"{path}: {tail}; every message before it was read")
     if not footer:
-        run.complete = False
-        run.stopped_at = f"{path}: no footer after {n_msgs} messages" + \
-            _drop_torn_record(run, parts)
-    _strip_t_ns(run)
-    return index, footer
+        return stop(f"{path}: no footer after {n_msgs} messages")
+    seg.index, seg.ok = index, True
+    return seg
 
 
 def _drop_torn_record(run: RunData, parts: list[int]) -> str:

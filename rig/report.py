@@ -367,6 +367,8 @@ def write_report(path: str | Path, out_dir: str | Path | None = None,
     if not s.scan.complete:
         banner += (f'<p class="warn">Incomplete recording: '
                    f"{html.escape(str(s.scan.stopped_at))}</p>")
+    for note in s.scan.notes:
+        banner += f'<p class="warn">{html.escape(note)}</p>'
     faults = "".join(
         f"<li>tick {e['tick']}: {html.escape(json.dumps(e['detail']))[:300]}</li>"
         for e in s.events if e.get("kind") in ("fault", "lifecycle", "command"))

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from controller.config import RecordingConfig, config_hash, config_to_toml, default_config
-from rig.mcap_schema import SIGNAL_KEYS, TIMING_KEYS, TOPICS
+from rig.mcap_schema import RECORDING_FORMAT_VERSION, SIGNAL_KEYS, TIMING_KEYS, TOPICS
 from rig.recording import CanFrameRecord, EventRecord, RunRecorder, read_run, segment_paths
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -230,7 +230,7 @@ def test_schemas_messages_attachments_metadata(tmp_path: Path) -> None:
     versions = json.loads(meta.metadata["versions"])
     assert {"python", "numpy", "mcap", "eclipse-zenoh", "lqg-fuzzy-rig"} <= set(versions)
     run = read_run(path)
-    assert run.metadata["rig"]["format_version"] == "1"
+    assert run.metadata["rig"]["format_version"] == str(RECORDING_FORMAT_VERSION) == "2"
     assert run.events[-1].kind == "note"
     assert run.events[-1].detail == {"kind": "weird-kind", "detail": [1, 2]}
 
@@ -278,6 +278,38 @@ def test_rotation_by_time(tmp_path: Path) -> None:
     assert len(segs) == 4
     per_seg = [len(read_run(p, follow_segments=False).frames) for p in segs]
     assert per_seg == [10, 10, 10, 5]
+
+
+def test_segments_carry_run_identity_and_read_run_checks_it(tmp_path: Path) -> None:
+    path = tmp_path / "t.mcap"
+    with recorder(path, rotate_seconds=1.0) as rec:
+        for k in range(35):               # 3.4 s of loop time at 10 Hz
+            rec.can_frame(k * 100_000_000, k, 0x100, b"\x00" * 8, True)
+    segs = segment_paths(path)
+    run = read_run(path)
+    assert run.complete and run.segments == segs and len(run.frames) == 35
+    run_id = run.metadata["rig"]["run_id"]
+    assert len(run_id) == 32 and run.metadata["rig"]["run_name"] == "t"
+    assert run.metadata["rig_segment_end"]["next_segment"] == "t.001.mcap"
+    # a second run under the same name: its files are foreign to the first one
+    other = tmp_path / "other" / "t.mcap"
+    with recorder(other, rotate_seconds=1.0) as rec:
+        for k in range(15):
+            rec.can_frame(k * 100_000_000, k, 0x100, b"\x01" * 8, True)
+    segs[2].write_bytes(segment_paths(other)[1].read_bytes())
+    run = read_run(path)
+    assert not run.complete and len(run.frames) == 20 and run.segments == segs[:2]
+    assert run.stopped_at is not None and run.stopped_at.startswith(
+        f"t.002.mcap is not segment 2 of run {run_id}: it is segment 1 of run ")
+    segs[2].unlink()
+    run = read_run(path)
+    assert not run.complete and len(run.frames) == 20
+    assert run.stopped_at == (f"t.002.mcap (segment 2 of run {run_id}) missing: ticks 20-29 "
+                              "are not in the recording; t.003.mcap and later segments "
+                              "were not read")
+    with pytest.raises(ValueError, match=f"this is segment 3 of run {run_id}; a run is read "
+                                         f"from its first segment: start from {path}"):
+        read_run(segs[3])
 
 
 # ----------------------------------------------------------------------- SIGKILL

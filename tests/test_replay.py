@@ -11,7 +11,14 @@ from __future__ import annotations
 
 import errno
 import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
 import tempfile
+import threading
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -30,6 +37,7 @@ from controller.bank import BankRuntime
 from controller.config import default_config
 from controller.design import design_bank
 from rig.cli import main as rig_main
+from rig.mcap_schema import RECORDING_FORMAT_VERSION
 from rig.protocol import (
     FAULT_REPORT_ID,
     SENSOR_DATA,
@@ -49,6 +57,7 @@ from rig.replay import (
     replay_log,
     replay_recording,
 )
+from rig.report import load_series
 
 pytestmark = pytest.mark.timeout(300)
 CFG = default_config()
@@ -298,9 +307,8 @@ def test_any_truncation_is_a_prefix_or_a_clear_error(recording: Path, frac: floa
             msg = str(exc)
             assert "not an MCAP" in msg or "nothing to replay" in msg or "missing" in msg
             return
-    assert run.complete or run.stopped_at
-    if run.complete:   # only the footer / trailing magic was cut: nothing is missing
-        assert run.tx == full.tx and run.rx == full.rx and run.events == full.events
+    assert run.complete == (n == len(data)), run.stopped_at   # a cut is always noticed
+    assert run.complete or str(p) in str(run.stopped_at)
     k = run.tick.size
     np.testing.assert_array_equal(run.tick, full.tick[:k])
     assert run.tx == full.tx[: len(run.tx)] and run.rx == full.rx[: len(run.rx)]
@@ -340,8 +348,8 @@ def _mcap(path: Path, topics: list[str], *, library: str, metadata: dict[str, st
     (lambda p: p.write_text("timestamp,id\n1,2\n"), "not an MCAP file"),
     (lambda p: _mcap(p, ["/camera/image"], library="ros2-bag", metadata=None),
      "foreign MCAP .*library 'ros2-bag'.*'/camera/image'"),
-    (lambda p: _mcap(p, ["/can/rx"], library="rig-recorder/1",
-                     metadata={"format_version": "1"}),
+    (lambda p: _mcap(p, ["/can/rx"], library=f"rig-recorder/{RECORDING_FORMAT_VERSION}",
+                     metadata={"format_version": str(RECORDING_FORMAT_VERSION)}),
      r"missing channels \['/can/tx', '/rig/signals', '/rig/events'\]"),
     (lambda p: _mcap(p, ["/can/rx"], library="rig-recorder/9",
                      metadata={"format_version": "9"}), "format version 9"),
@@ -425,7 +433,8 @@ def test_recorded_timing_round_trips_to_the_nanosecond(recording: Path) -> None:
 def test_a_flipped_byte_never_yields_wrong_frames(recording: Path, where: float,
                                                   xor: int) -> None:
     """One corrupted byte anywhere: a clear error, or frames that are a prefix of the
-    true ones (chunk CRCs; MessageIndex offsets are checked against the records)."""
+    true ones (chunk CRCs; MessageIndex offsets are checked against the records), and
+    never a recording called complete (data-section and summary CRCs, closing magic)."""
     data = bytearray(recording.read_bytes())
     full = load_recorded_run(recording)
     i = min(int(where * len(data)), len(data) - 1)
@@ -437,6 +446,7 @@ def test_a_flipped_byte_never_yields_wrong_frames(recording: Path, where: float,
             run = load_recorded_run(p)
         except RecordingError:
             return
+    assert not run.complete, (i, xor)
     assert run.rx == full.rx[: len(run.rx)] and run.tx == full.tx[: len(run.tx)]
     np.testing.assert_array_equal(run.spool_cmd, full.spool_cmd[: run.tick.size])
 
@@ -690,3 +700,261 @@ def test_bus_trouble_needs_every_piece(flaky_recording: Path, drop: str) -> None
         run.bus_faults = [f for f in run.bus_faults if f.where != drop]
     res = replay_recording(flaky_recording, run=run)
     assert not res.bit_exact and res.tx_frames_mismatched > 0
+
+
+# ---------------------------------------------------------------------------- segment sets
+
+SEGMENTED_CFG = CFG.replace(recording={"rotate_seconds": 1.0})
+
+
+def _record_segmented(where: Path, design_blob: bytes, seed: int) -> Path:
+    """3.2 s at 1 kHz with rotate_seconds = 1: run.mcap, run.001 ... run.003.mcap."""
+    where.mkdir()
+    return record_emulated_run(where / "run.mcap", 3.2, cfg=SEGMENTED_CFG,
+                               design_bytes=design_blob, seed=seed)
+
+
+@pytest.fixture(scope="module")
+def segmented(work: Path, design_blob: bytes) -> Path:
+    return _record_segmented(work / "segmented", design_blob, 5)
+
+
+@pytest.fixture(scope="module")
+def other_segmented(work: Path, design_blob: bytes) -> Path:
+    """Another run with the same file names (a foreign file for the first one's slots)."""
+    return _record_segmented(work / "other-segmented", design_blob, 6)
+
+
+@pytest.fixture
+def seg_copy(segmented: Path, tmp_path: Path) -> Path:
+    d = tmp_path / "copy"
+    shutil.copytree(segmented.parent, d)
+    return d / "run.mcap"
+
+
+def _seg(base: Path, k: int) -> Path:
+    return base if k == 0 else base.with_name(f"run.{k:03d}.mcap")
+
+
+def test_segmented_run_replays_whole(segmented: Path) -> None:
+    assert sorted(p.name for p in segmented.parent.iterdir()) == [
+        "run.001.mcap", "run.002.mcap", "run.003.mcap", "run.mcap"]
+    res = replay_recording(segmented)
+    assert res.complete and res.bit_exact and res.ticks == 3200, res.summary()
+    assert res.notes == []
+    run = load_recorded_run(segmented)
+    assert run.scan.segments == [_seg(segmented, k) for k in range(4)]
+
+
+@pytest.mark.parametrize("gone", [1, 2, 3])
+def test_a_missing_segment_is_never_complete(seg_copy: Path, gone: int,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    _seg(seg_copy, gone).unlink()
+    res = replay_recording(seg_copy)
+    run_id = load_recorded_run(seg_copy).metadata["run_id"]
+    assert not res.complete and res.ticks == 1000 * gone
+    assert res.bit_exact                              # what was read replays exactly
+    if gone < 3:                                      # a later segment shows the gap's end
+        assert res.stopped_at == (
+            f"run.{gone:03d}.mcap (segment {gone} of run {run_id}) missing: ticks "
+            f"{1000 * gone}-{1000 * gone + 999} are not in the recording; "
+            f"run.{gone + 1:03d}.mcap and later segments were not read")
+    else:
+        assert res.stopped_at == (
+            f"run.003.mcap (segment 3 of run {run_id}) is missing: the run went on after "
+            f"tick 2999 (from item {_items_before(seg_copy, 3)}); nothing after segment 2 "
+            "was read")
+    assert any(res.stopped_at in n for n in res.notes)
+    # the same from the report's and the reference reader's side
+    assert load_series(seg_copy).scan.stopped_at == res.stopped_at
+    run = read_run(seg_copy)
+    assert not run.complete and run.stopped_at == res.stopped_at
+    assert run.records[-1].tick == 1000 * gone - 1
+    assert rig_main(["replay", str(seg_copy)]) == 0
+    assert f"INCOMPLETE RECORDING: {res.stopped_at}" in capsys.readouterr().out
+
+
+def _items_before(base: Path, k: int) -> int:
+    """The MCAP sequence segment ``k`` starts at (from the previous segment's end)."""
+    with _seg(base, k - 1).open("rb") as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    return int(meta["rig_segment_end"]["sequence_end"])
+
+
+def test_two_missing_segments_are_named(seg_copy: Path) -> None:
+    _seg(seg_copy, 1).unlink()
+    _seg(seg_copy, 2).unlink()
+    res = replay_recording(seg_copy)
+    assert not res.complete and res.ticks == 1000
+    assert "run.001.mcap ... run.002.mcap (segments 1-2 of run" in str(res.stopped_at)
+    assert "ticks 1000-2999 are not in the recording; run.003.mcap" in str(res.stopped_at)
+
+
+@pytest.mark.parametrize(("slot", "theirs"), [(1, 1), (2, 0)])
+def test_a_foreign_file_in_a_segment_slot_is_refused(seg_copy: Path, other_segmented: Path,
+                                                     slot: int, theirs: int) -> None:
+    """Another run's file (same names, even the same segment index) is never merged."""
+    shutil.copy(_seg(other_segmented, theirs), _seg(seg_copy, slot))
+    ours = load_recorded_run(seg_copy).metadata["run_id"]
+    other = load_recorded_run(other_segmented).metadata["run_id"]
+    assert ours != other
+    res = replay_recording(seg_copy)
+    assert not res.complete and res.ticks == 1000 * slot
+    assert res.stopped_at == (
+        f"run.{slot:03d}.mcap is not segment {slot} of run {ours}: it is segment {theirs} "
+        f"of run {other} (foreign) -- not merged; reading stopped after segment {slot - 1} "
+        f"(last tick {1000 * slot - 1})")
+    assert res.bit_exact and res.tx_frames_mismatched == 0     # nothing foreign compared
+    run = load_recorded_run(seg_copy)
+    assert run.scan.segments == [_seg(seg_copy, k) for k in range(slot)]
+    ref = read_run(seg_copy)
+    assert ref.stopped_at == res.stopped_at and ref.segments == run.scan.segments
+    assert ref.records[-1].tick == 1000 * slot - 1
+
+
+def test_a_foreign_non_segment_file_is_refused(seg_copy: Path, plain_recording: Path,
+                                               work: Path) -> None:
+    shutil.copy(_mcap(work / "x.mcap", ["/can/rx"], library="other", metadata=None),
+                _seg(seg_copy, 1))
+    res = replay_recording(seg_copy)
+    assert not res.complete and res.ticks == 1000
+    assert "run.001.mcap is not segment 1 of run" in str(res.stopped_at)
+    assert "no segment identity (a foreign file) -- not merged" in str(res.stopped_at)
+
+
+def test_a_later_segment_given_directly_says_where_to_start(
+        segmented: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    later = _seg(segmented, 1)
+    run_id = load_recorded_run(segmented).metadata["run_id"]
+    msg = (f"{later}: this is segment 1 of run {run_id}; a run is read from its first "
+           f"segment: start from {segmented}")
+    with pytest.raises(RecordingError) as exc:
+        replay_recording(later)
+    assert str(exc.value) == msg
+    with pytest.raises(RecordingError):
+        replay_recording(later, reader_process=True)
+    with pytest.raises(ValueError, match="start from"):
+        read_run(later)
+    assert len(read_run(later, follow_segments=False).records) == 1000
+    assert rig_main(["replay", str(later)]) == 2
+    assert rig_main(["report", str(later), "--out", str(later.parent / "r")]) == 2
+    err = capsys.readouterr().err
+    assert err.count(f"start from {segmented}") == 2
+
+
+def test_a_stale_file_after_the_last_segment_is_ignored(seg_copy: Path,
+                                                        other_segmented: Path) -> None:
+    """Re-recording to the same name leaves an older run's later segments behind."""
+    shutil.copy(_seg(other_segmented, 1), _seg(seg_copy, 4))
+    res = replay_recording(seg_copy)
+    assert res.complete and res.bit_exact and res.ticks == 3200
+    assert res.notes == [f"run.004.mcap is not part of this recording (run "
+                         f"{load_recorded_run(seg_copy).metadata['run_id']} ended with "
+                         "segment 3): ignored"]
+
+
+def test_segment_identity_in_every_file(segmented: Path) -> None:
+    """Each segment's 'rig' record: one run id, its index, where its items start; its
+    end record: the next file or final, where its items end, its ticks."""
+    heads, ends = [], []
+    for k in range(4):
+        with _seg(segmented, k).open("rb") as f:
+            meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+        heads.append(meta["rig"])
+        ends.append(meta["rig_segment_end"])
+    assert len({h["run_id"] for h in heads} | {e["run_id"] for e in ends}) == 1
+    assert [h["segment"] for h in heads] == ["0", "1", "2", "3"]
+    assert [h["first_segment"] for h in heads] == ["run.mcap"] * 4
+    assert [e["next_segment"] for e in ends] == ["run.001.mcap", "run.002.mcap",
+                                                 "run.003.mcap", ""]
+    assert [e["final"] for e in ends] == ["false", "false", "false", "true"]
+    assert heads[0]["sequence_start"] == "0"
+    for k in range(1, 4):
+        assert heads[k]["sequence_start"] == ends[k - 1]["sequence_end"]
+        assert heads[k]["first_tick"] == ends[k]["first_tick"] == str(1000 * k)
+    # the shutdown's events come at tick 3200, after the last tick record (3199)
+    assert [e["last_tick"] for e in ends] == ["999", "1999", "2999", "3200"]
+
+
+# ---------------------------------------------------------------------------- file ends
+
+
+def _summary_start(path: Path) -> int:
+    data = path.read_bytes()
+    (start,) = struct.unpack_from("<Q", data, len(data) - 8 - 29 + 9)
+    return int(start)
+
+
+@pytest.mark.parametrize("damage", ["cut_magic", "cut_footer", "flip_summary",
+                                    "flip_footer", "flip_magic"])
+def test_a_damaged_file_end_is_noticed_and_the_chunks_still_read(
+        recording: Path, work: Path, damage: str) -> None:
+    data = bytearray(recording.read_bytes())
+    summary = _summary_start(recording)
+    if damage == "cut_magic":
+        data = data[:-8]
+    elif damage == "cut_footer":
+        data = data[:-20]
+    elif damage == "flip_summary":
+        data[(summary + len(data) - 37) // 2] ^= 0x10
+    elif damage == "flip_footer":
+        data[len(data) - 8 - 29 + 12] ^= 0x01
+    else:
+        data[-3] ^= 0x40
+    p = work / f"end-{damage}.mcap"
+    p.write_bytes(bytes(data))
+    full = load_recorded_run(recording)
+    run = load_recorded_run(p)
+    assert not run.complete
+    expected = {"cut_magic": "closing magic missing or damaged",
+                "cut_footer": "closing magic missing or damaged",
+                "flip_summary": "summary section or Footer damaged (CRC mismatch",
+                "flip_footer": "Footer points at a summary section",
+                "flip_magic": "closing magic missing or damaged"}[damage]
+    assert str(run.stopped_at).startswith(f"{p}: {expected}"), run.stopped_at
+    assert "every chunk before it was read" in str(run.stopped_at)
+    np.testing.assert_array_equal(run.tick, full.tick)     # all the data is there
+    assert run.tx == full.tx and run.rx == full.rx and run.events == full.events
+    res = replay_recording(p, run=run)
+    assert res.bit_exact and res.ticks == full.tick.size and not res.complete
+    ref = read_run(p)                                      # the reference reader agrees
+    assert not ref.complete and expected in str(ref.stopped_at)
+    assert len(ref.records) == full.tick.size
+
+
+def test_a_damaged_data_section_record_is_noticed(recording: Path, work: Path) -> None:
+    """The 'rig' metadata record has no CRC of its own: the data-section CRC in DataEnd
+    covers it."""
+    data = bytearray(recording.read_bytes())
+    i = data.index(b"clock_offset_ns")
+    data[i] ^= 0x01                           # a metadata key, outside every chunk
+    p = work / "meta-flip.mcap"
+    p.write_bytes(bytes(data))
+    run = load_recorded_run(p)
+    assert not run.complete and "data section damaged (CRC mismatch" in str(run.stopped_at)
+    assert not read_run(p).complete
+
+
+@pytest.mark.parametrize("command", ["replay", "report"])
+def test_non_mcap_input_is_refused_after_its_magic(command: str, tmp_path: Path) -> None:
+    """/dev/zero and a pipe whose writer never closes: refused on the first 8 bytes
+    (reading them whole would never end)."""
+    fifo = tmp_path / "pipe.mcap"
+    os.mkfifo(fifo)
+    opened = threading.Event()
+
+    def writer() -> None:
+        with open(fifo, "wb") as f:
+            f.write(b"timestamp,can_id,data\n")
+            f.flush()
+            opened.set()
+            time.sleep(60)                 # keeps the pipe open: no end of file
+
+    threading.Thread(target=writer, daemon=True).start()
+    for src in ("/dev/zero", str(fifo)):
+        proc = subprocess.run([sys.executable, "-m", "rig.cli", command, src],
+                              capture_output=True, text=True, timeout=60,
+                              cwd=Path(__file__).resolve().parents[1])
+        assert proc.returncode == 2, proc.stderr
+        assert f"{src}: not an MCAP file (first bytes" in proc.stderr
+        assert "Traceback" not in proc.stderr

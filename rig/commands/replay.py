@@ -49,6 +49,8 @@ def _print_text(res: ReplayResult) -> None:
     print(f"replayed {s['ticks']} ticks ({s['recorded_s']:.3f} s recorded) in "
           f"{s['elapsed_s']:.3f} s = {s['realtime_factor']:.1f}x real time; "
           f"{s['rx_frames_fed']} frames fed; final state {s['final_state']}")
+    if not res.complete:
+        print(f"INCOMPLETE RECORDING: {res.stopped_at}")
     if res.kind == "mcap":
         verdict = "BIT-EXACT" if res.bit_exact else (
             "DIFFERENT CONTROLLER" if not res.same_controller else "MISMATCH")

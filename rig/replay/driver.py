@@ -310,8 +310,9 @@ def _result(run: RecordedRun, rp: _Replayer, loop: ControlLoop, bus: McapReplayB
     """Compare the replay with the recording."""
     notes: list[str] = []
     if not run.complete:
-        notes.append(f"recording incomplete, replayed up to its last complete chunk: "
-                     f"{run.stopped_at}")
+        notes.append(f"recording incomplete: {run.stopped_at}; replayed what comes "
+                     "before (up to the last complete chunk)")
+    notes.extend(run.scan.notes)
     if rp.missing:
         notes.append(f"{rp.missing} ticks missing from the recording (dropped): replayed "
                      "with interpolated times and zero lateness")

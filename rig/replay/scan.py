@@ -5,8 +5,9 @@ of the chunk's messages of that topic, concatenated, with their MCAP sequence nu
 instead of decoding every message into Python objects as
 :func:`rig.recording.read_run` does (~25 us/tick): replay must read a 1 kHz recording
 50x faster than real time.  It names what is wrong with a file (not an MCAP, foreign,
-wrong version, missing channels, truncated or corrupt at byte N) and reads a truncated
-file up to its last complete chunk (docs/replay.md, "The scanner").
+wrong version, missing channels, truncated or corrupt at byte N, damaged summary or
+closing magic, a missing or foreign segment of a run) and reads a truncated file up to
+its last complete chunk (docs/replay.md, "The scanner").
 """
 
 from __future__ import annotations
@@ -29,7 +30,15 @@ from rig.mcap_schema import (
     TOPIC_EVENTS,
     TOPIC_SIGNALS,
 )
-from rig.recording import METADATA_NAME, segment_paths
+from rig.record_segments import (
+    MCAP_MAGIC,
+    SEGMENT_END_NAME,
+    SegmentChain,
+    SegmentEnd,
+    SegmentHead,
+    tail_problem,
+)
+from rig.recording import METADATA_NAME
 
 __all__ = [
     "MCAP_MAGIC",
@@ -42,13 +51,12 @@ __all__ = [
     "scan_recording",
 ]
 
-MCAP_MAGIC: Final = b"\x89MCAP0\r\n"
 #: channels a recording must have to be replayed / reported
 REQUIRED_TOPICS: Final = (TOPIC_CAN_RX, TOPIC_CAN_TX, TOPIC_SIGNALS, TOPIC_EVENTS)
 RECORDER_LIBRARY_PREFIX: Final = "rig-recorder/"
 
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
-_OP_MESSAGE_INDEX, _OP_ATTACHMENT, _OP_METADATA = 7, 9, 12
+_OP_MESSAGE_INDEX, _OP_ATTACHMENT, _OP_METADATA, _OP_DATA_END = 7, 9, 12, 15
 _OP_NAMES: Final = {1: "Header", 2: "Footer", 3: "Schema", 4: "Channel", 5: "Message",
                     6: "Chunk", 7: "MessageIndex", 8: "ChunkIndex", 9: "Attachment",
                     10: "AttachmentIndex", 11: "Statistics", 12: "Metadata",
@@ -79,8 +87,9 @@ class ScanResult:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # first segment
     attachments: dict[str, bytes] = field(default_factory=dict)        # first segment
     messages: int = 0
-    complete: bool = True
-    stopped_at: str | None = None
+    complete: bool = True          # every segment present, intact, with its footer
+    stopped_at: str | None = None  # where and why reading stopped
+    notes: list[str] = field(default_factory=list)  # e.g. a stale file after the run
 
     @property
     def rig_metadata(self) -> dict[str, str]:
@@ -131,14 +140,20 @@ class _Segment:
     walked one by one."""
 
     def __init__(self, path: Path, result: ScanResult, handlers: Mapping[str, Handler],
-                 first: bool, after_chunk: Callable[[], None] | None = None) -> None:
+                 first: bool, after_chunk: Callable[[], None] | None = None,
+                 chain: SegmentChain | None = None) -> None:
         self.after_chunk = after_chunk
         self.path = path
         self.res = result
         self.handlers = handlers
         self.first = first
+        self.chain = chain
         self.by_channel: dict[int, Handler | None] = {}
         self.footer = False
+        # a later segment of a run: nothing of it is used before its identity is checked
+        self.accepted = first or chain is None
+        self.refused = False
+        self.end: dict[str, str] | None = None   # its rig_segment_end metadata
 
     def _channel(self, buf: bytes | memoryview, off: int) -> None:
         (cid,) = _U16.unpack_from(buf, off)
@@ -229,13 +244,47 @@ class _Segment:
                 raise RecordingError(f"{self.path}: malformed message payload "
                                      f"({type(exc).__name__}: {exc})") from exc
 
+    def _metadata(self, name: str, meta: dict[str, str]) -> bool:
+        """A Metadata record; False when the segment is refused (not this run's)."""
+        if self.first:
+            self.res.metadata[name] = meta
+        if name == SEGMENT_END_NAME:
+            self.end = meta
+        elif name == METADATA_NAME and self.chain is not None:
+            head = SegmentHead.parse(meta)
+            if self.first:
+                if meta.get("format_version") == str(RECORDING_FORMAT_VERSION):
+                    problem = self.chain.check_first(head)
+                    if problem:
+                        raise RecordingError(problem)
+            else:
+                problem = self.chain.check_head(self.path, head)
+                if problem:
+                    self._refuse(problem)
+                    return False
+                self.accepted = True
+        return True
+
+    def _refuse(self, why: str) -> None:
+        self.refused = True
+        self.res.complete = False
+        self.res.stopped_at = why
+
+    def _read(self) -> bytes:
+        """The file, after its first 8 bytes were found to be the MCAP magic (a device
+        or a large file of something else is never read whole)."""
+        path = self.path
+        with open(path, "rb") as f:
+            magic = f.read(len(MCAP_MAGIC))
+            if magic != MCAP_MAGIC:
+                raise RecordingError(f"{path}: not an MCAP file (first bytes {magic!r}, "
+                                     f"expected {MCAP_MAGIC!r})")
+            return magic + f.read()
+
     def scan(self) -> None:
         path = self.path
-        buf = path.read_bytes()
+        buf = self._read()
         size = len(buf)
-        if buf[:8] != MCAP_MAGIC:
-            raise RecordingError(f"{path}: not an MCAP file (first bytes {buf[:8]!r}, "
-                                 f"expected {MCAP_MAGIC!r})")
         res = self.res
         view = memoryview(buf)
         pending: bytes | None = None          # a decompressed chunk awaiting its indexes
@@ -253,6 +302,10 @@ class _Segment:
                 self._stop(f"truncated at byte {off} of {size}: {name} record of {ln} bytes "
                            "runs past the end of the file")
                 break
+            if not self.accepted and op in (_OP_CHUNK, _OP_MESSAGE, _OP_CHANNEL):
+                assert self.chain is not None
+                self._refuse(self.chain.check_head(path, None))
+                return
             try:
                 if op == _OP_MESSAGE_INDEX:
                     if pending is not None:
@@ -283,14 +336,18 @@ class _Segment:
                 elif op == _OP_HEADER:
                     res.profile, o = _str(view, start)
                     res.library, _ = _str(view, o)
-                elif op == _OP_METADATA and self.first:
+                elif op == _OP_METADATA:
                     mname, o = _str(view, start)
-                    res.metadata[mname], _ = _str_map(view, o)
+                    if not self._metadata(mname, _str_map(view, o)[0]):
+                        return
                 elif op == _OP_ATTACHMENT and self.first:
                     aname, o = _str(view, start + 16)
                     _, o = _str(view, o)
                     (dlen,) = _U64.unpack_from(buf, o)
                     res.attachments[aname] = bytes(buf[o + 8:o + 8 + dlen])
+                elif op == _OP_DATA_END:
+                    self._data_end(buf, off, end)
+                    return
                 elif op == _OP_FOOTER:
                     self.footer = True
                     return
@@ -309,6 +366,21 @@ class _Segment:
                 self._chunk(pending, None)
             except Exception as exc:
                 self._stop(f"corrupt chunk before byte {off} ({type(exc).__name__}: {exc})")
+
+    def _data_end(self, buf: bytes, off: int, end: int) -> None:
+        """At the DataEnd record (every chunk handed out): the data-section CRC, then
+        the Footer, its summary CRC and the closing magic (rig.record_segments)."""
+        (crc,) = _U32.unpack_from(buf, off + 9)
+        if crc and zlib.crc32(memoryview(buf)[:off]) != crc:
+            self._stop(f"data section damaged (CRC mismatch over bytes 0-{off}): the "
+                       "chunks passed their own CRCs and were read, a record between them "
+                       "(metadata, attachment, index) is damaged")
+            return
+        tail = tail_problem(lambda o, n: buf[o:o + n], len(buf), end)
+        if tail:
+            self._stop(f"{tail}; every chunk before it was read")
+            return
+        self.footer = True
 
     def _stop(self, why: str) -> None:
         self.res.complete = False
@@ -349,24 +421,37 @@ def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
     each chunk's batch of that topic (see :data:`Handler`), in file order, and
     ``after_chunk()`` after each chunk.
 
-    Raises :class:`RecordingError` (not an MCAP / foreign / wrong version / missing
-    channels / nothing readable) and ``FileNotFoundError``.  A truncated or corrupt tail
-    ends the scan at the last complete chunk (``complete`` False, ``stopped_at`` says
-    where); later segments are then not read."""
+    Raises :class:`RecordingError` (not an MCAP -- decided on the first 8 bytes --,
+    foreign, wrong version, missing channels, nothing readable, a later segment of a
+    run given instead of its first) and ``FileNotFoundError``.  A truncated or corrupt
+    tail, a damaged summary or closing magic ends the scan after the last complete
+    chunk (``complete`` False, ``stopped_at`` says where).  With ``follow_segments``
+    the next segment is the one the segment's end record names, and it is read only if
+    it belongs to the run (:class:`rig.record_segments.SegmentChain`); a missing or
+    foreign segment ends the scan, ``stopped_at`` naming what is missing."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such recording")
     if path.is_dir():
         raise IsADirectoryError(f"{path}: is a directory, expected a .mcap recording")
     res = result if result is not None else ScanResult()
-    paths = segment_paths(path) if follow_segments else [path]
-    for i, p in enumerate(paths):
-        seg = _Segment(p, res, handlers, first=i == 0, after_chunk=after_chunk)
+    chain = SegmentChain(path) if follow_segments else None
+    p: Path | None = path
+    while p is not None:
+        seg = _Segment(p, res, handlers, first=not res.segments, after_chunk=after_chunk,
+                       chain=chain)
         res.segments.append(p)
         seg.scan()
-        if i == 0:
+        if seg.refused:
+            res.segments.pop()
+        if len(res.segments) == 1 and p == path:
             check_is_recording(res, p)
-        if not seg.footer:
+        if not seg.footer or chain is None or not chain.run_id:
             break
+        p, problem = chain.next_path(p, SegmentEnd.parse(seg.end))
+        if problem:
+            res.complete = False
+            res.stopped_at = problem
+    if chain is not None:
+        res.notes.extend(chain.notes)
     return res
-
