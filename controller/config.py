@@ -311,9 +311,6 @@ class TelemetryConfig:
     commands_enabled: bool = _f(False)
     zenoh_config_file: str = _f("", doc="json5 file merged first (TLS, access_control); "
                                 "mode/endpoints/scouting above override it")
-    session_attempts: int = _f(5, lo=1, hi=1000,
-                               doc="attempts to open the Zenoh session (1 s, 2 s, 4 s ... "
-                               "up to 30 s apart) before telemetry gives up; control goes on")
 
 
 @dataclass(frozen=True)

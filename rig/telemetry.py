@@ -3,7 +3,7 @@
 The loop calls :meth:`TelemetryPublisher.offer` (usually when :meth:`due` says so); it
 never blocks: a full queue drops the snapshot and counts it in :attr:`dropped`.  A
 publisher thread opens the Zenoh session, encodes JSON and publishes under
-``<key_prefix>/...``.  A session that cannot be opened is retried ``session_attempts``
+``<key_prefix>/...``.  A session that cannot be opened is tried :data:`SESSION_ATTEMPTS`
 times with growing pauses, every failure logged and shown in :meth:`status` (and via
 ``on_state`` to the service's systemd STATUS); then telemetry gives up while control
 goes on.  The session connects only to the configured endpoints: gossip scouting and
@@ -28,8 +28,8 @@ import zenoh
 from controller.config import TelemetryConfig
 from rig.mcap_schema import encode_json
 
-__all__ = ["COMMANDS", "MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "TelemetryPublisher",
-           "validate_command", "zenoh_config"]
+__all__ = ["COMMANDS", "MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "SESSION_ATTEMPTS",
+           "TelemetryPublisher", "validate_command", "zenoh_config"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,8 @@ COMMANDS: dict[str, dict[str, tuple[type, ...]]] = {
 }
 _PERIODIC_S = 1.0  # lifecycle / fault are re-published at least this often
 _RETRY_MAX_S = 30.0  # longest pause between two attempts to open the session
+#: attempts to open the session (pauses 1, 2, 4, 8 s: about 15 s) before giving up
+SESSION_ATTEMPTS = 5
 #: command arguments larger than this are refused unread
 MAX_ARGUMENT_BYTES = 1024
 #: error texts in command replies are cut to this length (never echo large input)
@@ -142,9 +144,12 @@ class TelemetryPublisher:
 
     def __init__(self, cfg: TelemetryConfig, status_provider: Callable[[], Mapping[str, Any]],
                  command_handler: Callable[[str, dict[str, Any]], str] | None = None,
-                 *, retry_s: float = 1.0,
+                 *, retry_s: float = 1.0, session_attempts: int = SESSION_ATTEMPTS,
                  on_state: Callable[[str, str | None], None] | None = None) -> None:
+        if session_attempts < 1:
+            raise ValueError(f"session_attempts {session_attempts}: must be >= 1")
         self.cfg = cfg
+        self.session_attempts = session_attempts
         self._status_provider = status_provider
         self._command_handler = command_handler
         self._on_state = on_state
@@ -212,7 +217,7 @@ class TelemetryPublisher:
     def status(self) -> dict[str, Any]:
         """State of the telemetry itself (plain values; any thread)."""
         return {"state": self.state, "error": self.error, "attempts": self.attempts,
-                "session_attempts": self.cfg.session_attempts,
+                "session_attempts": self.session_attempts,
                 "endpoints": list(self.cfg.endpoints), "listen": self.cfg.listen,
                 "published": self.published, "dropped": self.dropped,
                 "commands_enabled": self.cfg.commands_enabled,
@@ -279,7 +284,7 @@ class TelemetryPublisher:
             self.attempts = 1
             self._give_up(str(exc))
             return False
-        limit = self.cfg.session_attempts
+        limit = self.session_attempts
         pause = self._retry_s
         while not self._stop.is_set():
             self.attempts += 1

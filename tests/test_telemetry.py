@@ -619,11 +619,10 @@ def test_a_failing_session_is_reported_and_given_up(case: str, tmp_path: Path,
         "bad_json5": (replace(tcfg(free_port()), zenoh_config_file=str(bad)),
                       f"zenoh_config_file {bad}"),
     }[case]
-    cfg = replace(cfg, session_attempts=3)
     states: list[tuple[str, str | None]] = []
     try:
         with caplog.at_level("WARNING", logger="rig.telemetry"):
-            tp = TelemetryPublisher(cfg, dict, retry_s=0.05,
+            tp = TelemetryPublisher(cfg, dict, retry_s=0.05, session_attempts=3,
                                     on_state=lambda s, e: states.append((s, e)))
             try:
                 assert tp.wait_settled(20)
