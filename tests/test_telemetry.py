@@ -600,7 +600,7 @@ def _busy_port() -> tuple[socket.socket, int]:
     return s, int(s.getsockname()[1])
 
 
-@pytest.mark.parametrize("case", ["busy_port", "missing_file", "unassignable_address",
+@pytest.mark.parametrize("case", ["busy_port", "missing_file", "unusable_endpoint",
                                   "bad_json5"])
 def test_a_failing_session_is_reported_and_given_up(case: str, tmp_path: Path,
                                                     caplog: pytest.LogCaptureFixture) -> None:
@@ -613,9 +613,10 @@ def test_a_failing_session_is_reported_and_given_up(case: str, tmp_path: Path,
         "busy_port": (tcfg(busy), "Address already in use"),
         "missing_file": (replace(tcfg(free_port()), zenoh_config_file=str(tmp_path / "no.json5")),
                          f"zenoh_config_file {tmp_path / 'no.json5'}: No such file"),
-        # binding only: nothing is sent to that (documentation-range) address
-        "unassignable_address": (replace(tcfg(0), endpoints=["tcp/192.0.2.1:7447"]),
-                                 "Cannot assign requested address"),
+        # well-formed, but its directory does not exist (a local socket: nothing is sent)
+        "unusable_endpoint": (replace(tcfg(0), endpoints=[
+            f"unixsock-stream/{tmp_path}/no-such-dir/rig.sock"]),
+            "Can not create a new UnixSocketStream listener"),
         "bad_json5": (replace(tcfg(free_port()), zenoh_config_file=str(bad)),
                       f"zenoh_config_file {bad}"),
     }[case]
@@ -633,7 +634,7 @@ def test_a_failing_session_is_reported_and_given_up(case: str, tmp_path: Path,
         holder.close()
     assert st_["state"] == "failed" and expected in str(st_["error"]), st_
     assert ".rs:" not in str(st_["error"])                 # no Rust source locations
-    retried = case in ("busy_port", "unassignable_address")
+    retried = case in ("busy_port", "unusable_endpoint")
     assert st_["attempts"] == (3 if retried else 1)
     assert states[-1] == ("failed", st_["error"])
     assert [s for s, _ in states] == ["retrying"] * (2 if retried else 0) + ["failed"]
