@@ -140,8 +140,9 @@ class SegmentChain:
         if head is None:
             return ""                  # a recording without segments (checked elsewhere)
         if head.index != 0:
-            start = self.first.with_name(head.first_segment) if head.first_segment \
-                else base_of_segment(self.first)
+            start = base_of_segment(self.first)       # by name, else as recorded
+            if not start.exists() and head.first_segment:
+                start = self.first.with_name(head.first_segment)
             return (f"{self.first}: this is {head.describe()}; a run is read from its "
                     f"first segment: start from {start}")
         self.run_id = head.run_id
@@ -189,10 +190,11 @@ class SegmentChain:
                                   f"{self.run_id} ended with segment {self.index - 1}): "
                                   "ignored")
             return None, ""
-        if end.next_segment and end.next_segment != nxt.name:
-            nxt = path.with_name(end.next_segment)
         if nxt.exists():
             return nxt, ""
+        recorded = path.with_name(end.next_segment) if end.next_segment else None
+        if recorded is not None and recorded.exists():     # written under another name
+            return recorded, ""
         return None, self._missing(base)
 
     def _missing(self, base: Path) -> str:

@@ -853,6 +853,19 @@ def test_a_stale_file_after_the_last_segment_is_ignored(seg_copy: Path,
                          "segment 3): ignored"]
 
 
+def test_a_renamed_segment_set_is_still_one_run(seg_copy: Path) -> None:
+    """Identity is in the files, not their names: a set renamed as a whole reads whole,
+    and a later segment names the renamed first one."""
+    for k in range(4):
+        _seg(seg_copy, k).rename(_seg(seg_copy, k).with_name(
+            "trial-7.mcap" if k == 0 else f"trial-7.{k:03d}.mcap"))
+    first = seg_copy.with_name("trial-7.mcap")
+    res = replay_recording(first)
+    assert res.complete and res.bit_exact and res.ticks == 3200, res.summary()
+    with pytest.raises(RecordingError, match=f"start from {first}$"):
+        replay_recording(first.with_name("trial-7.002.mcap"))
+
+
 def test_segment_identity_in_every_file(segmented: Path) -> None:
     """Each segment's 'rig' record: one run id, its index, where its items start; its
     end record: the next file or final, where its items end, its ticks."""
