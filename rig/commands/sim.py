@@ -93,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     if args.traces:
         arrays: dict[str, Any] = {f"{r.controller}.{k}": v for r in results
                                   for k, v in r.traces.items()}
-        np.savez_compressed(Path(args.traces), **arrays)
+        with Path(args.traces).open("wb") as fh:   # the name as given (no ".npz" added)
+            np.savez_compressed(fh, **arrays)
     if args.json:
         out = {r.controller: r.metrics for r in results}
         print(strict_json.dumps(out if len(results) > 1 else results[0].metrics, indent=1))
