@@ -22,6 +22,7 @@ import ipaddress
 import json
 import math
 import re
+import reprlib
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -29,6 +30,10 @@ from pathlib import Path
 from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
 __all__ = [
+    "MAX_BANK_MODELS",
+    "MAX_BANK_TABLE_ENTRIES",
+    "MAX_CONFIG_BYTES",
+    "MAX_LIST_LEN",
     "ActuatorConfig",
     "CanConfig",
     "ConfigError",
@@ -50,7 +55,34 @@ __all__ = [
     "default_config",
     "load_config",
     "parse_config",
+    "parse_toml",
+    "read_text_file",
 ]
+
+#: largest configuration (or fault schedule) file read: a rig configuration is a few kB;
+#: the limit only stops a wrong file (a log, /dev/zero) from being read whole
+MAX_CONFIG_BYTES = 8 << 20
+#: longest list of any key without its own ``max_len``
+MAX_LIST_LEN = 64
+#: most linear models in the bank (Kalman filter + LQ gain each; every model of a fuzzy
+#: or Bayesian bank runs its filter every tick); the moving bank's ``active_models`` <= this
+MAX_BANK_MODELS = 64
+#: most (model, noise entry) Kalman designs: ``rig design`` solves one Riccati equation
+#: per entry (~1.5 ms each) and the artifact stores a filter per entry
+MAX_BANK_TABLE_ENTRIES = 4096
+
+_BANK_WHY = (f"one linear tire model each; at most {MAX_BANK_MODELS} models in the bank, "
+             "every model's Kalman filter runs each tick")
+_NOISE_WHY = ("the Kalman gain table: one Riccati solve per model, speed and roughness, "
+              f"at most {MAX_BANK_TABLE_ENTRIES} in all")
+
+# values in error messages: lists, nesting and strings abbreviated (a 200,000-entry list
+# or a 3,000-deep nesting still makes a one-line message)
+_short = reprlib.Repr()
+_short.maxlist = _short.maxtuple = 8
+_short.maxlevel = 3
+_short.maxstring = _short.maxother = 200
+_short.maxdict = 4
 
 
 class ConfigError(ValueError):
@@ -60,15 +92,19 @@ class ConfigError(ValueError):
         self.key = key
         self.value = value
         self.allowed = allowed
-        super().__init__(f"config key '{key}' = {value!r} is invalid: allowed {allowed}")
+        shown = _short.repr(value)
+        if isinstance(value, list) and len(value) > _short.maxlist:
+            shown += f" ({len(value)} entries)"
+        super().__init__(f"config key '{key}' = {shown} is invalid: allowed {allowed}")
 
 
 def _rng(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
          hi_open: bool = False, choices: tuple[object, ...] | None = None,
-         doc: str = "") -> dict[str, Any]:
-    """Field metadata: numeric range (closed unless *_open) or a set of choices."""
+         max_len: int = MAX_LIST_LEN, len_why: str = "", doc: str = "") -> dict[str, Any]:
+    """Field metadata: numeric range (closed unless *_open) or a set of choices; a list
+    holds at most ``max_len`` entries (``len_why``: the reason, for the error)."""
     return {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open,
-            "choices": choices, "doc": doc}
+            "choices": choices, "max_len": max_len, "len_why": len_why, "doc": doc}
 
 
 def _f(default: Any, **kw: Any) -> Any:
@@ -118,16 +154,23 @@ class DesignConfig:
 
     sample_rate_hz: float = _f(1000.0, lo=50.0, hi=20000.0)
     linearisation_deflections_m: list[float] = _f([0.04, 0.025, 0.01], lo=0.0, hi=0.2,
-                                                  lo_open=True)
+                                                  lo_open=True, max_len=MAX_BANK_MODELS,
+                                                  len_why=_BANK_WHY,
+                                                  doc="deflection x2 of each linear tire "
+                                                      "model; with tire_damping_scales at "
+                                                      "most MAX_BANK_MODELS models")
     include_airborne_model: bool = _f(True)
-    tire_damping_scales: list[float] = _f([1.0], lo=0.0, hi=10.0,
+    tire_damping_scales: list[float] = _f([1.0], lo=0.0, hi=10.0, max_len=16,
+                                          len_why="one model per deflection and scale",
                                           doc="grid factor on Ct (1 = nominal only)")
     weight_set: int = _f(1, lo=1, hi=15, doc="index into weight_sets (1-based)")
     weight_sets: list[list[float]] = _f([[1.0, 1e2, 1e-8, 1.0], [1e1, 1e-1, 1e-8, 1.0]],
-                                        lo=0.0, hi=1e12,
+                                        lo=0.0, hi=1e12, max_len=15,
+                                        len_why="design.weight_set indexes 1..15",
                                         doc="[rho1, rho2, rho3, rho4] per set, Eq. 2.5")
-    human_filter_num: list[float] = _f([12.0, 0.0], lo=-1e9, hi=1e9, doc="F(s) numerator")
-    human_filter_den: list[float] = _f([1.0, 30.02, 901.3], lo=-1e9, hi=1e9,
+    human_filter_num: list[float] = _f([12.0, 0.0], lo=-1e9, hi=1e9, max_len=2,
+                                       doc="F(s) numerator")
+    human_filter_den: list[float] = _f([1.0, 30.02, 901.3], lo=-1e9, hi=1e9, max_len=3,
                                        doc="F(s) denominator")
     airborne_filter_com_hz: float = _f(0.2, lo=0.0, hi=100.0, lo_open=True,
                                        doc="airborne Kalman filter only: pseudo natural "
@@ -161,9 +204,11 @@ class NoiseConfig:
     rattlespace_std_m: float = _f(5e-5, lo=0.0, hi=0.1, lo_open=True)
     accel_std_mps2: float = _f(0.05, lo=0.0, hi=100.0, lo_open=True)
     force_std_n: float = _f(5.0, lo=0.0, hi=1e4)
-    speeds_mps: list[float] = _f([5.0, 11.176, 20.0, 30.0], lo=0.1, hi=100.0)
+    speeds_mps: list[float] = _f([5.0, 11.176, 20.0, 30.0], lo=0.1, hi=100.0, max_len=64,
+                                 len_why=_NOISE_WHY)
     road_roughness_gd: list[float] = _f([16e-6, 64e-6, 256e-6, 1024e-6, 4096e-6],
-                                        lo=1e-9, hi=1.0, doc="Gd(n0), m^3")
+                                        lo=1e-9, hi=1.0, max_len=64, len_why=_NOISE_WHY,
+                                        doc="Gd(n0), m^3")
     nominal_speed_mps: float = _f(11.176, lo=0.1, hi=100.0, doc="25 mph")
     nominal_roughness_gd: float = _f(1024e-6, lo=1e-9, hi=1.0)
 
@@ -193,7 +238,7 @@ class MovingBankConfig:
     Lift-off and touch-down are decided by two CUSUM tests on a model-free tire-load
     estimate, plus the learnt residual threshold (controller/moving_bank.py)."""
 
-    active_models: int = _f(3, lo=1, hi=64, doc="k, size of the moving subset")
+    active_models: int = _f(3, lo=1, hi=MAX_BANK_MODELS, doc="k, size of the moving subset")
     threshold_quantile: float = _f(0.999, lo=0.5, hi=1.0, hi_open=True,
                                    doc="quantile of learnt q history used as threshold")
     history_window_s: float = _f(2.0, lo=0.01, hi=600.0)
@@ -415,6 +460,11 @@ def _check_value(key: str, value: Any, typ: Any, meta: Mapping[str, Any]) -> Any
         (inner,) = get_args(typ)
         if not isinstance(value, list) or not value:
             raise ConfigError(key, value, f"a non-empty list, elements in {_describe(meta)}")
+        max_len = meta.get("max_len", MAX_LIST_LEN)
+        if len(value) > max_len:
+            why = meta.get("len_why")
+            raise ConfigError(key, value,
+                              f"at most {max_len} entries" + (f" ({why})" if why else ""))
         return [_check_value(f"{key}[{i}]", v, inner, meta) for i, v in enumerate(value)]
     return _check_scalar(key, value, typ, meta)
 
@@ -476,6 +526,19 @@ def _cross_checks(cfg: RigConfig) -> None:
         if len(t) != 3 or not (t[0] <= t[1] <= t[2]) or t[0] == t[2]:
             raise ConfigError(f"fuzzy.{name}", t, "3 numbers a <= peak <= c with a < c")
     n_models = len(pts) * len(d.tire_damping_scales) + int(d.include_airborne_model)
+    if n_models > MAX_BANK_MODELS:
+        raise ConfigError("design.linearisation_deflections_m", pts,
+                          f"at most {MAX_BANK_MODELS} models in the bank: "
+                          f"{len(pts)} deflections x {len(d.tire_damping_scales)} "
+                          f"tire_damping_scales{' + airborne' * d.include_airborne_model} "
+                          f"= {n_models} (every model's filter runs each tick)")
+    n_noise = len(cfg.noise.speeds_mps) * len(cfg.noise.road_roughness_gd)
+    if n_models * n_noise > MAX_BANK_TABLE_ENTRIES:
+        raise ConfigError("noise.speeds_mps", cfg.noise.speeds_mps,
+                          f"a bank table of at most {MAX_BANK_TABLE_ENTRIES} Kalman designs: "
+                          f"{n_models} models x {len(cfg.noise.speeds_mps)} speeds x "
+                          f"{len(cfg.noise.road_roughness_gd)} road_roughness_gd = "
+                          f"{n_models * n_noise} (one Riccati solve and filter each)")
     if cfg.moving_bank.active_models > n_models:
         raise ConfigError("moving_bank.active_models", cfg.moving_bank.active_models,
                           f"[1, {n_models}] (the number of models in the grid)")
@@ -554,20 +617,44 @@ def parse_config(data: Mapping[str, Any]) -> RigConfig:
     return cfg
 
 
+def read_text_file(path: str | Path, kind: str = "TOML",
+                   max_bytes: int = MAX_CONFIG_BYTES) -> str:
+    """The UTF-8 text of a configuration-like file; :class:`ConfigError` (key
+    ``<file>``) when it cannot be read, is larger than ``max_bytes`` or is not UTF-8."""
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            raw = f.read(max_bytes + 1)
+    except OSError as exc:
+        raise ConfigError("<file>", str(p),
+                          f"a readable {kind} file ({exc.strerror or exc})") from exc
+    if len(raw) > max_bytes:
+        raise ConfigError("<file>", str(p), f"a {kind} file of at most {max_bytes} bytes")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError("<file>", str(p),
+                          f"UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start} "
+                          "is not UTF-8)") from exc
+
+
+def parse_toml(text: str, path: str | Path) -> dict[str, Any]:
+    """``tomllib.loads`` with its errors (including nesting too deep for the parser)
+    as :class:`ConfigError` naming the file."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("<file>", str(path), f"valid TOML ({exc})") from exc
+    except RecursionError:
+        raise ConfigError("<file>", str(path),
+                          "valid TOML nested at most a few hundred levels deep") from None
+
+
 def load_config(path: str | Path | None = None) -> RigConfig:
     """Load ``path`` (TOML), or the built-in defaults when ``path`` is None."""
     if path is None:
         return default_config()
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError("<file>", str(p), f"a readable TOML file ({exc.strerror})") from exc
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError("<file>", str(p), f"valid TOML ({exc})") from exc
-    return parse_config(data)
+    return parse_config(parse_toml(read_text_file(path), path))
 
 
 def default_config() -> RigConfig:

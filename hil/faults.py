@@ -38,14 +38,13 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-from controller.config import ConfigError
+from controller.config import ConfigError, parse_toml, read_text_file
 
 __all__ = ["FaultKind", "FaultSchedule", "FaultWindow"]
 
@@ -152,6 +151,20 @@ class FaultWindow:
         return bool(target == "all" or target == frame)
 
 
+def _parse_json(text: str, path: Path) -> Any:
+    """``json.loads`` without NaN / Infinity, errors as :class:`ConfigError`."""
+    def no_constant(name: str) -> Any:
+        raise ValueError(f"{name} is not a number")
+
+    try:
+        return json.loads(text, parse_constant=no_constant)
+    except ValueError as exc:   # json.JSONDecodeError is a ValueError
+        raise ConfigError("<file>", str(path), f"valid JSON ({exc})") from exc
+    except RecursionError:
+        raise ConfigError("<file>", str(path),
+                          "valid JSON nested at most a few hundred levels deep") from None
+
+
 class FaultSchedule:
     """Faults by time, deterministic for a seed.  Empty schedule = no faults."""
 
@@ -215,20 +228,18 @@ class FaultSchedule:
     def load(cls, path: str | Path) -> FaultSchedule:
         """Read a ``.toml`` or ``.json`` schedule (by suffix; else TOML, then JSON)."""
         p = Path(path)
-        text = p.read_text(encoding="utf-8")
-        if p.suffix.lower() == ".json":
-            try:
-                return cls.from_mapping(json.loads(text))
-            except json.JSONDecodeError as exc:
-                raise ConfigError("<file>", str(p), f"valid JSON ({exc})") from exc
+        suffix = p.suffix.lower()
+        text = read_text_file(p, {".json": "JSON", ".toml": "TOML"}.get(suffix, "TOML or JSON"))
+        if suffix == ".json":
+            return cls.from_mapping(_parse_json(text, p))
         try:
-            return cls.from_mapping(tomllib.loads(text))
-        except tomllib.TOMLDecodeError as exc:
-            if p.suffix.lower() == ".toml":
-                raise ConfigError("<file>", str(p), f"valid TOML ({exc})") from exc
+            return cls.from_mapping(parse_toml(text, p))
+        except ConfigError as exc:
+            if suffix == ".toml" or exc.key != "<file>":
+                raise
         try:
-            return cls.from_mapping(json.loads(text))
-        except json.JSONDecodeError as exc:
+            return cls.from_mapping(_parse_json(text, p))
+        except ConfigError as exc:
             raise ConfigError("<file>", str(p), "valid TOML or JSON") from exc
 
     def bind(self, dt_s: float) -> None:

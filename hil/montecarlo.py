@@ -46,6 +46,11 @@ class MonteCarloResult:
     png: str | None = None
 
 
+#: largest relative standard deviation of a parameter (a 3-sigma draw at 0.5 is already
+#: clamped at MIN_FACTOR)
+MAX_SPREAD = 0.5
+
+
 def draw_params(cfg: RigConfig, runs: int, spread: float | dict[str, float] = 0.05,
                 seed: int = 0) -> list[PlantParams]:
     """``runs`` plant perturbations: each of M, m, K, C, Kt (scale), Ct (scale) is
@@ -60,8 +65,8 @@ def draw_params(cfg: RigConfig, runs: int, spread: float | dict[str, float] = 0.
         sd = np.array([spread.get(n, 0.05) for n in names])
     else:
         sd = np.full(len(names), float(spread))
-    if np.any(~np.isfinite(sd)) or np.any(sd < 0) or np.any(sd > 0.5):
-        raise ValueError(f"spread must be in [0, 0.5], got {spread}")
+    if np.any(~np.isfinite(sd)) or np.any(sd < 0) or np.any(sd > MAX_SPREAD):
+        raise ValueError(f"spread must be in [0, {MAX_SPREAD}], got {spread}")
     rng = np.random.default_rng(seed)
     factors = np.maximum(1.0 + sd * rng.standard_normal((runs, len(names))), MIN_FACTOR)
     v = cfg.vehicle
@@ -147,8 +152,8 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
         title = (f"Monte Carlo: {controller} (weights {weight_set}), {road.name} at "
                  f"{road.speed_mps:g} m/s, {runs} runs")
         result.png = str(plot_runs(result, out / "montecarlo.png", title))
-        import json
-        (out / "montecarlo.json").write_text(json.dumps(
+        from rig.strict_json import dumps
+        (out / "montecarlo.json").write_text(dumps(
             {"summary": result.summary, "unstable_runs": result.unstable_runs,
              "faulted_runs": result.faulted_runs, "runs": result.runs}, indent=1))
     return result

@@ -29,7 +29,11 @@ Names:
     spatial wavelength.
 ``csv:PATH``
     Measured profile: two columns distance [m], height [m] (comma separated, optional
-    header line), distance strictly increasing; linear interpolation.
+    header line), distance strictly increasing; linear interpolation.  At most
+    :data:`MAX_CSV_BYTES` (a 100 km profile at 1 cm spacing).
+
+``check_road(name)`` validates a name (and reads a ``csv:`` file) without building the
+road: the command line checks ``--road`` with it before anything else runs.
 """
 
 from __future__ import annotations
@@ -46,10 +50,12 @@ __all__ = [
     "ISO_N0",
     "ISO_N1",
     "ISO_N2",
+    "MAX_CSV_BYTES",
     "ROAD_NAMES",
     "ROUGH_COURSE_RMS_M",
     "Road",
     "RoadError",
+    "check_road",
     "iso_gd",
     "iso_psd",
     "iso_rms_m",
@@ -67,6 +73,8 @@ ISO_CLASSES: dict[str, float] = {c: 16e-6 * 4.0**k for k, c in enumerate("ABCDEF
 ROUGH_COURSE_RMS_M = 1.35 * 0.0254
 ROAD_NAMES = (*[f"iso-{c}" for c in ISO_CLASSES], "rough-course", "datp", "bump",
               "pothole", "sweep", "csv:PATH")
+#: largest ``csv:`` profile file read
+MAX_CSV_BYTES = 256 << 20
 
 
 class RoadError(ValueError):
@@ -184,9 +192,13 @@ def _pothole(s: FloatArray, start: float, length: float, depth: float,
 def _read_csv(path: str) -> tuple[FloatArray, FloatArray]:
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        with p.open("rb") as f:
+            raw = f.read(MAX_CSV_BYTES + 1)
+        text = raw.decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise RoadError(f"road file {path!r} is not readable: {exc}") from exc
+    if len(raw) > MAX_CSV_BYTES:
+        raise RoadError(f"road file {path!r} is larger than {MAX_CSV_BYTES} bytes")
     rows: list[tuple[float, float]] = []
     for i, line in enumerate(text.splitlines(), 1):
         line = line.strip()
@@ -210,6 +222,24 @@ def _read_csv(path: str) -> tuple[FloatArray, FloatArray]:
     if np.any(np.diff(arr[:, 0]) <= 0):
         raise RoadError(f"road file {path!r}: distance must be strictly increasing")
     return arr[:, 0], arr[:, 1]
+
+
+_FIXED_ROADS = ("rough-course", "datp", "bump", "pothole", "sweep")
+
+
+def check_road(name: str) -> str:
+    """``name`` if :func:`make_road` knows it (a ``csv:`` file must read as a profile;
+    whether it is long enough depends on the run); :class:`RoadError` naming the problem
+    otherwise."""
+    key = name.strip()
+    low = key.lower()
+    if low.startswith("iso-") and len(low) == 5:
+        iso_gd(low[4])
+    elif key.startswith("csv:"):
+        _read_csv(key[4:])
+    elif low not in _FIXED_ROADS:
+        raise RoadError(f"unknown road {name!r}: use one of {', '.join(ROAD_NAMES)}")
+    return name
 
 
 def make_road(name: str, speed_mps: float, duration_s: float, dt_s: float,

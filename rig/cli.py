@@ -2,7 +2,12 @@
 
 Every subcommand takes ``--config FILE`` (TOML); without it the built-in defaults of
 ``controller.config`` apply.  Errors in the configuration or the inputs are reported in
-one line naming what is wrong, with exit status 2.
+one line naming what is wrong and what is allowed, with exit status 2 and no traceback:
+the configuration is loaded first (its errors name the key), then every argument is
+checked as it is parsed (:mod:`rig.argtypes`), then an output file that exists is
+refused unless the command has ``--force``; file errors while the command runs are one
+line too.  ``--json`` output is strict JSON (:mod:`rig.strict_json`: NaN and infinities
+are ``null``).
 """
 
 from __future__ import annotations
@@ -12,7 +17,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from controller.config import ConfigError
+from controller.config import ConfigError, load_config
+from rig.argtypes import OneLineParser, bind_config, overwrite_problem
 
 #: subcommand -> (module under rig.commands, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -31,7 +37,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported (keeps start-up light)."""
-    parser = argparse.ArgumentParser(prog="rig", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="rig", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module, help_text) in SUBCOMMANDS.items():
@@ -45,18 +51,60 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _config_path(command: str, argv: list[str]) -> str | None:
+    """The ``--config`` value of ``argv`` (parsed before the rest: some arguments are
+    checked against the configuration)."""
+    pre = OneLineParser(prog=f"rig {command}", add_help=False)
+    pre.add_argument("--config", default=None)
+    known, _ = pre.parse_known_args(argv)
+    return known.config
+
+
+def _os_error(exc: OSError) -> str:
+    if exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        return _main(argv)
+    finally:
+        bind_config(None)
+
+
+def _main(argv: list[str]) -> int:
     command = next((a for a in argv if not a.startswith("-")), None)
-    parser = build_parser(command if command in SUBCOMMANDS else None)
-    args = parser.parse_args(argv)
+    known = command in SUBCOMMANDS
+    parser = build_parser(command if known else None)
+    try:
+        if known:
+            assert command is not None
+            path = _config_path(command, argv)
+            try:
+                bind_config(load_config(path) if path is not None else None)
+            except ConfigError as exc:
+                print(f"rig {command}: {exc}", file=sys.stderr)
+                return 2
+        args, extra = parser.parse_known_args(argv)
+    except SystemExit as exc:        # --help, or a bad argument (one line said why)
+        return exc.code if isinstance(exc.code, int) else 2
+    if extra:
+        print(f"rig {args.command}: unrecognized arguments: {' '.join(extra)} "
+              f"(see `rig {args.command} --help`)", file=sys.stderr)
+        return 2
+    problem = overwrite_problem(args)
+    if problem:
+        print(f"rig {args.command}: {problem}", file=sys.stderr)
+        return 2
     try:
         return int(args._module.run(args) or 0)
     except ConfigError as exc:
         print(f"rig {args.command}: {exc}", file=sys.stderr)
         return 2
-    except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        print(f"rig {args.command}: {exc}", file=sys.stderr)
+    except OSError as exc:
+        print(f"rig {args.command}: {_os_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

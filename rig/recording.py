@@ -57,6 +57,7 @@ from rig.mcap_schema import (
     TOPIC_SIGNALS,
     TOPIC_TIMING,
 )
+from rig.output_paths import new_recording_problem, recording_file
 from rig.record_codec import (
     FRAME_ERROR,
     FRAME_EXTENDED,
@@ -165,12 +166,16 @@ class RunRecorder:
                  max_chunk_age_s: float = 1.0, tick_layout: TickLayout | None = None,
                  blocking: bool = False, pipe_bytes: int = 1 << 20,
                  batch_ticks: int = 1, start_timeout_s: float = 60.0) -> None:
-        target = Path(path_or_dir)
-        if target.suffix != ".mcap":
-            stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-            target = target / f"run-{stamp}.mcap"
-        target = target.absolute()    # the writer process runs in another directory
-        target.parent.mkdir(parents=True, exist_ok=True)
+        # the writer process runs in another directory
+        target = recording_file(path_or_dir).absolute()
+        problem = new_recording_problem(target)
+        if problem is None:
+            try:
+                target.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                problem = f"cannot create its directory ({exc.strerror or exc})"
+        if problem is not None:
+            raise RecorderStartError(f"cannot record to {target}: {problem}")
         if compression not in ("zstd", "lz4", "none"):
             raise ValueError(f"compression {compression!r}: allowed zstd, lz4, none")
         self.base_path = target

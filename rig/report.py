@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from rig.mcap_schema import TOPIC_EVENTS, TOPIC_INTERNALS, TOPIC_SIGNALS, TOPIC_TIMING
 from rig.protocol import LifecycleState
 from rig.recording import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
-from rig.replay import OPEN_LOOP_NOTE, ScanResult, scan_recording, split_json
+from rig.replay import OPEN_LOOP_NOTE, RecordingError, ScanResult, scan_recording, split_json
 
 __all__ = ["RunSeries", "load_series", "run_metrics", "write_report"]
 
@@ -62,16 +62,52 @@ class RunSeries:
 
 
 def _f(v: Any) -> float:
-    return math.nan if v is None or isinstance(v, str) else float(v)
+    """A recorded number; NaN for null or anything that is not a number."""
+    return float(v) if isinstance(v, int | float) else math.nan
 
 
-def _matrix(rows: list[list[Any] | None], width: int) -> FloatArray:
+def _matrix(rows: list[Any], width: int) -> FloatArray:
     out = np.full((len(rows), width), np.nan)
     for i, r in enumerate(rows):
-        if r:
+        if isinstance(r, list) and r:
             k = min(width, len(r))
             out[i, :k] = [_f(x) for x in r[:k]]
     return out
+
+
+def _objects(path: str | Path, topic: str, joined: bytes,
+             seqs: list[int]) -> list[dict[str, Any]]:
+    """The JSON objects of a topic's payloads; RecordingError naming the first that is
+    not one."""
+    try:
+        objs = split_json(joined)
+    except (ValueError, RecursionError) as exc:   # JSONDecodeError, UnicodeDecodeError
+        raise RecordingError(f"{path}: a {topic} payload is not JSON "
+                             f"({type(exc).__name__}: {str(exc)[:120]})") from None
+    if len(objs) != len(seqs):
+        raise RecordingError(f"{path}: {len(seqs)} {topic} messages hold {len(objs)} JSON "
+                             "values, expected one object each")
+    for i, obj in enumerate(objs):
+        if not isinstance(obj, dict):
+            raise RecordingError(f"{path}: {topic} message {_which(i, seqs)} is a JSON "
+                                 f"{type(obj).__name__}, expected an object")
+    return objs
+
+
+def _which(i: int, seqs: list[int]) -> str:
+    return f"{i} (sequence {seqs[i]})" if i < len(seqs) else str(i)
+
+
+def _require_int(path: str | Path, topic: str, objs: list[dict[str, Any]], seqs: list[int],
+                 *keys: str) -> None:
+    for i, obj in enumerate(objs):
+        for key in keys:
+            v = obj.get(key)
+            if isinstance(v, bool) or not isinstance(v, int) or not -(1 << 63) <= v < 1 << 63:
+                what = "has no" if key not in obj else \
+                    f"has {key} = {str(v)[:40]!r}, not a 64-bit"
+                raise RecordingError(f"{path}: {topic} message {_which(i, seqs)} {what} "
+                                     f"integer '{key}'")
 
 
 def load_series(path: str | Path) -> RunSeries:
@@ -86,9 +122,8 @@ def load_series(path: str | Path) -> RunSeries:
     scan = scan_recording(path, {t: collector(t) for t in parts})
 
     def decoded(topic: str) -> tuple[list[dict[str, Any]], list[int]]:
-        objs = split_json(b"".join(j for j, _ in parts[topic]))
         seqs = [int(q) for _, s in parts[topic] for q in s]
-        return objs, seqs
+        return _objects(path, topic, b"".join(j for j, _ in parts[topic]), seqs), seqs
 
     recs, rec_seqs = decoded(TOPIC_SIGNALS)
     where = {q: i for i, q in enumerate(rec_seqs)}
@@ -97,7 +132,9 @@ def load_series(path: str | Path) -> RunSeries:
             i = where.get(q)
             if i is not None:
                 recs[i].update(obj)
-    events = decoded(TOPIC_EVENTS)[0]
+    _require_int(path, TOPIC_SIGNALS, recs, rec_seqs, "tick", "t_ns")
+    events, event_seqs = decoded(TOPIC_EVENTS)
+    _require_int(path, TOPIC_EVENTS, events, event_seqs, "tick")
     n = len(recs)
     tick = np.array([r["tick"] for r in recs], dtype=np.int64)
     t_ns = np.array([r["t_ns"] for r in recs], dtype=np.int64)
@@ -107,7 +144,7 @@ def load_series(path: str | Path) -> RunSeries:
     signals = {k: np.array([_f(r.get(k)) for r in recs]) for k in sig_keys}
     timing = {k: np.array([_f(r.get(k)) for r in recs])
               for k in ("wake_late_s", "compute_s", "period_s")}
-    J = max((len(r.get("q") or []) for r in recs), default=0)
+    J = max((len(qs) for r in recs if isinstance(qs := r.get("q"), list)), default=0)
     per_model = {k: _matrix([r.get(k) for r in recs], J)
                  for k in ("q", "firing_weight", "probability", "u_model")}
     names = _model_names(scan, J)
@@ -370,7 +407,7 @@ def write_report(path: str | Path, out_dir: str | Path | None = None,
     for note in s.scan.notes:
         banner += f'<p class="warn">{html.escape(note)}</p>'
     faults = "".join(
-        f"<li>tick {e['tick']}: {html.escape(json.dumps(e['detail']))[:300]}</li>"
+        f"<li>tick {e['tick']}: {html.escape(json.dumps(e.get('detail')))[:300]}</li>"
         for e in s.events if e.get("kind") in ("fault", "lifecycle", "command"))
     figs = "\n".join(f'<figure><img src="{n}" alt="{html.escape(title)}">'
                      f"<figcaption>{html.escape(title)}</figcaption></figure>"

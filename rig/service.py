@@ -147,9 +147,15 @@ class Service:
                     "warmup_ticks": warmup_ticks, "single_model": None}
             meta.update(metadata or {})
             # one pipe write per 8 ticks (8 ms at 1 kHz): fewer wake-ups of the writer
-            self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
-                                        design_bytes=self.design_blob, metadata=meta,
-                                        batch_ticks=8)
+            try:
+                self.recorder = RunRecorder(target, cfg.recording,
+                                            config_toml=config_to_toml(cfg),
+                                            design_bytes=self.design_blob, metadata=meta,
+                                            batch_ticks=8)
+            except BaseException:   # a bad recording path: the bus opened above is closed
+                if self._own_bus:
+                    bus.shutdown()
+                raise
         self.loop = ControlLoop(cfg, bus, self.runtime, self.force_loop,
                                 recorder=self.recorder, notifier=self.notifier,
                                 blending=blending, weight_set=weight_set,

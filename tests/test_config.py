@@ -74,3 +74,43 @@ def test_bad_file_is_a_config_error(tmp_path) -> None:
         load_config(p)
     with pytest.raises(ConfigError, match="readable"):
         load_config(tmp_path / "missing.toml")
+
+
+def test_grid_and_table_sizes_are_bounded_with_the_reason() -> None:
+    grid = [0.001 + i * 1e-7 for i in range(200_000)]
+    with pytest.raises(ConfigError) as info:
+        parse_config({"design": {"linearisation_deflections_m": grid}})
+    msg = str(info.value)
+    assert info.value.key == "design.linearisation_deflections_m"
+    assert "at most 64 entries" in msg and "models in the bank" in msg
+    assert "(200000 entries)" in msg and len(msg) < 400     # one short line
+    # 20 deflections x 4 scales = 80 models (each list within its own bound)
+    with pytest.raises(ConfigError, match=r"at most 64 models in the bank: 20 deflections"):
+        parse_config({"design": {"linearisation_deflections_m": grid[:20],
+                                 "tire_damping_scales": [0.5, 1.0, 1.5, 2.0]}})
+    # 4 models x 64 speeds x 20 roughness = 5120 Kalman designs
+    speeds = [1.0 + i for i in range(64)]
+    gd = [1e-6 * (i + 1) for i in range(20)]
+    with pytest.raises(ConfigError, match=r"at most 4096 Kalman designs: 4 models x 64"):
+        parse_config({"noise": {"speeds_mps": speeds, "road_roughness_gd": gd,
+                                "nominal_roughness_gd": gd[3]}})
+    with pytest.raises(ConfigError, match=r"at most 15 entries \(design.weight_set"):
+        parse_config({"design": {"weight_sets": [[1.0, 1.0, 1e-8, 1.0]] * 16}})
+    # every list key has a bound, also those without their own
+    with pytest.raises(ConfigError, match="at most 64 entries"):
+        parse_config({"telemetry": {"endpoints": ["tcp/127.0.0.1:7447"] * 65}})
+
+
+def test_unreadable_files_are_config_errors(tmp_path) -> None:
+    latin = tmp_path / "latin1.toml"
+    latin.write_bytes('[can]\nchannel = "r\xe9seau"\n'.encode("latin-1"))
+    with pytest.raises(ConfigError, match="byte 0xe9 at offset 18 is not UTF-8"):
+        load_config(latin)
+    deep = tmp_path / "deep.toml"
+    deep.write_text("a = " + "[" * 3000 + "]" * 3000)
+    with pytest.raises(ConfigError, match="nested at most"):
+        load_config(deep)
+    with pytest.raises(ConfigError, match="at most"):
+        load_config("/dev/zero")
+    with pytest.raises(ConfigError, match="readable"):
+        load_config(tmp_path)

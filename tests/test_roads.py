@@ -141,3 +141,20 @@ def test_bad_csv_and_arguments(tmp_path: Path) -> None:
         make_road("iso-A", -1.0, 1.0, DT)
     with pytest.raises(RoadError, match="duration_s"):
         make_road("iso-A", 1.0, math.nan, DT)
+
+
+def test_check_road_accepts_what_make_road_builds(tmp_path: Path) -> None:
+    from hil.roads import ROAD_NAMES, check_road
+
+    for name in ROAD_NAMES:
+        if name != "csv:PATH":
+            assert check_road(name) == name
+            make_road(name, 10.0, 0.1, 1e-3)
+    csv = tmp_path / "p.csv"
+    csv.write_text("0,0\n100,0.01\n")
+    assert check_road(f"csv:{csv}") == f"csv:{csv}"
+    for bad, match in (("iso-Z", "ISO 8608 class"), ("gravel", "unknown road"),
+                       (f"csv:{tmp_path / 'none.csv'}", "not readable"),
+                       (f"csv:{tmp_path}", "not readable")):
+        with pytest.raises(RoadError, match=match):
+            check_road(bad)

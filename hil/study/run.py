@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from hil.skyhook import SkyhookGains, select_gains
 from hil.study.matrix import add_ratios, main_cases, other_cases, plan, run_cases, tune_cases
 from hil.study.report import claim_values, claims, tables_markdown, write_csv, write_figures
 from hil.study.tradeoff import TradeoffGrid, tradeoff_grid
+from rig import strict_json
 
 __all__ = ["StudyResult", "run_study"]
 
@@ -64,7 +64,7 @@ def run_study(cfg: RigConfig, out_dir: str | Path, *, quick: bool = False,
     (out / "results.md").write_text(md + "\n", encoding="utf-8")
     write_csv(rows, out / "results.csv")
     cl = claims(rows)
-    (out / "claims.json").write_text(json.dumps(
+    (out / "claims.json").write_text(strict_json.dumps(
         {"quick": quick, "config_hash": config_hash(cfg),
          "thesis_case": {"duration_s": p.thesis_duration_s, "seeds": list(p.thesis_seeds),
                          "settle_s": p.settle_s},

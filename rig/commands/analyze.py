@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from controller.analysis import analyze
-from controller.config import ConfigError, load_config
+from controller.config import load_config
+from rig import argtypes, strict_json
 
 _KEYS = ("absorbed_power_ratio", "rattlespace_rms_ratio", "tire_deflection_rms_ratio")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--weights", type=int, default=None, metavar="N",
+    parser.add_argument("--weights", type=argtypes.weight_set, default=None, metavar="N",
                         help="weight set (1-based into design.weight_sets; "
                              "default: design.weight_set)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -21,14 +21,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     w = cfg.design.weight_set if args.weights is None else args.weights
-    if not 1 <= w <= len(cfg.design.weight_sets):
-        raise ConfigError("--weights", w, f"[1, {len(cfg.design.weight_sets)}]")
     result = analyze(cfg, w)
     if args.json:
         out = {name: {kind: {k: entry[kind][k] for k in _KEYS} for kind in ("lq", "lqg")}
                for name, entry in result.items()}
-        print(json.dumps({"weight_set": w, "weights": cfg.design.weight_sets[w - 1],
-                          "models": out}, indent=2))
+        print(strict_json.dumps({"weight_set": w, "weights": cfg.design.weight_sets[w - 1],
+                                 "models": out}))
         return 0
     print(f"weight set {w}: rho = {cfg.design.weight_sets[w - 1]} "
           f"(closed loop / passive, white road velocity at "

@@ -15,7 +15,6 @@ If the service latches a fault the demo, acting as the operator, resets and re-a
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import os
@@ -27,29 +26,42 @@ from typing import Any
 import numpy as np
 
 from controller.config import RigConfig, load_config
+from rig import argtypes, strict_json
 
 SETTLE_S = 0.5     # skipped at the start of each half (start-up / switching transients)
 WARM_TICKS = 200   # loop ticks before the emulated rig starts
+MAX_REARMS = 1000
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--duration", type=float, default=20.0, metavar="S",
+    p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
+                                                    lo_open=True),
+                   default=20.0, metavar="S",
                    help="total run time; passive first half, active second (default 20)")
-    p.add_argument("--record", metavar="PATH", default=None,
-                   help="MCAP file or directory (default: recording.directory)")
+    p.add_argument("--record", metavar="PATH", default=None, type=argtypes.recording_target,
+                   help="new MCAP file or a directory (default: recording.directory); "
+                        "a recording is never overwritten")
     p.add_argument("--no-record", action="store_true", help="do not record")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON (stdout)")
-    p.add_argument("--road", default="rough-course", help="road (see `rig sim --help`)")
-    p.add_argument("--speed", type=float, default=11.176, metavar="MPS",
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as strict JSON (stdout; null for a non-finite "
+                        "value)")
+    p.add_argument("--road", default="rough-course", type=argtypes.road,
+                   help="road (see `rig sim --help`)")
+    p.add_argument("--speed", type=argtypes.config_real("noise.nominal_speed_mps", "m/s"),
+                   default=11.176, metavar="MPS",
                    help="vehicle speed [m/s] (default 11.176 = 25 mph)")
     p.add_argument("--blending", default="fuzzy",
                    choices=("fuzzy", "bayes", "moving", "single"))
-    p.add_argument("--weight-set", type=int, default=None, metavar="N")
+    p.add_argument("--weight-set", type=argtypes.weight_set, default=None, metavar="N",
+                   help="weight set, 1-based into design.weight_sets "
+                        "(default: design.weight_set)")
     p.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     p.add_argument("--no-realtime", action="store_true", help="skip the real-time set-up")
-    p.add_argument("--max-rearms", type=int, default=10, metavar="N",
+    p.add_argument("--max-rearms", type=argtypes.integer(0, MAX_REARMS), default=10,
+                   metavar="N",
                    help="reset + re-arm after a fault at most N times (default 10)")
-    p.add_argument("--seed", type=int, default=None, help="road seed (default sensors.seed)")
+    p.add_argument("--seed", type=argtypes.seed, default=None,
+                   help="road seed (default sensors.seed)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
 
 
@@ -232,7 +244,7 @@ def _table(passive: dict[str, float], active: dict[str, float]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hil.roads import make_road
+    from hil.roads import RoadError, make_road
     from rig.bus import open_bus
     from rig.protocol import LifecycleState
     from rig.realtime import RealtimeRequest, restore_gc
@@ -241,17 +253,16 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr)
     cfg = load_config(args.config)
-    if not args.duration > 0:
-        print(f"rig demo: --duration {args.duration}: must be > 0 s", file=sys.stderr)
-        return 2
-    if not (math.isfinite(args.speed) and args.speed > 0):
-        print(f"rig demo: --speed {args.speed}: must be > 0 m/s", file=sys.stderr)
-        return 2
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
     arm_tick = n_ticks // 2
     seed = cfg.sensors.seed if args.seed is None else args.seed
-    road = make_road(args.road, args.speed, args.duration + 1.0, cfg.sample_time_s, seed=seed)
+    try:
+        road = make_road(args.road, args.speed, args.duration + 1.0, cfg.sample_time_s,
+                         seed=seed)
+    except RoadError as exc:
+        print(f"rig demo: {exc}", file=sys.stderr)
+        return 2
     channel = f"rig-demo-{os.getpid()}"
     rig_bus = open_bus(cfg.can, role=None, interface="virtual", channel=channel)
     node = _make_traced_node(rig_bus, cfg, road, n_ticks + 2000)
@@ -372,20 +383,5 @@ def run(args: argparse.Namespace) -> int:
     if summary["recording"]:
         print(f"recording: {summary['recording']}", file=out)
     if args.json:
-        print(json.dumps(_plain(summary), indent=2))
+        print(strict_json.dumps(summary))
     return 0
-
-
-def _plain(o: Any) -> Any:
-    """JSON-safe copy: NaN / inf -> null, numpy scalars -> Python."""
-    if isinstance(o, dict):
-        return {str(k): _plain(v) for k, v in o.items()}
-    if isinstance(o, list | tuple):
-        return [_plain(v) for v in o]
-    if isinstance(o, np.generic):
-        o = o.item()
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if o is None or isinstance(o, bool | int | float | str):
-        return o
-    return str(o)

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
+import sys
 from typing import Any
 
 import numpy as np
@@ -16,13 +16,17 @@ from controller.design import design_bank, design_models
 from controller.human_filter import discretize_zoh, human_filter
 from controller.lq import augmented_plant
 from controller.road_noise import nearest_noise_entry
+from rig import argtypes, strict_json
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, metavar="FILE",
-                        help="artifact to write (.npz)")
+    parser.add_argument("--out", required=True, metavar="FILE", type=argtypes.output_file,
+                        help="artifact to write (.npz); an existing file only with --force")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the --out file if it exists")
     parser.add_argument("--json", action="store_true",
-                        help="print gains and closed-loop poles as JSON")
+                        help="print gains and closed-loop poles as strict JSON "
+                             "(null for a non-finite value)")
 
 
 def pole_info(z: complex, dt_s: float) -> dict[str, float]:
@@ -86,12 +90,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         design = design_bank(cfg)
     except ValueError as exc:
-        print(f"rig design: design failed: {exc}")
+        print(f"rig design: design failed: {exc}", file=sys.stderr)
         return 1
     save_design(design, args.out)
     summary = design_summary(design, cfg)
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(strict_json.dumps(summary))
         return 0
     print(f"wrote {args.out}: {design.n_models} models, {design.n_noise} noise entries, "
           f"{design.n_weight_sets} weight sets, dt = {design.dt_s * 1e3:g} ms")

@@ -20,41 +20,43 @@ from controller.config import load_config
 from hil.faults import FaultSchedule
 from hil.node import DEFAULT_WATCHDOG_S, RigNode
 from hil.roads import RoadError, make_road
+from rig import argtypes
 from rig.bus import open_bus
 
 #: longest road generated; longer runs replay it cyclically
 MAX_ROAD_S = 120.0
+#: longest drive watchdog timeout (a minute without a command is no watchdog)
+MAX_WATCHDOG_MS = 60_000.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interface", choices=("socketcan", "virtual"), default=None,
                    help="CAN interface (default: can.interface of the config)")
     p.add_argument("--channel", default=None, help="e.g. vcan0 (default: can.channel)")
-    p.add_argument("--road", default="rough-course",
+    p.add_argument("--road", default="rough-course", type=argtypes.road,
                    help="road name (iso-A..iso-H, rough-course, datp, bump, pothole, "
                         "sweep, csv:PATH); default rough-course")
-    p.add_argument("--speed", type=float, default=None, metavar="V",
+    p.add_argument("--speed", type=argtypes.config_real("noise.nominal_speed_mps", "m/s"),
+                   default=None, metavar="V",
                    help="vehicle speed [m/s] (default: noise.nominal_speed_mps)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_SERVICE_S, "s",
+                                                    lo_open=True),
+                   default=None, metavar="S",
                    help="stop after S seconds (default: until SIGINT/SIGTERM)")
-    p.add_argument("--faults", default=None, metavar="FILE",
+    p.add_argument("--faults", default=None, metavar="FILE", type=argtypes.input_file,
                    help="fault schedule (TOML or JSON, see hil/faults.py)")
-    p.add_argument("--seed", type=int, default=None,
+    p.add_argument("--seed", type=argtypes.seed, default=None,
                    help="seed for road, sensor noise and random faults")
-    p.add_argument("--watchdog-ms", type=float, default=DEFAULT_WATCHDOG_S * 1e3,
+    p.add_argument("--watchdog-ms", type=argtypes.real(0.0, MAX_WATCHDOG_MS, "ms",
+                                                       lo_open=True),
+                   default=DEFAULT_WATCHDOG_S * 1e3,
                    help="drive watchdog timeout [ms] (default 5)")
-    p.add_argument("--rt-priority", type=int, default=0,
-                   help="ask for SCHED_FIFO at this priority (0 = no)")
+    p.add_argument("--rt-priority", type=argtypes.rt_priority, default=0,
+                   help="ask for SCHED_FIFO at this priority (1..99; 0 = no)")
 
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
-    if args.duration is not None and not args.duration > 0:
-        print(f"rig hil: --duration must be > 0, got {args.duration}", file=sys.stderr)
-        return 2
-    if not args.watchdog_ms > 0:
-        print(f"rig hil: --watchdog-ms must be > 0, got {args.watchdog_ms}", file=sys.stderr)
-        return 2
     speed = cfg.noise.nominal_speed_mps if args.speed is None else args.speed
     road_s = MAX_ROAD_S if args.duration is None else min(args.duration, MAX_ROAD_S)
     seed = cfg.sensors.seed if args.seed is None else args.seed

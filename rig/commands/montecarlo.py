@@ -6,13 +6,17 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from controller.config import load_config
-from hil.montecarlo import run_montecarlo
+from hil.montecarlo import MAX_SPREAD, run_montecarlo
 from hil.roads import ROAD_NAMES, RoadError, make_road
 from hil.sim import CONTROLLERS
+from rig import argtypes, strict_json
+
+#: most Monte Carlo runs and worker processes of one command
+MAX_RUNS = 10_000
+MAX_WORKERS = 1024
 
 SUMMARY_KEYS = ("absorbed_power", "accel_rms_mps2", "wk_rms_mps2", "rattlespace_rms_m",
                 "rattlespace_peak_m", "tire_load_rms_ratio", "time_off_ground_fraction",
@@ -20,22 +24,31 @@ SUMMARY_KEYS = ("absorbed_power", "accel_rms_mps2", "wk_rms_mps2", "rattlespace_
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--runs", type=int, default=8)
-    p.add_argument("--spread", type=float, default=0.05,
-                   help="relative standard deviation of every parameter (default 0.05)")
-    p.add_argument("--road", default="rough-course", help=", ".join(ROAD_NAMES))
-    p.add_argument("--speed", type=float, default=11.176, help="m/s (default 25 mph)")
-    p.add_argument("--duration", type=float, default=10.0, help="s per run (default 10)")
+    p.add_argument("--runs", type=argtypes.integer(1, MAX_RUNS), default=8,
+                   help=f"number of runs (1..{MAX_RUNS}, default 8)")
+    p.add_argument("--spread", type=argtypes.real(0.0, MAX_SPREAD), default=0.05,
+                   help="relative standard deviation of every parameter "
+                        f"(0..{MAX_SPREAD}, default 0.05)")
+    p.add_argument("--road", default="rough-course", type=argtypes.road,
+                   help=", ".join(ROAD_NAMES))
+    p.add_argument("--speed", type=argtypes.config_real("noise.nominal_speed_mps", "m/s"),
+                   default=11.176, help="m/s (default 25 mph)")
+    p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
+                                                    lo_open=True),
+                   default=10.0, help="s per run (default 10)")
     p.add_argument("--controller", default="fuzzy", choices=CONTROLLERS)
-    p.add_argument("--weights", type=int, default=1)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help="write montecarlo.png and montecarlo.json here")
+    p.add_argument("--weights", type=argtypes.weight_set, default=1,
+                   help="weight set, 1-based into design.weight_sets (default 1)")
+    p.add_argument("--seed", type=argtypes.seed, default=1)
+    p.add_argument("--workers", type=argtypes.integer(1, MAX_WORKERS), default=None,
+                   help="processes (default: all cores)")
+    p.add_argument("--out", default=None, metavar="DIR", type=argtypes.output_dir,
+                   help="write montecarlo.png and montecarlo.json here (replaced)")
     p.add_argument("--lvdt-zero", choices=("actual", "nominal"), default="actual",
                    help="LVDT zero of each perturbed rig: its own static position "
                         "(calibrated at rest, default) or the nominal one")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as strict JSON (null for a non-finite value)")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -51,8 +64,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"rig montecarlo: {exc}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps({"summary": res.summary, "unstable_runs": res.unstable_runs,
-                          "faulted_runs": res.faulted_runs, "png": res.png}, indent=1))
+        print(strict_json.dumps({"summary": res.summary, "unstable_runs": res.unstable_runs,
+                                 "faulted_runs": res.faulted_runs, "png": res.png}, indent=1))
     else:
         print(f"{args.runs} runs, {args.controller} (weights {args.weights}), {road.name} at "
               f"{road.speed_mps:g} m/s, spread {args.spread:g}")

@@ -12,36 +12,29 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Any
 
 from controller.artifact import DesignMismatch, load_design
 from controller.config import load_config
-from rig.replay import LOG_SUFFIXES, RecordingError, ReplayResult, replay_file
+from rig import argtypes, strict_json
+from rig.replay import LOG_SUFFIXES, MAX_LOG_SPAN_S, RecordingError, ReplayResult, replay_file
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", metavar="RUN", help="recording (.mcap) or python-can log "
                    f"({', '.join(LOG_SUFFIXES)})")
-    p.add_argument("--design", metavar="NPZ", default=None,
+    p.add_argument("--design", metavar="NPZ", default=None, type=argtypes.input_file,
                    help="design artifact to replay with (default: the recorded one)")
-    p.add_argument("--out", metavar="MCAP", default=None,
-                   help="write the replay as a new recording (open it with `rig report`)")
-    p.add_argument("--arm-at", type=float, default=None, metavar="S",
+    p.add_argument("--out", metavar="MCAP", default=None, type=argtypes.recording_target,
+                   help="write the replay as a new recording (a new .mcap path or a "
+                        "directory; never overwritten; open it with `rig report`)")
+    p.add_argument("--arm-at", type=argtypes.real(0.0, MAX_LOG_SPAN_S, "s"),
+                   default=None, metavar="S",
                    help="log files only: arm the controller S seconds after the first frame")
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
-
-
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, float) and not math.isfinite(v):
-        return None if math.isnan(v) else ("inf" if v > 0 else "-inf")
-    if isinstance(v, dict):
-        return {k: _jsonable(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [_jsonable(x) for x in v]
-    return v
+    p.add_argument("--json", action="store_true",
+                   help="print the result as strict JSON (null for a non-finite value)")
 
 
 def _print_text(res: ReplayResult) -> None:
@@ -81,6 +74,10 @@ def _print_text(res: ReplayResult) -> None:
 def run(args: argparse.Namespace) -> int:
     path = Path(args.run)
     is_log = path.suffix.lower() in LOG_SUFFIXES
+    if args.arm_at is not None and not is_log:
+        print(f"rig replay: --arm-at applies to log files ({', '.join(LOG_SUFFIXES)}) only; "
+              f"{path.name} replays its recorded commands", file=sys.stderr)
+        return 2
     try:
         cfg = load_config(args.config) if (args.config or is_log) else None
         design = design_bytes = None
@@ -100,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"rig replay: {exc}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(_jsonable(res.summary()), indent=1, default=str))
+        print(strict_json.dumps(res.summary(), indent=1))
     else:
         _print_text(res)
     if res.kind == "mcap" and res.same_controller and not res.bit_exact:

@@ -6,14 +6,16 @@ from __future__ import annotations
 import argparse
 import sys
 
+from rig import argtypes
 from rig.replay import RecordingError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", metavar="RUN", help="recording (.mcap)")
-    p.add_argument("--out", metavar="DIR", default=None,
-                   help="output directory (default: <RUN stem>-report next to RUN)")
-    p.add_argument("--compare", metavar="MCAP", default=None,
+    p.add_argument("--out", metavar="DIR", default=None, type=argtypes.output_dir,
+                   help="output directory, its report files rewritten "
+                        "(default: <RUN stem>-report next to RUN)")
+    p.add_argument("--compare", metavar="MCAP", default=None, type=argtypes.input_file,
                    help="another recording of the same data to plot side by side "
                         "(default for a replay: its source recording)")
 

@@ -7,53 +7,58 @@ recording closed); 2 for a bad configuration, design artifact or bus.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
+from pathlib import Path
 
 import can
 
 from controller.config import load_config
+from rig import argtypes, strict_json
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--design", metavar="NPZ", default=None,
+    p.add_argument("--design", metavar="NPZ", default=None, type=argtypes.input_file,
                    help="design artifact from `rig design` (default: design at start)")
     p.add_argument("--interface", choices=("socketcan", "virtual"), default=None,
                    help="CAN interface (default: can.interface of the config)")
     p.add_argument("--channel", default=None, help="CAN channel, e.g. can0 / vcan0")
     p.add_argument("--arm", action="store_true",
                    help="arm (ACTIVE) as soon as the sensors are healthy")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_SERVICE_S, "s",
+                                                    lo_open=True),
+                   default=None, metavar="S",
                    help="stop after S seconds (default: run until SIGTERM/SIGINT)")
-    p.add_argument("--record", metavar="DIR", default=None,
-                   help="record the run (MCAP) into DIR or this .mcap path")
+    p.add_argument("--record", metavar="DIR", default=None, type=argtypes.recording_target,
+                   help="record the run (MCAP) into DIR or this new .mcap path "
+                        "(a recording is never overwritten)")
     p.add_argument("--no-record", action="store_true", help="do not record")
     p.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     p.add_argument("--blending", default="fuzzy",
                    choices=("fuzzy", "bayes", "moving", "single"))
-    p.add_argument("--weight-set", type=int, default=None, metavar="N")
+    p.add_argument("--weight-set", type=argtypes.weight_set, default=None, metavar="N",
+                   help="weight set, 1-based into design.weight_sets "
+                        "(default: design.weight_set)")
     p.add_argument("--no-realtime", action="store_true",
                    help="skip the real-time set-up (SCHED_FIFO, mlockall, gc freeze...)")
-    p.add_argument("--rt-priority", type=int, default=50, metavar="P",
+    p.add_argument("--rt-priority", type=argtypes.rt_priority, default=50, metavar="P",
                    help="SCHED_FIFO priority of the loop thread (0 = none)")
-    p.add_argument("--cpu", type=int, action="append", default=None, metavar="N",
+    p.add_argument("--cpu", type=argtypes.cpu, action="append", default=None, metavar="N",
                    help="pin the loop to CPU N (repeatable)")
-    p.add_argument("--json", action="store_true", help="print the final status as JSON")
+    p.add_argument("--json", action="store_true",
+                   help="print the final status as strict JSON (null for a non-finite value)")
     p.add_argument("-v", "--verbose", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
     from controller.artifact import DesignMismatch
     from rig.realtime import RealtimeRequest
+    from rig.recording import RecorderStartError
     from rig.service import Service, ServiceOptions
 
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     cfg = load_config(args.config)
-    if args.duration is not None and not args.duration > 0:
-        print(f"rig run: --duration {args.duration}: must be > 0 s", file=sys.stderr)
-        return 2
     rt = None if args.no_realtime else RealtimeRequest(
         fifo_priority=args.rt_priority, cpus=tuple(args.cpu or ()))
     opts = ServiceOptions(
@@ -67,7 +72,17 @@ def run(args: argparse.Namespace) -> int:
     except DesignMismatch as exc:
         print(f"rig run: design artifact: {exc}", file=sys.stderr)
         return 2
-    except (can.CanError, OSError) as exc:
+    except RecorderStartError as exc:
+        print(f"rig run: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        if exc.filename is not None and args.design is not None \
+                and Path(exc.filename) == Path(args.design):
+            print(f"rig run: design artifact: {args.design}: {exc.strerror}", file=sys.stderr)
+        else:
+            print(f"rig run: cannot open the CAN bus: {exc}", file=sys.stderr)
+        return 2
+    except can.CanError as exc:
         print(f"rig run: cannot open the CAN bus: {exc}", file=sys.stderr)
         return 2
     if service.recording_path is not None:
@@ -79,5 +94,5 @@ def run(args: argparse.Namespace) -> int:
         status["recording"] = str(service.recording_path) if service.recording_path else None
         status["realtime"] = service.realtime_report.as_dict()
         status["telemetry"] = service.status()["telemetry"]
-        print(json.dumps(status, indent=2, default=str))
+        print(strict_json.dumps(status))
     return code

@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,10 @@ import numpy as np
 from controller.config import load_config
 from hil.roads import ROAD_NAMES, RoadError, make_road
 from hil.sim import CONTROLLERS, SimResult, simulate
+from rig import argtypes, strict_json
+
+#: longest loop delay simulated (a second at 1 kHz)
+MAX_DELAY_TICKS = 1000
 
 TABLE_METRICS = (
     ("absorbed_power", "absorbed", "{:.4g}"),
@@ -35,18 +38,27 @@ TABLE_METRICS = (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--road", default="rough-course",
+    p.add_argument("--road", default="rough-course", type=argtypes.road,
                    help=f"road name: {', '.join(ROAD_NAMES)} (default rough-course)")
-    p.add_argument("--speed", type=float, default=11.176, help="m/s (default 25 mph)")
-    p.add_argument("--duration", type=float, default=20.0, help="s (default 20)")
+    p.add_argument("--speed", type=argtypes.config_real("noise.nominal_speed_mps", "m/s"),
+                   default=11.176, help="m/s (default 25 mph)")
+    p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
+                                                    lo_open=True),
+                   default=20.0, help=f"s (default 20, at most {argtypes.MAX_OFFLINE_S:g})")
     p.add_argument("--controller", default="fuzzy", choices=(*CONTROLLERS, "all"))
-    p.add_argument("--weights", type=int, default=1, help="weight set 1 or 2 (default 1)")
-    p.add_argument("--seed", type=int, default=1, help="road and sensor-noise seed")
-    p.add_argument("--delay", type=int, default=0, metavar="TICKS", help="loop delay")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+    p.add_argument("--weights", type=argtypes.weight_set, default=1,
+                   help="weight set, 1-based into design.weight_sets (default 1)")
+    p.add_argument("--seed", type=argtypes.seed, default=1, help="road and sensor-noise seed")
+    p.add_argument("--delay", type=argtypes.integer(0, MAX_DELAY_TICKS, "ticks"), default=0,
+                   metavar="TICKS", help=f"loop delay (0..{MAX_DELAY_TICKS})")
+    p.add_argument("--rate", type=argtypes.config_real("design.sample_rate_hz", "Hz"),
+                   default=None, metavar="HZ",
                    help="controller sample rate (default: design.sample_rate_hz)")
-    p.add_argument("--json", action="store_true", help="print metrics as JSON")
-    p.add_argument("--traces", metavar="NPZ", default=None, help="save traces (.npz)")
+    p.add_argument("--json", action="store_true",
+                   help="print metrics as strict JSON (null for a non-finite value)")
+    p.add_argument("--traces", metavar="NPZ", default=None, type=argtypes.output_file,
+                   help="save traces (.npz); an existing file only with --force")
+    p.add_argument("--force", action="store_true", help="replace the --traces file")
 
 
 def _row(res: SimResult) -> str:
@@ -66,10 +78,6 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.rate is not None:
         cfg = cfg.replace(design={"sample_rate_hz": args.rate})
-    if not 1 <= args.weights <= len(cfg.design.weight_sets):
-        print(f"rig sim: --weights {args.weights}: allowed 1..{len(cfg.design.weight_sets)}",
-              file=sys.stderr)
-        return 2
     try:
         road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
     except RoadError as exc:
@@ -85,10 +93,11 @@ def run(args: argparse.Namespace) -> int:
     if args.traces:
         arrays: dict[str, Any] = {f"{r.controller}.{k}": v for r in results
                                   for k, v in r.traces.items()}
-        np.savez_compressed(Path(args.traces), **arrays)
+        with Path(args.traces).open("wb") as fh:   # the name as given (no ".npz" added)
+            np.savez_compressed(fh, **arrays)
     if args.json:
         out = {r.controller: r.metrics for r in results}
-        print(json.dumps(out if len(results) > 1 else results[0].metrics, indent=1))
+        print(strict_json.dumps(out if len(results) > 1 else results[0].metrics, indent=1))
     else:
         print(f"road {road.name} at {road.speed_mps:g} m/s for {road.duration_s:g} s, "
               f"seed {args.seed}, delay {args.delay} ticks, {1 / cfg.sample_time_s:g} Hz")

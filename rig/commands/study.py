@@ -6,25 +6,25 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from controller.config import load_config
+from rig import argtypes
+
+#: most worker processes
+MAX_JOBS = 1024
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="docs/study", metavar="DIR",
-                   help="output directory (default docs/study)")
+    p.add_argument("--out", default="docs/study", metavar="DIR", type=argtypes.output_dir,
+                   help="output directory; its study files are rewritten (default docs/study)")
     p.add_argument("--quick", action="store_true",
                    help="reduced matrix: short runs, 2 Monte Carlo runs (for tests)")
-    p.add_argument("--jobs", type=int, default=None,
+    p.add_argument("--jobs", type=argtypes.integer(1, MAX_JOBS), default=None,
                    help="worker processes (default: all cores)")
     p.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.jobs is not None and args.jobs < 1:
-        print(f"rig study: --jobs must be >= 1, got {args.jobs}", file=sys.stderr)
-        return 2
     cfg = load_config(args.config)
     from hil.study.run import run_study
     res = run_study(cfg, args.out, quick=args.quick, jobs=args.jobs,

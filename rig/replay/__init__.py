@@ -19,7 +19,7 @@ an unmodified :class:`rig.loop.ControlLoop` with a virtual clock.  Modules:
 from __future__ import annotations
 
 from rig.replay.bus_faults import BusFault
-from rig.replay.buses import LOG_SUFFIXES, LogReplayBus, McapReplayBus
+from rig.replay.buses import LOG_SUFFIXES, MAX_LOG_SPAN_S, LogReplayBus, McapReplayBus
 from rig.replay.driver import replay_file, replay_log, replay_recording
 from rig.replay.reader import PIPELINE_MIN_BYTES
 from rig.replay.recorded import (
@@ -38,6 +38,7 @@ __all__ = [
     "ERROR_FRAME",
     "EXTENDED_ID",
     "LOG_SUFFIXES",
+    "MAX_LOG_SPAN_S",
     "OPEN_LOOP_NOTE",
     "PIPELINE_MIN_BYTES",
     "BusFault",

@@ -23,10 +23,13 @@ from rig.replay.bus_faults import BusFault
 from rig.replay.recorded import ERROR_FRAME, EXTENDED_ID, RxFrame, TxFrame, load_recorded_run
 from rig.replay.scan import RecordingError
 
-__all__ = ["LOG_SUFFIXES", "LogReplayBus", "McapReplayBus"]
+__all__ = ["LOG_SUFFIXES", "MAX_LOG_SPAN_S", "LogReplayBus", "McapReplayBus"]
 
 #: candump / Vector / python-can log formats read through ``can.LogReader``
 LOG_SUFFIXES: Final = (".log", ".asc", ".blf")
+#: longest time from a log's first to its last frame that replay accepts: the replay
+#: keeps three values per tick (6 h at 1 kHz = 21.6 M ticks, ~370 MB, minutes of CPU)
+MAX_LOG_SPAN_S: Final = 6 * 3600.0
 
 
 def _flags(msg: can.Message) -> int:
@@ -221,7 +224,17 @@ class LogReplayBus(_ReplayBus):
                                  f"({type(exc).__name__}: {exc})") from exc
         if not msgs:
             raise RecordingError(f"{p}: no CAN frames in the log")
+        for i, m in enumerate(msgs):
+            if not math.isfinite(m.timestamp):
+                raise RecordingError(f"{p}: frame {i + 1} (ID 0x{m.arbitration_id:X}) has the "
+                                     f"time {m.timestamp}: every frame needs a finite "
+                                     "timestamp [s]")
         msgs.sort(key=lambda m: m.timestamp)   # stable: file order within a timestamp
+        span = msgs[-1].timestamp - msgs[0].timestamp
+        if span > MAX_LOG_SPAN_S:
+            raise RecordingError(f"{p}: the frames span {span:.6g} s ({msgs[0].timestamp:.6g}"
+                                 f" to {msgs[-1].timestamp:.6g} s); a replayed log may span "
+                                 f"at most {MAX_LOG_SPAN_S:g} s: split it")
         self.messages = msgs
         self.start_s = msgs[0].timestamp
         self.end_s = msgs[-1].timestamp

@@ -412,6 +412,9 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
     if bus.filtered:
         notes.append(f"{bus.filtered} frames not for the controller (receive filters) "
                      "were skipped")
+    if arm_tick is not None and arm_tick >= n:
+        notes.append(f"not armed: arm_at_s = {arm_at_s:g} s is after the log's last tick "
+                     f"({(n - 1) * period * 1e-9:g} s)")
     return ReplayResult(
         source=str(path), kind="log", same_controller=False, ticks=n,
         rx_frames_fed=bus.fed, elapsed_s=elapsed, recorded_s=n * period * 1e-9,

@@ -1,0 +1,275 @@
+"""Argument types shared by every ``rig`` subcommand.
+
+Each converter checks one command-line value while the command line is parsed, so a bad
+value is refused before anything is opened, designed or run: one line on stderr naming
+the argument, what is wrong and what is allowed, exit status 2
+(``rig demo: argument --speed: 1e300 is out of range; allowed [0.1, 100] m/s``).
+:class:`OneLineParser` makes argparse's own errors (unknown option, missing value,
+invalid choice) one line too.
+
+Numeric bounds that the configuration already owns are read from its schema
+(:func:`config_real`, :func:`config_int`); the others are documented here.  The weight
+set is checked against the configuration given with ``--config``, which
+:func:`rig.cli.main` loads first and binds with :func:`bind_config`.
+
+A single output file is returned as :class:`OutputFile`; :func:`overwrite_problem`
+(called by ``main`` once all arguments are parsed) refuses an existing one unless the
+command has ``--force``.  Recording targets and output directories follow
+:mod:`rig.output_paths`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NoReturn
+
+from controller.config import RigConfig
+from rig.output_paths import new_file_problem, output_dir_problem, recording_target_problem
+
+__all__ = [
+    "MAX_OFFLINE_S",
+    "MAX_SERVICE_S",
+    "OneLineParser",
+    "OutputFile",
+    "active_config",
+    "bind_config",
+    "config_int",
+    "config_real",
+    "cpu",
+    "input_file",
+    "integer",
+    "output_dir",
+    "output_file",
+    "overwrite_problem",
+    "real",
+    "recording_target",
+    "road",
+    "rt_priority",
+    "seed",
+    "weight_set",
+]
+
+#: longest run of the commands that keep every tick in memory (sim, montecarlo per run,
+#: demo, a candump replay): about 0.2 MB per simulated second
+MAX_OFFLINE_S = 3600.0
+#: longest ``--duration`` of the services (``rig run``, ``rig hil``): 115 days; without
+#: ``--duration`` they run until SIGTERM / SIGINT
+MAX_SERVICE_S = 1e7
+
+Converter = Callable[[str], Any]
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors on one line: ``<prog>: <message> (see <prog> --help)``."""
+
+    def error(self, message: str) -> NoReturn:
+        one_line = " ".join(message.split())
+        self.exit(2, f"{self.prog}: {one_line} (see `{self.prog} --help`)\n")
+
+
+def _fail(message: str) -> NoReturn:
+    raise argparse.ArgumentTypeError(message)
+
+
+def _g(x: float) -> str:
+    return f"{x:g}"
+
+
+def _interval(lo: float, hi: float, lo_open: bool, hi_open: bool, unit: str) -> str:
+    return (f"{'(' if lo_open else '['}{_g(lo)}, {_g(hi)}{')' if hi_open else ']'}"
+            + (f" {unit}" if unit else ""))
+
+
+def real(lo: float, hi: float, unit: str = "", *, lo_open: bool = False,
+         hi_open: bool = False) -> Converter:
+    """A finite number in [lo, hi] (an end excluded with ``*_open``)."""
+    allowed = _interval(lo, hi, lo_open, hi_open, unit)
+
+    def convert(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            _fail(f"{text!r} is not a number; allowed {allowed}")
+        if not math.isfinite(value):
+            _fail(f"{text} is not a finite number; allowed {allowed}")
+        if value < lo or value > hi or (lo_open and value == lo) or (hi_open and value == hi):
+            _fail(f"{text} is out of range; allowed {allowed}")
+        return value
+
+    convert.__name__ = "number"
+    return convert
+
+
+def integer(lo: int, hi: int, unit: str = "") -> Converter:
+    """An integer in [lo, hi]."""
+    allowed = f"an integer in [{lo}, {hi}]" + (f" {unit}" if unit else "")
+
+    def convert(text: str) -> int:
+        try:
+            value = int(text, 10)
+        except ValueError:
+            _fail(f"{text!r} is not an integer; allowed {allowed}")
+        if not lo <= value <= hi:
+            _fail(f"{text} is out of range; allowed {allowed}")
+        return value
+
+    convert.__name__ = "integer"
+    return convert
+
+
+def _config_meta(key: str) -> dict[str, Any]:
+    section, name = key.split(".")
+    cls = type(getattr(RigConfig(), section))
+    (f,) = (f for f in dataclasses.fields(cls) if f.name == name)
+    return dict(f.metadata)
+
+
+def config_real(key: str, unit: str = "") -> Converter:
+    """A number in the range the configuration schema allows for ``key``
+    (``"section.name"``)."""
+    m = _config_meta(key)
+    return real(m["lo"], m["hi"], unit, lo_open=m["lo_open"], hi_open=m["hi_open"])
+
+
+def config_int(key: str) -> Converter:
+    """An integer in the range the configuration schema allows for ``key``."""
+    m = _config_meta(key)
+    return integer(int(m["lo"]), int(m["hi"]))
+
+
+#: a seed of the road, the sensor noise and random faults (as ``sensors.seed``)
+seed = config_int("sensors.seed")
+
+
+# ---------------------------------------------------------------------------- configuration
+
+_bound: list[RigConfig | None] = [None]
+
+
+def bind_config(cfg: RigConfig | None) -> None:
+    """The configuration that configuration-dependent arguments are checked against
+    (None: the built-in defaults)."""
+    _bound[0] = cfg
+
+
+def active_config() -> RigConfig:
+    cfg = _bound[0]
+    if cfg is None:
+        from controller.config import default_config
+
+        cfg = default_config()
+    return cfg
+
+
+def weight_set(text: str) -> int:
+    """A 1-based index into ``design.weight_sets`` of the configuration."""
+    n = len(active_config().design.weight_sets)
+    allowed = f"1..{n} (the weight sets of the configuration, design.weight_sets)"
+    try:
+        value = int(text, 10)
+    except ValueError:
+        _fail(f"{text!r} is not an integer; allowed {allowed}")
+    if not 1 <= value <= n:
+        _fail(f"{text} is not a weight set; allowed {allowed}")
+    return value
+
+
+# ---------------------------------------------------------------------------- other values
+
+def road(text: str) -> str:
+    """A road name of :func:`hil.roads.make_road`; a ``csv:`` file is read and checked."""
+    from hil.roads import RoadError, check_road
+
+    try:
+        return check_road(text)
+    except RoadError as exc:
+        _fail(str(exc))
+
+
+def _fifo_max() -> int:
+    try:
+        return os.sched_get_priority_max(os.SCHED_FIFO)
+    except (AttributeError, OSError):   # not Linux
+        return 99
+
+
+#: a SCHED_FIFO priority (0 = none)
+rt_priority = integer(0, _fifo_max())
+
+
+def cpu(text: str) -> int:
+    """A CPU number of this machine."""
+    n = os.cpu_count() or 1
+    try:
+        value = int(text, 10)
+    except ValueError:
+        _fail(f"{text!r} is not a CPU number; allowed 0..{n - 1}")
+    if not 0 <= value < n:
+        _fail(f"{text}: this machine has CPUs 0..{n - 1}")
+    return value
+
+
+# ---------------------------------------------------------------------------- files
+
+class OutputFile(str):
+    """A single output file (checked against ``--force`` by :func:`overwrite_problem`)."""
+
+    __slots__ = ()
+
+
+def output_file(text: str) -> OutputFile:
+    """A file to write: not a directory, in an existing directory."""
+    if not text:
+        _fail("an empty file name")
+    problem = new_file_problem(text, force=True)
+    if problem:
+        _fail(f"{text}: {problem}")
+    return OutputFile(text)
+
+
+def overwrite_problem(args: argparse.Namespace) -> str | None:
+    """Why the parsed ``args`` would overwrite a file (no ``--force``), or None."""
+    force = bool(getattr(args, "force", False))
+    for value in vars(args).values():
+        if isinstance(value, OutputFile):
+            problem = new_file_problem(value, force=force)
+            if problem:
+                return f"{value}: {problem}"
+    return None
+
+
+def output_dir(text: str) -> str:
+    """A directory to write into (created if missing; its files are rewritten)."""
+    if not text:
+        _fail("an empty directory name")
+    problem = output_dir_problem(text)
+    if problem:
+        _fail(f"{text}: {problem}")
+    return text
+
+
+def recording_target(text: str) -> str:
+    """A new ``.mcap`` path or a directory for a new recording (never overwritten)."""
+    if not text:
+        _fail("an empty path")
+    problem = recording_target_problem(text)
+    if problem:
+        _fail(f"{text}: {problem}")
+    return text
+
+
+def input_file(text: str) -> str:
+    """An existing, readable file (not a directory)."""
+    p = Path(text)
+    if not p.exists():
+        _fail(f"{text}: no such file")
+    if p.is_dir():
+        _fail(f"{text}: is a directory, expected a file")
+    if not os.access(p, os.R_OK):
+        _fail(f"{text}: not readable")
+    return text

@@ -1,0 +1,125 @@
+"""Where ``rig`` may write its outputs: one set of rules for the command line's argument
+checks (:mod:`rig.argtypes`, at parse time) and the recorder (:class:`rig.recording.
+RunRecorder`, at start).
+
+- A recording is never overwritten: a new run needs a new ``.mcap`` name, and none of
+  its rotation segments (``<stem>.001.mcap`` ...) may exist either.  A directory target
+  gets ``run-<UTC>.mcap`` (``run-<UTC>-2.mcap`` ... if a run started in the same second).
+- A single output file (a design artifact, saved traces) is replaced only with
+  ``--force``.
+- An output directory may exist (the command rewrites its own files in it) but must not
+  be a file.
+- Directories that do not exist yet are created, so the nearest existing ancestor must be
+  a directory in which this process can create entries (tried, not guessed from mode
+  bits: root passes ``os.access`` on a read-only or pseudo file system).
+
+Each ``*_problem`` function returns None when the path is usable, else one phrase saying
+what is wrong and what would do (to follow ``"<path>: "``).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from datetime import UTC, datetime
+from pathlib import Path
+
+__all__ = [
+    "RECORDING_SUFFIX",
+    "new_file_problem",
+    "new_recording_problem",
+    "output_dir_problem",
+    "recording_file",
+    "recording_target_problem",
+]
+
+RECORDING_SUFFIX = ".mcap"
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def _creatable_below(path: Path) -> str | None:
+    """None if ``path`` (and missing directories above it) can be created."""
+    anc = _nearest_existing(path.parent)
+    if not anc.is_dir():
+        return f"cannot be created: {anc} is not a directory"
+    try:
+        with tempfile.TemporaryFile(dir=anc):
+            pass
+    except OSError as exc:
+        return f"cannot be created: no new files in {anc} ({exc.strerror or exc})"
+    return None
+
+
+def recording_file(target: str | Path, now: datetime | None = None) -> Path:
+    """The first segment's path of a recording into ``target``: ``target`` itself when it
+    ends in ``.mcap``, else a new ``run-<UTC>.mcap`` in the directory ``target``."""
+    target = Path(target)
+    if target.suffix == RECORDING_SUFFIX:
+        return target
+    stamp = (now or datetime.now(UTC)).strftime("%Y%m%dT%H%M%SZ")
+    path = target / f"run-{stamp}{RECORDING_SUFFIX}"
+    n = 1
+    while path.exists() or _segment(path, 1).exists():
+        n += 1
+        path = target / f"run-{stamp}-{n}{RECORDING_SUFFIX}"
+    return path
+
+
+def _segment(base: Path, index: int) -> Path:
+    from rig.record_writer import segment_path
+
+    return segment_path(base, index)
+
+
+def new_recording_problem(path: str | Path) -> str | None:
+    """Why a new recording cannot start at the ``.mcap`` path ``path``, or None."""
+    path = Path(path)
+    if path.exists() or path.is_symlink():
+        return (f"exists: a recording is never overwritten; give a new {RECORDING_SUFFIX} "
+                "name or a directory")
+    seg = _segment(path, 1)
+    if seg.exists():
+        return (f"its rotation segment {seg.name} exists (an earlier run): give a new "
+                f"{RECORDING_SUFFIX} name or a directory")
+    return _creatable_below(path)
+
+
+def recording_target_problem(target: str | Path) -> str | None:
+    """Why ``--record`` / ``--out`` ``target`` (a new ``.mcap`` path or a directory) cannot
+    take a new recording, or None."""
+    target = Path(target)
+    if target.suffix == RECORDING_SUFFIX:
+        return new_recording_problem(target)
+    if target.exists() and not target.is_dir():
+        return (f"exists and is not a directory: give a directory or a new "
+                f"{RECORDING_SUFFIX} path")
+    return _creatable_below(target / "x")
+
+
+def new_file_problem(path: str | Path, force: bool) -> str | None:
+    """Why the single output file ``path`` cannot be written, or None (``force``: an
+    existing file may be replaced)."""
+    path = Path(path)
+    if path.is_dir():
+        return "is a directory: give a file name"
+    if path.exists() and not force:
+        return "exists: add --force to replace it"
+    if not path.parent.absolute().is_dir():
+        return f"directory {path.parent} does not exist"
+    if path.exists():
+        return None if os.access(path, os.W_OK) else "is not writable"
+    return _creatable_below(path)
+
+
+def output_dir_problem(path: str | Path) -> str | None:
+    """Why ``path`` cannot be (created as) an output directory, or None."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        return "exists and is not a directory: give a directory"
+    return _creatable_below(path / "x")
