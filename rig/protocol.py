@@ -95,6 +95,54 @@ class FaultCode(IntEnum):
     SHUTDOWN = 14
     SENSOR_FROZEN = 15
 
+    @property
+    def description(self) -> str:
+        """What the code means, in plain language for the rig engineer (event tables,
+        reports); the condition and the detail byte per code: docs/service.md."""
+        return _FAULT_DESCRIPTIONS[self]
+
+
+_FAULT_DESCRIPTIONS: Final[dict[FaultCode, str]] = {
+    FaultCode.NONE: "No fault.",
+    FaultCode.SENSOR_STALE:
+        "No valid SensorData frame for longer than safety.stale_ticks: the controller "
+        "could no longer see the rig.",
+    FaultCode.SENSOR_CRC:
+        "A SensorData or RigStatus frame failed its end-to-end check (CRC or length): "
+        "it was corrupted on the way.",
+    FaultCode.SENSOR_COUNTER:
+        "A frame's rolling counter repeated or jumped: the sender is stuck or frames "
+        "were lost.",
+    FaultCode.SENSOR_RANGE:
+        "A sensor reading (rattlespace, force or acceleration) left its valid range.",
+    FaultCode.NONFINITE:
+        "A sensor value, the estimator state, the force reference or the spool command "
+        "was not a finite number.",
+    FaultCode.ESTIMATOR_DIVERGED:
+        "The Kalman filter bank diverged: no tire model explained the measurements "
+        "(likelihood quotients q too large for too long).",
+    FaultCode.OVERRUN_STREAK:
+        "The control loop woke up late on too many consecutive ticks "
+        "(safety.overrun_streak): its timing could not be trusted.",
+    FaultCode.BUS_ERROR:
+        "The CAN bus reported an error: a send or receive failed, or an error frame "
+        "arrived.",
+    FaultCode.BUS_OFF: "The CAN controller went bus-off or the interface disappeared.",
+    FaultCode.EXCEPTION: "The control tick raised an unexpected exception.",
+    FaultCode.RIG_WATCHDOG:
+        "The rig's drive watchdog tripped: no valid valve command reached the drive "
+        "within its timeout, so the drive opened the bypass on its own.",
+    FaultCode.SUPPLY_LOSS: "The rig reported loss of hydraulic supply pressure.",
+    FaultCode.SENSOR_STATUS:
+        "A sensor reported its own fault (SensorStatus: LVDT, load cell or "
+        "accelerometer).",
+    FaultCode.SHUTDOWN:
+        "The service was stopping: valve to its safe state (not a latched fault).",
+    FaultCode.SENSOR_FROZEN:
+        "A sensor value stayed bit-identical for more than safety.frozen_ticks frames "
+        "while its counter advanced: the sensor is frozen.",
+}
+
 
 class LifecycleState(IntEnum):
     """DBC ``VAL_ ... Lifecycle / FaultState / State``."""

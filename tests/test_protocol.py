@@ -262,3 +262,10 @@ def test_codec_bench_runs_quick() -> None:
     assert len(rows) == 10
     assert all(r["ours_us"] > 0 and r["cantools_us"] > 0 for r in rows)
     assert "speedup" in mod.format_table(rows)
+
+
+def test_every_fault_code_has_its_own_plain_language_description() -> None:
+    texts = [c.description for c in FaultCode]
+    assert all(len(x) > 5 and x[0].isupper() and x.endswith(".") for x in texts)
+    assert len(set(texts)) == len(texts)
+    assert "watchdog" in FaultCode.RIG_WATCHDOG.description

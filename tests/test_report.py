@@ -1,8 +1,11 @@
-"""Run report (rig/report.py): plots, metrics against independent computations, the
-open-loop comparison page of a replay, bad files, and rendering in headless Chromium."""
+"""Run report (rig/report/): plots, phases, metrics and the force-tracking analysis against
+independent computations, events from the fault codes' descriptions, the open-loop
+comparison page of a replay, bad files, and the page as headless Chromium renders it."""
 
 from __future__ import annotations
 
+import itertools
+import math
 import re
 import shutil
 import subprocess
@@ -10,27 +13,53 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import cantools
 import numpy as np
 import pytest
 from matplotlib import image as mpimg
 from scipy import signal
 
 from bench.replay_bench import record_emulated_run
+from controller.actuator import servo_model
 from controller.artifact import save_design
 from controller.config import default_config
 from controller.design import design_bank
+from controller.kernels import StepFlag
 from rig.cli import main as rig_main
+from rig.protocol import VALVE_COMMAND_ID, FaultCode
 from rig.recording import read_run
-from rig.replay import replay_recording
-from rig.report import load_series, run_metrics, write_report
+from rig.replay import ScanResult, replay_recording
+from rig.report import (
+    Phase,
+    RunSeries,
+    event_rows,
+    force_tracking,
+    load_series,
+    phase_metrics,
+    run_metrics,
+    write_report,
+)
+from rig.report.plots import (
+    DPI,
+    MAX_PLOT_POINTS,
+    MODEL_COLOURS,
+    PHASE_ALPHA,
+    PHASE_COLOURS,
+    WIDTH_IN,
+    envelope,
+)
 
 pytestmark = pytest.mark.timeout(300)
 CFG = default_config()
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu",
+DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "rig.dbc"))
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
                   "--disable-background-networking", "--disable-component-update",
-                  "--disable-sync", "--no-first-run", "--virtual-time-budget=10000"]
-PLOTS = ["rattlespace.png", "acceleration.png", "force.png", "models.png", "lifecycle.png",
-         "timing.png"]
+                  "--disable-sync", "--no-first-run", "--hide-scrollbars",
+                  "--force-color-profile=srgb", "--virtual-time-budget=10000"]
+PLOTS = ["summary.png", "rattlespace.png", "acceleration.png", "force.png",
+         "force_tracking.png", "models.png", "lifecycle.png", "timing.png"]
+#: the fixture run: passive, active, an overrun-streak fault, reset, active again
+ARM_S, LATE_TICK, RESET_TICK, REARM_TICK, SECONDS = 0.4, 2000, 2600, 2700, 4.0
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +72,11 @@ def work() -> Any:
 def recording(work: Path) -> Path:
     p = work / "design.npz"
     save_design(design_bank(CFG), p)
-    return record_emulated_run(work / "run.mcap", 0.9, cfg=CFG, design_bytes=p.read_bytes(),
-                               late_ticks={k: 900_000 for k in range(600, 606)})
+    return record_emulated_run(work / "run.mcap", SECONDS, cfg=CFG, design_bytes=p.read_bytes(),
+                               arm_at_s=ARM_S,
+                               late_ticks={k: 900_000 for k in range(LATE_TICK, LATE_TICK + 6)},
+                               commands={RESET_TICK: ("reset", None),
+                                         REARM_TICK: ("arm", None)})
 
 
 @pytest.fixture(scope="module")
@@ -56,13 +88,119 @@ def _img_srcs(index: Path) -> list[str]:
     return re.findall(r'<img src="([^"]+)"', index.read_text())
 
 
-def test_report_has_every_plot_and_they_are_not_blank(report: Path) -> None:
-    srcs = _img_srcs(report)
-    assert srcs == PLOTS
-    for name in srcs:
+def _rgb(colour: str) -> np.ndarray:
+    return np.array([int(colour[i:i + 2], 16) for i in (1, 3, 5)], dtype=float)
+
+
+def _pixels_near(img: np.ndarray, rgb: np.ndarray, tol: float = 6.0) -> int:
+    """Pixels of an RGB(A) image (floats 0..1 or ints 0..255) within ``tol`` of ``rgb``."""
+    px = img[..., :3].astype(float)
+    if px.max() <= 1.0:
+        px = px * 255.0
+    return int(np.sum(np.all(np.abs(px - rgb) <= tol, axis=-1)))
+
+
+def _shade(colour: str) -> np.ndarray:
+    """A phase colour as shaded on white."""
+    return 255.0 * (1 - PHASE_ALPHA) + _rgb(colour) * PHASE_ALPHA
+
+
+# ---------------------------------------------------------------------------- plots
+
+
+def test_report_has_every_plot_same_width_and_not_blank(report: Path) -> None:
+    assert _img_srcs(report) == PLOTS
+    for name in PLOTS:
         img = mpimg.imread(report.parent / name)
-        assert img.shape[0] > 100 and img.shape[1] > 400
+        assert img.shape[1] == round(WIDTH_IN * DPI) and img.shape[0] > 150, name
         assert float(np.std(img[..., :3])) > 0.01, name   # something was drawn
+
+
+def test_each_model_has_its_own_colour_and_legend(report: Path, recording: Path) -> None:
+    s = load_series(recording)
+    J = len(s.model_names)
+    assert J >= 3 and s.model_names[0] != "model 0"      # names from the design
+    assert len(set(MODEL_COLOURS[:J])) == J
+    assert not {c.lower() for c in MODEL_COLOURS} & {c.lower() for c in PHASE_COLOURS.values()}
+    img = mpimg.imread(report.parent / "models.png")
+    for j in range(J):
+        assert _pixels_near(img, _rgb(MODEL_COLOURS[j])) > 50, (j, s.model_names[j])
+    html = report.read_text()
+    for name in s.model_names:
+        assert name in html
+    # the drawing check can fail: a colour nobody uses is not found
+    assert _pixels_near(img, _rgb("#00ffff")) == 0
+
+
+def test_every_time_plot_shades_the_phases_alike(report: Path) -> None:
+    for name in ("rattlespace.png", "acceleration.png", "force.png", "models.png",
+                 "lifecycle.png", "timing.png"):
+        img = mpimg.imread(report.parent / name)
+        for phase in Phase:
+            assert _pixels_near(img, _shade(PHASE_COLOURS[phase]), tol=3) > 200, (name, phase)
+
+
+def test_long_series_envelope_keeps_every_extreme() -> None:
+    rng = np.random.default_rng(5)
+    n = 3 * MAX_PLOT_POINTS + 7
+    t = np.zeros(n)
+    t[:] = np.arange(n) * 1e-3
+    y = rng.standard_normal(n)
+    y[12345] = 50.0
+    tt, lo, hi = envelope(t, y)
+    assert tt.size == lo.size == hi.size <= MAX_PLOT_POINTS
+    b = n // tt.size
+    for k in (0, 12345 // b, tt.size - 1):   # reference: min / max of the bucket
+        assert hi[k] == y[k * b:(k + 1) * b].max() and lo[k] == y[k * b:(k + 1) * b].min()
+    assert hi.max() == 50.0
+    short = np.zeros(10)
+    short[:] = range(10)
+    assert envelope(short, short)[1] is short
+
+
+# ---------------------------------------------------------------------------- series
+
+
+def test_phases_follow_the_valve_and_the_lifecycle(recording: Path) -> None:
+    s = load_series(recording)
+    run = read_run(recording)                       # the recorder's own reader
+    enable = np.array([bool(r.data["valve_enable"]) for r in run.records])
+    fault = np.array([r.data["lifecycle"] == "FAULT" for r in run.records])
+    assert np.array_equal(s.phase == Phase.ACTIVE, enable)
+    assert np.array_equal(s.phase == Phase.FAULT, fault & ~enable)
+    assert {Phase(p) for p in s.phase} == set(Phase)
+    segs = s.segments
+    assert [g.phase for g in segs] == [Phase.PASSIVE, Phase.ACTIVE, Phase.FAULT,
+                                       Phase.PASSIVE, Phase.ACTIVE]
+    assert segs[0].start == 0 and segs[-1].stop == s.tick.size
+    assert all(a.stop == b.start for a, b in itertools.pairwise(segs))
+    total = sum(s.time_in(p) for p in Phase)
+    assert total == pytest.approx(s.t_s[-1] + s.dt_s)
+
+
+def test_applied_force_reference_is_what_the_valve_command_carried(recording: Path) -> None:
+    """force_ref_n is recorded in every state; the ValveCommand frames on /can/tx (decoded
+    by cantools from the DBC) carry it only while enabled: the report plots those."""
+    s = load_series(recording)
+    run = read_run(recording)
+    sent: dict[int, dict[str, Any]] = {}
+    for f in run.frames:
+        if not f.is_rx and f.arbitration_id == VALVE_COMMAND_ID:
+            sent[f.tick] = DBC.decode_message(VALVE_COMMAND_ID, f.data, decode_choices=False)
+    ticks = [int(k) for k in s.tick if int(k) in sent]
+    assert len(ticks) > 0.99 * s.tick.size
+    idx = np.searchsorted(s.tick, ticks)
+    enable = np.array([sent[k]["Enable"] for k in ticks])
+    fref = np.array([sent[k]["ForceReference"] for k in ticks])
+    assert np.array_equal(enable, s.signals["valve_enable"][idx].astype(int))
+    off = enable == 0
+    assert off.any() and np.all(fref[off] == 0.0)
+    assert np.abs(s.signals["force_ref_n"][idx][off]).max() > 100.0   # computed, not sent
+    assert np.all(s.force_ref_applied_n[idx][off] == 0.0)
+    lim = CFG.force_loop.force_limit_n
+    inside = ~off & (np.abs(fref) < lim)
+    assert inside.sum() > 1000
+    assert np.abs(s.force_ref_applied_n[idx][inside] - fref[inside]).max() <= 0.25 + 1e-9
 
 
 def test_metrics_against_independent_computations(recording: Path) -> None:
@@ -71,6 +209,7 @@ def test_metrics_against_independent_computations(recording: Path) -> None:
     run = read_run(recording)                      # the recorder's own reader
     rs = np.array([r.data["rattlespace_m"] for r in run.records])
     acc = np.array([r.data["sprung_accel_mps2"] for r in run.records])
+    active = np.array([bool(r.data["valve_enable"]) for r in run.records])
     assert m["ticks"] == rs.size
     assert m["rattlespace_rms_mm"] == pytest.approx(1e3 * np.sqrt(np.mean(rs ** 2)), rel=1e-12)
     assert m["rattlespace_peak_mm"] == pytest.approx(1e3 * np.abs(rs).max(), rel=1e-12)
@@ -80,8 +219,135 @@ def test_metrics_against_independent_computations(recording: Path) -> None:
     _, y, _ = signal.lsim(([12.0, 0.0], [1.0, 30.02, 901.3]), acc, t)
     assert m["absorbed_power_proxy"] == pytest.approx(np.mean(y ** 2), rel=0.03)
     assert m["faults"] == 1 and m["recording"] == "complete"
-    active = np.array([bool(r.data["valve_enable"]) for r in run.records])
     assert m["time_active_s"] == pytest.approx(active.sum() * 1e-3)
+    ph = phase_metrics(s)
+    for name, mask in (("passive", ~active), ("active", active)):
+        assert ph[name]["time_s"] == pytest.approx(mask.sum() * 1e-3)
+        assert ph[name]["rattlespace_rms_mm"] == pytest.approx(
+            1e3 * np.sqrt(np.mean(rs[mask] ** 2)), rel=1e-12)
+        assert ph[name]["absorbed_power_proxy"] == pytest.approx(np.mean(y[mask] ** 2),
+                                                                  rel=0.05)
+    fref = np.array([r.data["force_ref_n"] for r in run.records])
+    fmeas = np.array([r.data["force_meas_n"] for r in run.records])
+    err = np.clip(fref, -CFG.force_loop.force_limit_n, CFG.force_loop.force_limit_n) - fmeas
+    assert ph["active"]["tracking_error_rms_n"] == pytest.approx(
+        np.sqrt(np.mean(err[active] ** 2)), rel=1e-12)
+    assert math.isnan(ph["passive"]["tracking_error_rms_n"])
+    assert ph["passive"]["force_ref_applied_rms_n"] == 0.0
+    flags = np.array([r.data["flags"] for r in run.records])
+    nf = (flags & int(StepFlag.NO_RULE_FIRED)) != 0
+    assert ph["active"]["no_rule_fired_pct"] == pytest.approx(100 * nf[active].mean())
+
+
+# ---------------------------------------------------------------------------- tracking
+
+
+def _synthetic(ref: np.ndarray, meas: np.ndarray, rattlespace: np.ndarray,
+               flags: np.ndarray | None = None, dt: float = 1e-3) -> RunSeries:
+    """A RunSeries made of arrays, valve on throughout."""
+    n = ref.size
+    nan = np.full(n, np.nan)
+    sig = {"rattlespace_m": rattlespace, "sprung_accel_mps2": np.zeros(n),
+           "force_meas_n": meas, "force_ref_n": ref, "spool_cmd": nan,
+           "valve_enable": np.ones(n)}
+    timing = {k: nan for k in ("wake_late_s", "compute_s", "period_s", "overrun",
+                               "overruns_total")}
+    return RunSeries(Path("synthetic.mcap"), ScanResult(), np.arange(n, dtype=np.int64),
+                     np.arange(n) * dt, 0, sig, ["ACTIVE"] * n, [None] * n,
+                     {k: np.zeros((n, 0)) for k in ("q", "firing_weight", "probability",
+                                                    "u_model")},
+                     timing, [], [], CFG, "",
+                     flags if flags is not None else np.zeros(n, np.int64))
+
+
+def test_tracking_error_along_the_rattlespace_rate_has_the_oil_column_slope() -> None:
+    """Error = -k_h/(kp kq) * d/dt rattlespace (a 2 Hz sine) + a 150 Hz tone: the analysis
+    finds the configuration's slope, explains ~all of the low band and splits the power."""
+    sm = servo_model(CFG)
+    k = sm.hydraulic_stiffness_n_per_m / (sm.kp_per_n * sm.flow_gain_n_per_s)
+    t = np.arange(8192) * 1e-3
+    rs = 0.02 * np.sin(2 * np.pi * 2.0 * t)
+    rate = 0.02 * 2 * np.pi * 2.0 * np.cos(2 * np.pi * 2.0 * t)
+    tone = 300.0 * np.sin(2 * np.pi * 150.0 * t)
+    ft = force_tracking(_synthetic(-k * rate + tone, np.zeros_like(t), rs))
+    assert ft.ok
+    assert ft.corner_hz == pytest.approx(sm.kp_per_n * sm.flow_gain_n_per_s / (2 * np.pi))
+    assert ft.oil_column_ns_per_m == pytest.approx(k)
+    assert ft.fitted_slope_ns_per_m == pytest.approx(k, rel=0.02)
+    assert ft.explained_below > 0.99
+    assert ft.error_rms_below_n == pytest.approx(k * 0.02 * 2 * np.pi * 2.0 / np.sqrt(2),
+                                                 rel=0.03)
+    assert ft.error_rms_above_n == pytest.approx(300.0 / np.sqrt(2), rel=0.03)
+    assert ft.error_rms_n == pytest.approx(np.hypot(ft.error_rms_below_n,
+                                                    ft.error_rms_above_n), rel=0.02)
+    # the check can fail: an error that does not follow the rate is not explained by it
+    other = force_tracking(_synthetic(k * 0.1 * np.sin(2 * np.pi * 3.0 * t),
+                                      np.zeros_like(t), rs))
+    assert other.explained_below < 0.1
+
+
+def test_tracking_splits_the_reference_near_no_rule_fired_ticks() -> None:
+    t = np.arange(6000) * 1e-3
+    ref = 2000.0 * np.sin(2 * np.pi * 3.0 * t)
+    flags = np.zeros(t.size, np.int64)
+    flags[3000:3400:7] = int(StepFlag.NO_RULE_FIRED)      # the blend drops to 0 N there
+    ref[flags != 0] = 0.0
+    ft = force_tracking(_synthetic(ref, np.zeros_like(t), np.zeros_like(t), flags))
+    assert ft.no_fire_share == pytest.approx(np.count_nonzero(flags) / t.size)
+    assert ft.ref_rms_above_near_no_fire_n > 20 * ft.ref_rms_above_elsewhere_n
+    none = force_tracking(_synthetic(2000.0 * np.sin(2 * np.pi * 3.0 * t), np.zeros_like(t),
+                                     np.zeros_like(t)))
+    assert none.no_fire_share == 0.0 and math.isnan(none.ref_rms_above_near_no_fire_n)
+
+
+def test_short_active_phase_skips_the_analysis_but_not_the_page(work: Path) -> None:
+    p = work / "design.npz"
+    rec = record_emulated_run(work / "short.mcap", 0.5, cfg=CFG, design_bytes=p.read_bytes(),
+                              arm_at_s=0.3)
+    s = load_series(rec)
+    assert not force_tracking(s).ok
+    index = write_report(rec, work / "short-report")
+    assert "force_tracking.png" not in _img_srcs(index)
+    assert "force.png" in _img_srcs(index)
+
+
+# ---------------------------------------------------------------------------- events
+
+
+def test_events_table_uses_the_fault_code_descriptions(recording: Path, report: Path) -> None:
+    s = load_series(recording)
+    rows = event_rows(s)
+    run = read_run(recording)
+    assert len(rows) == len(run.events)
+    t0 = run.records[0].t_ns
+    for row, ev in zip(rows, run.events, strict=True):
+        assert row.t_s == pytest.approx((ev.t_ns - t0) * 1e-9)
+        assert row.kind == ev.kind and row.tick == ev.tick
+    fault = [r for r in rows if r.kind == "fault"]
+    assert [r.code for r in fault] == ["OVERRUN_STREAK"]
+    assert fault[0].reason == FaultCode.OVERRUN_STREAK.description
+    assert fault[0].change == "ACTIVE → FAULT"
+    assert fault[0].details.startswith("detail ")            # the loop's own message
+    changes = [r.change for r in rows if r.kind == "lifecycle"]
+    assert changes[:3] == ["INACTIVE → ACTIVE", "FAULT → INACTIVE", "INACTIVE → ACTIVE"]
+    assert [r.code for r in rows if r.kind == "command"] == ["arm", "reset", "arm"]
+    html = report.read_text()
+    assert FaultCode.OVERRUN_STREAK.description in html
+    assert '{"tick"' not in html and "{'tick'" not in html   # no raw JSON dicts
+    assert html.count('<tr class="ev-') == len(rows)
+
+
+def test_page_names_the_recording_channels(report: Path) -> None:
+    html = report.read_text()
+    paths = set(re.findall(r'data-paths="([^"]+)"', html))
+    assert "/rig/signals.rattlespace_m" in paths
+    assert any("/controller/internals.firing_weight" in p for p in paths)
+    channels = {"/rig/signals", "/rig/timing", "/controller/internals", "/rig/events"}
+    for p in " ".join(paths).split():
+        assert p.split(".")[0] in channels, p
+
+
+# ---------------------------------------------------------------------------- CLI, replay
 
 
 def test_replay_report_is_marked_open_loop_and_compares(recording: Path, work: Path) -> None:
@@ -109,29 +375,35 @@ def test_cli_report_and_bad_files(recording: Path, work: Path,
     assert "not an MCAP file" in capsys.readouterr().err
 
 
-def _chromium() -> str | None:
+# ---------------------------------------------------------------------------- browser
+
+
+def _chromium() -> str:
     for name in ("chromium", "chromium-browser", "google-chrome"):
         path = shutil.which(name)
         if path:
             return path
-    return None
+    pytest.skip("CHROMIUM NOT INSTALLED: `bash scripts/ensure-debian-packages.sh` installs "
+                "the Debian package 'chromium' for the browser rendering tests")
 
 
-def _dump_dom(browser: str, index: Path) -> str:
+def _chromium_run(browser: str, index: Path, *args: str) -> str:
     with tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile:
         proc = subprocess.run([browser, *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
-                               "--dump-dom", index.resolve().as_uri()],
-                              capture_output=True, text=True, timeout=90, check=False)
+                               *args, index.resolve().as_uri()],
+                              capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return proc.stdout
 
 
+def _screenshot(browser: str, index: Path, png: Path, height: int) -> np.ndarray:
+    _chromium_run(browser, index, f"--window-size=1100,{height}", f"--screenshot={png}")
+    return np.asarray(mpimg.imread(png))
+
+
 def test_report_renders_in_headless_chromium(report: Path, work: Path) -> None:
     browser = _chromium()
-    if browser is None:
-        pytest.skip("CHROMIUM NOT INSTALLED: `apt-get install -y chromium` (Debian package "
-                    "'chromium') to run the browser rendering test")
-    dom = _dump_dom(browser, report)
+    dom = _chromium_run(browser, report, "--dump-dom")
     n = len(PLOTS)
     assert f'data-images-loaded="{n}/{n}"' in dom, dom[:500]
     assert "<h1>Run report" in dom
@@ -139,25 +411,32 @@ def test_report_renders_in_headless_chromium(report: Path, work: Path) -> None:
     broken = work / "broken"
     shutil.copytree(report.parent, broken)
     (broken / "force.png").unlink()
-    dom = _dump_dom(browser, broken / "index.html")
+    dom = _chromium_run(browser, broken / "index.html", "--dump-dom")
     assert f'data-images-loaded="{n - 1}/{n}"' in dom
 
 
-def test_long_series_envelope_keeps_every_extreme() -> None:
-    from rig.report import MAX_PLOT_POINTS, _envelope
-
-    rng = np.random.default_rng(5)
-    n = 3 * MAX_PLOT_POINTS + 7
-    t = np.zeros(n)
-    t[:] = np.arange(n) * 1e-3
-    y = rng.standard_normal(n)
-    y[12345] = 50.0
-    tt, lo, hi = _envelope(t, y)
-    assert tt.size == lo.size == hi.size <= MAX_PLOT_POINTS
-    b = n // tt.size
-    for k in (0, 12345 // b, tt.size - 1):   # reference: min / max of the bucket
-        assert hi[k] == y[k * b:(k + 1) * b].max() and lo[k] == y[k * b:(k + 1) * b].min()
-    assert hi.max() == 50.0
-    short = np.zeros(10)
-    short[:] = range(10)
-    assert _envelope(short, short)[1] is short
+def test_screenshot_shows_summary_events_table_and_model_legend(report: Path,
+                                                                work: Path) -> None:
+    """What a person sees: the first screen has the passive / active bars and the events
+    table with its fault row; the page shows every model's colour (lines and legend of
+    the models plot) and the phase shading.  The screenshots stay in the work directory."""
+    browser = _chromium()
+    top = _screenshot(browser, report, work / "screenshot-top.png", 1500)
+    assert top.shape[0] == 1500 and float(np.std(top[..., :3])) > 0.05   # not blank
+    for phase in (Phase.PASSIVE, Phase.ACTIVE):                           # summary bars
+        assert _pixels_near(top, _rgb(PHASE_COLOURS[phase]), tol=4) > 2000, phase
+    fault_row = _shade(PHASE_COLOURS[Phase.FAULT])                        # events table
+    assert _pixels_near(top, fault_row, tol=3) > 5000
+    page = _screenshot(browser, report, work / "screenshot.png", 7000)
+    # the same page without the models plot: what that plot adds to the screen
+    without = work / "without-models"
+    shutil.copytree(report.parent, without)
+    (without / "models.png").unlink()
+    rest = _screenshot(browser, without / "index.html", work / "screenshot-without.png", 7000)
+    J = len(load_series(report.parent.parent / "run.mcap").model_names)
+    for j in range(J):
+        colour = _rgb(MODEL_COLOURS[j])
+        assert _pixels_near(page, colour, tol=8) - _pixels_near(rest, colour, tol=8) > 300, j
+    for phase in Phase:
+        shade = _shade(PHASE_COLOURS[phase])
+        assert _pixels_near(page, shade, tol=3) - _pixels_near(rest, shade, tol=3) > 2000

@@ -1,0 +1,158 @@
+"""Summary metrics of a recording: the whole run, and passive vs active side by side.
+
+Computed from the measured signals (independent of the controller's own view), filters
+from :mod:`hil.metrics` run over the whole series and are then averaged per phase:
+
+* absorbed power proxy: mean square of the sprung acceleration through the thesis's
+  human-body filter F(s) of the recorded configuration [(m/s²)²];
+* ISO 2631 Wk-weighted RMS acceleration, acceleration RMS, rattlespace RMS / peak;
+* measured actuator force RMS, force reference RMS as computed and as applied, force
+  tracking error RMS (applied reference minus measured force, while active);
+* loop wake-up lateness percentiles, compute-time p99 and overrun ticks.
+
+"Passive" is every tick with the valve off (:attr:`~rig.report.series.Phase.PASSIVE` and
+:attr:`~rig.report.series.Phase.FAULT`: the bypass is open either way).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil.metrics import filter_signal, wk_tf
+from rig.report.series import Phase, RunSeries
+
+__all__ = ["SUMMARY_ROWS", "SummaryRow", "phase_metrics", "run_metrics"]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SummaryRow:
+    """One line of the passive-vs-active table."""
+
+    key: str
+    label: str
+    unit: str
+    source: str          # the recording's channel.field it is computed from
+    digits: int = 4      # significant digits shown
+    ratio: bool = True   # whether active / passive means something
+
+
+SUMMARY_ROWS: tuple[SummaryRow, ...] = (
+    SummaryRow("time_s", "time", "s", "/rig/signals.valve_enable", 3, ratio=False),
+    SummaryRow("absorbed_power_proxy", "absorbed power proxy (F(s)-filtered accel, "
+               "mean square)", "(m/s²)²", "/rig/signals.sprung_accel_mps2"),
+    SummaryRow("wk_rms_mps2", "ISO 2631 Wk-weighted accel RMS", "m/s²",
+               "/rig/signals.sprung_accel_mps2"),
+    SummaryRow("accel_rms_mps2", "sprung acceleration RMS", "m/s²",
+               "/rig/signals.sprung_accel_mps2"),
+    SummaryRow("rattlespace_rms_mm", "rattlespace RMS", "mm", "/rig/signals.rattlespace_m"),
+    SummaryRow("rattlespace_peak_mm", "rattlespace peak |x|", "mm",
+               "/rig/signals.rattlespace_m"),
+    SummaryRow("force_meas_rms_n", "measured actuator force RMS", "N",
+               "/rig/signals.force_meas_n", ratio=False),
+    SummaryRow("force_ref_applied_rms_n", "force reference RMS, applied", "N",
+               "/rig/signals.force_ref_n", ratio=False),
+    SummaryRow("force_ref_computed_rms_n", "force reference RMS, computed by the bank",
+               "N", "/rig/signals.force_ref_n", ratio=False),
+    SummaryRow("tracking_error_rms_n", "force tracking error RMS", "N",
+               "/rig/signals.force_ref_n − force_meas_n", ratio=False),
+    SummaryRow("no_rule_fired_pct", "ticks on which no fuzzy rule fired", "%",
+               "/controller/internals.flags", 3, ratio=False),
+    SummaryRow("lateness_p50_us", "wake-up lateness p50", "µs", "/rig/timing.wake_late_s"),
+    SummaryRow("lateness_p99_us", "wake-up lateness p99", "µs", "/rig/timing.wake_late_s"),
+    SummaryRow("lateness_max_us", "wake-up lateness max", "µs", "/rig/timing.wake_late_s"),
+    SummaryRow("compute_p99_us", "compute time p99", "µs", "/rig/timing.compute_s"),
+    SummaryRow("overrun_ticks", "overrun ticks", "", "/rig/timing.overrun", 6),
+)
+
+
+def _rms(x: FloatArray) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x * x))) if x.size else math.nan
+
+
+def _pct(x: FloatArray, q: float) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.percentile(x, q)) if x.size else math.nan
+
+
+def _max(x: FloatArray) -> float:
+    x = x[np.isfinite(x)]
+    return float(x.max()) if x.size else math.nan
+
+
+def _filtered(s: RunSeries) -> tuple[FloatArray, FloatArray]:
+    """Sprung acceleration through F(s) and through ISO 2631 Wk, over the whole run."""
+    acc = np.nan_to_num(s.signals["sprung_accel_mps2"])
+    if not acc.size:
+        return acc, acc
+    d = s.cfg.design
+    num, den = np.asarray(d.human_filter_num, float), np.asarray(d.human_filter_den, float)
+    wn, wd = wk_tf()
+    return filter_signal(acc, num, den, s.dt_s), filter_signal(acc, wn, wd, s.dt_s)
+
+
+def run_metrics(s: RunSeries) -> dict[str, float | int | str]:
+    """Whole-run summary metrics."""
+    dt = s.dt_s
+    acc = np.nan_to_num(s.signals["sprung_accel_mps2"])
+    rs = s.signals["rattlespace_m"]
+    acc_f, acc_wk = _filtered(s)
+    late = s.timing["wake_late_s"] * 1e6
+    faults = [e for e in s.events if e.get("kind") == "fault"]
+    return {
+        "duration_s": float(s.t_s[-1] + dt) if s.t_s.size else 0.0,
+        "ticks": int(s.tick.size),
+        "time_active_s": float(np.sum(s.phase == Phase.ACTIVE) * dt),
+        "time_fault_s": float(np.sum(s.phase == Phase.FAULT) * dt),
+        "accel_rms_mps2": _rms(acc),
+        "absorbed_power_proxy": float(np.mean(acc_f * acc_f)) if acc.size else math.nan,
+        "wk_rms_mps2": _rms(acc_wk),
+        "rattlespace_rms_mm": 1e3 * _rms(rs),
+        "rattlespace_peak_mm": 1e3 * _max(np.abs(rs)),
+        "force_meas_rms_n": _rms(s.signals["force_meas_n"]),
+        "force_tracking_rms_error_n (active)": _rms(s.tracking_error_n),
+        "lateness_p50_us": _pct(late, 50), "lateness_p99_us": _pct(late, 99),
+        "lateness_max_us": _max(late),
+        "compute_p99_us": _pct(s.timing["compute_s"] * 1e6, 99),
+        "faults": len(faults),
+        "recording": "complete" if s.scan.complete else f"incomplete: {s.scan.stopped_at}",
+    }
+
+
+def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
+    """``{"passive": {...}, "active": {...}}`` with the keys of :data:`SUMMARY_ROWS`
+    (NaN where a phase has no ticks or the quantity does not apply)."""
+    acc_f, acc_wk = _filtered(s)
+    acc = s.signals["sprung_accel_mps2"]
+    rs = s.signals["rattlespace_m"]
+    active = s.phase == Phase.ACTIVE
+    out: dict[str, dict[str, float]] = {}
+    for name, m in (("passive", ~active), ("active", active)):
+        late = s.timing["wake_late_s"][m] * 1e6
+        phases = (Phase.ACTIVE,) if name == "active" else (Phase.PASSIVE, Phase.FAULT)
+        out[name] = {
+            "time_s": sum(s.time_in(p) for p in phases),        # by the loop clock
+            "absorbed_power_proxy": float(np.mean(acc_f[m] ** 2)) if m.any() else math.nan,
+            "wk_rms_mps2": _rms(acc_wk[m]),
+            "accel_rms_mps2": _rms(acc[m]),
+            "rattlespace_rms_mm": 1e3 * _rms(rs[m]),
+            "rattlespace_peak_mm": 1e3 * _max(np.abs(rs[m])),
+            "force_meas_rms_n": _rms(s.signals["force_meas_n"][m]),
+            "force_ref_applied_rms_n": _rms(s.force_ref_applied_n[m]),
+            "force_ref_computed_rms_n": _rms(s.signals["force_ref_n"][m]),
+            "tracking_error_rms_n": _rms(s.tracking_error_n[m]),
+            "lateness_p50_us": _pct(late, 50),
+            "lateness_p99_us": _pct(late, 99),
+            "lateness_max_us": _max(late),
+            "compute_p99_us": _pct(s.timing["compute_s"][m] * 1e6, 99),
+            "overrun_ticks": float(np.nansum(s.timing["overrun"][m])),
+            "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
+                                  if m.any() and np.any(s.flags[m] >= 0) else math.nan),
+        }
+    return out

@@ -1,0 +1,280 @@
+"""Per-tick series of a recording, its configuration and its phases.
+
+:func:`load_series` decodes ``/rig/signals``, ``/controller/internals``, ``/rig/timing``
+and ``/rig/events`` through the replay scanner (:func:`rig.replay.scan_recording`).
+Every tick belongs to one :class:`Phase`: ACTIVE while the valve is driven
+(``valve_enable`` = 1), FAULT while a fault is latched, PASSIVE otherwise (INACTIVE,
+STOPPING).  In PASSIVE and FAULT the rig's bypass is open and the suspension is passive.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from enum import IntEnum
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.config import ConfigError, RigConfig, default_config, parse_config
+from controller.kernels import StepFlag
+from rig.mcap_schema import TOPIC_EVENTS, TOPIC_INTERNALS, TOPIC_SIGNALS, TOPIC_TIMING
+from rig.protocol import LifecycleState
+from rig.recording import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
+from rig.replay import RecordingError, ScanResult, scan_recording, split_json
+
+__all__ = ["LIFECYCLE_NAMES", "SIGNAL_FIELDS", "TIMING_FIELDS", "Phase", "RunSeries", "Segment",
+           "load_series"]
+
+FloatArray = NDArray[np.float64]
+
+#: ``/rig/signals`` fields read as numbers
+SIGNAL_FIELDS = ("rattlespace_m", "sprung_accel_mps2", "force_meas_n", "force_ref_n",
+                 "spool_cmd", "valve_enable")
+#: ``/rig/timing`` fields read as numbers (booleans as 0 / 1)
+TIMING_FIELDS = ("wake_late_s", "compute_s", "period_s", "overrun", "overruns_total")
+#: lifecycle states in DBC order
+LIFECYCLE_NAMES = tuple(s.name for s in LifecycleState)
+#: ``/controller/internals`` fields with one value per model
+PER_MODEL_FIELDS = ("q", "firing_weight", "probability", "u_model")
+
+
+class Phase(IntEnum):
+    """What the suspension was doing at a tick (shaded alike on every plot)."""
+
+    PASSIVE = 0     # valve off, no fault latched (INACTIVE, STOPPING)
+    ACTIVE = 1      # valve driven by the controller
+    FAULT = 2       # fault latched, valve off
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Ticks ``start`` .. ``stop - 1`` in one phase; times in seconds since the first tick
+    (``t_stop_s`` is the end of the last tick)."""
+
+    start: int
+    stop: int
+    phase: Phase
+    t_start_s: float
+    t_stop_s: float
+
+
+@dataclass
+class RunSeries:
+    """Per-tick series of a recording (NaN where a value was not recorded)."""
+
+    path: Path
+    scan: ScanResult
+    tick: NDArray[np.int64]
+    t_s: FloatArray                       # seconds since the first tick
+    t0_ns: int                            # loop clock of the first tick
+    signals: dict[str, FloatArray]
+    lifecycle: list[str]
+    fault: list[str | None]
+    per_model: dict[str, FloatArray]      # (n, J): q, firing_weight, probability, u_model
+    timing: dict[str, FloatArray]
+    events: list[dict[str, Any]]
+    model_names: list[str] = field(default_factory=list)
+    config: RigConfig | None = None       # the recording's config.toml (None: unreadable)
+    config_problem: str = ""              # why ``config`` is None
+    flags: NDArray[np.int64] = field(    # /controller/internals.flags (-1: not recorded)
+        default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def dt_s(self) -> float:
+        d = np.diff(self.t_s)
+        return float(np.median(d)) if d.size else 1e-3
+
+    @property
+    def cfg(self) -> RigConfig:
+        """The recording's configuration, or the defaults when it could not be read."""
+        return self.config if self.config is not None else default_config()
+
+    @cached_property
+    def phase(self) -> NDArray[np.int8]:
+        """:class:`Phase` of every tick."""
+        out = np.full(self.tick.size, Phase.PASSIVE, dtype=np.int8)
+        out[np.array([x == "FAULT" for x in self.lifecycle], dtype=bool)] = Phase.FAULT
+        out[self.signals["valve_enable"] > 0] = Phase.ACTIVE
+        return out
+
+    @cached_property
+    def segments(self) -> list[Segment]:
+        """Maximal runs of ticks in one phase, in time order."""
+        ph = self.phase
+        if not ph.size:
+            return []
+        cuts = np.flatnonzero(np.diff(ph)) + 1
+        starts = np.r_[0, cuts]
+        stops = np.r_[cuts, ph.size]
+        ends = np.r_[self.t_s[1:], self.t_s[-1] + self.dt_s]
+        return [Segment(int(a), int(b), Phase(int(ph[a])), float(self.t_s[a]),
+                        float(ends[b - 1])) for a, b in zip(starts, stops, strict=True)]
+
+    def time_in(self, phase: Phase) -> float:
+        """Seconds spent in ``phase``."""
+        return sum(g.t_stop_s - g.t_start_s for g in self.segments if g.phase is phase)
+
+    @cached_property
+    def no_rule_fired(self) -> NDArray[np.bool_]:
+        """Ticks on which no fuzzy rule fired (StepFlag.NO_RULE_FIRED): the blend had no
+        weight and the bank's force is ``fuzzy.no_fire_fallback``'s."""
+        f = self.flags
+        return (f >= 0) & ((f & int(StepFlag.NO_RULE_FIRED)) != 0)
+
+    @cached_property
+    def force_ref_applied_n(self) -> FloatArray:
+        """The force reference the PI force loop tracked: ``force_ref_n`` saturated at
+        ``force_loop.force_limit_n`` while the valve is driven, 0 otherwise.
+
+        The bank computes ``force_ref_n`` in every state (docs/service.md) but only
+        ACTIVE applies it: with the valve off the ValveCommand carries Enable = 0 and
+        ForceReference = 0 and the bypass is open."""
+        lim = self.cfg.force_loop.force_limit_n
+        on = self.signals["valve_enable"] > 0
+        return np.where(on, np.clip(self.signals["force_ref_n"], -lim, lim), 0.0)
+
+    @cached_property
+    def tracking_error_n(self) -> FloatArray:
+        """Applied force reference minus measured force while the valve is driven
+        (NaN otherwise)."""
+        on = self.signals["valve_enable"] > 0
+        return np.where(on, self.force_ref_applied_n - self.signals["force_meas_n"], np.nan)
+
+    def event_time_s(self, event: dict[str, Any]) -> float:
+        """Seconds since the first tick of an event record (by its ``t_ns``)."""
+        t_ns, tick = event.get("t_ns"), event.get("tick")
+        if isinstance(t_ns, int):
+            return (t_ns - self.t0_ns) * 1e-9
+        if isinstance(tick, int) and self.tick.size:
+            return (tick - int(self.tick[0])) * self.dt_s
+        return math.nan
+
+
+def _f(v: Any) -> float:
+    """A recorded number; NaN for null or anything that is not a number."""
+    return float(v) if isinstance(v, int | float) else math.nan
+
+
+def _matrix(rows: list[Any], width: int) -> FloatArray:
+    out = np.full((len(rows), width), np.nan)
+    for i, r in enumerate(rows):
+        if isinstance(r, list) and r:
+            k = min(width, len(r))
+            out[i, :k] = [_f(x) for x in r[:k]]
+    return out
+
+
+def _objects(path: str | Path, topic: str, joined: bytes,
+             seqs: list[int]) -> list[dict[str, Any]]:
+    """The JSON objects of a topic's payloads; RecordingError naming the first that is
+    not one."""
+    try:
+        objs = split_json(joined)
+    except (ValueError, RecursionError) as exc:   # JSONDecodeError, UnicodeDecodeError
+        raise RecordingError(f"{path}: a {topic} payload is not JSON "
+                             f"({type(exc).__name__}: {str(exc)[:120]})") from None
+    if len(objs) != len(seqs):
+        raise RecordingError(f"{path}: {len(seqs)} {topic} messages hold {len(objs)} JSON "
+                             "values, expected one object each")
+    for i, obj in enumerate(objs):
+        if not isinstance(obj, dict):
+            raise RecordingError(f"{path}: {topic} message {_which(i, seqs)} is a JSON "
+                                 f"{type(obj).__name__}, expected an object")
+    return objs
+
+
+def _which(i: int, seqs: list[int]) -> str:
+    return f"{i} (sequence {seqs[i]})" if i < len(seqs) else str(i)
+
+
+def _require_int(path: str | Path, topic: str, objs: list[dict[str, Any]], seqs: list[int],
+                 *keys: str) -> None:
+    for i, obj in enumerate(objs):
+        for key in keys:
+            v = obj.get(key)
+            if isinstance(v, bool) or not isinstance(v, int) or not -(1 << 63) <= v < 1 << 63:
+                what = "has no" if key not in obj else \
+                    f"has {key} = {str(v)[:40]!r}, not a 64-bit"
+                raise RecordingError(f"{path}: {topic} message {_which(i, seqs)} {what} "
+                                     f"integer '{key}'")
+
+
+def load_series(path: str | Path) -> RunSeries:
+    """Decode signals, internals, timing and events of a recording (errors: see
+    :func:`rig.replay.scan_recording`)."""
+    parts: dict[str, list[tuple[bytes, NDArray[np.uint32]]]] = {
+        TOPIC_SIGNALS: [], TOPIC_INTERNALS: [], TOPIC_TIMING: [], TOPIC_EVENTS: []}
+
+    def collector(topic: str) -> Any:
+        return lambda joined, seqs: parts[topic].append((joined, seqs))
+
+    scan = scan_recording(path, {t: collector(t) for t in parts})
+
+    def decoded(topic: str) -> tuple[list[dict[str, Any]], list[int]]:
+        seqs = [int(q) for _, s in parts[topic] for q in s]
+        return _objects(path, topic, b"".join(j for j, _ in parts[topic]), seqs), seqs
+
+    recs, rec_seqs = decoded(TOPIC_SIGNALS)
+    where = {q: i for i, q in enumerate(rec_seqs)}
+    for topic in (TOPIC_INTERNALS, TOPIC_TIMING):  # parts of the same tick record
+        for obj, q in zip(*decoded(topic), strict=True):
+            i = where.get(q)
+            if i is not None:
+                recs[i].update(obj)
+    _require_int(path, TOPIC_SIGNALS, recs, rec_seqs, "tick", "t_ns")
+    events, event_seqs = decoded(TOPIC_EVENTS)
+    _require_int(path, TOPIC_EVENTS, events, event_seqs, "tick")
+    n = len(recs)
+    tick = np.array([r["tick"] for r in recs], dtype=np.int64)
+    t_ns = np.array([r["t_ns"] for r in recs], dtype=np.int64)
+    t0_ns = int(t_ns[0]) if n else 0
+    t_s: FloatArray = ((t_ns - t0_ns) * 1e-9).astype(np.float64)
+    signals = {k: np.array([_f(r.get(k)) for r in recs]) for k in SIGNAL_FIELDS}
+    timing = {k: np.array([_f(r.get(k)) for r in recs]) for k in TIMING_FIELDS}
+    J = max((len(qs) for r in recs if isinstance(qs := r.get("q"), list)), default=0)
+    per_model = {k: _matrix([r.get(k) for r in recs], J) for k in PER_MODEL_FIELDS}
+    flags = np.array([f if isinstance(f := r.get("flags"), int) else -1 for r in recs],
+                     dtype=np.int64)
+    config, problem = _config(scan)
+    return RunSeries(Path(path), scan, tick, t_s, t0_ns, signals,
+                     [str(r.get("lifecycle", "")) for r in recs],
+                     [r.get("fault") for r in recs], per_model, timing, events,
+                     _model_names(scan, J), config, problem, flags)
+
+
+def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:
+    raw = scan.attachments.get(CONFIG_ATTACHMENT)
+    if raw is None:
+        return None, f"the recording has no {CONFIG_ATTACHMENT} attachment"
+    try:
+        return parse_config(tomllib.loads(raw.decode("utf-8"))), ""
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError, ConfigError) as exc:
+        return None, f"its {CONFIG_ATTACHMENT} could not be read ({exc})"
+
+
+def _model_names(scan: ScanResult, J: int) -> list[str]:
+    """Model names of the design: the ``models`` metadata, else the design artifact."""
+    raw = scan.rig_metadata.get("models")
+    try:
+        names = [str(x) for x in json.loads(raw)] if raw else []
+    except (json.JSONDecodeError, TypeError):
+        names = []
+    if len(names) != J and DESIGN_ATTACHMENT in scan.attachments:
+        try:
+            with np.load(io.BytesIO(scan.attachments[DESIGN_ATTACHMENT])) as npz:
+                names = [str(x) for x in npz["model_names"]]
+        except (OSError, ValueError, KeyError):
+            names = []
+    return names if len(names) == J else [f"model {j}" for j in range(J)]
+
