@@ -13,6 +13,11 @@ import sys
 from collections.abc import Sequence
 
 from controller.config import ConfigError
+from rig.stop_signals import StopSignals
+
+#: subcommands that SIGTERM / SIGINT stop cleanly at any point (rig.stop_signals): the
+#: handlers are installed before anything of theirs runs
+STOPPABLE = ("run", "demo")
 
 #: subcommand -> (module under rig.commands, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -22,7 +27,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "montecarlo": ("montecarlo", "Monte Carlo robustness runs over parameter spread"),
     "hil": ("hil", "run the emulated rig as a CAN node"),
     "run": ("run", "run the real-time controller service on a CAN bus"),
-    "demo": ("demo", "service against the emulated rig on an in-process virtual bus"),
+    "demo": ("demo", "service against the emulated rig (own process) in real time"),
     "study": ("study", "control performance study: tables and figures"),
     "replay": ("replay", "replay a recorded run (MCAP or candump log) through the loop"),
     "report": ("report", "HTML report with plots of a recorded run"),
@@ -48,9 +53,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
-    parser = build_parser(command if command in SUBCOMMANDS else None)
-    args = parser.parse_args(argv)
+    stop = StopSignals().install() if command in STOPPABLE else None
     try:
+        parser = build_parser(command if command in SUBCOMMANDS else None)
+        args = parser.parse_args(argv)
+        args.stop_signals = stop
         return int(args._module.run(args) or 0)
     except ConfigError as exc:
         print(f"rig {args.command}: {exc}", file=sys.stderr)
@@ -60,6 +67,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    finally:
+        if stop is not None:
+            stop.restore()
 
 
 if __name__ == "__main__":
