@@ -135,6 +135,33 @@ def test_rig_run_sigterm_before_the_loop(phase: str, design_path: Path, tmp_path
     _assert_nothing_recorded(tmp_path)
 
 
+@pytest.mark.timeout(200)
+@pytest.mark.parametrize("phase", ["rig set-up", "design", "waiting for the rig"])
+def test_rig_demo_sigterm_before_the_loop(phase: str, tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    import controller.design
+    import hil.rig_process
+
+    if phase == "design":
+        def slow_design(cfg: Any) -> Any:
+            _sigterm_self()
+            for _ in range(3000):
+                time.sleep(0.01)
+            raise AssertionError("the design was not interrupted")
+        monkeypatch.setattr(controller.design, "design_bank", slow_design)
+    else:
+        name = "wait_built" if phase == "rig set-up" else "wait_ready"
+        _patch_then_signal(monkeypatch, hil.rig_process.RigProcess, name, True)
+    record = tmp_path / "demo.mcap"
+    assert main(["demo", "--duration", "3", "--quiet", "--no-telemetry", "--no-realtime",
+                 "--record", str(record)]) == 0
+    err = capsys.readouterr().err
+    assert "rig demo: stopped by SIGTERM before the control loop started; nothing " \
+           "recorded" in err and "Traceback" not in err
+    _assert_nothing_recorded(tmp_path)
+
+
 # ---------------------------------------------------------------------------- subprocesses
 
 
@@ -190,6 +217,32 @@ def _assert_complete_or_none(path: Path) -> None:
         return
     run = read_run(path)
     assert run.complete and len(run.records) > 0, run.stopped_at
+
+
+@pytest.mark.timeout(200)
+def test_rig_demo_sigterm_during_the_loop(tmp_path: Path) -> None:
+    record = tmp_path / "demo.mcap"
+    proc = _start(["demo", "--duration", "60", "--no-telemetry", "--no-realtime", "--json",
+                   "--config", str(_patient_config(tmp_path)), "--rig-watchdog-ms", "10000",
+                   "--record", str(record)], tmp_path)
+    try:
+        lines = _wait_running(proc, 150)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    err = "".join(lines) + err
+    assert proc.returncode == 0, err
+    assert "rig demo: stopped by SIGTERM after" in err and "Traceback" not in err
+    import json
+
+    summary = json.loads(out)
+    assert summary["stopped_by"] == "SIGTERM" and summary["final_state"] == "STOPPING"
+    assert summary["passive"]["ticks"] > 0
+    run = read_run(record)
+    assert run.complete and len(run.records) > 0
 
 
 @pytest.mark.timeout(300)
