@@ -1,4 +1,4 @@
-"""Loop benchmark: the 1 kHz service loop against the emulated rig, in-process.
+"""Loop benchmark: the 1 kHz service loop against the emulated rig in its own process.
 
     python -m bench.loop_bench [--seconds 60] [--json] [--no-realtime]
 
@@ -9,17 +9,21 @@ that is not counted):
 1. ``bare``: loop armed (ACTIVE, fuzzy bank + PI force loop), recording and telemetry off;
 2. ``rec`` / ``tel``: the MCAP recording (writer process) or the Zenoh telemetry
    (loopback) on;
-3. ``rec+tel``: both on.
+3. ``rec+tel``: both on;
+4. ``sleeper``: no loop and no rig, a bare SCHED_FIFO thread with the loop's real-time
+   set-up that only sleeps to the same absolute 1 ms deadlines: the floor the machine
+   gives any real-time task, measured in the same rounds.
 
 Per case: wake-up lateness ("period jitter" of a loop on absolute deadlines) p50 / p99 /
 p99.9 / max, step time (wake-up to end of tick, CAN I/O included) p50 / p99 / max,
-deadline misses (> 500 us late), skipped deadlines, faults; then the ratio of the p99s.
-Two micro-measurements explain the floor: python-can's virtual-bus cost of one tick's
-frames (3 received + 1 sent) and the wake-up lateness of ``time.sleep`` with the default
-50 us timer slack vs 1 ns.
+periods late (woken > 500 us after the deadline, or skipped), faults; then the ratio of
+the p99s.  Micro-measurements explain the floor: the socket-pair bus's cost of one
+tick's frames (3 received + 1 sent) next to python-can's virtual bus, and the wake-up
+lateness of ``time.sleep`` with the default 50 us timer slack vs 1 ns.
 
-The rig (RigNode) runs in its own thread, like ``rig demo``: both share the GIL, so the
-numbers include that contention.  Timing goals live here, never in test asserts.
+Service and emulated rig are set up by :class:`hil.harness.RigHarness`, as in ``rig
+demo``: two processes on a socket-pair wire, each with its own real-time set-up.  Timing
+goals live here, never in test asserts.
 """
 
 from __future__ import annotations
@@ -45,6 +49,8 @@ SEGMENT_S = 10.0
 #: case -> (recording, telemetry)
 CASES = {"bare": (False, False), "rec": (True, False), "tel": (False, True),
          "rec+tel": (True, True)}
+SLEEPER = "sleeper"     # the bare SCHED_FIFO sleeper (no loop, no rig)
+LATE_US = 500.0         # a period woken later than this counts as late
 
 
 def _free_port() -> int:
@@ -53,145 +59,185 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _rig_and_service(cfg: Any, design_path: str, road_s: float, **options: Any
-                     ) -> tuple[Any, Any, Any]:
-    """The emulated rig (bus, node) and the service on a fresh virtual channel."""
-    from hil.node import RigNode
-    from hil.roads import make_road
-    from rig.bus import open_bus
-    from rig.service import Service, ServiceOptions
+def _harness(cfg: Any, design_path: str, road_s: float, rig_cpus: tuple[int, ...] = (),
+             realtime: Any = None, **options: Any) -> Any:
+    """Service + emulated rig process (:class:`hil.harness.RigHarness`)."""
+    from hil.harness import RigHarness, RigProcessOptions
+    from rig.realtime import RealtimeRequest
+    from rig.service import ServiceOptions
 
-    channel = f"bench-{uuid.uuid4().hex}"
-    rig_bus = open_bus(cfg.can, role=None, interface="virtual", channel=channel)
-    road = make_road("rough-course", 11.176, road_s, cfg.sample_time_s, seed=1)
-    node = RigNode(rig_bus, cfg, road, record_ticks=1000)
-    svc = Service(cfg, ServiceOptions(design_path=design_path, interface="virtual",
-                                      channel=channel, realtime=None,
-                                      install_signal_handlers=False, **options))
-    return rig_bus, node, svc
+    return RigHarness(
+        cfg, ServiceOptions(design_path=design_path, realtime=realtime,
+                            install_signal_handlers=False, **options),
+        RigProcessOptions(road="rough-course", speed_mps=11.176, road_s=road_s, seed=1,
+                          realtime=RealtimeRequest(cpus=rig_cpus) if realtime else None),
+        rig_start_ticks=100)
 
 
 def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtime: bool,
              design_path: str, switch_interval_s: float = 0.0001,
              cpus: tuple[int, ...] = ()) -> dict[str, Any]:
     from rig.protocol import LifecycleState
-    from rig.realtime import RealtimeRequest, restore_gc
+    from rig.realtime import RealtimeRequest
 
     rate = cfg.design.sample_rate_hz
     tmp = tempfile.TemporaryDirectory()
-    rig_bus, node, svc = _rig_and_service(
-        cfg, design_path, seconds + 5.0,
+    # the emulated rig off the loop's CPU when the loop is pinned, like other hardware
+    others = tuple(sorted(set(range(os.cpu_count() or 1)) - set(cpus))) if cpus else ()
+    h = _harness(
+        cfg, design_path, seconds + 5.0, rig_cpus=others,
+        realtime=RealtimeRequest(switch_interval_s=switch_interval_s, cpus=cpus)
+        if realtime else None,
         record=os.path.join(tmp.name, "bench.mcap") if recording else None,
         recording=recording, telemetry=telemetry,
         timing_ring=round((seconds + 2 * WARM_S) * rate))
+    svc = h.service
     warm = round(WARM_S * rate)
     end = warm + round(seconds * rate)
-    state = {"rig": -1, "measured_from": -1}
-    stop_rig = threading.Event()
-    rig_threads: list[threading.Thread] = []
-    period_ns = round(1e9 / rate)
-
-    def run_rig(start_ns: int) -> None:
-        """The emulated rig's thread: off the loop's CPU when the loop is pinned (the
-        thread inherits the loop thread's affinity and policy), like other hardware."""
-        if cpus:
-            others = set(range(os.cpu_count() or 1)) - set(cpus)
-            if others:
-                os.sched_setaffinity(0, others)
-        node.run(stop_rig, start_ns=start_ns)
+    state = {"measured_from": -1}
 
     def on_tick(loop: Any) -> None:
         k = loop.tick_count
-        if state["rig"] < 0:
-            if k >= 100:
-                state["rig"] = k
-                # like rig demo: the rig ticks half a period after the loop's deadlines
-                start = loop.t_ns - loop.lateness_ns + period_ns + period_ns // 2
-                rig_threads.append(threading.Thread(target=run_rig, args=(start,),
-                                                    daemon=True))
-                rig_threads[0].start()
+        start = h.result.rig_started_at
+        if start < 0:
             return
-        # like the demo's operator: after a fault (a host stall silences the rig now and
-        # then), reset and re-arm as soon as the condition has cleared
+        # like the demo's operator: after a fault, reset and re-arm as soon as the
+        # condition has cleared
         lc = loop.lifecycle
         if lc.state is LifecycleState.FAULT and loop.monitor.condition.name == "NONE":
             loop.request("reset", timeout_s=None)
         if lc.state is LifecycleState.INACTIVE and not loop.health_problem():
             loop.request("arm", timeout_s=None)
-        if state["measured_from"] < 0 and k >= state["rig"] + warm:
+        if state["measured_from"] < 0 and k >= start + warm:
             state["measured_from"] = k
             loop.timing.reset()
         elif state["measured_from"] >= 0 and k >= state["measured_from"] + end - warm:
             svc.stop_event.set()
 
-    for _ in range(3):
-        node.tick()
-    while svc.bus.recv(0.0) is not None:
-        pass
-    report = (svc.apply_realtime(RealtimeRequest(switch_interval_s=switch_interval_s,
-                                                 cpus=cpus))
-              if realtime else None)
     faults: list[str] = []
     svc.loop.lifecycle.add_listener(
         lambda tr: faults.append(tr.fault_code.name) if tr.state is LifecycleState.FAULT
         else None)
-    try:
-        svc.run(on_tick=on_tick)
-    finally:
-        stop_rig.set()
-        for th in rig_threads:
-            th.join(5.0)
-        rig_bus.shutdown()
-        if report is not None:
-            restore_gc()
+    res = h.run(on_tick=on_tick)
     lat, step = svc.loop.timing.recent()
+    rig = res.rig_stats
     out: dict[str, Any] = {
         "_lat_us": lat / 1000.0, "_step_us": step / 1000.0,
         "skipped": svc.loop.timing.skipped,
         "faults": faults,
-        "rig_late_ticks": node.stats.late_ticks,
-        "rig_max_lateness_us": node.stats.max_lateness_s * 1e6,
-        "rig_resyncs": node.stats.resyncs,
+        "rig_late_ticks": rig.get("late_ticks", 0),
+        "rig_max_lateness_us": rig.get("max_lateness_s", math.nan) * 1e6,
+        "rig_resyncs": rig.get("resyncs", 0),
+        "rig_watchdog_trips": rig.get("watchdog_trips", 0),
+        "rig_error": res.rig_error,
         "dropped_recording": svc.recorder.dropped if svc.recorder else 0,
         "dropped_telemetry": svc.telemetry.dropped if svc.telemetry else 0,
-        "realtime": report.as_dict() if report else None,
+        "realtime": svc.realtime_report.as_dict() if realtime else None,
+        "rig_realtime": res.rig_realtime,
     }
     tmp.cleanup()
     return out
+
+
+def run_sleeper(seconds: float, realtime: bool, switch_interval_s: float = 0.0001,
+                cpus: tuple[int, ...] = ()) -> dict[str, Any]:
+    """The bare SCHED_FIFO sleeper: this (main) thread with the loop's real-time set-up
+    sleeps to absolute 1 ms deadlines (no spin, no work) for ``seconds`` after the same
+    warm-up; a deadline more than one period behind is skipped and counted, as in the
+    loop.  Its lateness is what the OS and the machine give any real-time task."""
+    from rig.realtime import RealtimeRequest, apply_realtime, release_cpu_latency, restore_gc
+
+    report = (apply_realtime(RealtimeRequest(switch_interval_s=switch_interval_s, cpus=cpus))
+              if realtime else None)
+    period = 1_000_000
+    n_warm = round(WARM_S * 1000)
+    n = round(seconds * 1000)
+    late = np.zeros(n)
+    skipped = 0
+    clock = time.monotonic_ns
+    sleep = time.sleep
+    deadline = clock() + period
+    i = -n_warm
+    try:
+        while i < n:
+            wait = deadline - clock()
+            if wait > 0:
+                sleep(wait * 1e-9)
+            now = clock()
+            if i >= 0:
+                late[i] = now - deadline
+            i += 1
+            deadline += period
+            behind = clock() - deadline
+            if behind > period:
+                missed = behind // period
+                deadline += missed * period
+                if i > 0:
+                    skipped += int(missed)
+    finally:
+        if report is not None:
+            release_cpu_latency()
+            restore_gc()
+    return {"_lat_us": late / 1000.0, "_step_us": np.zeros(0), "skipped": skipped,
+            "faults": [], "rig_late_ticks": 0, "rig_max_lateness_us": math.nan,
+            "rig_resyncs": 0, "rig_watchdog_trips": 0, "rig_error": None,
+            "dropped_recording": 0, "dropped_telemetry": 0,
+            "realtime": report.as_dict() if report else None, "rig_realtime": None}
+
+
+def _pct(a: np.ndarray, q: float) -> float:
+    return float(np.percentile(a, q)) if a.size else math.nan
 
 
 def _summarise(segments: list[dict[str, Any]]) -> dict[str, Any]:
     """Pool the samples of one case's segments; counts add up, maxima are maxima."""
     lat_us = np.concatenate([s["_lat_us"] for s in segments])
     step_us = np.concatenate([s["_step_us"] for s in segments])
+    skipped = sum(s["skipped"] for s in segments)
+    misses = int(np.sum(lat_us > LATE_US))
     return {
         "ticks": int(lat_us.size),
-        "lateness_p50_us": float(np.percentile(lat_us, 50)),
-        "lateness_p99_us": float(np.percentile(lat_us, 99)),
-        "lateness_p99_9_us": float(np.percentile(lat_us, 99.9)),
-        "lateness_max_us": float(lat_us.max()),
-        "step_p50_us": float(np.percentile(step_us, 50)),
-        "step_p99_us": float(np.percentile(step_us, 99)),
-        "step_max_us": float(step_us.max()),
-        "misses_500us": int(np.sum(lat_us > 500.0)),
-        "skipped": sum(s["skipped"] for s in segments),
+        "lateness_p50_us": _pct(lat_us, 50),
+        "lateness_p99_us": _pct(lat_us, 99),
+        "lateness_p99_9_us": _pct(lat_us, 99.9),
+        "lateness_max_us": float(lat_us.max()) if lat_us.size else math.nan,
+        "step_p50_us": _pct(step_us, 50),
+        "step_p99_us": _pct(step_us, 99),
+        "step_max_us": float(step_us.max()) if step_us.size else math.nan,
+        "misses_500us": misses,
+        "skipped": skipped,
+        # woken > 500 us late, or not at all (skipped), per period
+        "periods_late_pct": 100.0 * (misses + skipped) / max(lat_us.size + skipped, 1),
         "faults": [f for s in segments for f in s["faults"]],
         "rig_late_ticks": sum(s["rig_late_ticks"] for s in segments),
         "rig_max_lateness_us": max(s["rig_max_lateness_us"] for s in segments),
         "rig_resyncs": sum(s["rig_resyncs"] for s in segments),
+        "rig_watchdog_trips": sum(s["rig_watchdog_trips"] for s in segments),
+        "rig_errors": [s["rig_error"] for s in segments if s["rig_error"]],
         "dropped_recording": sum(s["dropped_recording"] for s in segments),
         "dropped_telemetry": sum(s["dropped_telemetry"] for s in segments),
-        "segment_step_p99_us": [float(np.percentile(s["_step_us"], 99)) for s in segments],
+        "segment_step_p99_us": [_pct(s["_step_us"], 99) for s in segments],
         "realtime": segments[0]["realtime"],
+        "rig_realtime": segments[0]["rig_realtime"],
     }
 
 
 def tick_hot_and_cold(cfg: Any, design_path: str, n: int = 4000) -> dict[str, float]:
-    """``ControlLoop.tick`` (armed, virtual bus, one rig tick before each) timed back to
-    back ("hot") and 0.8 ms apart ("cold": what the loop sees after its sleep), in one
+    """``ControlLoop.tick`` (armed, socket-pair bus, one rig tick before each) timed back
+    to back ("hot") and 0.8 ms apart ("cold": what the loop sees after its sleep), in one
     thread: the floor of the step time and what cold caches add to it."""
-    rig_bus, node, svc = _rig_and_service(cfg, design_path, 2 * n / 1000 + 5,
-                                          recording=False, telemetry=False)
+    from hil.node import RigNode
+    from hil.roads import make_road
+    from rig.service import Service, ServiceOptions
+    from rig.socketpair_bus import SocketPairBus, socketpair_wire
+
+    a, b = socketpair_wire()
+    rig_bus, bus = SocketPairBus(a), SocketPairBus(b)
+    node = RigNode(rig_bus, cfg, make_road("rough-course", 11.176, 2 * n / 1000 + 5,
+                                           cfg.sample_time_s, seed=1), record_ticks=1)
+    svc = Service(cfg, ServiceOptions(design_path=design_path, realtime=None,
+                                      install_signal_handlers=False, recording=False,
+                                      telemetry=False), bus=bus)
     loop = svc.loop
     t = time.monotonic_ns()
     for _ in range(200):
@@ -213,19 +259,27 @@ def tick_hot_and_cold(cfg: Any, design_path: str, n: int = 4000) -> dict[str, fl
         out[f"{mode}_p99_us"] = float(np.percentile(dt, 99) / 1e3)
     out["state"] = float(loop.lifecycle.state)
     svc.close()
+    bus.shutdown()
     rig_bus.shutdown()
     return out
 
 
-def virtual_bus_cost(n: int = 5000) -> dict[str, float]:
-    """us per tick for python-can's virtual bus: 3 frames received + 1 sent."""
+def bus_cost(kind: str, n: int = 5000) -> dict[str, float]:
+    """us per tick of one tick's frames (3 received + 1 sent) on the socket-pair bus
+    (``kind="socketpair"``, what the loop uses) or python-can's ``virtual`` bus."""
     import can
 
     from rig.bus import make_tx_message
+    from rig.socketpair_bus import SocketPairBus, socketpair_wire
 
-    ch = f"cost-{uuid.uuid4().hex}"
-    a = can.Bus(interface="virtual", channel=ch)
-    b = can.Bus(interface="virtual", channel=ch)
+    if kind == "socketpair":
+        ends = socketpair_wire()
+        a: can.BusABC = SocketPairBus(ends[0])
+        b: can.BusABC = SocketPairBus(ends[1])
+    else:
+        ch = f"cost-{uuid.uuid4().hex}"
+        a = can.Bus(interface="virtual", channel=ch)
+        b = can.Bus(interface="virtual", channel=ch)
     rx_msgs = [make_tx_message(0x100), make_tx_message(0x100), make_tx_message(0x200)]
     tx = make_tx_message(0x080)
     t_recv = t_send = 0
@@ -297,12 +351,17 @@ def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
         segments: dict[str, list[dict[str, Any]]] = {name: [] for name in case_names}
         for _ in range(rounds):
             for name in case_names:
+                if name == SLEEPER:
+                    segments[name].append(run_sleeper(seconds / rounds, realtime,
+                                                      switch_interval_s, cpus))
+                    continue
                 segments[name].append(run_case(
                     cfg, seconds / rounds, CASES[name][0], CASES[name][1], realtime,
                     design_path, switch_interval_s, cpus=cpus))
         cases = {name: _summarise(segs) for name, segs in segments.items()}
         tick = tick_hot_and_cold(cfg, design_path)
-    micro = {"virtual_bus": virtual_bus_cost(), "tick": tick,
+    micro = {"socketpair_bus": bus_cost("socketpair"), "virtual_bus": bus_cost("virtual"),
+             "tick": tick,
              "sleep_slack_50us": sleep_lateness(50_000),
              "sleep_slack_1ns": sleep_lateness(1)}
     bare, full = cases["bare"], cases["rec+tel"]
@@ -316,46 +375,70 @@ def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
             "cpus": os.cpu_count(), "load": os.getloadavg(), "pinned_cpu": cpu}
 
 
-_ROWS = [("lateness p50 [us]", "lateness_p50_us"), ("lateness p99 [us]", "lateness_p99_us"),
-         ("lateness p99.9 [us]", "lateness_p99_9_us"), ("lateness max [us]",
-                                                          "lateness_max_us"),
-         ("step p50 [us]", "step_p50_us"), ("step p99 [us]", "step_p99_us"),
-         ("step max [us]", "step_max_us"), ("misses > 500 us", "misses_500us"),
-         ("skipped deadlines", "skipped"), ("ticks", "ticks"),
-         ("rig thread max late [us]", "rig_max_lateness_us")]
+_ROWS = [("lateness p50 [us]", "lateness_p50_us", "{:.1f}"),
+         ("lateness p99 [us]", "lateness_p99_us", "{:.1f}"),
+         ("lateness p99.9 [us]", "lateness_p99_9_us", "{:.1f}"),
+         ("lateness max [us]", "lateness_max_us", "{:.1f}"),
+         ("step p50 [us]", "step_p50_us", "{:.1f}"), ("step p99 [us]", "step_p99_us", "{:.1f}"),
+         ("step max [us]", "step_max_us", "{:.1f}"),
+         ("woken > 500 us late", "misses_500us", "{:.0f}"),
+         ("skipped deadlines", "skipped", "{:.0f}"),
+         ("periods late [%]", "periods_late_pct", "{:.3f}"), ("ticks", "ticks", "{:.0f}"),
+         ("rig process max late [us]", "rig_max_lateness_us", "{:.1f}"),
+         ("rig watchdog trips", "rig_watchdog_trips", "{:.0f}")]
+
+
+def _cell(value: Any, fmt: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return fmt.format(value)
 
 
 def format_report(res: dict[str, Any]) -> str:
     cases = res["cases"]
     out = [f"loop benchmark: 1 kHz, {res['seconds']:g} s per case in {res['rounds']} "
-           f"interleaved rounds, emulated rig in-process "
-           f"(half a period after the loop), load {res['load'][0]:.1f} on {res['cpus']} CPUs"
+           f"interleaved rounds, emulated rig in its own process (socket-pair bus, ticks "
+           f"half a period after the loop), load {res['load'][0]:.2f} / "
+           f"{res['load'][1]:.2f} / {res['load'][2]:.2f} on {res['cpus']} CPUs"
            + (f", loop pinned to CPU {res['pinned_cpu']}" if res["pinned_cpu"] is not None
               else "")]
     out.append(f"{'':26}" + "".join(f" {name:>10}" for name in cases))
-    for label, key in _ROWS:
-        out.append(f"{label:26}" + "".join(f" {c[key]:>10.1f}" for c in cases.values()))
-    out.append(f"{'faults':26}" + "".join(f" {','.join(c['faults']) or '-':>10}"
-                                          for c in cases.values()))
+    for label, key, fmt in _ROWS:
+        out.append(f"{label:26}" + "".join(f" {_cell(c[key], fmt):>10}"
+                                           for c in cases.values()))
+    out.append(f"{'faults':26}" + "".join(f" {len(c['faults']):>10}" for c in cases.values()))
+    for name, c in cases.items():
+        for f in sorted(set(c["faults"])):
+            out.append(f"  [{name}] {f} x{c['faults'].count(f)}")
+        for err in c["rig_errors"]:
+            out.append(f"  [{name}] emulated rig: {err}")
     bare, full = cases["bare"], cases["rec+tel"]
     out.append(f"rec+tel vs bare: lateness p99 {full['lateness_p99_us']:.1f} vs "
                f"{bare['lateness_p99_us']:.1f} us (x{res['p99_lateness_ratio']:.2f}), "
                f"step p99 {full['step_p99_us']:.1f} vs {bare['step_p99_us']:.1f} us "
                f"(x{res['p99_step_ratio']:.2f}; median of the {res['rounds']} rounds' "
                f"ratios x{res['p99_step_ratio_median_of_rounds']:.2f}); goal: at most x1.10")
+    sleeper = cases.get(SLEEPER)
     for name, c in cases.items():
-        miss_pct = 100.0 * c["misses_500us"] / max(c["ticks"], 1)
-        out.append(f"goals [{name}]: whole tick p99 {c['step_p99_us']:.0f} us "
-                   f"({'met' if c['step_p99_us'] < 100 else 'NOT met'}, < 100 us); periods "
-                   f"> 500 us late {miss_pct:.3f} % "
-                   f"({'met' if miss_pct < 0.1 else 'NOT met'}, < 0.1 %)")
+        if name == SLEEPER:
+            continue
+        late_pct = c["periods_late_pct"]
+        line = (f"goals [{name}]: whole tick p99 {c['step_p99_us']:.0f} us "
+                f"({'met' if c['step_p99_us'] < 100 else 'NOT met'}, < 100 us); periods "
+                f"late {late_pct:.3f} % ({'met' if late_pct < 0.1 else 'NOT met'}, < 0.1 %")
+        if sleeper is not None:
+            floor = sleeper["periods_late_pct"]
+            line += (f"; {'met' if late_pct <= floor else 'NOT met'}, at or below the "
+                     f"sleeper's {floor:.3f} %")
+        out.append(line + f"); faults {len(c['faults'])}")
     tk = res["micro"]["tick"]
     out.append(f"one tick in a plain thread: back to back p50 {tk['hot_p50_us']:.1f} / p99 "
                f"{tk['hot_p99_us']:.1f} us; 0.8 ms apart (cold caches) p50 "
                f"{tk['cold_p50_us']:.1f} / p99 {tk['cold_p99_us']:.1f} us")
-    vb = res["micro"]["virtual_bus"]
-    out.append(f"virtual bus per tick: {vb['tick_us']:.1f} us (3 recv {vb['recv_3_us']:.1f}, "
-               f"1 send {vb['send_1_us']:.1f})")
+    for name in ("socketpair_bus", "virtual_bus"):
+        vb = res["micro"][name]
+        out.append(f"{name.replace('_', ' ')} per tick: {vb['tick_us']:.1f} us (3 recv "
+                   f"{vb['recv_3_us']:.1f}, 1 send {vb['send_1_us']:.1f})")
     for name in ("sleep_slack_50us", "sleep_slack_1ns"):
         m = res["micro"][name]
         out.append(f"{name:22} wake-up p50 {m['p50_us']:.0f} us, p99 {m['p99_us']:.0f} us, "
@@ -364,12 +447,13 @@ def format_report(res: dict[str, Any]) -> str:
 
 
 NAME = "loop"
-TITLE = "the 1 kHz service loop against the emulated rig (bare, rec, tel, rec+tel)"
+TITLE = ("the 1 kHz service loop against the emulated rig process (bare, rec, tel, "
+         "rec+tel) and a bare SCHED_FIFO sleeper")
 
 
 def run(quick: bool = False) -> list[dict[str, Any]]:
     """``python -m bench`` entry: one row per case (60 s each; 5 s with ``quick``)."""
-    res = measure(5.0 if quick else 60.0, list(CASES))
+    res = measure(5.0 if quick else 60.0, [*CASES, SLEEPER])
     rows = [{"case": name, **{k: v for k, v in c.items() if not isinstance(v, dict | list)}}
             for name, c in res["cases"].items()]
     rows[0]["_report"] = format_report(res)
@@ -391,12 +475,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="pin the loop thread to this CPU (the emulated rig and the "
                          "recording writer go to the others), like CPUAffinity= in "
                          "deploy/rig.service")
-    ap.add_argument("--cases", default="bare,rec,tel,rec+tel",
-                    help=f"comma-separated, from {', '.join(CASES)} (bare and rec+tel "
-                         "are needed for the ratio)")
+    ap.add_argument("--cases", default=f"bare,rec,tel,rec+tel,{SLEEPER}",
+                    help=f"comma-separated, from {', '.join([*CASES, SLEEPER])} (bare and "
+                         "rec+tel are needed for the ratio)")
     args = ap.parse_args(argv)
     names = args.cases.split(",")
-    unknown = set(names) - set(CASES)
+    unknown = set(names) - {*CASES, SLEEPER}
     if unknown or not {"bare", "rec+tel"} <= set(names):
         ap.error(f"--cases: unknown {sorted(unknown)}; bare and rec+tel are required")
     res = measure(args.seconds, names, realtime=not args.no_realtime,

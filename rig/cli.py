@@ -19,6 +19,11 @@ from collections.abc import Sequence
 
 from controller.config import ConfigError, load_config
 from rig.argtypes import OneLineParser, bind_config, overwrite_problem
+from rig.stop_signals import StopSignals
+
+#: subcommands that SIGTERM / SIGINT stop cleanly at any point (rig.stop_signals): the
+#: handlers are installed before anything of theirs runs
+STOPPABLE = ("run", "demo")
 
 #: subcommand -> (module under rig.commands, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -28,7 +33,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "montecarlo": ("montecarlo", "Monte Carlo robustness runs over parameter spread"),
     "hil": ("hil", "run the emulated rig as a CAN node"),
     "run": ("run", "run the real-time controller service on a CAN bus"),
-    "demo": ("demo", "service against the emulated rig on an in-process virtual bus"),
+    "demo": ("demo", "service against the emulated rig (own process) in real time"),
     "study": ("study", "control performance study: tables and figures"),
     "replay": ("replay", "replay a recorded run (MCAP or candump log) through the loop"),
     "report": ("report", "HTML report with plots of a recorded run"),
@@ -68,14 +73,17 @@ def _os_error(exc: OSError) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    stop = StopSignals().install() if command in STOPPABLE else None
     try:
-        return _main(argv)
+        return _main(command, argv, stop)
     finally:
         bind_config(None)
+        if stop is not None:
+            stop.restore()
 
 
-def _main(argv: list[str]) -> int:
-    command = next((a for a in argv if not a.startswith("-")), None)
+def _main(command: str | None, argv: list[str], stop: StopSignals | None) -> int:
     known = command in SUBCOMMANDS
     parser = build_parser(command if known else None)
     try:
@@ -98,6 +106,7 @@ def _main(argv: list[str]) -> int:
     if problem:
         print(f"rig {args.command}: {problem}", file=sys.stderr)
         return 2
+    args.stop_signals = stop
     try:
         return int(args._module.run(args) or 0)
     except ConfigError as exc:

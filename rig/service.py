@@ -7,25 +7,28 @@ thread), and builds the :class:`rig.loop.ControlLoop`.  :meth:`Service.run`:
 1. real-time set-up of the loop thread (best effort, reported: :mod:`rig.realtime`);
 2. systemd ``READY=1`` (+ ``STATUS=``), the loop then pings ``WATCHDOG=1`` itself at half
    of ``WATCHDOG_USEC`` (:mod:`rig.sdnotify`);
-3. SIGTERM / SIGINT set the stop event (handlers installed in the main thread);
+3. SIGTERM / SIGINT set the stop event (:mod:`rig.stop_signals`; the commands install
+   the handlers before the service is built, so that a signal during the design or while
+   the bus opens stops it too, see ``stop=``);
 4. the loop runs until stopped or ``duration_s``; with ``arm`` it arms as soon as the
    sensors are healthy and the estimator is warm;
 5. shutdown: STOPPING, the safe ValveCommand and a SHUTDOWN FaultReport go out, the
-   recording is closed completely (summary + footer), exit status 0.
+   recording is closed completely (summary + footer), exit status 0.  A service closed
+   before its loop ran a tick removes its recording: a run leaves a complete recording
+   or none.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
 import logging
-import signal
 import tempfile
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import can
@@ -40,6 +43,7 @@ from rig.realtime import (
     restore_gc,
 )
 from rig.sdnotify import SdNotifier
+from rig.stop_signals import StopSignals
 
 __all__ = ["BLENDING_NAMES", "Service", "ServiceOptions", "design_bytes", "parse_blending"]
 
@@ -72,7 +76,7 @@ class ServiceOptions:
     blending: str | int = "fuzzy"
     weight_set: int | None = None         # None = cfg.design.weight_set
     realtime: RealtimeRequest | None = field(default_factory=RealtimeRequest)  # None = none
-    install_signal_handlers: bool = True
+    install_signal_handlers: bool = True  # in run(), unless Service(stop=...) was given
     timing_ring: int = 1 << 16            # per-tick timing samples kept (ring buffer)
 
 
@@ -87,21 +91,49 @@ def design_bytes(design: Any) -> bytes:
 
 
 class Service:
-    """One controller service instance (see the module docstring)."""
+    """One controller service instance (see the module docstring).
+
+    ``stop``: the command's :class:`rig.stop_signals.StopSignals` (already installed);
+    the design is then interruptible, the other set-up steps check it in between
+    (:class:`rig.stop_signals.StopRequested` out of the constructor, after closing what
+    was opened) and :attr:`stop_event` is its event.  Without it :meth:`run` installs the
+    handlers itself (``opts.install_signal_handlers``)."""
 
     def __init__(self, cfg: RigConfig, opts: ServiceOptions | None = None, *,
                  bus: can.BusABC | None = None, notifier: SdNotifier | None = None,
-                 metadata: dict[str, Any] | None = None) -> None:
+                 metadata: dict[str, Any] | None = None,
+                 stop: StopSignals | None = None) -> None:
+        self.cfg = cfg
+        self.opts = opts = opts or ServiceOptions()
+        self._stop = stop
+        self.stop_event = stop.event if stop is not None else threading.Event()
+        self.realtime_report = RealtimeReport()
+        self.exit_reason = ""
+        self.recording_discarded = False
+        self._own_bus = bus is None
+        self.bus: Any = None
+        self.notifier: Any = None
+        self.recorder: Any = None
+        self.telemetry: Any = None
+        self.loop: Any = None
+        self._closed = False
+        try:
+            self._build(cfg, opts, bus, notifier, metadata)
+        except BaseException:
+            self._abandon()
+            raise
+
+    def _check_stop(self) -> None:
+        if self._stop is not None:
+            self._stop.check()
+
+    def _build(self, cfg: RigConfig, opts: ServiceOptions, bus: can.BusABC | None,
+               notifier: SdNotifier | None, metadata: dict[str, Any] | None) -> None:
         from controller.bank import BankRuntime
         from controller.force_loop import PIForceLoop
 
-        self.cfg = cfg
-        self.opts = opts = opts or ServiceOptions()
-        self.stop_event = threading.Event()
-        self.realtime_report = RealtimeReport()
-        self.exit_reason = ""
-        self._own_bus = bus is None
         t0 = time.monotonic()
+        self._check_stop()
         if opts.design_path:
             from controller.artifact import load_design
 
@@ -111,9 +143,12 @@ class Service:
         else:
             from controller.design import design_bank
 
-            self.design = design_bank(cfg)
+            with (self._stop.interruptible() if self._stop is not None
+                  else contextlib.nullcontext()):
+                self.design = design_bank(cfg)
             self.design_blob = design_bytes(self.design)
             log.info("bank designed at start in %.1f s", time.monotonic() - t0)
+        self._check_stop()
         blending = parse_blending(opts.blending)
         weight_set = cfg.design.weight_set if opts.weight_set is None else opts.weight_set
         warmup_ticks = round(0.05 * cfg.design.sample_rate_hz)   # ControlLoop's default
@@ -130,9 +165,8 @@ class Service:
             bus = open_bus(cfg.can, role=role, interface=interface,
                            channel=opts.channel or cfg.can.channel)
         self.bus = bus
+        self._check_stop()
         self.notifier = notifier if notifier is not None else SdNotifier.from_environment()
-        self.recorder: Any = None
-        self.telemetry: Any = None
         record_on = cfg.recording.enabled if opts.recording is None else opts.recording
         if opts.record is not None:
             record_on = True
@@ -147,15 +181,10 @@ class Service:
                     "warmup_ticks": warmup_ticks, "single_model": None}
             meta.update(metadata or {})
             # one pipe write per 8 ticks (8 ms at 1 kHz): fewer wake-ups of the writer
-            try:
-                self.recorder = RunRecorder(target, cfg.recording,
-                                            config_toml=config_to_toml(cfg),
-                                            design_bytes=self.design_blob, metadata=meta,
-                                            batch_ticks=8)
-            except BaseException:   # a bad recording path: the bus opened above is closed
-                if self._own_bus:
-                    bus.shutdown()
-                raise
+            self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
+                                        design_bytes=self.design_blob, metadata=meta,
+                                        batch_ticks=8)
+            self._check_stop()
         self.loop = ControlLoop(cfg, bus, self.runtime, self.force_loop,
                                 recorder=self.recorder, notifier=self.notifier,
                                 blending=blending, weight_set=weight_set,
@@ -173,12 +202,43 @@ class Service:
         self.command_timeout_s = 0.05
         self._arm_pending = opts.arm
         self._arm_after_ticks = round(opts.arm_after_s * cfg.design.sample_rate_hz)
-        self._closed = False
+        self._check_stop()
+
+    def _abandon(self) -> None:
+        """Close what a constructor that failed (or was stopped) had opened; a recording
+        started without a tick is removed."""
+        self._closed = True
+        steps: list[tuple[str, Callable[[], None]]] = []
+        if self.telemetry is not None:
+            steps.append(("telemetry", self.telemetry.close))
+        if self.recorder is not None:
+            steps.append(("recording", self._discard_recording))
+        if self.bus is not None and self._own_bus:
+            steps.append(("bus", self.bus.shutdown))
+        if self.notifier is not None:
+            steps.append(("notifier", self.notifier.close))
+        for name, close in steps:
+            try:
+                close()
+            except Exception:
+                log.exception("closing the %s of a service that did not run", name)
+
+    def _discard_recording(self) -> None:
+        """Close the recording and remove its file(s): it holds no tick."""
+        rec = self.recorder
+        rec.close()
+        for path in {*rec.paths, rec.base_path}:
+            with contextlib.suppress(FileNotFoundError):
+                Path(path).unlink()
+        self.recording_discarded = True
+        log.info("recording %s removed: the loop ran no tick", rec.base_path)
 
     # ------------------------------------------------------------------ outside views
     @property
     def recording_path(self) -> Path | None:
-        return None if self.recorder is None else Path(self.recorder.base_path)
+        if self.recorder is None or self.recording_discarded:
+            return None
+        return Path(self.recorder.base_path)
 
     def status(self) -> dict[str, Any]:
         """Status for the telemetry's ``status`` queryable (runs on a Zenoh thread)."""
@@ -213,21 +273,14 @@ class Service:
         return res.message
 
     # ------------------------------------------------------------------ running
-    def _install_signals(self) -> dict[int, Any]:
-        previous: dict[int, Any] = {}
-        if not self.opts.install_signal_handlers:
-            return previous
-        if threading.current_thread() is not threading.main_thread():
-            log.warning("not in the main thread: SIGTERM/SIGINT handlers not installed")
-            return previous
+    @property
+    def ticks_run(self) -> int:
+        return 0 if self.loop is None else int(self.loop.tick_count)
 
-        def on_signal(signum: int, _frame: FrameType | None) -> None:
-            self.exit_reason = signal.Signals(signum).name
-            self.stop_event.set()
-
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            previous[sig] = signal.signal(sig, on_signal)
-        return previous
+    @property
+    def stop_signal(self) -> str:
+        """The stop signal that ended (or prevented) the run, '' if none came."""
+        return self._stop.signal_name if self._stop is not None else ""
 
     def _on_tick(self, loop: ControlLoop) -> None:
         if self._arm_pending and loop.tick_count >= self._arm_after_ticks \
@@ -245,9 +298,16 @@ class Service:
         return self.realtime_report
 
     def run(self, on_tick: Callable[[ControlLoop], None] | None = None) -> int:
-        """Run until SIGTERM / SIGINT / ``stop_event`` / ``duration_s``; returns 0."""
-        previous = self._install_signals()
+        """Run until SIGTERM / SIGINT / ``stop_event`` / ``duration_s``; returns 0.
+        Stopped before the first tick, the loop does not start (and the recording is
+        removed)."""
+        own_signals = None
+        if self._stop is None and self.opts.install_signal_handlers:
+            own_signals = self._stop = StopSignals(self.stop_event).install()
         try:
+            if self.stop_event.is_set():
+                self.exit_reason = self._stop_reason()
+                return 0
             if self.opts.realtime is not None:
                 self.apply_realtime(self.opts.realtime)
             self.notifier.ready(f"{self.loop.lifecycle.state.name}; "
@@ -260,24 +320,33 @@ class Service:
 
             self.loop.run(self.stop_event, on_tick=tick_hook, duration_s=self.opts.duration_s)
             if not self.exit_reason:
-                self.exit_reason = "stop requested" if self.stop_event.is_set() else "duration"
+                self.exit_reason = (self._stop_reason() if self.stop_event.is_set()
+                                    else "duration")
         finally:
             self.close()
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+            if own_signals is not None:
+                own_signals.restore()
         return 0
+
+    def _stop_reason(self) -> str:
+        return self.stop_signal or "stop requested"
 
     def close(self) -> None:
         """Shutdown frames, recording closed completely, bus and telemetry closed."""
         if self._closed:
             return
-        self._closed = True
-        self.notifier.stopping(f"stopping: {self.exit_reason or 'close'}")
-        self.loop.shutdown(self.exit_reason or "shutdown")
         if self.opts.realtime is not None:
             release_cpu_latency()
             if self.opts.realtime.freeze_gc:
                 restore_gc()
+        if self.loop.tick_count == 0:       # nothing ran: nothing to shut down or keep
+            self.exit_reason = self.exit_reason or self._stop_reason()
+            self.notifier.stopping(f"stopping: {self.exit_reason}")
+            self._abandon()
+            return
+        self._closed = True
+        self.notifier.stopping(f"stopping: {self.exit_reason or 'close'}")
+        self.loop.shutdown(self.exit_reason or "shutdown")
         if self.telemetry is not None:
             self.telemetry.close()
         if self.recorder is not None:

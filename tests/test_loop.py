@@ -8,11 +8,17 @@ end runs the real BankRuntime.
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+import textwrap
 import threading
 import time
 import tracemalloc
 import uuid
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import can
@@ -441,3 +447,63 @@ def test_timing_overrun_streak_counts_consecutive_late_ticks() -> None:
 
 def test_histogram_percentile_empty_is_nan() -> None:
     assert np.isnan(histogram_percentile_us(np.zeros(10, dtype=np.int64), 50))
+
+
+@pytest.mark.timeout(300)
+def test_first_ticks_with_sensor_data_load_no_numba_code(tmp_path: Path) -> None:
+    """Start-up RIG_WATCHDOG of issue 12: the safety monitor's numba kernel was compiled
+    (or loaded from the cache, ~10 ms) in the loop's first tick with sensor data, far
+    beyond the drive's 5 ms watchdog.  In a fresh process (nothing compiled yet), the
+    loop's first 300 ticks with data take numba's compiler lock zero times."""
+    script = textwrap.dedent("""
+        import json, sys, time
+        from numba.core import event
+        from controller.artifact import load_design
+        from controller.config import default_config
+        from hil.node import RigNode
+        from hil.roads import make_road
+        from rig.service import Service, ServiceOptions
+        from rig.socketpair_bus import SocketPairBus, socketpair_wire
+
+        class Count(event.Listener):
+            n = 0
+            def on_start(self, ev): Count.n += 1
+            def on_end(self, ev): pass
+
+        cfg = default_config()
+        a, b = socketpair_wire()
+        node = RigNode(SocketPairBus(a), cfg,
+                       make_road("rough-course", 11.176, 2.0, cfg.sample_time_s),
+                       record_ticks=1)
+        for _ in range(3):
+            node.tick()                     # the rig's own first calls
+        svc = Service(cfg, ServiceOptions(design_path=sys.argv[1], realtime=None,
+                                          recording=False, telemetry=False,
+                                          install_signal_handlers=False),
+                      bus=SocketPairBus(b))
+        loop = svc.loop
+        t = time.monotonic_ns()
+        with event.install_listener("numba:compiler_lock", Count()):
+            for k in range(300):
+                node.tick()
+                loop.tick(t)
+                t += 1_000_000
+                if k == 100:
+                    loop.request("arm", timeout_s=None)
+        print(json.dumps({"locks": Count.n, "state": loop.lifecycle.state.name,
+                          "rx": loop.rx_frames}))
+        svc.close()
+    """)
+    from controller.artifact import save_design
+    from hil.sim import cached_design
+
+    design = tmp_path / "design.npz"
+    save_design(cached_design(default_config()), design)
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", script, str(design)], cwd=root,
+                         capture_output=True, text=True, timeout=280,
+                         env={**os.environ, "PYTHONPATH": str(root)})
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["rx"] > 300 and got["state"] == "ACTIVE"
+    assert got["locks"] == 0, got

@@ -1,8 +1,11 @@
 """``rig demo``: the controller service against the emulated rig, in real time.
 
-The emulated rig (:class:`hil.node.RigNode`, its own thread) and the service
-(:class:`rig.service.Service`, the main thread) share python-can's in-process virtual
-bus.  The first half of the run is passive (INACTIVE: Enable=0, the rig's bypass open);
+The service (:class:`rig.service.Service`, its loop in the main thread) and the emulated
+rig (:class:`hil.node.RigNode` in a process of its own) talk CAN over a socket pair, as
+``rig run`` and ``rig hil`` do over vcan on the bench; :class:`hil.harness.RigHarness`
+sets them up (the same harness as the loop benchmark and the tests).  The summary's
+plant figures are the rig's true signals, traced by the rig process in shared memory.
+The first half of the run is passive (INACTIVE: Enable=0, the rig's bypass open);
 at half time the demo arms the service (ACTIVE, fuzzy LQG bank).  A live line shows
 time, lifecycle, rattlespace, absorbed power so far and overruns; at the end a table
 compares the two halves (from the rig's true plant signals) with the loop timing of
@@ -10,6 +13,10 @@ each, and ``--json`` prints the same as JSON.  The run is recorded (MCAP).
 
 If the service latches a fault the demo, acting as the operator, resets and re-arms
 (at most ``--max-rearms`` times); every fault is listed in the summary.
+
+SIGTERM / SIGINT at any point end the demo with exit status 0 and a message: during the
+run it stops early (summary of what ran, recording complete); before the loop started
+nothing is recorded.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -62,43 +70,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="reset + re-arm after a fault at most N times (default 10)")
     p.add_argument("--seed", type=argtypes.seed, default=None,
                    help="road seed (default sensors.seed)")
+    p.add_argument("--rig-watchdog-ms", type=argtypes.real(0.0, 1e7, "ms", lo_open=True),
+                   default=None, metavar="MS",
+                   help="the emulated drive's command watchdog (default 5, as `rig hil`)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
-
-
-# ---------------------------------------------------------------------------- the rig side
-
-
-def _make_traced_node(bus: Any, cfg: RigConfig, road: Any, n_ticks: int) -> Any:
-    """A RigNode that also keeps the true plant signals of every tick (for the metrics)."""
-    from hil.node import RigNode
-
-    class TracedNode(RigNode):
-        def __init__(self) -> None:
-            super().__init__(bus, cfg, road, record_ticks=min(n_ticks, 600_000))
-            self.n = n_ticks
-            self.trace = {k: np.zeros(n_ticks) for k in (
-                "accel_mps2", "rattlespace_m", "tire_force_n", "force_n",
-                "hydraulic_power_w", "off_ground_s", "bump_stop_s", "bypass_open")}
-            self.count = 0
-
-        def tick(self) -> None:
-            super().tick()
-            i = self.count
-            if i < self.n:
-                p = self.plant
-                rs, force, acc = p.true_signals()
-                tr = self.trace
-                tr["accel_mps2"][i] = acc
-                tr["rattlespace_m"][i] = rs
-                tr["force_n"][i] = force
-                tr["tire_force_n"][i] = p.tire_force_n
-                tr["hydraulic_power_w"][i] = p.hydraulic_power_w
-                tr["off_ground_s"][i] = p.off_ground_time_last_tick_s
-                tr["bump_stop_s"][i] = p.bump_stop_time_last_tick_s
-                tr["bypass_open"][i] = self.bypass_applied
-                self.count = i + 1
-
-    return TracedNode()
 
 
 # ---------------------------------------------------------------------------- progress
@@ -108,11 +83,11 @@ class _Progress:
     """The live line (own thread): absorbed power from the rig's true acceleration,
     filtered incrementally by F(s) per phase."""
 
-    def __init__(self, cfg: RigConfig, node: Any, service: Any, arm_tick: int,
+    def __init__(self, cfg: RigConfig, trace: Any, service: Any, arm_tick: int,
                  enabled: bool) -> None:
         from scipy import signal
 
-        self.node = node
+        self.trace = trace
         self.service = service
         self.arm_tick = arm_tick
         self.enabled = enabled
@@ -146,9 +121,9 @@ class _Progress:
     def update(self, final: bool = False) -> None:
         from scipy import signal
 
-        end = self.node.count
+        end = self.trace.count
         if end > self.done:
-            acc = self.node.trace["accel_mps2"][self.done:end]
+            acc = self.trace.arrays["accel_mps2"][self.done:end]
             y, self.zi = signal.sosfilt(self.sos, acc, zi=self.zi)
             idx = np.arange(self.done, end)
             active = idx >= self.arm_tick
@@ -175,11 +150,11 @@ class _Progress:
 # ---------------------------------------------------------------------------- summary
 
 
-def _half_metrics(cfg: RigConfig, node: Any, t0: int, t1: int,
+def _half_metrics(cfg: RigConfig, trace: Mapping[str, np.ndarray], t0: int, t1: int,
                   lateness_ns: np.ndarray, step_ns: np.ndarray) -> dict[str, float]:
     from hil.metrics import compute_metrics
 
-    tr = {k: v[t0:t1] for k, v in node.trace.items()}
+    tr = {k: v[t0:t1] for k, v in trace.items()}
     v = cfg.vehicle
     static_load = (v.sprung_mass_kg + v.unsprung_mass_kg) * v.gravity_mps2
     if t1 - t0 < 2:
@@ -244,61 +219,63 @@ def _table(passive: dict[str, float], active: dict[str, float]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hil.harness import RigHarness, RigProcessError, RigProcessOptions
+    from hil.node import DEFAULT_WATCHDOG_S
     from hil.roads import RoadError, make_road
-    from rig.bus import open_bus
     from rig.protocol import LifecycleState
-    from rig.realtime import RealtimeRequest, restore_gc
-    from rig.service import Service, ServiceOptions
+    from rig.realtime import RealtimeRequest
+    from rig.service import ServiceOptions
+    from rig.stop_signals import StopRequested, StopSignals
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr)
+    stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
     cfg = load_config(args.config)
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
     arm_tick = n_ticks // 2
-    seed = cfg.sensors.seed if args.seed is None else args.seed
-    try:
-        road = make_road(args.road, args.speed, args.duration + 1.0, cfg.sample_time_s,
-                         seed=seed)
+    try:    # the rig process makes the road again; a bad one is refused here in one line
+        make_road(args.road, args.speed, args.duration + 1.0, cfg.sample_time_s,
+                  seed=cfg.sensors.seed if args.seed is None else args.seed)
     except RoadError as exc:
         print(f"rig demo: {exc}", file=sys.stderr)
         return 2
-    channel = f"rig-demo-{os.getpid()}"
-    rig_bus = open_bus(cfg.can, role=None, interface="virtual", channel=channel)
-    node = _make_traced_node(rig_bus, cfg, road, n_ticks + 2000)
+    watchdog_s = (DEFAULT_WATCHDOG_S if args.rig_watchdog_ms is None
+                  else args.rig_watchdog_ms * 1e-3)
+    realtime = None if args.no_realtime else RealtimeRequest()
     if not args.quiet:
         print("rig demo: designing the bank ...", file=sys.stderr)
-    service = Service(cfg, ServiceOptions(
-        interface="virtual", channel=channel, duration_s=None, record=args.record,
-        recording=False if args.no_record else None,
-        telemetry=False if args.no_telemetry else None, blending=args.blending,
-        weight_set=args.weight_set, realtime=None, install_signal_handlers=True,
-        timing_ring=2 * n_ticks + 10_000),
-        metadata={"source": "rig demo", "road": args.road, "speed_mps": args.speed,
-                  "arm_tick": arm_tick})
+    try:
+        harness = RigHarness(
+            cfg, ServiceOptions(
+                duration_s=None, record=args.record,
+                recording=False if args.no_record else None,
+                telemetry=False if args.no_telemetry else None, blending=args.blending,
+                weight_set=args.weight_set, realtime=realtime,
+                timing_ring=2 * n_ticks + 10_000),
+            RigProcessOptions(road=args.road, speed_mps=args.speed,
+                              road_s=args.duration + 1.0, seed=args.seed,
+                              watchdog_s=watchdog_s, trace_ticks=n_ticks + 2000,
+                              realtime=realtime),
+            metadata={"source": "rig demo", "road": args.road, "speed_mps": args.speed,
+                      "arm_tick": arm_tick},
+            stop=stop, rig_start_ticks=WARM_TICKS)
+    except StopRequested as exc:
+        print(f"rig demo: {exc} before the control loop started; nothing recorded",
+              file=sys.stderr)
+        return 0
+    except RigProcessError as exc:
+        print(f"rig demo: emulated rig: {exc}", file=sys.stderr)
+        return 2
+    service, trace = harness.service, harness.trace
     faults: list[dict[str, Any]] = []
-    state = {"rearms": 0, "armed_at": -1, "rig_started_at": -1}
-    stop_rig = threading.Event()
-    rig_threads: list[threading.Thread] = []
-    period_ns = service.loop.period_ns
+    state = {"rearms": 0, "armed_at": -1}
 
     def on_tick(loop: Any) -> None:
         """Operator of the demo, in the loop thread (cheap except on events)."""
-        if state["rig_started_at"] < 0:
-            # the rig starts once the loop runs steadily (its drive watchdog arms with the
-            # first command and trips after 5 ms without one); the thread inherits the
-            # loop thread's real-time settings
-            if loop.tick_count >= WARM_TICKS:
-                state["rig_started_at"] = loop.tick_count
-                # the rig ticks half a period after the loop: in one process the two
-                # threads take turns with the GIL instead of waking together
-                deadline = loop.t_ns - loop.lateness_ns
-                rig_threads.append(threading.Thread(
-                    target=node.run, args=(stop_rig,), name="emulated-rig", daemon=True,
-                    kwargs={"start_ns": deadline + period_ns + period_ns // 2}))
-                rig_threads[0].start()
+        if harness.result.rig_started_at < 0:
             return
-        k = node.count
+        k = trace.count
         if k >= n_ticks:
             service.stop_event.set()
             return
@@ -316,40 +293,39 @@ def run(args: argparse.Namespace) -> int:
 
     def on_transition(tr: Any) -> None:
         if tr.state is LifecycleState.FAULT:
-            t_rig = max(node.count, 0) / rate
-            faults.append({"tick": tr.tick, "time_s": t_rig, "code": tr.fault_code.name,
-                           "detail": tr.fault_detail, "reason": tr.reason})
+            faults.append({"tick": tr.tick, "time_s": trace.count / rate,
+                           "code": tr.fault_code.name, "detail": tr.fault_detail,
+                           "reason": tr.reason})
 
     service.loop.lifecycle.add_listener(on_transition)
-    report = None if args.no_realtime else service.apply_realtime(RealtimeRequest())
-    # first rig ticks outside real time (numba / first-call costs): no command has armed the
-    # rig's drive watchdog yet, so a slow first tick cannot trip it
-    for _ in range(3):
-        node.tick()
-    while service.bus.recv(0.0) is not None:    # the controller has not seen these frames
-        pass
-    progress = _Progress(cfg, node, service, arm_tick, enabled=not args.quiet)
+    progress = _Progress(cfg, trace, service, arm_tick, enabled=not args.quiet)
     progress.start()
     try:
-        service.run(on_tick=on_tick)
+        result = harness.run(on_tick=on_tick)
+    except RigProcessError as exc:
+        print(f"rig demo: emulated rig: {exc}", file=sys.stderr)
+        return 2
     finally:
         progress.stop()
-        stop_rig.set()
-        for th in rig_threads:
-            th.join(5.0)
-        rig_bus.shutdown()
-        if report is not None:
-            restore_gc()
+        harness.close()
+    if result.ticks_run == 0:
+        print(f"rig demo: stopped by {service.stop_signal or 'request'} before the control "
+              "loop started; nothing recorded", file=sys.stderr)
+        return 0
+    if result.rig_error:
+        print(f"rig demo: emulated rig: {result.rig_error}", file=sys.stderr)
 
     loop = service.loop
     late, step = loop.timing.recent()
     # loop tick of rig tick k ~ k + offset (the rig started at loop tick `offset`)
-    offset = max(state["rig_started_at"], 0) - (loop.timing.count - late.shape[0])
+    offset = max(result.rig_started_at, 0) - (loop.timing.count - late.shape[0])
     late, step = late[max(offset, 0):], step[max(offset, 0):]
-    n_done = min(node.count, late.shape[0])
+    rig_trace = result.trace
+    n_rig = len(rig_trace.get("accel_mps2", ()))
+    n_done = min(n_rig, late.shape[0])
     armed_at = state["armed_at"] if state["armed_at"] >= 0 else n_done
-    passive = _half_metrics(cfg, node, 0, min(arm_tick, n_done), late, step)
-    active = _half_metrics(cfg, node, min(armed_at, n_done), n_done, late, step)
+    passive = _half_metrics(cfg, rig_trace, 0, min(arm_tick, n_done), late, step)
+    active = _half_metrics(cfg, rig_trace, min(armed_at, n_done), n_done, late, step)
     summary: dict[str, Any] = {
         "duration_s": args.duration, "road": args.road, "speed_mps": args.speed,
         "blending": args.blending, "weight_set": loop.weight_set,
@@ -364,10 +340,16 @@ def run(args: argparse.Namespace) -> int:
         "recording": str(service.recording_path) if service.recording_path else None,
         "recording_dropped": service.recorder.dropped if service.recorder else 0,
         "recording_error": service.recorder.error if service.recorder else None,
-        "rig": node.stats.as_dict(),
+        "rig": result.rig_stats,
+        "rig_realtime": result.rig_realtime,
+        "rig_error": result.rig_error,
         "realtime": service.realtime_report.as_dict(),
         "exit_reason": service.exit_reason,
+        "stopped_by": service.stop_signal or None,
     }
+    if service.stop_signal:
+        print(f"rig demo: stopped by {service.stop_signal} after {n_rig / rate:.2f} s of "
+              f"{args.duration:g} s", file=sys.stderr)
     out = sys.stderr if args.json else sys.stdout
     print(f"\nrig demo: {args.road} at {args.speed} m/s, {args.duration:g} s "
           f"(passive, then {args.blending} bank armed at "

@@ -1,7 +1,9 @@
 """``rig run``: the real-time controller service on a CAN bus (systemd-ready).
 
 Exit status 0 after SIGTERM / SIGINT / ``--duration`` (valve left in its safe state,
-recording closed); 2 for a bad configuration, design artifact or bus.
+recording closed); 2 for a bad configuration, design artifact or bus.  SIGTERM / SIGINT
+before the loop started (while the bank is designed, the bus or the recording opens)
+also exit 0, with a message and no recording (:mod:`rig.stop_signals`).
 """
 
 from __future__ import annotations
@@ -55,7 +57,9 @@ def run(args: argparse.Namespace) -> int:
     from rig.realtime import RealtimeRequest
     from rig.recording import RecorderStartError
     from rig.service import Service, ServiceOptions
+    from rig.stop_signals import StopRequested, StopSignals
 
+    stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     cfg = load_config(args.config)
@@ -68,7 +72,11 @@ def run(args: argparse.Namespace) -> int:
         telemetry=False if args.no_telemetry else None, blending=args.blending,
         weight_set=args.weight_set, realtime=rt)
     try:
-        service = Service(cfg, opts)
+        service = Service(cfg, opts, stop=stop)
+    except StopRequested as exc:
+        print(f"rig run: {exc} before the control loop started; nothing recorded",
+              file=sys.stderr)
+        return 0
     except DesignMismatch as exc:
         print(f"rig run: design artifact: {exc}", file=sys.stderr)
         return 2
@@ -88,6 +96,16 @@ def run(args: argparse.Namespace) -> int:
     if service.recording_path is not None:
         print(f"rig run: recording to {service.recording_path}", file=sys.stderr)
     code = service.run()
+    if service.ticks_run == 0:
+        print(f"rig run: stopped by {service.stop_signal or 'request'} before the control "
+              "loop started; nothing recorded", file=sys.stderr)
+    elif service.stop_signal:
+        rec = service.recorder
+        note = "" if rec is None else (f"; recording {service.recording_path}: {rec.error}"
+                                       if rec.error else
+                                       f"; recording {service.recording_path} complete")
+        print(f"rig run: stopped by {service.stop_signal} after {service.ticks_run} ticks"
+              + note, file=sys.stderr)
     if args.json:
         status = service.loop.status()
         status["exit_reason"] = service.exit_reason
