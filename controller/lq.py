@@ -135,19 +135,33 @@ def dlqr_cross(Ad: FloatArray, Bd: FloatArray, Qd: FloatArray, Rd: float,
     """Discrete LQR with cross term: (K (n,), P (n, n)) for u = -K z.
 
     The input is rescaled to unit cost weight before the DARE (rho3 = 1e-8 makes Rd tiny
-    next to Qd in SI units); the gain is scaled back.  Raises ``ValueError`` if the DARE
-    has no stabilising solution.
+    next to Qd in SI units) and the state by the diagonal similarity z = T z~ that
+    balances Ad (``scipy.linalg.matrix_balance``, powers of two: exact; SI states span
+    metres to newtons, and with the actuator's pending commands the pencil is otherwise
+    too ill-conditioned for the QZ reordering); gain and P are transformed back.  If
+    scipy's own pencil balancing still leaves the QZ reordering ill-conditioned (some
+    actuated problems with D >= 2), the DARE is solved again without it.  Raises
+    ``ValueError`` if the DARE has no stabilising solution.
     """
     n = Ad.shape[0]
+    _, (t, _) = scipy.linalg.matrix_balance(Ad, permute=False, separate=True)
+    t_inv = 1.0 / t
     scale = 1.0 / np.sqrt(Rd)  # u = scale * v  ->  cost weight on v is 1
-    Bv = Bd.reshape(n, 1) * scale
-    Nv = Nd.reshape(n, 1) * scale
+    Ab = Ad * t_inv[:, None] * t[None, :]
+    Qb = Qd * t[:, None] * t[None, :]
+    Bv = (Bd * t_inv).reshape(n, 1) * scale
+    Nv = (Nd * t).reshape(n, 1) * scale
     try:
-        P = scipy.linalg.solve_discrete_are(Ad, Bv, Qd, np.array([[1.0]]), s=Nv)
-    except (np.linalg.LinAlgError, ValueError) as exc:
-        raise ValueError(f"LQ DARE has no stabilising solution ({exc})") from exc
-    Kv = np.linalg.solve(np.array([[1.0]]) + Bv.T @ P @ Bv, Bv.T @ P @ Ad + Nv.T)
-    K = (Kv * scale).reshape(n)
+        Pb = scipy.linalg.solve_discrete_are(Ab, Bv, Qb, np.array([[1.0]]), s=Nv)
+    except (np.linalg.LinAlgError, ValueError):
+        try:
+            Pb = scipy.linalg.solve_discrete_are(Ab, Bv, Qb, np.array([[1.0]]), s=Nv,
+                                                 balanced=False)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            raise ValueError(f"LQ DARE has no stabilising solution ({exc})") from exc
+    Kv = np.linalg.solve(np.array([[1.0]]) + Bv.T @ Pb @ Bv, Bv.T @ Pb @ Ab + Nv.T)
+    K = (Kv * scale).reshape(n) * t_inv
+    P = Pb * t_inv[:, None] * t_inv[None, :]
     rho = float(np.max(np.abs(np.linalg.eigvals(Ad - np.outer(Bd, K)))))
     if not rho < 1.0:
         raise ValueError(f"LQ closed loop not stable (spectral radius {rho:.6f})")
