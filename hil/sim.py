@@ -219,7 +219,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
     if controller is not None:
         from controller.force_loop import PIForceLoop
         controller.reset()
-        pi = PIForceLoop(cfg.force_loop, dt)
+        pi = PIForceLoop.from_config(cfg)
         ctrl_step = controller.step
     tr: dict[str, FloatArray] = {k: np.zeros(n) for k in TRACE_KEYS}
     weights_tr: FloatArray | None = None
@@ -262,7 +262,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
                 if delay_ref:
                     queue.append(fref)
                     fref = queue.pop(0)
-                spool = pi.step(fref, rd.force_n)
+                spool = pi.step(fref, rd.force_n, rd.rattlespace_m)
                 bypass = False
             if weights_tr is not None and q_tr is not None:
                 weights_tr[k] = getattr(controller, "firing_weight")  # noqa: B009

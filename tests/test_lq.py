@@ -109,9 +109,9 @@ def test_lq_gain_matches_riccati_iteration() -> None:
 @pytest.mark.parametrize("delay_ticks", [2, 3])
 def test_actuated_gain_with_longer_delays_is_the_riccati_fixed_point(delay_ticks: int
                                                                      ) -> None:
-    """With D >= 2 pending commands the DARE pencil of the actuated problem is badly
-    conditioned; ``dlqr_cross`` balances the state first.  The gain is the fixed point
-    of the plain Riccati recursion."""
+    """With the flow feedforward and D >= 2 pending commands the DARE pencil needs the
+    state balancing (and here scipy's second attempt) of ``dlqr_cross``; the gain is the
+    fixed point of the plain Riccati recursion all the same."""
     from controller.actuator import servo_model
     from controller.lq import actuated_lq_gain, actuated_lq_problem
 

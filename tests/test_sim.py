@@ -144,9 +144,11 @@ class _Scripted:
         return self._fault
 
 
-def _replay_pi(force_ref: np.ndarray, meas_force: np.ndarray) -> np.ndarray:
-    pi = PIForceLoop(CFG.force_loop, DT)
-    return np.array([pi.step(r, f) for r, f in zip(force_ref, meas_force, strict=True)])
+def _replay_pi(force_ref: np.ndarray, meas_force: np.ndarray,
+               meas_rattlespace: np.ndarray) -> np.ndarray:
+    pi = PIForceLoop.from_config(CFG)
+    return np.array([pi.step(r, f, x) for r, f, x in zip(force_ref, meas_force,
+                                                          meas_rattlespace, strict=True)])
 
 
 @pytest.mark.parametrize("delay_point", ["spool", "force_ref"])
@@ -159,7 +161,8 @@ def test_delay_point_delays_exactly_what_it_names(delay_point: str) -> None:
     tr = run_closed_loop(CFG, road, _Scripted(seq), delay_ticks=d,
                          delay_point=delay_point).traces
     fref, spool, computed = tr["force_ref_n"], tr["spool_cmd"], tr["spool_computed"]
-    np.testing.assert_array_equal(computed, _replay_pi(fref, tr["meas_force_n"]))
+    np.testing.assert_array_equal(computed, _replay_pi(fref, tr["meas_force_n"],
+                                                       tr["meas_rattlespace_m"]))
     if delay_point == "spool":
         np.testing.assert_array_equal(fref, seq)
         np.testing.assert_array_equal(spool[d:], computed[:-d])
