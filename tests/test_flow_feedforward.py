@@ -4,7 +4,7 @@ Independent references: the emulator's valve law (``hil/hydraulics.py``) for the
 feedforward must supply at any load pressure; scipy's ``lfilter`` for the rate filter;
 the continuous closed form of the linearised actuator under the PI for the apparent
 damping it leaves; the plain-Python ``FlowFeedforward`` against its numba twin in the bank
-kernel.
+kernel; the nonlinear emulated rig for the zero-force run.
 """
 
 from __future__ import annotations
@@ -206,3 +206,19 @@ def test_feedforward_makes_the_closed_actuator_transparent() -> None:
     on = _apparent_damping(1.0, f)
     assert np.all(np.abs(on) < 0.25 * np.abs(off))
     assert abs(_apparent_damping(1.0, np.array([0.5]))[0]) < 20.0
+
+
+def test_zero_force_run_costs_about_passive_on_the_rough_course() -> None:
+    """Nonlinear emulated rig, 10 s rough course at 25 mph: force reference 0 with the
+    valve closed is within 5 % of passive with the feedforward, ~3x passive without."""
+    from hil.roads import make_road
+    from hil.sim import simulate
+
+    road = make_road("rough-course", 11.176, 10.0, DT, 1)
+    passive = simulate(CFG, road, "passive", seed=1).metrics["absorbed_power"]
+    on = simulate(CFG, road, "zero-force", seed=1).metrics
+    off = simulate(CFG.replace(force_loop={"flow_feedforward_gain": 0.0}), road,
+                   "zero-force", seed=1).metrics
+    assert on["n_faults"] == 0.0 and on["unstable"] == 0.0
+    assert on["absorbed_power"] < 1.05 * passive
+    assert off["absorbed_power"] > 2.0 * passive

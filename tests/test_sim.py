@@ -239,6 +239,32 @@ def test_bad_arguments() -> None:
         simulate(CFG, make_road("bump", SPEED_25MPH, 0.1, 2e-3), "passive")
 
 
+def test_skyhook_and_zero_force_by_name() -> None:
+    """``simulate`` runs skyhook with its tuned gains and zero-force (bypass closed, force
+    reference 0 through the same force loop: the zero-gain skyhook, bit for bit)."""
+    from hil.sim import ZeroForceController
+    from hil.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
+
+    road = make_road("rough-course", SPEED_25MPH, 1.0, DT, seed=4)
+    sky = simulate(CFG, road, "skyhook", seed=2)
+    want = run_closed_loop(CFG, road, SkyhookController(CFG, DEFAULT_GAINS), seed=2)
+    assert sky.controller == "skyhook"
+    np.testing.assert_array_equal(sky.traces["spool_cmd"], want.traces["spool_cmd"])
+    zero = simulate(CFG, road, "zero-force", seed=2)
+    ref = run_closed_loop(CFG, road, SkyhookController(CFG, SkyhookGains(0.0, 0.0, 0.0)),
+                          seed=2)
+    assert zero.controller == "zero-force"
+    assert np.all(zero.traces["force_ref_n"] == 0.0)
+    np.testing.assert_array_equal(zero.traces["spool_cmd"], ref.traces["spool_cmd"])
+    assert np.any(zero.traces["spool_cmd"] != 0.0)        # the valve is driven, closed
+    assert zero.metrics["n_faults"] == 0.0 and zero.metrics["force_rms_n"] > 0.0
+    z = ZeroForceController()
+    nan = SensorReading(math.nan, 0.0, 0.0, 0)
+    assert z.step(nan, RigPlant(CFG)) == 0.0 and z.fault
+    z.reset()
+    assert not z.fault
+
+
 def test_cli_json_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "--road", "bump", "--duration", "1", "--controller", "passive",
                  "--json"]) == 0
@@ -249,4 +275,10 @@ def test_cli_json_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "--road", "bump", "--duration", "1", "--weights", "7"]) == 2
     assert main(["sim", "--road", "bump", "--duration", "0.5", "--controller", "all"]) == 0
     table = capsys.readouterr().out
-    assert all(c in table for c in ("passive", "lqg", "fuzzy", "bayes", "moving"))
+    assert all(c in table for c in ("passive", "zero-force", "skyhook", "lqg", "fuzzy",
+                                    "bayes", "moving"))
+    for c in ("zero-force", "skyhook"):
+        assert main(["sim", "--road", "rough-course", "--duration", "1", "--controller", c,
+                     "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["n_faults"] == 0.0 and out["force_rms_n"] > 0.0
