@@ -111,6 +111,26 @@ def test_select_gains_rules() -> None:
 # -------------------------------------------------------------------------- full state
 
 
+def test_default_skyhook_gains_are_a_grid_point() -> None:
+    from hil.skyhook import DEFAULT_GAINS, TUNING_GRID
+    assert (DEFAULT_GAINS.c_sky_ns_per_m, DEFAULT_GAINS.c_ground_ns_per_m,
+            DEFAULT_GAINS.damper_cancel) in TUNING_GRID
+
+
+@pytest.mark.slow
+def test_default_skyhook_gains_are_the_search_result() -> None:
+    """``DEFAULT_GAINS`` is what the study's skyhook search (rough course, road seed 101,
+    :data:`hil.skyhook.TUNING_GRID`) picks with the default configuration."""
+    from hil.skyhook import DEFAULT_GAINS
+    from hil.study.matrix import plan, run_cases, tune_cases
+
+    cases = tune_cases(plan(False))
+    rows = run_cases(cases, CFG, 2, False, "skyhook search")
+    add_ratios(rows, cases)
+    sky = [r for r, c in zip(rows, cases, strict=True) if c.controller == "skyhook"]
+    assert select_gains(sky) == DEFAULT_GAINS
+
+
 def test_fullstate_force_is_the_lq_law() -> None:
     design = cached_design(CFG)
     fs = FullStateLQ(design, CFG, weight_set=2)
