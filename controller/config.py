@@ -217,8 +217,9 @@ class ForceLoopConfig:
     """PI force inner loop for the servo valve (output: normalised spool command)."""
 
     kp_per_n: float = _f(1.0e-4, lo=0.0, hi=1.0,
-                         doc="force-loop crossover ~30 Hz; phase margin ~69/58/47 deg at 0/1/2 "
-                             "ticks of loop delay (controller/margins.py, docs/design.md 7)")
+                         doc="force-loop crossover ~31 Hz; phase margin there ~89/78/67 deg at "
+                             "0/1/2 ticks of loop delay with the flow feedforward, 72/61/50 "
+                             "without (controller/margins.py, docs/design.md 7)")
     ki_per_ns: float = _f(0.002, lo=0.0, hi=1e3,
                           doc="integral corner ki/kp = 20 rad/s, a decade below crossover")
     output_limit: float = _f(1.0, lo=0.0, hi=1.0, lo_open=True)
