@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.actuator import SERVO_MODEL_SIZE
 from controller.config import RigConfig, config_hash, config_to_toml, design_config_hash
 from controller.kernels import MAX_DELAY
 
@@ -35,7 +36,9 @@ __all__ = [
 ]
 
 #: Bumped whenever a field is added, removed or changes meaning.
-ARTIFACT_VERSION = 2
+#: 3: ``servo_model`` carries the force loop's flow feedforward, ``actuator_gain`` a gain
+#: on its rate-filter state (the gains are designed for the compensated actuator).
+ARTIFACT_VERSION = 3
 
 FloatArray = NDArray[np.float64]
 
@@ -124,8 +127,8 @@ def _expected_shapes(d: Design) -> dict[str, tuple[int, ...]]:
         "innovation_cov_inv": (J, S, 2, 2), "innovation_logdet": (J, S),
         "filter_A": (J, S, 4, 4), "filter_By": (J, S, 4, 2), "filter_Bu": (J, S, 4),
         "filter_b": (J, S, 4), "noise_speeds_mps": (Ns,), "noise_roughness_gd": (Nr,),
-        "lq_gain": (W, J, 6), "actuator_gain": (W, J, 2 + d.compute_delay_ticks),
-        "servo_model": (5,),
+        "lq_gain": (W, J, 6), "actuator_gain": (W, J, 3 + d.compute_delay_ticks),
+        "servo_model": (SERVO_MODEL_SIZE,),
         "human_filter_Ad": (2, 2), "human_filter_Bd": (2,),
         "human_filter_Cd": (2,), "fuzzy_q_grid": (G,), "fuzzy_weight_curve": (G,),
     }
@@ -133,10 +136,12 @@ def _expected_shapes(d: Design) -> dict[str, tuple[int, ...]]:
 
 def _validate(d: Design) -> None:
     sm = getattr(d, "servo_model", None)
-    if not (isinstance(sm, np.ndarray) and sm.shape == (5,) and np.all(np.isfinite(sm))):
-        raise DesignMismatch("field 'servo_model' must be 5 finite numbers")
+    if not (isinstance(sm, np.ndarray) and sm.shape == (SERVO_MODEL_SIZE,)
+            and np.all(np.isfinite(sm))):
+        raise DesignMismatch(f"field 'servo_model' must be {SERVO_MODEL_SIZE} finite numbers")
     if not (0.0 <= sm[0] < 1.0 and sm[1] >= 0.0 and sm[2] > 0.0 and sm[3] > 0.0
-            and sm[4] == round(sm[4]) and 0 <= sm[4] <= MAX_DELAY):
+            and sm[4] == round(sm[4]) and 0 <= sm[4] <= MAX_DELAY
+            and sm[5] >= 0.0 and 0.0 < sm[6] <= 1.0 and sm[7] > 0.0 and 0.0 < sm[8] <= 1.0):
         raise DesignMismatch(f"field 'servo_model' out of range: {sm.tolist()}")
     for name, shape in _expected_shapes(d).items():
         arr = getattr(d, name)

@@ -6,12 +6,14 @@ Per tick, with y = [rattlespace + M g / K, accel] and u = the measured actuator 
     q_j  = r_j' F_j^-1 r_j                                (4.8, the likelihood quotient)
     x⁺_j = x⁻_j + L_j r_j                                 (3.5, steady-state gain)
     x⁻_j <- A_j x⁻_j + By_j y + Bu_j u + b_j              (fused 3.5 + 3.7, selected noise entry)
-    u_j  = -K_w,j [x⁺_j - x̄_j; x_f; x̂_v; u; s_pending]   (zero for the airborne model)
+    u_j  = -K_w,j [x⁺_j - x̄_j; x_f; x̂_v; u; w; s_pending]   (zero for the airborne model)
     x_f  <- Ad x_f + Bd accel                             (F(s); u_j uses x_f before the update)
-    x̂_v, s_pending <- spool model (controller/actuator.py) driven by the blended output
+    x̂_v, w, s_pending <- spool model (controller/actuator.py) driven by the blended output
+                         and the rattlespace (flow feedforward of the force loop)
 
-The actuator part of the gain (spool estimate x̂_v, measured force u, the D spool commands
-still on their way to the valve) is zero for ``design.actuator_model = "ideal"``.
+The actuator part of the gain (spool estimate x̂_v, measured force u, the state w of the
+force loop's rate filter, the D spool commands still on their way to the valve) is zero
+for ``design.actuator_model = "ideal"``.
 
 then the model forces are blended: FUZZY -- firing weight f_j = tabulated App. A curve at
 q_j, normalised over the contributing models (if none fires: ``no_fire_fallback``,
@@ -49,6 +51,12 @@ from controller.config import RigConfig, default_config, parse_config
 from controller.kernels import (
     F_ALPHA,
     F_DIVQ,
+    F_FFA,
+    F_FFB,
+    F_FFC,
+    F_FFFLOOR,
+    F_FFSTALL,
+    F_FFW,
     F_FORGET,
     F_GOFF,
     F_GON,
@@ -256,6 +264,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     alpha = fv[F_ALPHA]
     nact = iv[I_NACT]
     nd = iv[I_DELAY]
+    if math.isnan(fv[F_FFW]):           # first reading since reset: rate filter at rest
+        fv[F_FFW] = -fv[F_FFB] * rattlespace_m
     for a in range(nact):
         j = iv[IV_ACT + a]
         st[j, S_CONTRIB] = 0.0
@@ -282,9 +292,10 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         u = 0.0
         if vec[j, V_AIR] == 0.0:
             u = -(vec[j, V_KF] * xf0 + vec[j, V_KF + 1] * xf1)
-            u -= vec[j, V_KA] * fv[F_XV] + vec[j, V_KA + 1] * u_in
+            u -= vec[j, V_KA] * fv[F_XV] + vec[j, V_KA + 1] * u_in \
+                + vec[j, V_KA + 2] * fv[F_FFW]
             for i in range(nd):
-                u -= vec[j, V_KA + 2 + i] * fv[F_PEND + i]
+                u -= vec[j, V_KA + 3 + i] * fv[F_PEND + i]
             for i in range(4):
                 u -= mat[j, i, M_KX] * (fv[F_SCR + i] - mat[j, i, M_XBAR])
             if not math.isfinite(u):
@@ -397,7 +408,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     if not math.isfinite(out):
         out = 0.0
         flags |= _NONFINITE_STATE
-    servo_update(fv, nd, out, force_meas_n)
+    servo_update(fv, nd, out, force_meas_n, rattlespace_m)
     if blend == _MOVING:
         tire_load_update(fv, iv, rattlespace_m, accel_mps2)
         supervise(st, active, fv, iv, nbr, vec, mat)
@@ -460,6 +471,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_XF] = 0.0
     fv[F_XF + 1] = 0.0
     fv[F_XV] = 0.0
+    fv[F_FFW] = np.nan
     for i in range(MAX_DELAY):
         fv[F_PEND + i] = 0.0
     for i in range(4):
@@ -625,6 +637,8 @@ class BankRuntime:
             raise ValueError(f"design compute delay {n_delay} ticks: the runtime supports "
                              f"at most {MAX_DELAY}")
         fv[F_SDECAY], fv[F_SKP], fv[F_SFLIM], fv[F_SOLIM] = design.servo_model[:4]
+        fv[F_FFC], fv[F_FFA], fv[F_FFSTALL], fv[F_FFFLOOR] = design.servo_model[5:9]
+        fv[F_FFB] = fv[F_FFA] / dt
         tau = mb.smoothing_time_s
         fv[F_ALPHA] = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
         fv[F_PFLOOR] = prob_floor

@@ -264,13 +264,29 @@ class ForceLoopConfig:
     """PI force inner loop for the servo valve (output: normalised spool command)."""
 
     kp_per_n: float = _f(1.0e-4, lo=0.0, hi=1.0,
-                         doc="force-loop crossover ~30 Hz; phase margin ~69/58/47 deg at 0/1/2 "
-                             "ticks of loop delay (controller/margins.py, docs/design.md 7)")
+                         doc="force-loop crossover ~31 Hz; phase margin there ~89/78/67 deg at "
+                             "0/1/2 ticks of loop delay with the flow feedforward, 72/61/50 "
+                             "without (controller/margins.py, docs/design.md 7)")
     ki_per_ns: float = _f(0.002, lo=0.0, hi=1e3,
                           doc="integral corner ki/kp = 20 rad/s, a decade below crossover")
     output_limit: float = _f(1.0, lo=0.0, hi=1.0, lo_open=True)
     force_limit_n: float = _f(8000.0, lo=0.0, hi=1e6, lo_open=True,
                               doc="force reference saturation")
+    flow_feedforward_gain: float = _f(1.0, lo=0.0, hi=1.25,
+                                      doc="valve flow feedforward: fraction of the piston "
+                                          "flow A x_p' (x_p' from the differentiated LVDT) "
+                                          "the spool command supplies (Alleyne & Hedrick's "
+                                          "compensation; 1 = full, 0 = off, above 1 "
+                                          "the oil column acts as a negative spring; "
+                                          "controller/actuator.py, docs/design.md 7)")
+    rattle_rate_lowpass_hz: float = _f(150.0, lo=1.0, hi=1e5,
+                                       doc="corner of the first-order low-pass on the "
+                                           "differentiated LVDT reading that feeds the "
+                                           "flow feedforward")
+    min_pressure_drop_fraction: float = _f(0.1, lo=0.0, hi=1.0, lo_open=True,
+                                           doc="floor of the valve pressure drop "
+                                               "(Ps - sgn(x_v) P) / Ps in the feedforward's "
+                                               "sqrt law (bounds the spool near stall)")
 
 
 @dataclass(frozen=True)

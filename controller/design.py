@@ -96,7 +96,7 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
     fb = np.zeros((J, S, 4))
     servo = servo_model(cfg)
     gains = np.zeros((W, J, 6))
-    act_gains = np.zeros((W, J, 2 + servo.delay_ticks))
+    act_gains = np.zeros((W, J, 3 + servo.delay_ticks))
     eq = np.full((J, 4), np.nan)
     for j, md in enumerate(mds):
         if md.model.equilibrium is not None:

@@ -10,8 +10,9 @@ the runtime packs its data into six buffers instead of ~30 named arrays:
     reset it -- its LQ gain is zero).
 ``vec`` (J, VEC_COLS) float: [0:2] D_meas, [2:6] F^-1 row major, [6] log|F|,
     [7:9] human-filter part of the LQ gain, [9] airborne (1.0/0.0),
-    [10] log-likelihood constant -(m/2) log 2π - ½ log|F|, [11:13 + MAX_DELAY] the
-    actuator part of the gain: spool estimate, measured force, pending spool commands.
+    [10] log-likelihood constant -(m/2) log 2π - ½ log|F|, [11:14 + MAX_DELAY] the
+    actuator part of the gain: spool estimate, measured force, state w of the flow
+    feedforward's rate filter, pending spool commands.
 ``st`` (J, ST_COLS) float, per-model state (the public (J,) views point into it).
 ``active`` (J,) bool: the filters that run this tick.
 ``fv`` float: scalar parameters, then scalar state (incl. the moving bank's tire-contact
@@ -30,6 +31,7 @@ Everything the kernels touch is preallocated here; the kernels allocate nothing.
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum, IntFlag
 
 import numba as nb
@@ -66,7 +68,7 @@ MAT_COLS = 14
 # --- vec columns
 V_D, V_FINV, V_LOGDET, V_KF, V_AIR, V_LLC, V_KA = 0, 2, 6, 7, 9, 10, 11
 MAX_DELAY = 4       # largest design.compute_delay_ticks the runtime supports
-VEC_COLS = V_KA + 2 + MAX_DELAY
+VEC_COLS = V_KA + 3 + MAX_DELAY
 # --- st columns
 S_XPRIOR, S_XPOST, S_Q, S_W, S_P, S_U = 0, 4, 8, 9, 10, 11
 S_QS, S_F, S_CONTRIB, S_BAD = 12, 13, 14, 15
@@ -106,6 +108,13 @@ F_SFLIM = 66        # force reference limit [N]
 F_SOLIM = 67        # spool command limit
 F_XV = 68           # spool position estimate
 F_PEND = 69         # (MAX_DELAY) spool commands not yet at the valve, newest first
+# --- fv: flow feedforward of the force loop (controller/actuator.py FlowFeedforward)
+F_FFC = 73          # c, spool per m/s of extension rate at zero load (0 = off)
+F_FFA = 74          # a, coefficient of the low-pass on the differentiated LVDT
+F_FFB = 75          # b = a / T [1/s]
+F_FFSTALL = 76      # stall force A Ps [N]
+F_FFFLOOR = 77      # floor of the relative valve pressure drop
+F_FFW = 78          # w, state of the rate filter [m/s]; NaN = no reading since reset
 # --- fv: tire-contact test of the moving bank (controller/moving_bank.py)
 F_LOFF = 80         # lift-off CUSUM reference: estimated tire load / static load
 F_LON = 81          # touch-down CUSUM reference (F_LOFF / hysteresis ratio)
@@ -230,13 +239,25 @@ def deactivate(j: int, st: np.ndarray, active: np.ndarray, iv: np.ndarray) -> No
 
 
 @nb.njit(cache=True, nogil=True)
-def servo_update(fv: np.ndarray, nd: int, force_ref_n: float, force_meas_n: float) -> None:
+def servo_update(fv: np.ndarray, nd: int, force_ref_n: float, force_meas_n: float,
+                 rattlespace_m: float) -> None:
     """Advance the spool model by one tick after the force reference went out:
-    s_k = clip(kp (clip(fref) - F_meas)), the valve gets s_{k-D}, x̂_v follows it (ZOH)."""
+    s_k = clip(kp (clip(fref) - F_meas) + s_ff), the valve gets s_{k-D}, x̂_v follows it
+    (ZOH).  s_ff is the force loop's flow feedforward (``FlowFeedforward.step``), its
+    rate-filter state w (F_FFW) advanced here; the caller initialises a NaN w."""
+    b = fv[F_FFB]
+    rho = fv[F_FFW] + b * rattlespace_m              # filtered rattlespace rate r'
+    fv[F_FFW] = (1.0 - fv[F_FFA]) * rho - b * rattlespace_m
+    ff = 0.0
+    v = -rho                                         # extension rate zs' - zu'
+    if v != 0.0 and fv[F_FFC] != 0.0:
+        sgn = 1.0 if v > 0.0 else -1.0
+        drop = max(1.0 - sgn * force_meas_n / fv[F_FFSTALL], fv[F_FFFLOOR])
+        ff = fv[F_FFC] * v / math.sqrt(drop)
     lim_f = fv[F_SFLIM]
     fr = min(max(force_ref_n, -lim_f), lim_f)
     lim = fv[F_SOLIM]
-    s = min(max(fv[F_SKP] * (fr - force_meas_n), -lim), lim)
+    s = min(max(fv[F_SKP] * (fr - force_meas_n) + ff, -lim), lim)
     if nd == 0:
         applied = s
     else:

@@ -7,8 +7,9 @@ Written straight from the thesis equations rather than from the fused kernel:
     q_j = r_j' F_j^-1 r_j                                      (4.8)
     x⁺_j = x⁻_j + L_j r_j                                      (3.5)
     x⁻_j(next) = Φ_j x⁺_j + Γu_j u + Γg_j g                    (3.7)
-    u_j = -K_j [x⁺_j - x̄_j; x_f; x̂_v; u; s_pending]            (LQ, App. A per model)
-    x̂_v, s_pending: the spool model of controller/actuator.py on the blended output
+    u_j = -K_j [x⁺_j - x̄_j; x_f; x̂_v; u; w; s_pending]         (LQ, App. A per model)
+    x̂_v, w, s_pending: the spool model of controller/actuator.py on the blended output,
+        w the force loop's rate filter (``FlowFeedforward.step``, plain Python)
     p_j: densities of Eq. 4.6 into Eq. 4.2 (:func:`controller.bayes.bayes_update_numpy`)
     f_j: ``np.interp`` on the App. A firing-weight table
 
@@ -25,6 +26,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.actuator import FlowFeedforward
 from controller.artifact import Design
 from controller.bayes import bayes_update_numpy
 from controller.config import RigConfig
@@ -96,6 +98,8 @@ class ReferenceBank:
                                      c.noise.nominal_speed_mps, c.noise.nominal_roughness_gd)
         self.w = int(weight_set)
         self.blending = Blending(int(blending))
+        c_ff, a_ff, stall, floor = (float(v) for v in d.servo_model[5:9])
+        self.ff = FlowFeedforward(c_ff, a_ff, float(dt), stall, floor)
         self.reset()
 
     def _neighbours(self) -> dict[int, list[int]]:
@@ -121,6 +125,7 @@ class ReferenceBank:
         self.active = np.zeros(J, dtype=bool)
         self.xf = np.zeros(2)
         self.xv = 0.0
+        self.rate_state = math.nan
         self.pending: list[float] = [0.0] * self.d.compute_delay_ticks
         self.xhat = self.xinit.copy()
         self.xhatm = self.xinit.copy()
@@ -207,6 +212,8 @@ class ReferenceBank:
         contrib = np.zeros(self.J, dtype=bool)
         bad = np.zeros(self.J, dtype=bool)
         K = d.lq_gain[self.w - 1]
+        if math.isnan(self.rate_state):
+            self.rate_state = self.ff.initial_state(rattlespace_m)
         self.n_updates = int(self.active.sum())
         with np.errstate(all="ignore"):
             for j in np.flatnonzero(self.active):
@@ -217,7 +224,8 @@ class ReferenceBank:
                 xn = d.Phi[j] @ xp + d.Gamma_u[j] * u_in + d.Gamma_g[j] * self.g
                 uj = 0.0 if d.airborne[j] else float(
                     -K[j] @ np.concatenate([xp - self.xbar[j], self.xf])
-                    - d.actuator_gain[self.w - 1, j] @ np.array([self.xv, u_in, *self.pending]))
+                    - d.actuator_gain[self.w - 1, j]
+                    @ np.array([self.xv, u_in, self.rate_state, *self.pending]))
                 if math.isnan(q) or not (np.all(np.isfinite(xp)) and np.all(np.isfinite(xn))
                                          and math.isfinite(uj)):
                     bad[j] = True
@@ -280,19 +288,20 @@ class ReferenceBank:
         if not math.isfinite(out):
             out = 0.0
             flags |= StepFlag.NONFINITE_STATE
-        self._servo(out, u_in)
+        self._servo(out, u_in, rattlespace_m)
         if moving:
             self._tire_load_update(rattlespace_m, accel_mps2)
             self._supervise()
         self.flags = flags
         return out
 
-    def _servo(self, force_ref_n: float, force_meas_n: float) -> None:
-        """Spool model (controller/actuator.py): the PI's proportional command, delayed by
-        D ticks, through the first-order spool."""
-        decay, kp, flim, olim, _ = (float(v) for v in self.d.servo_model)
-        s = float(np.clip(kp * (float(np.clip(force_ref_n, -flim, flim)) - force_meas_n),
-                          -olim, olim))
+    def _servo(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float) -> None:
+        """Spool model (controller/actuator.py): the PI's proportional command plus the
+        flow feedforward, delayed by D ticks, through the first-order spool."""
+        decay, kp, flim, olim = (float(v) for v in self.d.servo_model[:4])
+        s_ff, self.rate_state = self.ff.step(self.rate_state, rattlespace_m, force_meas_n)
+        s = float(np.clip(kp * (float(np.clip(force_ref_n, -flim, flim)) - force_meas_n)
+                          + s_ff, -olim, olim))
         self.pending.insert(0, s)
         applied = self.pending.pop()
         self.xv = decay * self.xv + (1.0 - decay) * applied

@@ -100,7 +100,8 @@ class Runtime(Protocol):
 
 
 class ForceLoop(Protocol):
-    def step(self, force_ref_n: float, force_meas_n: float) -> float: ...
+    def step(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float
+             ) -> float: ...
     def reset(self) -> None: ...
 
 
@@ -405,7 +406,7 @@ class ControlLoop:
             if mon.code is not _NONE:
                 self._latch(mon.code, mon.detail, now_ns)
             if lc.state is _ACTIVE:
-                spool = self.pi.step(force_ref, self.force_meas_n)
+                spool = self.pi.step(force_ref, self.force_meas_n, self.rattlespace_m)
                 mon.output(spool)
                 if mon.code is not _NONE:
                     self._latch(mon.code, mon.detail, now_ns)

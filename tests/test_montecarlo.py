@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -84,3 +85,8 @@ def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert "absorbed_power" in out and "unstable runs: none" in out
     assert (tmp_path / "montecarlo.png").exists()
     assert main(["montecarlo", "--runs", "2", "--road", "nowhere", "--no-progress"]) == 2
+    for c in ("zero-force", "skyhook"):
+        assert main(["montecarlo", "--runs", "2", "--duration", "1", "--road", "iso-B",
+                     "--controller", c, "--workers", "1", "--no-progress", "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["faulted_runs"] == [] and out["summary"]["force_rms_n"]["min"] > 0.0

@@ -346,30 +346,41 @@ def test_lift_off_on_default_noise_entry_switches_and_returns(
     """Regression: with the default ISO D noise entry the on-ground filters absorb a
     ~30-40 ms lift-off into their road-noise model (q stays below the learnt threshold),
     so the residual test alone switched late or never.  Closed loop on the nonlinear
-    plant, ISO D road at the nominal speed with a 60 mm pothole: one airborne phase that
-    starts while the wheel is still in the air and ends soon after touch-down."""
+    plant, ISO D road at the nominal speed with a 60 mm pothole: one airborne phase per
+    real lift-off (20+ ms; with the flow feedforward set 1 lets the wheel hop a second
+    time after the pothole), each starting while the tire is (nearly) unloaded and the
+    wheel not yet back, and ending soon after touch-down."""
     cfg, d = default_bank
     road = iso_road(cfg, "D", seed, 1.5, pothole=True)
     res = simulate(cfg, road, "moving", seed=seed, design=d)
     assert res.metrics["n_faults"] == 0
     tr = res.traces
+    v = cfg.vehicle
+    true_load = tr["tire_force_n"] / ((v.sprung_mass_kg + v.unsprung_mass_kg)
+                                      * v.gravity_mps2)
     i0 = round(POTHOLE_AT_M / road.speed_mps / d.dt_s)
     window = slice(i0 - 100, i0 + 250)
-    off = np.flatnonzero(tr["off_ground_s"][window] > 0) + window.start
-    first, last = int(off[0]), int(off[-1])
-    assert last - first >= 25                         # a real lift-off of 25+ ms
+    off = (tr["off_ground_s"][window] > 0).astype(int)
+    starts = np.flatnonzero(np.diff(np.concatenate([[0], off])) == 1) + window.start
+    ends = np.flatnonzero(np.diff(np.concatenate([off, [0]])) == -1) + window.start
+    lift_offs = [(int(a), int(b)) for a, b in zip(starts, ends, strict=True) if b - a >= 20]
+    assert lift_offs                                   # the pothole throws the wheel
     rb = _replay(d, cfg, road, tr)
     air = rb["air"]
     edges = np.flatnonzero(np.diff(air[window].astype(int))) + window.start + 1
-    assert edges.size == 2, edges                      # one airborne phase, no chatter
-    up, down = int(edges[0]), int(edges[1])
-    assert first <= up <= first + 20 and up < last     # detected while still in the air
-    assert last < down <= last + 30                    # back on the ground after touch-down
+    assert edges.size == 2 * len(lift_offs), (edges, lift_offs)   # no chatter
     dwell = round(cfg.moving_bank.dwell_time_s / d.dt_s)
-    assert down - up >= dwell
-    assert np.all(rb["updates"][up + 1:down] == 2)     # airborne filter + sentinel
+    for (first, last), (up, down) in zip(lift_offs, edges.reshape(-1, 2), strict=True):
+        assert true_load[max(0, up - 30):up + 1].min() < 0.1, up   # tire (nearly) unloaded
+        assert up <= first + 20 and up < last          # detected while still in the air
+        assert last < down <= last + 30                # back on the ground after touch-down
+        assert down - up >= dwell
+        assert np.all(rb["updates"][up + 1:down] == 2)     # airborne filter + sentinel
     k = cfg.moving_bank.active_models
-    assert np.all(rb["updates"][down + 1:window.stop] == k)
+    downs = edges[1::2]
+    next_ups = [*edges[2::2], window.stop]
+    for down, nxt in zip(downs, next_ups, strict=True):
+        assert np.all(rb["updates"][down + 1:nxt] == k)     # the on-ground set again
 
 
 @pytest.mark.parametrize(("road_class", "seed"), [("C", 1), ("C", 2), ("D", 2), ("D", 3)])
@@ -377,8 +388,9 @@ def test_no_false_lift_off_on_rough_roads(default_bank: tuple[RigConfig, Design]
                                           road_class: str, seed: int) -> None:
     """ISO C / D roads at the nominal speed, 5 s closed loop: no airborne phase unless the
     tire really (nearly) unloaded -- true tire load below 10 % of the static load within
-    the 30 ms before the switch.  On class C the tire never gets near that: no switch.
-    The load estimate tracks the true tire load (Delta ticks late)."""
+    the 30 ms before the switch.  On class C the tire never gets near that (it keeps
+    15 %+ of its static load): no switch.  The load estimate tracks the true tire load
+    (Delta ticks late)."""
     cfg, d = default_bank
     road = iso_road(cfg, road_class, seed, 5.0, pothole=False)
     res = simulate(cfg, road, "moving", seed=seed, design=d)
@@ -392,7 +404,7 @@ def test_no_false_lift_off_on_rough_roads(default_bank: tuple[RigConfig, Design]
     for up in ups:
         assert true_load[max(0, up - 30):up + 1].min() < 0.1, up
     if road_class == "C":
-        assert ups.size == 0 and true_load.min() > 0.2
+        assert ups.size == 0 and true_load.min() > 0.15
     lag = round(cfg.moving_bank.load_estimate_window_s / d.dt_s)
     err = rb["load"][100 + lag:] - true_load[100:-lag]
     on = ~rb["air"][100 + lag:]

@@ -545,7 +545,7 @@ def make_hil(design: Any, faults: FaultSchedule | None = None) -> HilPair:
     road = make_road("rough-course", 11.176, 2.0, CFG.sample_time_s, seed=3)
     node = RigNode(rig, CFG, road, faults)
     rt = BankRuntime(design, cfg=CFG)
-    loop = ControlLoop(CFG, ctl, rt, PIForceLoop(CFG.force_loop, CFG.sample_time_s),
+    loop = ControlLoop(CFG, ctl, rt, PIForceLoop.from_config(CFG),
                        warmup_ticks=20)
     return HilPair(node, loop, spy, [ctl, rig, spy], {})
 
