@@ -73,13 +73,14 @@ def dc_gain(cfg: RigConfig, d: Design, ws: int = 1) -> float:
 def test_bias_state_removes_the_negative_spring(designs: dict[str, tuple[RigConfig, Design]]
                                                ) -> None:
     """Without a bias state (thesis profile, velocity leak 0.1 Hz) the LQG compensator
-    holds a steady LVDT offset with about -0.92 K: statically it cancels 92 % of the
-    suspension spring, so any plant with K < ~0.92 K_nom has a negative net stiffness.
-    With the rattlespace-bias state the steady gain is 0: the static load is the spring's."""
+    holds a steady LVDT offset with a negative stiffness (-0.92 K with the gains of this
+    tree): statically it cancels most of the suspension spring, so a plant softer than
+    that has a negative net stiffness.  With the rattlespace-bias state the steady gain
+    is 0 whatever the LQ gains: the static load is the spring's."""
     for ws in (1, 2):
         g_thesis = dc_gain(*designs["thesis"], ws)
         g_default = dc_gain(*designs["default"], ws)
-        assert -1.0 * K_NOM < g_thesis < -0.85 * K_NOM, (ws, g_thesis / K_NOM)
+        assert g_thesis < -0.1 * K_NOM, (ws, g_thesis / K_NOM)
         assert abs(g_default) < 1e-6 * K_NOM, (ws, g_default / K_NOM)
 
 
@@ -119,11 +120,15 @@ def closed_loop_radius(cfg: RigConfig, d: Design, k_scale: float, ws: int = 1) -
 
 def test_soft_plants_keep_a_stable_slow_mode(designs: dict[str, tuple[RigConfig, Design]]
                                             ) -> None:
-    """The slow real pole the negative spring creates: unstable for K = 0.85 and 0.7 K_nom
-    without the bias state, stable with it (and both stable at K_nom)."""
-    for k in (0.85, 0.7):
-        assert closed_loop_radius(*designs["thesis"], k) > 1.0 + 1e-5, k
+    """The slow real pole the negative spring creates: without the bias state a plant
+    whose K is below the compensator's negative DC stiffness -G (0.92 K_nom here) has a
+    real closed-loop pole above 1; with the bias state the same plants, and one at half
+    the nominal stiffness, are stable (and both are at K_nom)."""
+    k_crit = -dc_gain(*designs["thesis"], 1) / K_NOM
+    for k in (0.95 * k_crit, 0.8 * k_crit):
+        assert closed_loop_radius(*designs["thesis"], k) > 1.0 + 1e-6, k
         assert closed_loop_radius(*designs["default"], k) < 1.0, k
+    assert closed_loop_radius(*designs["default"], 0.5) < 1.0
     assert closed_loop_radius(*designs["thesis"], 1.0) < 1.0 + 1e-9
     assert closed_loop_radius(*designs["default"], 1.0) < 1.0
 
