@@ -37,7 +37,9 @@ __all__ = [
 
 #: Bumped whenever a field is added, removed or changes meaning.
 #: 3: ``servo_model`` carries the force loop's flow feedforward, ``actuator_gain`` a gain
-#: on its rate-filter state (the gains are designed for the compensated actuator).
+#: on its rate-filter state (the gains are designed for the compensated actuator);
+#: ``bias_gain`` (measurement-bias states of the filters) and ``bump_stop`` (the stops as
+#: a known filter input) are new.
 ARTIFACT_VERSION = 3
 
 FloatArray = NDArray[np.float64]
@@ -63,6 +65,7 @@ class Design:
     D_meas: FloatArray
     y_offset: FloatArray
     kalman_gain: FloatArray
+    bias_gain: FloatArray
     innovation_cov: FloatArray
     innovation_cov_inv: FloatArray
     innovation_logdet: FloatArray
@@ -81,6 +84,7 @@ class Design:
     fuzzy_q_grid: FloatArray
     fuzzy_weight_curve: FloatArray
     static_rattlespace_m: float
+    bump_stop: FloatArray
     metadata: dict[str, Any]
 
     @property
@@ -123,7 +127,8 @@ def _expected_shapes(d: Design) -> dict[str, tuple[int, ...]]:
         "model_names": (J,), "airborne": (J,), "grid_index": (J, 2), "equilibrium": (J, 4),
         "Phi": (J, 4, 4), "Gamma_u": (J, 4), "Gamma_g": (J, 4),
         "C_meas": (J, 2, 4), "D_meas": (J, 2), "y_offset": (2,),
-        "kalman_gain": (J, Ns * Nr, 4, 2), "innovation_cov": (J, S, 2, 2),
+        "kalman_gain": (J, Ns * Nr, 4, 2), "bias_gain": (J, S, 2, 2),
+        "innovation_cov": (J, S, 2, 2),
         "innovation_cov_inv": (J, S, 2, 2), "innovation_logdet": (J, S),
         "filter_A": (J, S, 4, 4), "filter_By": (J, S, 4, 2), "filter_Bu": (J, S, 4),
         "filter_b": (J, S, 4), "noise_speeds_mps": (Ns,), "noise_roughness_gd": (Nr,),
@@ -131,6 +136,7 @@ def _expected_shapes(d: Design) -> dict[str, tuple[int, ...]]:
         "servo_model": (SERVO_MODEL_SIZE,),
         "human_filter_Ad": (2, 2), "human_filter_Bd": (2,),
         "human_filter_Cd": (2,), "fuzzy_q_grid": (G,), "fuzzy_weight_curve": (G,),
+        "bump_stop": (3,),
     }
 
 
@@ -164,6 +170,9 @@ def _validate(d: Design) -> None:
     ground = ~d.airborne
     if not np.all(np.isfinite(d.equilibrium[ground])):
         raise DesignMismatch("field 'equilibrium' has non-finite entries for on-ground models")
+    if not (d.bump_stop[0] >= 0.0 and d.bump_stop[1] < d.bump_stop[2]):
+        raise DesignMismatch(f"field 'bump_stop' out of range: {d.bump_stop.tolist()} "
+                             "(stiffness >= 0, rebound stop below the compression stop)")
     if np.any(np.diff(d.fuzzy_q_grid) <= 0.0):
         raise DesignMismatch("field 'fuzzy_q_grid' is not strictly increasing")
 

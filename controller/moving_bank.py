@@ -85,6 +85,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.kernels import (
+    F_BIAS,
     F_FORGET,
     F_GOFF,
     F_GON,
@@ -134,6 +135,8 @@ from controller.kernels import (
     M_XBAR,
     MODE_AIR,
     MODE_GROUND,
+    S_BA,
+    S_BR,
     S_P,
     S_QS,
     S_W,
@@ -402,4 +405,6 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
             for i in range(4):
                 fv[F_XDEV + i] = st[sentinel, S_XPOST + i] - mat[sentinel, i, M_XBAR]
                 fv[F_XDEVM + i] = st[sentinel, S_XPRIOR + i] - mat[sentinel, i, M_XBAR]
+            fv[F_BIAS] = st[sentinel, S_BR]
+            fv[F_BIAS + 1] = st[sentinel, S_BA]
             _move_to(sentinel, st, active, fv, iv, nbr, vec, mat)

@@ -13,7 +13,9 @@ Per tick k (controller period dt = 1 / sample rate):
 
 A controller fault (``fault``: StepFlag NONFINITE_* / DIVERGED of the bank) or a sensor
 status bit latches the safe state like the service does: bypass open, spool centred, for
-the rest of the run.  A non-finite plant state ends the run early and marks it unstable.
+the rest of the run.  A degraded bank (StepFlag.DEGRADED) is no fault: it keeps
+controlling with its conservative law (zero force reference, controller/monitor.py).
+A non-finite plant state ends the run early and marks it unstable.
 
 This module holds the one tick loop, :func:`run_closed_loop`, which takes the controller
 as an object::
@@ -131,12 +133,14 @@ class BankController:
         self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
                          | StepFlag.DIVERGED)
         self._no_rule = int(StepFlag.NO_RULE_FIRED)
+        self._degraded = int(StepFlag.DEGRADED)
         self.reset()
 
     def reset(self) -> None:
         self.rt.reset()
         self.flags = 0
         self.no_rule_ticks = 0
+        self.degraded_ticks = 0
         self.ticks = 0
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
@@ -145,6 +149,8 @@ class BankController:
         self.ticks += 1
         if flags & self._no_rule:
             self.no_rule_ticks += 1
+        if flags & self._degraded:
+            self.degraded_ticks += 1
         return u
 
     @property
@@ -152,9 +158,13 @@ class BankController:
         return bool(self.flags & self._mask)
 
     def diagnostics(self) -> dict[str, float]:
-        """Fraction of ticks in which no fuzzy rule fired (fallback force used)."""
-        return {"no_rule_fired_fraction": self.no_rule_ticks / self.ticks if self.ticks
-                else 0.0}
+        """Fractions of ticks in which no fuzzy rule fired (fallback force used) and in
+        which the estimator monitor had the bank degraded (conservative law), and the
+        number of degradations."""
+        n = self.ticks
+        return {"no_rule_fired_fraction": self.no_rule_ticks / n if n else 0.0,
+                "degraded_fraction": self.degraded_ticks / n if n else 0.0,
+                "degradations": float(self.rt.counters()["degradations"])}
 
     @property
     def firing_weight(self) -> FloatArray:

@@ -94,6 +94,9 @@ class FaultCode(IntEnum):
     SENSOR_STATUS = 13
     SHUTDOWN = 14
     SENSOR_FROZEN = 15
+    #: not a latched fault: ControllerStatus.ActiveFault while ACTIVE and the bank runs its
+    #: conservative law (StepFlag.DEGRADED); the lifecycle stays ACTIVE
+    ESTIMATOR_DEGRADED = 16
 
     @property
     def description(self) -> str:
