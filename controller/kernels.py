@@ -263,6 +263,19 @@ def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.
 
 
 @nb.njit(cache=True, nogil=True)
+def normalise_probabilities(st: np.ndarray, iv: np.ndarray) -> None:
+    """Rescale the MMAE probabilities of the running filters to sum 1 (after the running
+    set changed: leavers took their probability with them, newcomers brought 1/k)."""
+    n = iv[I_NACT]
+    total = 0.0
+    for a in range(n):
+        total += st[iv[IV_ACT + a], S_P]
+    for a in range(n):
+        j = iv[IV_ACT + a]
+        st[j, S_P] = st[j, S_P] / total if total > 0.0 else 1.0 / n
+
+
+@nb.njit(cache=True, nogil=True)
 def deactivate(j: int, st: np.ndarray, active: np.ndarray, iv: np.ndarray) -> None:
     """Switch filter j off: it does no work and contributes zero."""
     if active[j]:

@@ -394,6 +394,11 @@ class ReferenceBank:
         self.xv = decay * self.xv + (1.0 - decay) * applied
 
     # ------------------------------------------------------------------ moving bank
+    def _normalise_p(self) -> None:
+        tot = float(self.p[self.active].sum())
+        n = int(self.active.sum())
+        self.p[self.active] = self.p[self.active] / tot if tot > 0.0 else 1.0 / n
+
     def _move_to(self, centre: int) -> None:
         keep = self.order[centre][: self.k]
         qs0 = self.qs[centre]
@@ -403,6 +408,7 @@ class ReferenceBank:
         for j in keep:
             if not self.active[j]:
                 self._activate(j, qs0, 1.0 / self.k)
+        self._normalise_p()
         self.centre = centre
         self.since_recentre = 0
         self.probe_ptr = self.probe_cnt = 0
@@ -486,6 +492,7 @@ class ReferenceBank:
                                 worst = max(others, key=lambda j: self.qs[j])
                                 self._deactivate(worst)
                                 self._activate(cand, self.qs[self.centre], 1.0 / self.k)
+                                self._normalise_p()
                             break
         else:
             g = self.g_on + (self.load - self.load_on)
@@ -500,6 +507,7 @@ class ReferenceBank:
                 self.xdev = self.x_post[centre] - self.xbar[centre]
                 self.xdevm = self.x_prior[centre] - self.xbar[centre]
                 self.bias_blend = self.bias[centre].copy()
+                self.p[centre] = 1.0 / self.k       # rejoins the set like a newcomer
                 self._move_to(centre)
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import scipy.signal
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from controller.artifact import Design
@@ -243,23 +243,30 @@ def runtimes(smooth_design: Design) -> dict[Blending, BankRuntime]:
     return {b: BankRuntime(smooth_design, blending=b) for b in Blending}
 
 
+#: a 31 mm rebound step: the moving bank lifts off, and lands again on tick 20 -- the set
+#: that came back (the sentinel had p = 0 while airborne) once summed to p = 2/3
+LIFT_OFF_AND_LAND = [(-0.03125, 0.0, 0.0)] + [(0.0, 0.0, 0.0)] * 25
+
+
 @settings(max_examples=60, deadline=None, suppress_health_check=FIXTURE_OK)
 @given(st.lists(MODERATE, min_size=1, max_size=40), st.sampled_from(list(Blending)))
+@example(LIFT_OFF_AND_LAND, Blending.MOVING)
 def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRuntime],
                                               seq: list[tuple[float, float, float]],
                                               mode: Blending) -> None:
     rt = runtimes[mode]
     rt.reset()
     for r, a, f in seq:
-        switches = rt.counters()["set_switches"]
+        running = rt.active.copy()
         out = rt.step(r, a, f)
         assert math.isfinite(out)
         w, p = rt.firing_weight, rt.probability
         assert np.all((w >= 0.0) & (w <= 1.0)) and np.all((p >= 0.0) & (p <= 1.0))
         assert np.all(w[~rt.active] == 0.0) and np.all(p[~rt.active] == 0.0)
         assert np.sum(p) == pytest.approx(1.0, abs=1e-12)
-        if rt.counters()["set_switches"] != switches:
-            continue        # the moving bank switched sets after blending: new set unweighted
+        if np.any(rt.active != running):
+            continue        # the moving bank changed its set after blending (switch,
+            # re-centre or probe): the leavers' weights are gone, the newcomers unweighted
         if StepFlag.NO_RULE_FIRED in rt.flags:
             assert mode in (Blending.FUZZY, Blending.MOVING)
             assert np.sum(w) in (0.0, 1.0)
@@ -267,6 +274,29 @@ def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRunti
             assert np.sum(w) == pytest.approx(1.0, abs=1e-12)
         raw = rt.raw_firing_weight
         assert np.all((raw >= 0.0) & (raw <= 1.0))
+
+
+def test_moving_set_after_touch_down_has_a_probability_distribution(
+        smooth_design: Design, smooth_cfg: RigConfig) -> None:
+    """Regression (found by the property above): at touch-down the sentinel, kept at p = 0
+    while airborne, rejoined the on-ground set with the two newcomers at 1/3 each, so the
+    probabilities summed to 2/3.  The set now restarts uniform; the numba bank and the
+    plain-numpy reference agree tick by tick."""
+    rt = BankRuntime(smooth_design, blending=Blending.MOVING, cfg=smooth_cfg)
+    ref = ReferenceBank(smooth_design, blending=Blending.MOVING, cfg=smooth_cfg)
+    rt.reset()
+    landed = False
+    for r, a, f in LIFT_OFF_AND_LAND:
+        was_air = rt.counters()["set_switches"] % 2 == 1
+        out = rt.step(r, a, f)
+        assert out == pytest.approx(ref.step(r, a, f), rel=1e-9, abs=1e-6)
+        np.testing.assert_allclose(rt.probability, ref.p, rtol=1e-9, atol=1e-12)
+        assert np.sum(rt.probability) == pytest.approx(1.0, abs=1e-12)
+        if was_air and rt.counters()["set_switches"] == 2:
+            landed = True
+            k = int(rt.active.sum())
+            np.testing.assert_allclose(rt.probability[rt.active], 1.0 / k)
+    assert landed and rt.counters()["set_switches"] == 2
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=FIXTURE_OK)

