@@ -27,7 +27,8 @@ MMAE probabilities (:mod:`controller.bayes`); MOVING -- fuzzy within the moving 
 (:mod:`controller.moving_bank`); SINGLE -- one model, the plain LQG.  The blended force is
 multiplied by the force authority of the estimator monitor (:mod:`controller.monitor`:
 the window sum of min q against its chi-square levels; DEGRADED ramps it to 0, re-arming
-ramps it back).
+ramps it back), then by the end-stop guard (:mod:`controller.stop_guard`: a force toward a
+bump stop fades to 0 over ``design.stop_guard_m`` before it).
 
 Bayesian probabilities, raw firing weights and smoothed q are kept for every running
 filter in every mode (telemetry; a switch of blending starts warm).
@@ -75,6 +76,8 @@ from controller.kernels import (
     F_FORGET,
     F_GOFF,
     F_GON,
+    F_GUARD_S,
+    F_GUARD_W,
     F_HAD,
     F_HBD,
     F_HINC,
@@ -215,6 +218,7 @@ from controller.kernels import (
     deactivate,
     firing_weight,
     servo_update,
+    stop_guard,
 )
 from controller.monitor import monitor_settings
 from controller.moving_bank import (
@@ -551,7 +555,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         fv[F_XF] = 0.0
         fv[F_XF + 1] = 0.0
         flags |= _NONFINITE_STATE
-    out *= fv[F_AUTH]
+    out = stop_guard(fv, out * fv[F_AUTH], rattlespace_m)
     if not math.isfinite(out):
         out = 0.0
         flags |= _NONFINITE_STATE
@@ -623,6 +627,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_BIAS] = 0.0
     fv[F_BIAS + 1] = 0.0
     fv[F_STOP] = 0.0
+    fv[F_GUARD_S] = 1.0
     fv[F_MON_SUM] = 0.0
     fv[F_AUTH] = 1.0
     fv[F_AMEAN] = 0.0
@@ -808,6 +813,7 @@ class BankRuntime:
         fv[F_ALPHA] = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
         fv[F_PFLOOR] = prob_floor
         fv[F_BS_K], fv[F_BS_LO], fv[F_BS_HI] = design.bump_stop
+        fv[F_GUARD_W] = cfg_.design.stop_guard_m
         aw = cfg_.design.accel_mean_window_s
         fv[F_AMEAN_ALPHA] = 1.0 - math.exp(-dt / aw) if aw > 0.0 else 0.0
         fw = cfg_.fuzzy.window_s
@@ -1017,6 +1023,12 @@ class BankRuntime:
     def bump_stop_force(self) -> float:
         """The bump-stop force of the last tick, from the LVDT reading [N]."""
         return float(self._fv[F_STOP])
+
+    @property
+    def stop_guard(self) -> float:
+        """The end-stop guard's factor on the force of the last tick (1: not acting;
+        controller/stop_guard.py)."""
+        return float(self._fv[F_GUARD_S])
 
     @property
     def bias_estimate(self) -> tuple[float, float]:

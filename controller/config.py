@@ -211,6 +211,11 @@ class DesignConfig:
                                             "mean of the two readings at stop contact); the "
                                             "stops engage +/- vehicle.rattlespace_travel_m "
                                             "about it")
+    stop_guard_m: float = _f(0.02, lo=0.0, hi=1.0,
+                             doc="end-stop guard: within this distance of a bump stop (LVDT "
+                                 "frame, as bump_stop_centre_lvdt_m) the bank's force toward "
+                                 "that stop fades linearly to 0 at the stop; a force away "
+                                 "from it is untouched (0 = off; docs/design.md §9.6)")
     actuator_model: str = _f("hydraulic", choices=("hydraulic", "ideal"),
                              doc="plant the LQ gains are designed on: 'hydraulic' = plant + "
                                  "linearised servo-valve/actuator under the PI's proportional "

@@ -17,7 +17,8 @@ the runtime packs its data into six buffers instead of ~30 named arrays:
 ``st`` (J, ST_COLS) float, per-model state (the public (J,) views point into it).
 ``active`` (J,) bool: the filters that run this tick.
 ``fv`` float: scalar parameters, then scalar state (incl. the moving bank's tire-contact
-    test, F_LOFF..F_LC, the bump-stop input F_BS_*, the estimator monitor F_MON_*), then
+    test, F_LOFF..F_LC, the bump-stop input F_BS_*, the estimator monitor F_MON_*, the
+    end-stop guard F_GUARD_*), then
     the fuzzy table, the residual-history histogram, the tire-load estimator's rings of
     the last 2Δ+1 rattlespace and acceleration samples and the monitor's window ring, at
     offsets stored in ``iv`` (the rings follow the histogram).
@@ -150,7 +151,9 @@ F_UNUSE_A = 100     # ... or every model's |acceleration innovation| above this 
 F_STOP = 101        # bump-stop force of the last tick [N] (read-out)
 F_AMEAN = 102       # running mean of the accelerometer reading (its bias) [m/s^2] (state)
 F_AMEAN_ALPHA = 103  # weight of the running mean, 1 - exp(-dt / accel_mean_window_s) (0 off)
-FV_HEAD = 104       # the fuzzy table starts here
+F_GUARD_W = 104     # end-stop guard: zone width in front of each stop [m] (0: off)
+F_GUARD_S = 105     # end-stop guard: factor applied to the force of the last tick (read-out)
+FV_HEAD = 106       # the fuzzy table starts here
 
 # --- iv: parameters
 I_J, I_G, I_BLEND, I_SINGLE, I_AIR, I_NG, I_K, I_DWELL, I_PROBE = range(9)
@@ -260,6 +263,23 @@ def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.
     st[j, S_F] = 0.0
     st[j, S_BAD] = 0.0
     st[j, S_CONTRIB] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def stop_guard(fv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
+    """The force after the end-stop guard (controller/stop_guard.py): a force toward a
+    bump stop fades linearly to 0 over the last ``F_GUARD_W`` metres before it; the
+    factor is kept in ``F_GUARD_S``."""
+    w = fv[F_GUARD_W]
+    s = 1.0
+    if w > 0.0:
+        if force_n < 0.0:
+            s = (fv[F_BS_HI] - rattlespace_m) / w
+        elif force_n > 0.0:
+            s = (rattlespace_m - fv[F_BS_LO]) / w
+        s = min(max(s, 0.0), 1.0)
+    fv[F_GUARD_S] = s
+    return force_n * s
 
 
 @nb.njit(cache=True, nogil=True)

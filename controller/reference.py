@@ -42,6 +42,7 @@ from controller.moving_bank import (
     chi2_threshold_floor,
 )
 from controller.road_noise import nearest_noise_entry
+from controller.stop_guard import stop_guard_scale
 
 __all__ = ["ReferenceBank"]
 
@@ -83,6 +84,7 @@ class ReferenceBank:
         self.amean_weight = 1.0 - math.exp(-dt / aw) if aw > 0.0 else 0.0
         self.mon = monitor_settings(c, dt, MEAS_DIM)
         self.stop_k, self.stop_lo, self.stop_hi = (float(v) for v in d.bump_stop)
+        self.guard_width = c.design.stop_guard_m
         self.t_floor = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
         self.load_off = mb.liftoff_load_fraction               # lift-off reference
         self.load_on = mb.liftoff_load_fraction / mb.hysteresis_ratio   # touch-down reference
@@ -140,6 +142,7 @@ class ReferenceBank:
         self.authority = 1.0
         self.n_degradations = 0
         self.stop_force = 0.0
+        self.guard = 1.0
         self.active = np.zeros(J, dtype=bool)
         self.xf = np.zeros(2)
         self.xv = 0.0
@@ -333,6 +336,9 @@ class ReferenceBank:
             self.xf = np.zeros(2)
             flags |= StepFlag.NONFINITE_STATE
         out *= self.authority
+        self.guard = stop_guard_scale(out, rattlespace_m, self.stop_lo, self.stop_hi,
+                                      self.guard_width)
+        out *= self.guard
         if not math.isfinite(out):
             out = 0.0
             flags |= StepFlag.NONFINITE_STATE

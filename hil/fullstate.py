@@ -14,7 +14,8 @@ by the *measured* acceleration, and when the design carries an actuator part
 (``design.actuator_gain``, ``design.actuator_model = "hydraulic"``) the law feeds back the
 runtime's spool model x̂_v, the measured force F, the state w of the force loop's rate
 filter (flow feedforward, run on the measured rattlespace) and the D spool commands still
-on their way to the valve (``design.servo_model``, as ``controller/reference.py``).
+on their way to the valve (``design.servo_model``, as ``controller/reference.py``), and
+the force goes through the bank's end-stop guard (``controller/stop_guard.py``).
 
 The force still goes through the PI force loop and the servo-hydraulics, so it shares
 the actuator's limits with the other controllers.  It reads the plant, so it exists only
@@ -31,6 +32,7 @@ from numpy.typing import NDArray
 from controller.actuator import FlowFeedforward
 from controller.artifact import Design
 from controller.config import RigConfig
+from controller.stop_guard import stop_guard_scale
 from hil.plant import RigPlant
 from hil.sensors import SensorReading
 
@@ -77,6 +79,8 @@ class FullStateLQ:
             self.ff = FlowFeedforward(c, a, float(design.dt_s), stall, floor)
         else:
             self.n_pending = 0
+        self.stop_lo, self.stop_hi = (float(v) for v in design.bump_stop[1:3])
+        self.guard_width = cfg.design.stop_guard_m
         self._xbar: FloatArray | None = None
         self._plant_id = -1
         self._fault = False
@@ -105,6 +109,7 @@ class FullStateLQ:
         u = -float(self.kx @ (x - xbar)) - float(self.kf @ self.xf)
         if self.ka is not None:
             u -= float(self.ka @ np.array([self.xv, force_n, self.rate_state, *self.pending]))
+        u *= stop_guard_scale(u, rattlespace_m, self.stop_lo, self.stop_hi, self.guard_width)
         if not (math.isfinite(u) and math.isfinite(accel_mps2) and math.isfinite(force_n)):
             self._fault = True
             return 0.0

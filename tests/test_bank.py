@@ -91,6 +91,7 @@ def _compare(rt: BankRuntime, ref: ReferenceBank, out: float, out_ref: float, k:
     np.testing.assert_allclose(rt.x_post, ref.x_post, rtol=1e-9, atol=1e-12,
                                err_msg=f"x+ at tick {k}")
     np.testing.assert_allclose(rt.xf, ref.xf, rtol=1e-9, atol=1e-12, err_msg=f"xf at {k}")
+    assert rt.stop_guard == pytest.approx(ref.guard, rel=1e-9, abs=1e-12), f"guard at {k}"
 
 
 def _run_pair(design: Design, cfg: RigConfig, mode: Blending, meas: dict[str, np.ndarray],
@@ -138,6 +139,23 @@ def test_kernel_matches_reference_on_default_noise_lift_off(default_design: Desi
     rt, _ = _run_pair(default_design, cfg, Blending.MOVING, meas, junk_seed=8)
     c = rt.counters()
     assert c["set_switches"] >= 2 and c["load_liftoffs"] >= 1
+
+
+@pytest.mark.parametrize("mode", [Blending.SINGLE, Blending.FUZZY])
+def test_kernel_matches_reference_with_the_end_stop_guard_acting(mode: Blending) -> None:
+    """An end-stop guard zone as wide as the travel (0.08 m): the guard scales the force
+    on most ticks; kernel and reference agree on the force and on the factor."""
+    cfg = smooth_road_config(stop_guard_m=0.08)
+    design = design_bank(cfg)
+    meas = trajectory(cfg, 1200, seed=9, force_std=1500.0)
+    rt = BankRuntime(design, blending=mode, cfg=cfg)
+    ref = ReferenceBank(design, blending=mode, cfg=cfg)
+    partial = 0
+    for k in range(1200):
+        r, a, f = meas["rattlespace"][k], meas["accel"][k], meas["force"][k]
+        _compare(rt, ref, rt.step(r, a, f), ref.step(r, a, f), k)
+        partial += 0.0 < rt.stop_guard < 1.0
+    assert partial > 300
 
 
 def test_kernel_matches_reference_across_mode_switches(smooth_design: Design,
