@@ -310,3 +310,33 @@ def test_committed_thesis_claims_regenerate() -> None:
         assert values[key] == pytest.approx(value, rel=1e-6), key
     verdicts = [ok for _, _, ok in claims(rows)]
     assert verdicts == [c["holds"] for c in saved["claims"]]
+
+
+# ------------------------------------------------------- what each issue-11 change buys
+
+
+def test_old_divergence_rule_is_min_q_over_running_filters_for_50_ticks() -> None:
+    from hil.study.changes import old_divergence_rule
+    q = np.full((200, 3), 5.0)
+    q[:, 2] = 0.0                              # a filter not running reads 0
+    q[100:149, :2] = 2e4                       # 49 ticks over: not yet
+    assert not old_divergence_rule(q)
+    q[100:150, :2] = 2e4                       # 50 ticks over
+    assert old_divergence_rule(q)
+    q[120, 1] = 9e3                            # one running filter explains tick 120
+    assert not old_divergence_rule(q)
+
+
+def test_changes_table_undoes_the_flow_feedforward() -> None:
+    """``python -m hil.study.changes`` (quick): the flow-feedforward row runs the same
+    runs with and without the feedforward; the zero force reference is near passive with
+    it and about 3 x passive without (the closed actuator's own damping)."""
+    import re
+
+    from hil.study.changes import CHANGES, measure, table
+    (row,) = measure(CFG, [c for c in CHANGES if "feedforward +" in c.name], quick=True,
+                     jobs=1)
+    with_ff, without_ff = (float(re.search(r"zero-force ([0-9.]+)", cell).group(1))
+                           for cell in row[2:])
+    assert with_ff < 1.1 and without_ff > 2.0
+    assert table([row]).count("\n") == 2
