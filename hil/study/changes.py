@@ -29,7 +29,8 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -43,6 +44,8 @@ from hil.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 __all__ = ["CHANGES", "OLD_SKYHOOK", "Change", "Run", "main", "measure", "old_divergence_rule"]
 
 THESIS_SPEED_MPS = 11.176
+#: the thesis-literal estimation and blending profile
+THESIS_PROFILE = str(Path(__file__).resolve().parents[2] / "deploy" / "thesis.toml")
 #: the skyhook before the retune for the flow feedforward (gains and LVDT-rate low-pass)
 OLD_SKYHOOK = SkyhookGains(2000.0, 0.0, 0.5, rattle_rate_lowpass_hz=40.0)
 #: the divergence test the estimator monitor replaced: min q above this ...
@@ -54,8 +57,9 @@ OLD_DIVERGENCE_TICKS = 50
 @dataclass(frozen=True)
 class Run:
     """One closed-loop run (picklable): ``overrides`` {section: {key: value}} on the
-    configuration; ``mc`` = (spread, plant index, runs, ride-height std or None) draws the
-    plant like ``rig montecarlo --seed 1``; ``skyhook`` replaces the default gains."""
+    configuration (or on ``profile``, a configuration file); ``mc`` = (spread, plant
+    index, runs, ride-height std or None) draws the plant like ``rig montecarlo --seed
+    1``; ``skyhook`` replaces the default gains."""
 
     controller: str
     weight_set: int = 1
@@ -65,10 +69,11 @@ class Run:
     mc: tuple[float, int, int, float | None] | None = None
     skyhook: SkyhookGains | None = None
     record: bool = False
+    profile: str | None = None          # a configuration file instead of the given one
 
 
 def _config(base: RigConfig, run: Run) -> RigConfig:
-    cfg = base
+    cfg = load_config(run.profile) if run.profile is not None else base
     for section, items in run.overrides:
         cfg = cfg.replace(**{section: dict(items)})
     return cfg
@@ -125,9 +130,9 @@ Cell = Callable[[list[dict[str, float]], list[Run]], str]
 @dataclass
 class Change:
     """A row: ``name``, what is measured (``runs`` -> the runs with the change) and how a
-    cell is written (``cell`` of the runs' metrics).  Undone by ``undo`` (configuration
-    overrides) or ``without`` (a function that rewrites each run) -- or, when the old
-    behaviour can be read off the same runs, by ``cell_without`` on them."""
+    cell is written (``cell`` of the runs' metrics; ``cell_without`` for the runs without
+    the change, if they are to be read differently).  Undone by ``undo`` (configuration
+    overrides on top of the run's) or ``without`` (a function that rewrites each run)."""
 
     name: str
     measured: str
@@ -204,13 +209,16 @@ def _ratio_cell(ctrls: Sequence[str]) -> Cell:
 
 
 def _old_rule_cell(ctrls: Sequence[str]) -> Cell:
+    course = _course_cell(ctrls)
+
     def cell(ms: list[dict[str, float]], runs: list[Run]) -> str:
-        parts = []
+        old = []
         for c in ctrls:
             sel = _by(ms, runs, c)
-            old = sum(m.get("old_rule_latched", 0.0) > 0 for m in sel)
-            parts.append(f"{c}: old rule latches DIVERGED in {old} of {len(sel)}")
-        return "; ".join(parts)
+            n = sum(m.get("old_rule_latched", 0.0) > 0 for m in sel)
+            old.append(f"{c} {n} of {len(sel)}")
+        return (course(ms, runs) + "; the removed rule latches DIVERGED (then passive) in "
+                + ", ".join(old))
     return cell
 
 
@@ -223,15 +231,11 @@ def _fuzzy_vs_lqg(ms: list[dict[str, float]], runs: list[Run]) -> str:
 
 def _ride_height_off(run: Run) -> Run:
     assert run.mc is not None
-    return Run(run.controller, run.weight_set, run.duration_s, run.seed,
-               run.overrides, (run.mc[0], run.mc[1], run.mc[2], None), run.skyhook,
-               run.record)
+    return replace(run, mc=(run.mc[0], run.mc[1], run.mc[2], None))
 
 
 def _old_skyhook(run: Run) -> Run:
-    if run.controller != "skyhook":
-        return run
-    return Run("skyhook", 1, run.duration_s, run.seed, run.overrides, run.mc, OLD_SKYHOOK)
+    return replace(run, skyhook=OLD_SKYHOOK) if run.controller == "skyhook" else run
 
 
 def _sim30(ctrls: Sequence[str]) -> Callable[[bool], list[Run]]:
@@ -250,12 +254,13 @@ CHANGES: list[Change] = [
            undo={"design": {"filter_rattlespace_bias_drift": 0.0,
                             "accel_mean_window_s": 0.0}}),
     Change("chi-square estimator monitor (degrade / re-arm; latch only when unusable)",
-           "rough course 60 s, seeds 1-3, weight set 2, the stop input off",
-           lambda q: [Run(r.controller, r.weight_set, r.duration_s, r.seed,
-                          _ov({"design": {"bump_stop_filter_input": False}}), record=True)
+           "thesis profile (deploy/thesis.toml), rough course 60 s, seeds 1-3, weight set 2",
+           lambda q: [replace(r, profile=THESIS_PROFILE, record=True)
                       for r in _course_runs(("lqg", "fuzzy"), 2, q)],
            _course_cell(("lqg", "fuzzy")), cell_without=_old_rule_cell(("lqg", "fuzzy")),
-           undone_by="min q > 1e4 for 50 ticks latches, evaluated on the same runs' q"),
+           undo={"safety": {"estimator_nis_inflation": 1e9}},
+           undone_by="the monitor never degrades; the removed rule, min q > 1e4 for 50 "
+                     "ticks, evaluated on those runs' q"),
     Change("fuzzy on the windowed q relative to the best model (+ best-model fallback)",
            "Monte Carlo 5 %, 20 plants", lambda q: _mc_runs(("lqg", "fuzzy"), 0.05, q),
            _fuzzy_vs_lqg, undo={"fuzzy": {"statistic": "raw",
@@ -290,11 +295,9 @@ def measure(cfg: RigConfig, changes: Sequence[Change] = tuple(CHANGES), *,
     for ci, ch in enumerate(changes):
         for r in ch.runs(quick):
             plan.append((ci, 1, r))
-            if ch.cell_without is not None:
-                continue
-            off = ch.without(r) if ch.without is not None else Run(
-                r.controller, r.weight_set, r.duration_s, r.seed, _ov(ch.undo), r.mc,
-                r.skyhook, r.record)
+            off = ch.without(r) if ch.without is not None else replace(
+                r, overrides=_ov({**dict((s, dict(kv)) for s, kv in r.overrides),
+                                  **ch.undo}))
             plan.append((ci, 0, off))
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(plan)))
     args = [(cfg, r) for _, _, r in plan]
@@ -308,7 +311,7 @@ def measure(cfg: RigConfig, changes: Sequence[Change] = tuple(CHANGES), *,
         cells = []
         for variant in (1, 0):
             sel = [(m, r) for (c, v, r), m in zip(plan, metrics, strict=True)
-                   if c == ci and v == (1 if ch.cell_without is not None else variant)]
+                   if c == ci and v == variant]
             cell = ch.cell if variant == 1 or ch.cell_without is None else ch.cell_without
             cells.append(cell([m for m, _ in sel], [r for _, r in sel]))
         measured = ch.measured + (f" (without: {ch.undone_by})" if ch.undone_by else "")
