@@ -128,3 +128,23 @@ def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
                      "--controller", c, "--workers", "1", "--no-progress", "--json"]) == 0
         out = json.loads(capsys.readouterr().out)
         assert out["faulted_runs"] == [] and out["summary"]["force_rms_n"]["min"] > 0.0
+
+
+@pytest.mark.parametrize(("argv", "expected"), [
+    ([], RIDE_HEIGHT_STD_M), (["--ride-height-std", "0.004"], 0.004),
+    (["--own-ride-height"], None), (["--own-ride-height", "--ride-height-std", "0.004"], None)])
+def test_cli_ride_height_options(monkeypatch: pytest.MonkeyPatch, argv: list[str],
+                                 expected: float | None) -> None:
+    """``--ride-height-std`` sets the preload's setting error, ``--own-ride-height`` keeps
+    each plant at its own M g / K (what the runs get: ``ride_height_std_m``)."""
+    import rig.commands.montecarlo as cmd
+    seen: dict[str, object] = {}
+
+    def fake(cfg: object, road: object, runs: int, **kw: object) -> object:
+        seen.update(kw)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(cmd, "run_montecarlo", fake)
+    assert main(["montecarlo", "--runs", "2", "--duration", "1", "--no-progress",
+                 *argv]) == 2
+    assert seen["ride_height_std_m"] == expected

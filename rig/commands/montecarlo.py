@@ -68,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
                              weight_set=args.weights, spread=args.spread, seed=args.seed,
                              workers=args.workers, progress=not args.no_progress,
                              out_dir=args.out, lvdt_zero=args.lvdt_zero,
-                             ride_height_std_m=(args.ride_height_std
-                                                if args.ride_height_std >= 0 else None))
+                             ride_height_std_m=(None if args.own_ride_height
+                                                else args.ride_height_std))
     except (RoadError, ValueError) as exc:
         print(f"rig montecarlo: {exc}", file=sys.stderr)
         return 2
