@@ -101,7 +101,7 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
                       clock="stepped", clock_offset_ns=1_700_000_000_000_000_000,
                       blocking=True)
     loop_bus = ctl_bus if wrap_bus is None else wrap_bus(ctl_bus)
-    loop = ControlLoop(cfg, loop_bus, rt, PIForceLoop(cfg.force_loop, dt), recorder=rec,
+    loop = ControlLoop(cfg, loop_bus, rt, PIForceLoop.from_config(cfg), recorder=rec,
                        clock_ns=clock, warmup_ticks=warmup_ticks)
     rng = np.random.default_rng(seed)
     lateness = rng.integers(2_000, 90_000, size=n).tolist()

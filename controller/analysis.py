@@ -16,10 +16,11 @@ roughness).  Three loops, all exact on the sample grid (ZOH force, Van Loan nois
 
 With ``design.actuator_model = "hydraulic"`` (default) :func:`analyze` evaluates the
 gains on the loop they are designed for (docs/design.md section 7): the linearised rig
-of :mod:`controller.margins` -- servo-hydraulics under the PI force loop (kp and ki),
-accelerometer low-pass, load-cell noise, ``design.compute_delay_ticks`` ticks between
-the PI and the valve; LQ = true plant and actuator state fed back, LQG = the runtime
-controller (Kalman filter, human filter, spool model).
+of :mod:`controller.margins` -- servo-hydraulics under the PI force loop (kp and ki)
+with its valve flow feedforward on the noisy LVDT reading, accelerometer low-pass,
+load-cell noise, ``design.compute_delay_ticks`` ticks between the PI and the valve;
+LQ = true plant and actuator state fed back, LQG = the runtime controller (Kalman
+filter, human filter, spool model).
 
 Stationary covariances come from the discrete Lyapunov equation.  The figures are the
 mean squares at the sample instants of: y_f = Cf xf (F(s)-filtered sprung acceleration,
@@ -39,6 +40,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
+from controller.actuator import flow_feedforward
 from controller.config import RigConfig
 from controller.design import ModelDesign, design_models, measurement_noise_cov
 from controller.human_filter import HumanFilter, discretize_zoh, human_filter
@@ -162,7 +164,8 @@ def rig_closed_loop(cfg: RigConfig, md: ModelDesign, weights: list[float],
     n = Qw.shape[0]
     close = control.ss([], [], [], [[1.0]], dt, inputs=["fref_out"], outputs=["fref"],
                        name="close")
-    blocks = [plant, mg.accel_sensor_ss(cfg, noise=True), mg.force_loop_ss(cfg.force_loop, dt),
+    blocks = [plant, mg.accel_sensor_ss(cfg, noise=True),
+              mg.force_loop_ss(cfg.force_loop, flow_feedforward(cfg), dt),
               mg.delay_ss(delay_ticks, dt, "s_pi", "s"), close]
     if kind == "lqg":
         blocks.append(mg.runtime_controller_ss(md, parts, dt))

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.actuator import SERVO_MODEL_SIZE
 from controller.config import RigConfig, config_hash, config_to_toml, design_config_hash
 from controller.kernels import MAX_DELAY
 
@@ -35,7 +36,11 @@ __all__ = [
 ]
 
 #: Bumped whenever a field is added, removed or changes meaning.
-ARTIFACT_VERSION = 2
+#: 3: ``servo_model`` carries the force loop's flow feedforward, ``actuator_gain`` a gain
+#: on its rate-filter state (the gains are designed for the compensated actuator);
+#: ``bias_gain`` (measurement-bias states of the filters) and ``bump_stop`` (the stops as
+#: a known filter input) are new.
+ARTIFACT_VERSION = 3
 
 FloatArray = NDArray[np.float64]
 
@@ -60,6 +65,7 @@ class Design:
     D_meas: FloatArray
     y_offset: FloatArray
     kalman_gain: FloatArray
+    bias_gain: FloatArray
     innovation_cov: FloatArray
     innovation_cov_inv: FloatArray
     innovation_logdet: FloatArray
@@ -78,6 +84,7 @@ class Design:
     fuzzy_q_grid: FloatArray
     fuzzy_weight_curve: FloatArray
     static_rattlespace_m: float
+    bump_stop: FloatArray
     metadata: dict[str, Any]
 
     @property
@@ -120,23 +127,27 @@ def _expected_shapes(d: Design) -> dict[str, tuple[int, ...]]:
         "model_names": (J,), "airborne": (J,), "grid_index": (J, 2), "equilibrium": (J, 4),
         "Phi": (J, 4, 4), "Gamma_u": (J, 4), "Gamma_g": (J, 4),
         "C_meas": (J, 2, 4), "D_meas": (J, 2), "y_offset": (2,),
-        "kalman_gain": (J, Ns * Nr, 4, 2), "innovation_cov": (J, S, 2, 2),
+        "kalman_gain": (J, Ns * Nr, 4, 2), "bias_gain": (J, S, 2, 2),
+        "innovation_cov": (J, S, 2, 2),
         "innovation_cov_inv": (J, S, 2, 2), "innovation_logdet": (J, S),
         "filter_A": (J, S, 4, 4), "filter_By": (J, S, 4, 2), "filter_Bu": (J, S, 4),
         "filter_b": (J, S, 4), "noise_speeds_mps": (Ns,), "noise_roughness_gd": (Nr,),
-        "lq_gain": (W, J, 6), "actuator_gain": (W, J, 2 + d.compute_delay_ticks),
-        "servo_model": (5,),
+        "lq_gain": (W, J, 6), "actuator_gain": (W, J, 3 + d.compute_delay_ticks),
+        "servo_model": (SERVO_MODEL_SIZE,),
         "human_filter_Ad": (2, 2), "human_filter_Bd": (2,),
         "human_filter_Cd": (2,), "fuzzy_q_grid": (G,), "fuzzy_weight_curve": (G,),
+        "bump_stop": (3,),
     }
 
 
 def _validate(d: Design) -> None:
     sm = getattr(d, "servo_model", None)
-    if not (isinstance(sm, np.ndarray) and sm.shape == (5,) and np.all(np.isfinite(sm))):
-        raise DesignMismatch("field 'servo_model' must be 5 finite numbers")
+    if not (isinstance(sm, np.ndarray) and sm.shape == (SERVO_MODEL_SIZE,)
+            and np.all(np.isfinite(sm))):
+        raise DesignMismatch(f"field 'servo_model' must be {SERVO_MODEL_SIZE} finite numbers")
     if not (0.0 <= sm[0] < 1.0 and sm[1] >= 0.0 and sm[2] > 0.0 and sm[3] > 0.0
-            and sm[4] == round(sm[4]) and 0 <= sm[4] <= MAX_DELAY):
+            and sm[4] == round(sm[4]) and 0 <= sm[4] <= MAX_DELAY
+            and sm[5] >= 0.0 and 0.0 < sm[6] <= 1.0 and sm[7] > 0.0 and 0.0 < sm[8] <= 1.0):
         raise DesignMismatch(f"field 'servo_model' out of range: {sm.tolist()}")
     for name, shape in _expected_shapes(d).items():
         arr = getattr(d, name)
@@ -159,6 +170,9 @@ def _validate(d: Design) -> None:
     ground = ~d.airborne
     if not np.all(np.isfinite(d.equilibrium[ground])):
         raise DesignMismatch("field 'equilibrium' has non-finite entries for on-ground models")
+    if not (d.bump_stop[0] >= 0.0 and d.bump_stop[1] < d.bump_stop[2]):
+        raise DesignMismatch(f"field 'bump_stop' out of range: {d.bump_stop.tolist()} "
+                             "(stiffness >= 0, rebound stop below the compression stop)")
     if np.any(np.diff(d.fuzzy_q_grid) <= 0.0):
         raise DesignMismatch("field 'fuzzy_q_grid' is not strictly increasing")
 

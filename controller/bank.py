@@ -1,23 +1,34 @@
 """Runtime step of the LQG bank (thesis Ch. III, IV, VI, App. A): one numba call per tick.
 
-Per tick, with y = [rattlespace + M g / K, accel] and u = the measured actuator force:
+Per tick, with y = [rattlespace + M g / K, accel - running mean of accel] and
+u = the measured actuator force + the bump-stop force computed from the rattlespace
+reading (docs/design.md §9.1, §9.2):
 
-    r_j  = y - C_j x⁻_j - D_j u - y_offset                (3.9)
+    r_j  = y - b⁻_j - C_j x⁻_j - D_j u - y_offset         (3.9, b_j: measurement biases)
     q_j  = r_j' F_j^-1 r_j                                (4.8, the likelihood quotient)
     x⁺_j = x⁻_j + L_j r_j                                 (3.5, steady-state gain)
-    x⁻_j <- A_j x⁻_j + By_j y + Bu_j u + b_j              (fused 3.5 + 3.7, selected noise entry)
-    u_j  = -K_w,j [x⁺_j - x̄_j; x_f; x̂_v; u; s_pending]   (zero for the airborne model)
+    x⁻_j <- A_j x⁻_j + By_j (y - b⁻_j) + Bu_j u + b_j     (fused 3.5 + 3.7, selected noise entry)
+    b_j  <- b_j + Lb_j r_j                                (random-walk bias states)
+    u_j  = -K_w,j [x⁺_j - x̄_j; x_f; x̂_v; F; w; s_pending]   (F the load-cell force; 0 airborne)
     x_f  <- Ad x_f + Bd accel                             (F(s); u_j uses x_f before the update)
-    x̂_v, s_pending <- spool model (controller/actuator.py) driven by the blended output
+    x̂_v, w, s_pending <- spool model (controller/actuator.py) driven by the blended output
+                         and the rattlespace (flow feedforward of the force loop)
 
-The actuator part of the gain (spool estimate x̂_v, measured force u, the D spool commands
-still on their way to the valve) is zero for ``design.actuator_model = "ideal"``.
+The actuator part of the gain (spool estimate x̂_v, measured force u, the state w of the
+force loop's rate filter, the D spool commands still on their way to the valve) is zero
+for ``design.actuator_model = "ideal"``.
 
 then the model forces are blended: FUZZY -- firing weight f_j = tabulated App. A curve at
-q_j, normalised over the contributing models (if none fires: ``no_fire_fallback``,
-"passive" = 0 N or "best_model" = min q, and ``StepFlag.NO_RULE_FIRED``); BAYES -- MMAE
-probabilities (:mod:`controller.bayes`); MOVING -- fuzzy within the moving subset
-(:mod:`controller.moving_bank`); SINGLE -- one model, the plain LQG.
+the fuzzy statistic (``fuzzy.statistic``: "relative" = 2 q̄_j / min_k q̄_k with q̄ the
+exponentially windowed q, so the best model always fires; "raw" = q_j, the thesis),
+normalised over the contributing models (if none fires: ``no_fire_fallback``,
+"passive" = 0 N or "best_model" = min statistic, and ``StepFlag.NO_RULE_FIRED``); BAYES --
+MMAE probabilities (:mod:`controller.bayes`); MOVING -- fuzzy within the moving subset
+(:mod:`controller.moving_bank`); SINGLE -- one model, the plain LQG.  The blended force is
+multiplied by the force authority of the estimator monitor (:mod:`controller.monitor`:
+the window sum of min q against its chi-square levels; DEGRADED ramps it to 0, re-arming
+ramps it back), then by the end-stop guard (:mod:`controller.stop_guard`: a force toward a
+bump stop fades to 0 over ``design.stop_guard_m`` before it).
 
 Bayesian probabilities, raw firing weights and smoothed q are kept for every running
 filter in every mode (telemetry; a switch of blending starts warm).
@@ -26,9 +37,9 @@ Faults (never raised): a non-finite input returns 0.0 with NONFINITE_INPUT and l
 the state untouched.  A filter whose q, estimate or force becomes non-finite (huge
 inputs can overflow) is reset to its equilibrium plus the blended deviation of the
 healthy filters (see :func:`controller.kernels.activate`) and NONFINITE_STATE is set; a
-non-finite blended force returns 0.0.  min q over the contributing models above
-``safety.estimator_divergence_q`` for ``safety.divergence_ticks`` ticks sets DIVERGED.
-q is clamped to ``Q_MAX``.
+non-finite blended force returns 0.0.  Every contributing model's innovation beyond a
+sensor's range for a whole monitor window sets DIVERGED (the estimate is unusable: a
+fault for the loop); DEGRADED is not a fault.  q is clamped to ``Q_MAX``.
 """
 
 from __future__ import annotations
@@ -48,10 +59,25 @@ from controller.bayes import bayes_update, log_likelihood_constant
 from controller.config import RigConfig, default_config, parse_config
 from controller.kernels import (
     F_ALPHA,
-    F_DIVQ,
+    F_AMEAN,
+    F_AMEAN_ALPHA,
+    F_AUTH,
+    F_AUTH_STEP,
+    F_BIAS,
+    F_BS_HI,
+    F_BS_K,
+    F_BS_LO,
+    F_FFA,
+    F_FFB,
+    F_FFC,
+    F_FFFLOOR,
+    F_FFSTALL,
+    F_FFW,
     F_FORGET,
     F_GOFF,
     F_GON,
+    F_GUARD_S,
+    F_GUARD_W,
     F_HAD,
     F_HBD,
     F_HINC,
@@ -64,10 +90,14 @@ from controller.kernels import (
     F_LOAD,
     F_LOFF,
     F_LON,
+    F_MON_REARM,
+    F_MON_SUM,
+    F_MON_THR,
     F_OUT,
     F_PEND,
     F_PFLOOR,
     F_QUANT,
+    F_QW_ALPHA,
     F_RECENTRE,
     F_SCR,
     F_SDECAY,
@@ -76,8 +106,11 @@ from controller.kernels import (
     F_SKP,
     F_SOLIM,
     F_STATIC,
+    F_STOP,
     F_TFLOOR,
     F_THRESH,
+    F_UNUSE_A,
+    F_UNUSE_R,
     F_XDEV,
     F_XDEVM,
     F_XF,
@@ -88,16 +121,17 @@ from controller.kernels import (
     F_YOFF,
     FALLBACK_BEST,
     FALLBACK_PASSIVE,
+    FSTAT_RAW,
+    FSTAT_RELATIVE,
     FV_HEAD,
     I_AIR,
     I_BLEND,
     I_CENTRE,
     I_DELAY,
-    I_DIVCNT,
-    I_DIVTICKS,
     I_DWELL,
     I_FALLBACK,
     I_FLAGS,
+    I_FSTAT,
     I_G,
     I_HIST,
     I_J,
@@ -107,6 +141,17 @@ from controller.kernels import (
     I_LPTR,
     I_MINLEARN,
     I_MODE,
+    I_MON_BAD,
+    I_MON_CNT,
+    I_MON_DEG,
+    I_MON_DEGTICKS,
+    I_MON_MAXBAD,
+    I_MON_N,
+    I_MON_NDEG,
+    I_MON_OK,
+    I_MON_PTR,
+    I_MON_RECOVER,
+    I_MON_RING,
     I_NACT,
     I_NB,
     I_NG,
@@ -136,6 +181,7 @@ from controller.kernels import (
     M_CT,
     M_KX,
     M_L,
+    M_LB,
     M_XBAR,
     MAT_COLS,
     MAX_DELAY,
@@ -144,12 +190,15 @@ from controller.kernels import (
     MODE_GROUND,
     Q_MAX,
     QS_INIT,
+    S_BA,
     S_BAD,
+    S_BR,
     S_CONTRIB,
     S_F,
     S_P,
     S_Q,
     S_QS,
+    S_QW,
     S_U,
     S_W,
     S_XPOST,
@@ -169,7 +218,9 @@ from controller.kernels import (
     deactivate,
     firing_weight,
     servo_update,
+    stop_guard,
 )
+from controller.monitor import monitor_settings
 from controller.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
@@ -198,6 +249,7 @@ _NONFINITE_INPUT = int(StepFlag.NONFINITE_INPUT)
 _NONFINITE_STATE = int(StepFlag.NONFINITE_STATE)
 _NO_RULE_FIRED = int(StepFlag.NO_RULE_FIRED)
 _DIVERGED = int(StepFlag.DIVERGED)
+_DEGRADED = int(StepFlag.DEGRADED)
 
 def _drop_stale_kernel_cache() -> None:
     """numba's on-disk cache checks only the defining file of a function; ``bank_step``
@@ -232,6 +284,74 @@ _SIG_CFG = nb.void(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1]
 # ============================================================================ kernels
 
 
+@nb.njit(cache=True, nogil=True)
+def _monitor(fv: np.ndarray, iv: np.ndarray, q_min: float, e_min: float) -> int:
+    """The estimator monitor, once per tick after the filters (docs/design.md §9).
+
+    Consistency: the sum of the bank's smallest q over the last N ticks (a ring in
+    ``fv``; after a reset the first N ticks are skipped -- the filters start at the
+    models' equilibria and their first innovations measure the start, not the models)
+    against ``F_MON_THR``; above it the bank degrades (force authority ramps to
+    0, DEGRADED), and re-arms after ``I_MON_RECOVER`` consecutive ticks below
+    ``F_MON_REARM``.  Usability: every contributing model's innovation beyond a sensor's
+    range (``e_min`` > 1) for ``I_MON_MAXBAD`` consecutive ticks sets DIVERGED.
+    Returns the flag bits."""
+    flags = 0
+    n = iv[I_MON_N]
+    if n > 0 and iv[I_MON_CNT] < 0:     # settling after a reset: the first window is skipped
+        iv[I_MON_CNT] += 1
+    elif n > 0:
+        s = q_min if q_min < Q_MAX else Q_MAX
+        ring = iv[I_MON_RING]
+        p = iv[I_MON_PTR]
+        old = fv[ring + p]
+        fv[ring + p] = s
+        cnt = iv[I_MON_CNT]
+        if cnt < n:
+            cnt += 1
+            iv[I_MON_CNT] = cnt
+            fv[F_MON_SUM] += s
+        else:
+            fv[F_MON_SUM] += s - old
+        p += 1
+        if p >= n:              # once per window: the exact sum (no running-sum drift)
+            p = 0
+            tot = 0.0
+            for i in range(n):
+                tot += fv[ring + i]
+            fv[F_MON_SUM] = tot
+        iv[I_MON_PTR] = p
+        if cnt >= n:
+            ssum = fv[F_MON_SUM]
+            if iv[I_MON_DEG] == 0:
+                if ssum > fv[F_MON_THR]:
+                    iv[I_MON_DEG] = 1
+                    iv[I_MON_OK] = 0
+                    iv[I_MON_NDEG] += 1
+            elif ssum < fv[F_MON_REARM]:
+                iv[I_MON_OK] += 1
+                if iv[I_MON_OK] >= iv[I_MON_RECOVER]:
+                    iv[I_MON_DEG] = 0
+            else:
+                iv[I_MON_OK] = 0
+        if e_min > 1.0:
+            iv[I_MON_BAD] += 1
+            if iv[I_MON_BAD] >= iv[I_MON_MAXBAD]:
+                flags |= _DIVERGED
+        else:
+            iv[I_MON_BAD] = 0
+    auth = fv[F_AUTH]
+    if iv[I_MON_DEG] != 0:
+        flags |= _DEGRADED
+        iv[I_MON_DEGTICKS] += 1
+        auth -= fv[F_AUTH_STEP]
+        fv[F_AUTH] = auth if auth > 0.0 else 0.0
+    else:
+        auth += fv[F_AUTH_STEP]
+        fv[F_AUTH] = auth if auth < 1.0 else 1.0
+    return flags
+
+
 @nb.njit(_SIG_STEP, cache=True, nogil=True)
 def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
               fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, rattlespace_m: float,
@@ -246,22 +366,36 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     sentinel = -1
     if blend == _MOVING and iv[I_MODE] == MODE_AIR:
         sentinel = iv[I_SENTINEL]
-    u_in = force_meas_n
+    # the bump-stop force from the LVDT reading: a known input, like the load-cell force
+    f_stop = 0.0
+    if rattlespace_m > fv[F_BS_HI]:
+        f_stop = fv[F_BS_K] * (rattlespace_m - fv[F_BS_HI])
+    elif rattlespace_m < fv[F_BS_LO]:
+        f_stop = fv[F_BS_K] * (rattlespace_m - fv[F_BS_LO])
+    fv[F_STOP] = f_stop
+    u_in = force_meas_n + f_stop
     y0 = rattlespace_m + fv[F_STATIC]
     y1 = accel_mps2
-    e0 = y0 - fv[F_YOFF]
-    e1 = y1 - fv[F_YOFF + 1]
+    if fv[F_AMEAN_ALPHA] > 0.0:     # minus the running mean (the accelerometer's bias)
+        fv[F_AMEAN] += fv[F_AMEAN_ALPHA] * (accel_mps2 - fv[F_AMEAN])
+        y1 = accel_mps2 - fv[F_AMEAN]
     xf0 = fv[F_XF]
     xf1 = fv[F_XF + 1]
     alpha = fv[F_ALPHA]
+    beta = fv[F_QW_ALPHA]
     nact = iv[I_NACT]
     nd = iv[I_DELAY]
+    if math.isnan(fv[F_FFW]):           # first reading since reset: rate filter at rest
+        fv[F_FFW] = -fv[F_FFB] * rattlespace_m
+    e_min = np.inf          # unusable test: min over models of the innovation / sensor range
     for a in range(nact):
         j = iv[IV_ACT + a]
         st[j, S_CONTRIB] = 0.0
         st[j, S_BAD] = 0.0
-        r0 = e0 - vec[j, V_D] * u_in
-        r1 = e1 - vec[j, V_D + 1] * u_in
+        y0j = y0 - st[j, S_BR]
+        y1j = y1 - st[j, S_BA]
+        r0 = y0j - fv[F_YOFF] - vec[j, V_D] * u_in
+        r1 = y1j - fv[F_YOFF + 1] - vec[j, V_D + 1] * u_in
         for i in range(4):
             xm = st[j, S_XPRIOR + i]
             r0 -= mat[j, i, M_CT] * xm
@@ -270,7 +404,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             + r1 * (vec[j, V_FINV + 2] * r0 + vec[j, V_FINV + 3] * r1)
         ok = not math.isnan(q)
         for i in range(4):
-            acc = mat[j, i, M_BY] * y0 + mat[j, i, M_BY + 1] * y1 + mat[j, i, M_BU] * u_in \
+            acc = mat[j, i, M_BY] * y0j + mat[j, i, M_BY + 1] * y1j + mat[j, i, M_BU] * u_in \
                 + mat[j, i, M_B]
             for k in range(4):
                 acc += mat[j, i, M_A + k] * st[j, S_XPRIOR + k]
@@ -279,12 +413,17 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             fv[F_SCR + 4 + i] = acc
             if not (math.isfinite(xp) and math.isfinite(acc)):
                 ok = False
+        b_r = st[j, S_BR] + mat[j, 0, M_LB] * r0 + mat[j, 0, M_LB + 1] * r1
+        b_a = st[j, S_BA] + mat[j, 1, M_LB] * r0 + mat[j, 1, M_LB + 1] * r1
+        if not (math.isfinite(b_r) and math.isfinite(b_a)):
+            ok = False
         u = 0.0
         if vec[j, V_AIR] == 0.0:
             u = -(vec[j, V_KF] * xf0 + vec[j, V_KF + 1] * xf1)
-            u -= vec[j, V_KA] * fv[F_XV] + vec[j, V_KA + 1] * u_in
+            u -= vec[j, V_KA] * fv[F_XV] + vec[j, V_KA + 1] * force_meas_n \
+                + vec[j, V_KA + 2] * fv[F_FFW]
             for i in range(nd):
-                u -= vec[j, V_KA + 2 + i] * fv[F_PEND + i]
+                u -= vec[j, V_KA + 3 + i] * fv[F_PEND + i]
             for i in range(4):
                 u -= mat[j, i, M_KX] * (fv[F_SCR + i] - mat[j, i, M_XBAR])
             if not math.isfinite(u):
@@ -294,11 +433,17 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             for i in range(4):
                 st[j, S_XPOST + i] = fv[F_SCR + i]
                 st[j, S_XPRIOR + i] = fv[F_SCR + 4 + i]
+            st[j, S_BR] = b_r
+            st[j, S_BA] = b_a
             st[j, S_Q] = qc
             st[j, S_U] = u
             st[j, S_QS] += alpha * (qc - st[j, S_QS])
+            st[j, S_QW] += beta * (qc - st[j, S_QW])
             if j != sentinel:
                 st[j, S_CONTRIB] = 1.0
+                e = max(abs(r0) * fv[F_UNUSE_R], abs(r1) * fv[F_UNUSE_A])
+                if e < e_min:
+                    e_min = e
         else:
             st[j, S_BAD] = 1.0
             st[j, S_Q] = Q_MAX
@@ -310,17 +455,30 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     G = iv[I_G]
     og = iv[I_QGRID]
     oc = iv[I_WCURVE]
-    total = 0.0
+    relative = iv[I_FSTAT] == FSTAT_RELATIVE
     best = -1
-    qmin = np.inf
+    qmin = np.inf           # smallest per-tick q (the monitor's statistic)
+    smin = np.inf           # smallest fuzzy statistic (the best model)
     for a in range(nact):
         j = iv[IV_ACT + a]
         if st[j, S_CONTRIB] != 0.0:
             qj = st[j, S_Q]
             if qj < qmin:
                 qmin = qj
+            sj = st[j, S_QW] if relative else qj
+            if sj < smin:
+                smin = sj
                 best = j
-            f = firing_weight(qj, fv, og, oc, G)
+    total = 0.0
+    for a in range(nact):
+        j = iv[IV_ACT + a]
+        if st[j, S_CONTRIB] != 0.0:
+            if relative:        # relative to the best model, scaled to a matched filter's mean
+                sj = st[j, S_QW]
+                x = MEAS_DIM * sj / smin if smin > 0.0 else (0.0 if sj <= 0.0 else Q_MAX)
+            else:
+                x = st[j, S_Q]
+            f = firing_weight(x, fv, og, oc, G)
             st[j, S_F] = f
             if blend == _BAYES:
                 w = st[j, S_P]
@@ -346,6 +504,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     for i in range(16):
         fv[F_SCR + i] = 0.0
     wsum = 0.0
+    bias_r = 0.0
+    bias_a = 0.0
     for a in range(nact):
         j = iv[IV_ACT + a]
         w = st[j, S_W]
@@ -354,6 +514,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         if w != 0.0:
             out += st[j, S_W] * st[j, S_U]
             wsum += w
+            bias_r += w * st[j, S_BR]
+            bias_a += w * st[j, S_BA]
             for i in range(4):
                 xb = mat[j, i, M_XBAR]
                 fv[F_SCR + i] += w * st[j, S_XPOST + i]
@@ -366,6 +528,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             fv[F_XHATM + i] = fv[F_SCR + 4 + i]
             fv[F_XDEV + i] = fv[F_SCR + 8 + i]
             fv[F_XDEVM + i] = fv[F_SCR + 12 + i]
+        fv[F_BIAS] = bias_r
+        fv[F_BIAS + 1] = bias_a
     # ---- recover the filters that went non-finite
     if flags & _NONFINITE_STATE:
         for a in range(nact):
@@ -377,13 +541,10 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
                         x += fv[F_XDEVM + i]
                     st[j, S_XPRIOR + i] = x
                     st[j, S_XPOST + i] = x
-    # ---- divergence
-    if qmin > fv[F_DIVQ]:
-        iv[I_DIVCNT] += 1
-    else:
-        iv[I_DIVCNT] = 0
-    if iv[I_DIVCNT] >= iv[I_DIVTICKS]:
-        flags |= _DIVERGED
+                st[j, S_BR] = fv[F_BIAS] if wsum > 0.0 else 0.0
+                st[j, S_BA] = fv[F_BIAS + 1] if wsum > 0.0 else 0.0
+    # ---- estimator monitor (docs/design.md §9)
+    flags |= _monitor(fv, iv, qmin, e_min)
     # ---- human-body filter states from the measured acceleration
     n0 = fv[F_HAD] * xf0 + fv[F_HAD + 1] * xf1 + fv[F_HBD] * accel_mps2
     n1 = fv[F_HAD + 2] * xf0 + fv[F_HAD + 3] * xf1 + fv[F_HBD + 1] * accel_mps2
@@ -394,10 +555,11 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         fv[F_XF] = 0.0
         fv[F_XF + 1] = 0.0
         flags |= _NONFINITE_STATE
+    out = stop_guard(fv, out * fv[F_AUTH], rattlespace_m)
     if not math.isfinite(out):
         out = 0.0
         flags |= _NONFINITE_STATE
-    servo_update(fv, nd, out, force_meas_n)
+    servo_update(fv, nd, out, force_meas_n, rattlespace_m)
     if blend == _MOVING:
         tire_load_update(fv, iv, rattlespace_m, accel_mps2)
         supervise(st, active, fv, iv, nbr, vec, mat)
@@ -457,9 +619,18 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
         for c in range(st.shape[1]):
             st[j, c] = 0.0
         st[j, S_QS] = QS_INIT
+        st[j, S_QW] = QS_INIT
     fv[F_XF] = 0.0
     fv[F_XF + 1] = 0.0
     fv[F_XV] = 0.0
+    fv[F_FFW] = np.nan
+    fv[F_BIAS] = 0.0
+    fv[F_BIAS + 1] = 0.0
+    fv[F_STOP] = 0.0
+    fv[F_GUARD_S] = 1.0
+    fv[F_MON_SUM] = 0.0
+    fv[F_AUTH] = 1.0
+    fv[F_AMEAN] = 0.0
     for i in range(MAX_DELAY):
         fv[F_PEND + i] = 0.0
     for i in range(4):
@@ -477,10 +648,14 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_OUT] = 0.0
     for b in range(iv[I_NB] + 2 * (2 * iv[I_LD] + 1)):   # histogram and tire-load rings
         fv[iv[I_HIST] + b] = 0.0
-    for idx in (I_MODE, I_SINCE_SWITCH, I_SINCE_RECENTRE, I_PROBE_PTR, I_PROBE_CNT, I_DIVCNT,
+    for b in range(iv[I_MON_N]):                         # monitor window
+        fv[iv[I_MON_RING] + b] = 0.0
+    for idx in (I_MODE, I_SINCE_SWITCH, I_SINCE_RECENTRE, I_PROBE_PTR, I_PROBE_CNT,
                 I_FLAGS, I_NUPD, I_NSWITCH, I_NLEARN, I_NRECENTRE, I_TICK, I_NLIFT_LOAD,
-                I_LPTR, I_LCNT):
+                I_LPTR, I_LCNT, I_MON_PTR, I_MON_DEG, I_MON_OK, I_MON_BAD,
+                I_MON_NDEG, I_MON_DEGTICKS):
         iv[idx] = 0
+    iv[I_MON_CNT] = -iv[I_MON_N]
     iv[I_SENTINEL] = -1
     iv[I_CENTRE] = iv[I_SINGLE]
     bank_configure(mat, vec, st, active, fv, iv, nbr, blend)
@@ -494,6 +669,9 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
             st[j, S_XPOST + i] = mat[j, i, M_XBAR]
         st[j, S_P] = 1.0 / n if active[j] else 0.0
         st[j, S_QS] = QS_INIT
+        st[j, S_QW] = QS_INIT
+        st[j, S_BR] = 0.0
+        st[j, S_BA] = 0.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -551,6 +729,8 @@ def _pack(design: Design) -> tuple[FloatArray, FloatArray]:
             m[:, :, M_L:M_L + 2] = design.kalman_gain[:, s]
             m[:, :, M_CT:M_CT + 2] = np.transpose(design.C_meas, (0, 2, 1))
             m[:, :, M_KX] = design.lq_gain[w, :, :4]
+            m[:, 0, M_LB:M_LB + 2] = design.bias_gain[:, s, 0]
+            m[:, 1, M_LB:M_LB + 2] = design.bias_gain[:, s, 1]
             v[:, V_D:V_D + 2] = design.D_meas
             v[:, V_FINV:V_FINV + 4] = design.innovation_cov_inv[:, s].reshape(J, 4)
             v[:, V_LOGDET] = design.innovation_logdet[:, s]
@@ -615,7 +795,9 @@ class BankRuntime:
         off_curve = off_grid + G
         off_hist = off_curve + G
         load_step = max(1, round(mb.load_estimate_window_s / dt))   # Δ [ticks]
-        fv = np.zeros(off_hist + HIST_BINS + 2 * (2 * load_step + 1))
+        mon = monitor_settings(cfg_, dt, MEAS_DIM)
+        off_mon = off_hist + HIST_BINS + 2 * (2 * load_step + 1)
+        fv = np.zeros(off_mon + mon.window_ticks)
         fv[F_YOFF:F_YOFF + 2] = design.y_offset
         fv[F_HAD:F_HAD + 4] = np.asarray(design.human_filter_Ad).reshape(4)
         fv[F_HBD:F_HBD + 2] = design.human_filter_Bd
@@ -625,10 +807,23 @@ class BankRuntime:
             raise ValueError(f"design compute delay {n_delay} ticks: the runtime supports "
                              f"at most {MAX_DELAY}")
         fv[F_SDECAY], fv[F_SKP], fv[F_SFLIM], fv[F_SOLIM] = design.servo_model[:4]
+        fv[F_FFC], fv[F_FFA], fv[F_FFSTALL], fv[F_FFFLOOR] = design.servo_model[5:9]
+        fv[F_FFB] = fv[F_FFA] / dt
         tau = mb.smoothing_time_s
         fv[F_ALPHA] = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
         fv[F_PFLOOR] = prob_floor
-        fv[F_DIVQ] = cfg_.safety.estimator_divergence_q
+        fv[F_BS_K], fv[F_BS_LO], fv[F_BS_HI] = design.bump_stop
+        fv[F_GUARD_W] = cfg_.design.stop_guard_m
+        aw = cfg_.design.accel_mean_window_s
+        fv[F_AMEAN_ALPHA] = 1.0 - math.exp(-dt / aw) if aw > 0.0 else 0.0
+        fw = cfg_.fuzzy.window_s
+        fv[F_QW_ALPHA] = 1.0 - math.exp(-dt / fw) if fw > 0.0 else 1.0
+        fv[F_MON_THR] = mon.degrade_sum
+        fv[F_MON_REARM] = mon.rearm_sum
+        fv[F_AUTH_STEP] = mon.authority_step
+        fv[F_UNUSE_R] = 1.0 / mon.rattlespace_bound_m
+        fv[F_UNUSE_A] = 1.0 / mon.accel_bound_mps2
+        self.monitor = mon
         fv[F_TFLOOR] = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
         fv[F_LOFF] = mb.liftoff_load_fraction
         fv[F_LON] = mb.liftoff_load_fraction / mb.hysteresis_ratio
@@ -657,7 +852,11 @@ class BankRuntime:
         iv[I_K] = k
         iv[I_DWELL] = max(1, round(mb.dwell_time_s / dt))
         iv[I_PROBE] = max(1, round(probe_period_s / dt))
-        iv[I_DIVTICKS] = cfg_.safety.divergence_ticks
+        iv[I_FSTAT] = FSTAT_RELATIVE if cfg_.fuzzy.statistic == "relative" else FSTAT_RAW
+        iv[I_MON_N] = mon.window_ticks
+        iv[I_MON_RING] = off_mon
+        iv[I_MON_RECOVER] = mon.rearm_ticks
+        iv[I_MON_MAXBAD] = mon.window_ticks
         iv[I_FALLBACK] = FALLBACK_BEST if fallback == "best_model" else FALLBACK_PASSIVE
         iv[I_QGRID] = off_grid
         iv[I_WCURVE] = off_curve
@@ -800,11 +999,49 @@ class BankRuntime:
     def contact_cusum_threshold(self) -> float:
         return float(self._fv[F_LH])
 
+    @property
+    def authority(self) -> float:
+        """Force authority in [0, 1]: 1 armed, ramping to 0 while the monitor has the bank
+        degraded (:mod:`controller.monitor`)."""
+        return float(self._fv[F_AUTH])
+
+    @property
+    def degraded(self) -> bool:
+        """The estimator monitor has the bank on its conservative law (DEGRADED)."""
+        return bool(self._iv[I_MON_DEG])
+
+    @property
+    def monitor_statistic(self) -> float:
+        """Window sum of the smallest q over the monitor window, divided by the window
+        length (a matched filter averages m = 2); 0 until the window is full."""
+        n = int(self._iv[I_MON_N])
+        if n == 0 or self._iv[I_MON_CNT] < n:       # settling or filling after a reset
+            return 0.0
+        return float(self._fv[F_MON_SUM]) / n
+
+    @property
+    def bump_stop_force(self) -> float:
+        """The bump-stop force of the last tick, from the LVDT reading [N]."""
+        return float(self._fv[F_STOP])
+
+    @property
+    def stop_guard(self) -> float:
+        """The end-stop guard's factor on the force of the last tick (1: not acting;
+        controller/stop_guard.py)."""
+        return float(self._fv[F_GUARD_S])
+
+    @property
+    def bias_estimate(self) -> tuple[float, float]:
+        """Blended measurement-bias estimates (rattlespace [m], acceleration [m/s^2])."""
+        return float(self._fv[F_BIAS]), float(self._fv[F_BIAS + 1])
+
     def counters(self) -> dict[str, int]:
         iv = self._iv
         return {"ticks": int(iv[I_TICK]), "set_switches": int(iv[I_NSWITCH]),
                 "recentres": int(iv[I_NRECENTRE]), "history_samples": int(iv[I_NLEARN]),
-                "divergence_ticks": int(iv[I_DIVCNT]),
+                "degradations": int(iv[I_MON_NDEG]),
+                "degraded_ticks": int(iv[I_MON_DEGTICKS]),
+                "unusable_ticks": int(iv[I_MON_BAD]),
                 "load_liftoffs": int(iv[I_NLIFT_LOAD])}
 
     def snapshot(self) -> dict[str, Any]:

@@ -178,10 +178,44 @@ class DesignConfig:
                                            "mass modes (docs/design.md)")
     airborne_filter_com_damping: float = _f(0.7, lo=0.0, hi=10.0, lo_open=True,
                                             doc="airborne filter only: pseudo damping ratio")
+    airborne_filter_wheel_force_intensity: float = _f(
+        300.0, lo=0.0, hi=1e12,
+        doc="airborne Kalman filter only: intensity [N^2 s] of a white force on the wheel "
+            "standing for the tire force the model leaves out, so the filter tracks the "
+            "relative motion instead of predicting it open loop (0 = none, thesis)")
     filter_velocity_leak_hz: float = _f(0.1, lo=0.0, hi=10.0,
                                         doc="on-ground Kalman filters only: pseudo leak on "
                                             "the mass-weighted velocity (0 = pure white-road "
                                             "model; see docs/design.md, bias sensitivity)")
+    filter_rattlespace_bias_drift: float = _f(1e-4, lo=0.0, hi=1.0,
+                                              doc="Kalman filters: random-walk intensity "
+                                                  "[m/sqrt(s)] of a rattlespace measurement-"
+                                                  "bias state (LVDT zero, ride height); 0 = no "
+                                                  "bias state (docs/design.md §4, DC gain)")
+    filter_accel_bias_drift: float = _f(0.0, lo=0.0, hi=100.0,
+                                        doc="Kalman filters: random-walk intensity "
+                                            "[m/s^2/sqrt(s)] of an accelerometer-bias state; "
+                                            "0 = no bias state (the default: the running "
+                                            "mean below removes the bias model-free)")
+    accel_mean_window_s: float = _f(30.0, lo=0.0, hi=1e5,
+                                    doc="the filters see the accelerometer reading minus "
+                                        "its running mean over about this time (a body "
+                                        "on the rig has zero mean acceleration, so the mean "
+                                        "is the sensor's bias); 0 = raw reading")
+    bump_stop_filter_input: bool = _f(True, doc="feed the bump-stop force computed from "
+                                                "the LVDT reading to the Kalman filters as a "
+                                                "known input (docs/design.md §4)")
+    bump_stop_centre_lvdt_m: float = _f(0.0, lo=-0.5, hi=0.5,
+                                        doc="LVDT reading half-way between the compression "
+                                            "and rebound stops (calibrated on the rig: the "
+                                            "mean of the two readings at stop contact); the "
+                                            "stops engage +/- vehicle.rattlespace_travel_m "
+                                            "about it")
+    stop_guard_m: float = _f(0.02, lo=0.0, hi=1.0,
+                             doc="end-stop guard: within this distance of a bump stop (LVDT "
+                                 "frame, as bump_stop_centre_lvdt_m) the bank's force toward "
+                                 "that stop fades linearly to 0 at the stop; a force away "
+                                 "from it is untouched (0 = off; docs/design.md §9.6)")
     actuator_model: str = _f("hydraulic", choices=("hydraulic", "ideal"),
                              doc="plant the LQ gains are designed on: 'hydraulic' = plant + "
                                  "linearised servo-valve/actuator under the PI's proportional "
@@ -228,7 +262,16 @@ class FuzzyConfig:
     out_zero: float = _f(0.0, lo=0.0, hi=1.0, doc="ZERO singleton")
     singleton_area: float = _f(0.25, lo=0.0, hi=1.0, lo_open=True,
                                doc="area a fully fired singleton carries in centre of area")
-    no_fire_fallback: str = _f("passive", choices=("passive", "best_model"))
+    no_fire_fallback: str = _f("best_model", choices=("passive", "best_model"),
+                               doc="no rule fired: the best model alone (min statistic) "
+                                   "or 0 N ('passive', thesis App. A)")
+    statistic: str = _f("relative", choices=("relative", "raw"),
+                        doc="fuzzy input: 'relative' = each model's windowed q relative to "
+                            "the bank's smallest, scaled to a matched filter's mean (the "
+                            "best model always fires); 'raw' = the per-tick q (thesis App. A)")
+    window_s: float = _f(0.02, lo=0.0, hi=10.0,
+                         doc="time constant of the exponential window of the 'relative' "
+                             "statistic (0 = per tick)")
 
 
 @dataclass(frozen=True)
@@ -264,13 +307,29 @@ class ForceLoopConfig:
     """PI force inner loop for the servo valve (output: normalised spool command)."""
 
     kp_per_n: float = _f(1.0e-4, lo=0.0, hi=1.0,
-                         doc="force-loop crossover ~30 Hz; phase margin ~69/58/47 deg at 0/1/2 "
-                             "ticks of loop delay (controller/margins.py, docs/design.md 7)")
+                         doc="force-loop crossover ~31 Hz; phase margin there ~89/78/67 deg at "
+                             "0/1/2 ticks of loop delay with the flow feedforward, 72/61/50 "
+                             "without (controller/margins.py, docs/design.md 7)")
     ki_per_ns: float = _f(0.002, lo=0.0, hi=1e3,
                           doc="integral corner ki/kp = 20 rad/s, a decade below crossover")
     output_limit: float = _f(1.0, lo=0.0, hi=1.0, lo_open=True)
     force_limit_n: float = _f(8000.0, lo=0.0, hi=1e6, lo_open=True,
                               doc="force reference saturation")
+    flow_feedforward_gain: float = _f(1.0, lo=0.0, hi=1.25,
+                                      doc="valve flow feedforward: fraction of the piston "
+                                          "flow A x_p' (x_p' from the differentiated LVDT) "
+                                          "the spool command supplies (Alleyne & Hedrick's "
+                                          "compensation; 1 = full, 0 = off, above 1 "
+                                          "the oil column acts as a negative spring; "
+                                          "controller/actuator.py, docs/design.md 7)")
+    rattle_rate_lowpass_hz: float = _f(150.0, lo=1.0, hi=1e5,
+                                       doc="corner of the first-order low-pass on the "
+                                           "differentiated LVDT reading that feeds the "
+                                           "flow feedforward")
+    min_pressure_drop_fraction: float = _f(0.1, lo=0.0, hi=1.0, lo_open=True,
+                                           doc="floor of the valve pressure drop "
+                                               "(Ps - sgn(x_v) P) / Ps in the feedforward's "
+                                               "sqrt law (bounds the spool near stall)")
 
 
 @dataclass(frozen=True)
@@ -317,9 +376,26 @@ class SafetyConfig:
     overrun_streak: int = _f(5, lo=1, hi=100000)
     overrun_threshold_s: float = _f(0.0005, lo=0.0, hi=1.0, lo_open=True,
                                     doc="a tick later than this counts as overrun")
-    estimator_divergence_q: float = _f(1e4, lo=1.0, hi=1e12,
-                                       doc="min q over active models above this = divergence")
-    divergence_ticks: int = _f(50, lo=1, hi=100000)
+    estimator_window_s: float = _f(0.1, lo=0.0, hi=10.0, lo_open=True,
+                                   doc="window of the estimator monitor: the sum of the "
+                                       "bank's smallest q over it is tested against its "
+                                       "chi-square distribution (docs/design.md §9)")
+    estimator_false_alarm: float = _f(1e-6, lo=1e-15, hi=0.5,
+                                      doc="per-tick probability that a consistent bank (q "
+                                          "of the matched model inflated by at most "
+                                          "estimator_nis_inflation) trips the monitor")
+    estimator_nis_inflation: float = _f(1000.0, lo=1.0, hi=1e9,
+                                        doc="innovation-covariance inflation tolerated as "
+                                            "ordinary model mismatch before degrading (1000: "
+                                            "innovation std ~2 mm of rattlespace, ~3 m/s^2 of "
+                                            "acceleration with the default noise)")
+    estimator_rearm_s: float = _f(0.5, lo=0.0, hi=600.0,
+                                  doc="degraded: the window statistic must stay below its "
+                                      "median under the tolerated mismatch this long to "
+                                      "re-arm")
+    estimator_authority_ramp_s: float = _f(0.05, lo=0.0, hi=10.0,
+                                           doc="force authority ramps 1 -> 0 (degrade) and "
+                                               "0 -> 1 (re-arm) over this time")
     force_range_n: float = _f(15000.0, lo=1.0, hi=1e6)
     heartbeat_hz: float = _f(10.0, lo=0.1, hi=1000.0)
     frozen_ticks: int = _f(50, lo=2, hi=100000,

@@ -3,11 +3,13 @@
 For every model j of :func:`controller.plant.model_family` (deflection grid x tire
 damping scales, then the airborne model):
 - the ZOH discretisation of the absolute-coordinate filter model (Phi, Gamma_u, Gamma_g),
-- a steady-state Kalman filter for every (speed, roughness) entry of the noise table,
+- a steady-state Kalman filter for every (speed, roughness) entry of the noise table
+  (with random-walk measurement-bias states: their gains in ``bias_gain``),
 - an LQ gain on the augmented plant (plant + human filter, and with
   ``design.actuator_model = "hydraulic"`` the force path of :mod:`controller.actuator`)
   for every weight set,
-plus the discretised human-body filter and the tabulated fuzzy firing-weight curve.
+plus the discretised human-body filter, the tabulated fuzzy firing-weight curve and the
+bump-stop law the filters take as a known input.
 Derivations: docs/design.md.
 """
 
@@ -35,8 +37,8 @@ from controller.lq import actuated_lq_gain, lq_gain
 from controller.plant import LinearModel, model_family
 from controller.road_noise import noise_table_entries
 
-__all__ = ["FUZZY_GRID_POINTS", "ModelDesign", "design_bank", "design_models",
-           "measurement_noise_cov"]
+__all__ = ["FUZZY_GRID_POINTS", "ModelDesign", "bump_stop_input", "design_bank",
+           "design_models", "measurement_noise_cov"]
 
 FloatArray = NDArray[np.float64]
 
@@ -56,6 +58,15 @@ class ModelDesign:
 def measurement_noise_cov(cfg: RigConfig) -> FloatArray:
     """R = diag(rattlespace_std^2, accel_std^2) [m^2, (m/s^2)^2] per sample."""
     return np.diag([cfg.noise.rattlespace_std_m**2, cfg.noise.accel_std_mps2**2])
+
+
+def bump_stop_input(cfg: RigConfig) -> FloatArray:
+    """[stiffness N/m, rebound-stop LVDT reading m, compression-stop LVDT reading m] of the
+    bump-stop force the filters take as a known input (stiffness 0: no stop input)."""
+    d, v = cfg.design, cfg.vehicle
+    k = v.bump_stop_stiffness_n_per_m if d.bump_stop_filter_input else 0.0
+    c = d.bump_stop_centre_lvdt_m
+    return np.array([k, c - v.rattlespace_travel_m, c + v.rattlespace_travel_m])
 
 
 def design_models(cfg: RigConfig) -> list[ModelDesign]:
@@ -86,7 +97,10 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
     W = len(cfg.design.weight_sets)
     R = measurement_noise_cov(cfg)
 
+    bias_qd = np.array([cfg.design.filter_rattlespace_bias_drift ** 2,
+                        cfg.design.filter_accel_bias_drift ** 2]) * dt
     kalman_gain = np.zeros((J, S, 4, 2))
+    bias_gain = np.zeros((J, S, 2, 2))
     f_cov = np.zeros((J, S, 2, 2))
     f_inv = np.zeros((J, S, 2, 2))
     f_logdet = np.zeros((J, S))
@@ -96,16 +110,18 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
     fb = np.zeros((J, S, 4))
     servo = servo_model(cfg)
     gains = np.zeros((W, J, 6))
-    act_gains = np.zeros((W, J, 2 + servo.delay_ticks))
+    act_gains = np.zeros((W, J, 3 + servo.delay_ticks))
     eq = np.full((J, 4), np.nan)
     for j, md in enumerate(mds):
         if md.model.equilibrium is not None:
             eq[j] = md.model.equilibrium
         for s, (_v, _gd, w_int) in enumerate(entries):
-            kf = steady_state_kalman(md.dfm.Phi, md.fm.C, md.dfm.Qd_unit * w_int, R)
+            kf = steady_state_kalman(md.dfm.Phi, md.fm.C,
+                                     md.dfm.Qd_unit * w_int + md.dfm.Qd_fixed, R, bias_qd)
             fused = fused_prior_update(md.dfm.Phi, md.dfm.Gamma_u, md.dfm.Gamma_g, g,
                                        md.fm.C, md.fm.D, md.fm.y_offset, kf.L)
             kalman_gain[j, s] = kf.L
+            bias_gain[j, s] = kf.L_bias
             f_cov[j, s] = kf.F
             f_inv[j, s] = kf.F_inv
             f_logdet[j, s] = kf.logdet
@@ -134,6 +150,7 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
         D_meas=np.stack([md.fm.D for md in mds]),
         y_offset=np.array([0.0, -g]),
         kalman_gain=kalman_gain,
+        bias_gain=bias_gain,
         innovation_cov=f_cov,
         innovation_cov_inv=f_inv,
         innovation_logdet=f_logdet,
@@ -152,6 +169,7 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
         fuzzy_q_grid=q_grid,
         fuzzy_weight_curve=w_curve,
         static_rattlespace_m=v.sprung_mass_kg * g / v.suspension_stiffness_n_per_m,
+        bump_stop=bump_stop_input(cfg),
         metadata=build_metadata(cfg),
     )
     design.validate()

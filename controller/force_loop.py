@@ -1,11 +1,20 @@
-"""PI force inner loop: actuator force reference [N] -> normalised servo-valve spool command.
+"""PI force inner loop with valve flow feedforward: actuator force reference [N] and the
+LVDT reading -> normalised servo-valve spool command.
 
     e      = sat(force_ref, +-force_limit_n) - force_meas          [N]
-    spool  = clip(kp e + ki I, +-output_limit)                     [-]
-    I     += e dt   (conditional integration, see below)           [N s]
+    s_ff   = flow feedforward of the extension rate (below)         [-]
+    spool  = clip(kp e + ki I + s_ff, +-output_limit)               [-]
+    I     += e dt   (conditional integration, see below)            [N s]
+
+The flow feedforward (:class:`controller.actuator.FlowFeedforward`, Alleyne & Hedrick)
+opens the valve by the amount that supplies the flow the moving piston displaces, so
+the oil column stops acting as a stiff spring between body and wheel and the PI only
+has to make the force: s_ff = c v / sqrt(max(1 - sgn(v) F / (A Ps), floor)), v the
+extension rate from the differentiated, low-passed LVDT reading (rattlespace r =
+zu - zs, v = -r').  Its filter starts at rest on the first reading after ``reset()``.
 
 The integral uses backward Euler (the error of this tick is included before the output
-is computed), so with ``I`` the value after the update ``spool = kp e + ki I``.
+is computed), so with ``I`` the value after the update ``spool = kp e + ki I + s_ff``.
 
 Anti-windup is *conditional integration* (clamping): the integrator is not advanced on
 a tick where the unclipped output is saturated and the error would drive it further
@@ -13,16 +22,17 @@ into saturation; in addition ``ki I`` is kept within ``+-output_limit`` so that 
 integrator can never hold more authority than the valve has.  Together these bound the
 integrator under saturation and give recovery without overshoot from wind-up.
 
-A non-finite reference or measurement returns 0.0 (valve centred), sets
-``flags = StepFlag.NONFINITE_INPUT`` and leaves the integrator untouched; the step never
-raises.  ``reset()`` clears the integrator.
+A non-finite reference, force or rattlespace returns 0.0 (valve centred), sets
+``flags = StepFlag.NONFINITE_INPUT`` and leaves the integrator and the filter untouched;
+the step never raises.  ``reset()`` clears the integrator and the rate filter.
 """
 
 from __future__ import annotations
 
 import math
 
-from controller.config import ForceLoopConfig
+from controller.actuator import FlowFeedforward, flow_feedforward
+from controller.config import ForceLoopConfig, RigConfig
 from controller.kernels import StepFlag
 
 __all__ = ["PIForceLoop"]
@@ -33,34 +43,60 @@ _NONFINITE_INPUT = StepFlag.NONFINITE_INPUT
 
 
 class PIForceLoop:
-    """Discrete PI force controller with reference saturation and anti-windup."""
+    """Discrete PI force controller with flow feedforward, reference saturation and
+    anti-windup.  ``feedforward`` None runs the plain PI (``rattlespace_m`` unused)."""
 
-    def __init__(self, cfg: ForceLoopConfig, dt_s: float) -> None:
+    def __init__(self, cfg: ForceLoopConfig, dt_s: float,
+                 feedforward: FlowFeedforward | None) -> None:
         if not (math.isfinite(dt_s) and dt_s > 0.0):
             raise ValueError(f"dt_s = {dt_s!r}: must be a positive number of seconds")
+        if feedforward is not None and not math.isclose(feedforward.dt_s, dt_s,
+                                                        rel_tol=1e-12):
+            raise ValueError(f"flow feedforward designed for dt {feedforward.dt_s!r} s, "
+                             f"the force loop runs at {dt_s!r} s")
         self.kp_per_n = float(cfg.kp_per_n)
         self.ki_per_ns = float(cfg.ki_per_ns)
         self.output_limit = float(cfg.output_limit)
         self.force_limit_n = float(cfg.force_limit_n)
         self.dt_s = float(dt_s)
+        self.feedforward = feedforward
         self.integral_ns = 0.0          # I [N s]
         self.flags = _NO_FLAGS
         self.saturated = False          # last output was clipped
         self.error_n = 0.0
+        self.feedforward_spool = 0.0    # s_ff of the last tick
+        self.rate_state_mps = math.nan  # w of the rate filter; NaN = no reading yet
+
+    @classmethod
+    def from_config(cls, cfg: RigConfig) -> PIForceLoop:
+        """The rig's force loop: ``cfg.force_loop`` at the controller rate with the flow
+        feedforward of ``cfg`` (:func:`controller.actuator.flow_feedforward`)."""
+        return cls(cfg.force_loop, cfg.sample_time_s, flow_feedforward(cfg))
 
     def reset(self) -> None:
-        """Clear the integrator and the flags."""
+        """Clear the integrator, the rate filter and the flags."""
         self.integral_ns = 0.0
         self.flags = _NO_FLAGS
         self.saturated = False
         self.error_n = 0.0
+        self.feedforward_spool = 0.0
+        self.rate_state_mps = math.nan
 
-    def step(self, force_ref_n: float, force_meas_n: float) -> float:
+    def step(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float) -> float:
         """One tick: the spool command in [-output_limit, output_limit]."""
-        if not (math.isfinite(force_ref_n) and math.isfinite(force_meas_n)):
+        if not (math.isfinite(force_ref_n) and math.isfinite(force_meas_n)
+                and math.isfinite(rattlespace_m)):
             self.flags = _NONFINITE_INPUT
             return 0.0
         self.flags = _NO_FLAGS
+        ff = 0.0
+        fwd = self.feedforward
+        if fwd is not None:
+            w = self.rate_state_mps
+            if math.isnan(w):
+                w = fwd.initial_state(rattlespace_m)
+            ff, self.rate_state_mps = fwd.step(w, rattlespace_m, force_meas_n)
+        self.feedforward_spool = ff
         lim_f = self.force_limit_n
         ref = min(max(force_ref_n, -lim_f), lim_f)
         e = ref - force_meas_n
@@ -68,13 +104,13 @@ class PIForceLoop:
         lim = self.output_limit
         kp, ki = self.kp_per_n, self.ki_per_ns
         trial_i = self.integral_ns + e * self.dt_s
-        unclipped = kp * e + ki * trial_i
+        unclipped = kp * e + ki * trial_i + ff
         winding_up = (unclipped > lim and e > 0.0) or (unclipped < -lim and e < 0.0)
         if not winding_up:
             self.integral_ns = trial_i
         if ki > 0.0:  # the integral term alone never exceeds the valve authority
             i_max = lim / ki
             self.integral_ns = min(max(self.integral_ns, -i_max), i_max)
-        out = kp * e + ki * self.integral_ns
+        out = kp * e + ki * self.integral_ns + ff
         self.saturated = abs(out) > lim
         return min(max(out, -lim), lim)

@@ -34,12 +34,22 @@ from a rattlespace bias to the velocity estimate (~1e8 N of LQ force per metre o
 The filter model therefore gets a pseudo leak of rate 2 pi cfg.design.filter_velocity_leak_hz
 on the mass-weighted velocity (both accelerations alike, so relative dynamics and the
 static equilibrium are unchanged); 0 switches it off (docs/design.md).
+
+Measurement biases (docs/design.md §9.2): :func:`steady_state_kalman` with ``bias_qd``
+augments the model with random-walk biases on the rattlespace and/or acceleration
+measurement, y = C x + b + D u + y_offset + v; the plant-state gain is ``L`` and the bias
+gain ``L_bias``.  The fused runtime form is unchanged with y replaced by y - b-.
+
+Airborne wheel force (§9.4): the airborne filter model also carries a white force on the
+wheel of intensity cfg.design.airborne_filter_wheel_force_intensity (the tire force the
+model leaves out, ``DiscreteFilterModel.Qd_fixed``), so it tracks the relative motion
+instead of predicting it open loop.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
@@ -54,6 +64,7 @@ __all__ = [
     "FilterModel",
     "FusedFilter",
     "SteadyStateKalman",
+    "bias_augmented",
     "discretize_filter_model",
     "filter_model",
     "fused_prior_update",
@@ -76,6 +87,9 @@ class FilterModel:
     D: FloatArray       # (2,)
     y_offset: FloatArray  # (2,) = [0, -g]
     gravity_mps2: float
+    #: intensity [N^2 s] of a white force on the wheel (airborne model: the tire force it
+    #: does not model); 0 for the on-ground models
+    wheel_force_intensity: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -84,15 +98,20 @@ class DiscreteFilterModel:
     Gamma_u: FloatArray   # (4,)
     Gamma_g: FloatArray   # (4,) multiplies g
     Qd_unit: FloatArray   # (4, 4) process-noise covariance for W = 1 m^2/s
+    #: (4, 4) road-independent process noise (the airborne model's wheel force)
+    Qd_fixed: FloatArray = field(default_factory=lambda: np.zeros((4, 4)))
 
 
 @dataclass(frozen=True)
 class SteadyStateKalman:
-    P_prior: FloatArray   # (4, 4)
-    L: FloatArray         # (4, 2)
+    P_prior: FloatArray   # (n, n); with bias states (n + n_b, n + n_b), biases last
+    L: FloatArray         # (n, 2) gain of the plant states
     F: FloatArray         # (2, 2)
     F_inv: FloatArray     # (2, 2)
     logdet: float
+    #: (2, 2) gain of the measurement-bias states: row 0 rattlespace bias, row 1
+    #: acceleration bias (a zero row: that bias state is not modelled)
+    L_bias: FloatArray = field(default_factory=lambda: np.zeros((2, 2)))
 
 
 @dataclass(frozen=True)
@@ -129,8 +148,9 @@ def filter_model(model: LinearModel, cfg: RigConfig) -> FilterModel:
         A[2] += row
         A[3] += row
     C = model.C_meas.copy()
+    w_force = cfg.design.airborne_filter_wheel_force_intensity if model.airborne else 0.0
     return FilterModel(A, model.B2.copy(), model.B1.copy(), G, C, model.D_meas.copy(),
-                       np.array([0.0, -g]), g)
+                       np.array([0.0, -g]), g, w_force)
 
 
 def process_noise_cov(A: FloatArray, B1: FloatArray, W: float, dt_s: float) -> FloatArray:
@@ -153,16 +173,51 @@ def process_noise_cov(A: FloatArray, B1: FloatArray, W: float, dt_s: float) -> F
 
 def discretize_filter_model(fm: FilterModel, dt_s: float) -> DiscreteFilterModel:
     Phi, Gam = discretize_zoh(fm.A, np.column_stack([fm.B2, fm.G]), dt_s)
+    fixed = np.zeros((4, 4))
+    if fm.wheel_force_intensity > 0.0:      # a force on the wheel alone: -B2 without 1/M
+        b_wheel = np.array([0.0, 0.0, 0.0, fm.B2[3]])
+        fixed = process_noise_cov(fm.A, b_wheel, fm.wheel_force_intensity, dt_s)
     return DiscreteFilterModel(Phi, Gam[:, 0].copy(), Gam[:, 1].copy(),
-                               process_noise_cov(fm.A, fm.B1, 1.0, dt_s))
+                               process_noise_cov(fm.A, fm.B1, 1.0, dt_s), fixed)
+
+
+def bias_augmented(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
+                   bias_qd: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, list[int]]:
+    """The filter model with a random-walk bias state on each measurement channel i whose
+    per-sample increment variance ``bias_qd[i]`` is > 0:
+
+        [x; b][k+1] = blockdiag(Phi, I) [x; b][k] + noise,   y = [C, E] [x; b] + ...,
+        Qd_aug = blockdiag(Qd, diag(bias_qd[kept]))
+
+    (E selects the channel of each kept bias).  Returns (Phi_aug, C_aug, Qd_aug, kept)."""
+    n = Phi.shape[0]
+    kept = [i for i in range(C.shape[0]) if bias_qd[i] > 0.0]
+    nb_ = len(kept)
+    Phi_a = np.eye(n + nb_)
+    Phi_a[:n, :n] = Phi
+    C_a = np.zeros((C.shape[0], n + nb_))
+    C_a[:, :n] = C
+    Q_a = np.zeros((n + nb_, n + nb_))
+    Q_a[:n, :n] = Qd
+    for b, i in enumerate(kept):
+        C_a[i, n + b] = 1.0
+        Q_a[n + b, n + b] = bias_qd[i]
+    return Phi_a, C_a, Q_a, kept
 
 
 def steady_state_kalman(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
-                        R: FloatArray) -> SteadyStateKalman:
+                        R: FloatArray, bias_qd: FloatArray | None = None) -> SteadyStateKalman:
     """Steady-state prior covariance (filter DARE) and the measurement-update gain.
 
+    ``bias_qd`` (per measurement channel, per-sample variance of a random-walk bias;
+    0 = none) augments the model with measurement-bias states (:func:`bias_augmented`);
+    the plant-state gain is then ``L`` and the bias gain ``L_bias``.
     Raises ``ValueError`` if the DARE has no stabilising solution.
     """
+    n = Phi.shape[0]
+    kept: list[int] = []
+    if bias_qd is not None and np.any(np.asarray(bias_qd) > 0.0):
+        Phi, C, Qd, kept = bias_augmented(Phi, C, Qd, np.asarray(bias_qd, dtype=float))
     try:
         P = scipy.linalg.solve_discrete_are(Phi.T, C.T, Qd, R)
     except (np.linalg.LinAlgError, ValueError) as exc:
@@ -172,11 +227,14 @@ def steady_state_kalman(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
     F = 0.5 * (F + F.T)
     F_inv = np.linalg.inv(F)
     F_inv = 0.5 * (F_inv + F_inv.T)
-    L = P @ C.T @ F_inv
+    L_all = P @ C.T @ F_inv
     sign, logdet = np.linalg.slogdet(F)
     if sign <= 0:
         raise ValueError("innovation covariance is not positive definite")
-    return SteadyStateKalman(P, L, F, F_inv, float(logdet))
+    L_bias = np.zeros((2, C.shape[0]))
+    for b, i in enumerate(kept):
+        L_bias[i] = L_all[n + b]
+    return SteadyStateKalman(P, L_all[:n].copy(), F, F_inv, float(logdet), L_bias)
 
 
 def fused_prior_update(Phi: FloatArray, Gamma_u: FloatArray, Gamma_g: FloatArray,

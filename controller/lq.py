@@ -135,19 +135,33 @@ def dlqr_cross(Ad: FloatArray, Bd: FloatArray, Qd: FloatArray, Rd: float,
     """Discrete LQR with cross term: (K (n,), P (n, n)) for u = -K z.
 
     The input is rescaled to unit cost weight before the DARE (rho3 = 1e-8 makes Rd tiny
-    next to Qd in SI units); the gain is scaled back.  Raises ``ValueError`` if the DARE
-    has no stabilising solution.
+    next to Qd in SI units) and the state by the diagonal similarity z = T z~ that
+    balances Ad (``scipy.linalg.matrix_balance``, powers of two: exact; SI states span
+    metres to newtons, and with the actuator's pending commands the pencil is otherwise
+    too ill-conditioned for the QZ reordering); gain and P are transformed back.  If
+    scipy's own pencil balancing still leaves the QZ reordering ill-conditioned (some
+    actuated problems with D >= 2), the DARE is solved again without it.  Raises
+    ``ValueError`` if the DARE has no stabilising solution.
     """
     n = Ad.shape[0]
+    _, (t, _) = scipy.linalg.matrix_balance(Ad, permute=False, separate=True)
+    t_inv = 1.0 / t
     scale = 1.0 / np.sqrt(Rd)  # u = scale * v  ->  cost weight on v is 1
-    Bv = Bd.reshape(n, 1) * scale
-    Nv = Nd.reshape(n, 1) * scale
+    Ab = Ad * t_inv[:, None] * t[None, :]
+    Qb = Qd * t[:, None] * t[None, :]
+    Bv = (Bd * t_inv).reshape(n, 1) * scale
+    Nv = (Nd * t).reshape(n, 1) * scale
     try:
-        P = scipy.linalg.solve_discrete_are(Ad, Bv, Qd, np.array([[1.0]]), s=Nv)
-    except (np.linalg.LinAlgError, ValueError) as exc:
-        raise ValueError(f"LQ DARE has no stabilising solution ({exc})") from exc
-    Kv = np.linalg.solve(np.array([[1.0]]) + Bv.T @ P @ Bv, Bv.T @ P @ Ad + Nv.T)
-    K = (Kv * scale).reshape(n)
+        Pb = scipy.linalg.solve_discrete_are(Ab, Bv, Qb, np.array([[1.0]]), s=Nv)
+    except (np.linalg.LinAlgError, ValueError):
+        try:
+            Pb = scipy.linalg.solve_discrete_are(Ab, Bv, Qb, np.array([[1.0]]), s=Nv,
+                                                 balanced=False)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            raise ValueError(f"LQ DARE has no stabilising solution ({exc})") from exc
+    Kv = np.linalg.solve(np.array([[1.0]]) + Bv.T @ Pb @ Bv, Bv.T @ Pb @ Ab + Nv.T)
+    K = (Kv * scale).reshape(n) * t_inv
+    P = Pb * t_inv[:, None] * t_inv[None, :]
     rho = float(np.max(np.abs(np.linalg.eigvals(Ad - np.outer(Bd, K)))))
     if not rho < 1.0:
         raise ValueError(f"LQ closed loop not stable (spectral radius {rho:.6f})")
@@ -170,8 +184,9 @@ def lq_gain(model: LinearModel, hf: HumanFilter,
     return K
 
 
-#: Gain layout of the actuator-aware design: [Kx (4), Kf (2), K_spool, K_force,
-#: K_pending (D)]; the first 6 entries have the meaning of :func:`lq_gain`'s.
+#: Gain layout of the actuator-aware design: [Kx (4), Kf (2), K_spool, K_force, K_rate,
+#: K_pending (D)]; the first 6 entries have the meaning of :func:`lq_gain`'s, K_rate acts
+#: on the state w of the flow feedforward's rate filter (:mod:`controller.actuator`).
 ACTUATOR_GAIN_OFFSET = 6
 
 
@@ -201,9 +216,11 @@ def actuated_lq_problem(model: LinearModel, hf: HumanFilter,
                         weights: tuple[float, float, float, float] | list[float],
                         servo: ServoModel) -> DiscreteLQProblem:
     """Sampled LQ problem with the force path of :mod:`controller.actuator` (docs/design.md
-    section 7).  State Z = [x (4), xf (2), x_v, F, s_{k-1}, ..., s_{k-D}], input = the
-    force reference fref_k; the PI's proportional path makes the spool command
-    s_k = kp (fref_k - F_k), the valve gets s_{k-D} (ZOH over the tick).
+    section 7).  State Z = [x (4), xf (2), x_v, F, w, s_{k-1}, ..., s_{k-D}], input = the
+    force reference fref_k.  The force loop's proportional path and flow feedforward make
+    the spool command s_k = kp (fref_k - F_k) - c (w_k + b r_k) (linearised at zero load
+    pressure; r_k = x1 - x2 the rattlespace, w the state of the rate filter,
+    w_{k+1} = (1 - a) w_k - a b r_k), the valve gets s_{k-D} (ZOH over the tick).
 
     The cost is Eq. 2.5 integrated exactly over the tick along the actuated motion (Van
     Loan with the applied spool as the held input) plus rho3 fref_k^2 T: the thesis's
@@ -224,28 +241,37 @@ def actuated_lq_problem(model: LinearModel, hf: HumanFilter,
     Qc = rho1 * np.outer(e_tire, e_tire) + rho2 * np.outer(e_rattle, e_rattle) \
         + rho4 * np.outer(c_f, c_f)
     base = discretize_cost(A8, B8, Qc, 0.0, dt)
+    ff = servo.feedforward
+    a_ff, b_ff, c_ff = ff.rate_filter_coeff, ff.rate_input_gain_per_s, ff.gain_s_per_m
     D = int(servo.delay_ticks)
-    N = n + D
-    e_force = np.zeros(N)
-    e_force[7] = 1.0
-    s_z = -servo.kp_per_n * e_force          # s_k = s_z Z + s_f fref
+    iw = n                                   # index of w in Z
+    n0 = n + 1                               # first pending command
+    N = n0 + D
+    e_r = np.zeros(N)
+    e_r[:2] = [1.0, -1.0]
+    s_z = np.zeros(N)                        # s_k = s_z Z + s_f fref
+    s_z[7] = -servo.kp_per_n
+    s_z[iw] = -c_ff
+    s_z -= c_ff * b_ff * e_r
     s_f = servo.kp_per_n
     if D == 0:
         a_z, a_f = s_z, s_f
     else:
         a_z = np.zeros(N)
-        a_z[n + D - 1] = 1.0
+        a_z[n0 + D - 1] = 1.0
         a_f = 0.0
     Ad = np.zeros((N, N))
     Bd = np.zeros(N)
     Ad[:n, :n] = base.Ad
     Ad[:n] += np.outer(base.Bd, a_z)
     Bd[:n] = base.Bd * a_f
+    Ad[iw] = -a_ff * b_ff * e_r
+    Ad[iw, iw] = 1.0 - a_ff
     if D:
-        Ad[n] = s_z
-        Bd[n] = s_f
+        Ad[n0] = s_z
+        Bd[n0] = s_f
         for i in range(1, D):
-            Ad[n + i, n + i - 1] = 1.0
+            Ad[n0 + i, n0 + i - 1] = 1.0
     Qbig = np.zeros((n + 1, n + 1))
     Qbig[:n, :n] = base.Qd
     Qbig[:n, n] = base.Nd
@@ -264,10 +290,10 @@ def actuated_lq_problem(model: LinearModel, hf: HumanFilter,
 def actuated_lq_gain(model: LinearModel, hf: HumanFilter,
                      weights: tuple[float, float, float, float] | list[float],
                      servo: ServoModel) -> FloatArray:
-    """The (8 + D,) gain fref = -K Z of :func:`actuated_lq_problem`; zeros if airborne."""
+    """The (9 + D,) gain fref = -K Z of :func:`actuated_lq_problem`; zeros if airborne."""
     D = int(servo.delay_ticks)
     if model.airborne:
-        return np.zeros(8 + D)
+        return np.zeros(9 + D)
     prob = actuated_lq_problem(model, hf, weights, servo)
     K, _ = dlqr_cross(prob.Ad, prob.Bd, prob.Qd, prob.Rd, prob.Nd)
     return K

@@ -14,8 +14,10 @@ Discrete python-control blocks on the 1 kHz sample grid, joined by
 - ``ctrl`` (:func:`runtime_controller_ss`): the runtime bank for model j
   (``controller/bank.py``): Kalman update and propagation with the measured force,
   human filter on the measured acceleration, the spool model of ``controller/actuator.py``
-  on its own output, fref = -K [x+; xf] - K_a [x̂_v; F; s_pending];
-- ``pi``: ``controller/force_loop.py`` (backward-Euler PI, unsaturated);
+  on its own output and the measured rattlespace, fref = -K [x+; xf] - K_a [x̂_v; F; w;
+  s_pending];
+- ``pi``: ``controller/force_loop.py`` (backward-Euler PI, unsaturated, plus the valve
+  flow feedforward of the measured rattlespace, linearised at zero load pressure);
 - ``delay``: ``delay_ticks`` ticks between the PI output and the valve, i.e. inside the
   force loop too, as in ``hil/sim.py`` and on the CAN loop (the PI runs in the controller).
 
@@ -41,7 +43,7 @@ import control
 import numpy as np
 from numpy.typing import NDArray
 
-from controller.actuator import ServoModel, servo_model
+from controller.actuator import FlowFeedforward, ServoModel, flow_feedforward, servo_model
 from controller.config import ForceLoopConfig, RigConfig
 from controller.design import ModelDesign, design_models, measurement_noise_cov
 from controller.human_filter import HumanFilter, discretize_zoh, human_filter
@@ -90,7 +92,7 @@ class LoopParts:
 
     hf: HumanFilter
     K: FloatArray       # (6,)  on [x+ - x̄; xf]
-    Ka: FloatArray      # (2 + D,) on [x̂_v; F_meas; s_{k-1..k-D}]
+    Ka: FloatArray      # (3 + D,) on [x̂_v; F_meas; w; s_{k-1..k-D}]
     L: FloatArray       # (4, 2)
     servo: ServoModel
 
@@ -105,7 +107,7 @@ def loop_parts(cfg: RigConfig, md: ModelDesign, weights: list[float]) -> LoopPar
         k = actuated_lq_gain(md.model, hf, weights, servo)
         K, Ka = k[:6], k[6:]
     else:
-        K, Ka = lq_gain(md.model, hf, weights), np.zeros(2 + servo.delay_ticks)
+        K, Ka = lq_gain(md.model, hf, weights), np.zeros(3 + servo.delay_ticks)
     W = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
     L = steady_state_kalman(md.dfm.Phi, md.fm.C, md.dfm.Qd_unit * W,
                             measurement_noise_cov(cfg)).L
@@ -187,39 +189,48 @@ def accel_sensor_ss(cfg: RigConfig, *, noise: bool = False) -> control.StateSpac
 
 def _servo_rows(n: int, n0: int, cu: FloatArray, du: FloatArray, servo: ServoModel,
                 A: FloatArray, B: FloatArray) -> None:
-    """Rows of the spool model x̂_v (index n0) and the pending commands (n0 + 1 ...) given
-    fref = cu z + du [r, a, F]: s = kp (fref - F), applied = s_{k-D}."""
+    """Rows of the spool model x̂_v (index n0), the feedforward's rate-filter state w
+    (n0 + 1) and the pending commands (n0 + 2 ...) given fref = cu z + du [r, a, F]:
+    s = kp (fref - F) - c (w + b r), applied = s_{k-D}, w+ = (1 - a) w - a b r."""
     D = servo.delay_ticks
     kp = servo.kp_per_n
+    ff = servo.feedforward
+    c, a_ff, b = ff.gain_s_per_m, ff.rate_filter_coeff, ff.rate_input_gain_per_s
+    iw = n0 + 1
+    p0 = n0 + 2
     s_c = kp * cu
+    s_c[iw] -= c
     s_d = kp * du.copy()
     s_d[2] -= kp
+    s_d[0] -= c * b
     if D == 0:
         ap_c, ap_d = s_c, s_d
     else:
         ap_c = np.zeros(n)
-        ap_c[n0 + D] = 1.0
+        ap_c[p0 + D - 1] = 1.0
         ap_d = np.zeros(3)
     a = servo.spool_decay
     A[n0] = (1.0 - a) * ap_c
     A[n0, n0] += a
     B[n0] = (1.0 - a) * ap_d
+    A[iw, iw] = 1.0 - a_ff
+    B[iw, 0] = -a_ff * b
     if D:
-        A[n0 + 1] = s_c
-        B[n0 + 1] = s_d
+        A[p0] = s_c
+        B[p0] = s_d
         for i in range(1, D):
-            A[n0 + 1 + i, n0 + i] = 1.0
+            A[p0 + i, p0 + i - 1] = 1.0
 
 
 def runtime_controller_ss(md: ModelDesign, parts: LoopParts, dt_s: float
                           ) -> control.StateSpace:
     """The runtime bank for model j alone: inputs ``r, a, Fm``, output ``fref_out``.
-    States [x⁻ (4), xf (2), x̂_v, s_{k-1..k-D}]."""
+    States [x⁻ (4), xf (2), x̂_v, w, s_{k-1..k-D}]."""
     Phi, Gam, C, Dm = md.dfm.Phi, md.dfm.Gamma_u, md.fm.C, md.fm.D
     K, Ka, L, hf, servo = parts.K, parts.Ka, parts.L, parts.hf, parts.servo
     Kx, Kf = K[:4], K[4:6]
     nd = servo.delay_ticks
-    n = 7 + nd
+    n = 8 + nd
     ILC = np.eye(4) - L @ C
     cu = np.zeros(n)
     du = np.zeros(3)
@@ -228,7 +239,7 @@ def runtime_controller_ss(md: ModelDesign, parts: LoopParts, dt_s: float
     du[2] = Kx @ L @ Dm - Ka[1]
     cu[4:6] = -Kf
     cu[6] = -Ka[0]
-    cu[7:] = -Ka[2:]
+    cu[7:] = -Ka[2:]                    # w, then the pending commands
     A = np.zeros((n, n))
     B = np.zeros((n, 3))
     A[:4, :4] = Phi @ ILC
@@ -244,36 +255,52 @@ def runtime_controller_ss(md: ModelDesign, parts: LoopParts, dt_s: float
 def fullstate_controller_ss(parts: LoopParts, n_plant: int, dt_s: float
                             ) -> control.StateSpace:
     """LQ on the true plant state (hydraulic plant: [x, xf, x_v, F] = ``z0..z7``) with the
-    runtime's own pending spool commands: the estimation-free bound of the LQG loop."""
+    runtime's own rate-filter state w (on the measured rattlespace ``r``) and pending
+    spool commands: the estimation-free bound of the LQG loop.  States [w, pending]."""
     if n_plant != 8:
         raise ValueError("the full-state loop needs the hydraulic plant (8 states)")
     servo = parts.servo
+    ff = servo.feedforward
+    c, a_ff, b = ff.gain_s_per_m, ff.rate_filter_coeff, ff.rate_input_gain_per_s
     nd = servo.delay_ticks
-    n = 1 + nd                          # [unused x̂_v slot, pending]; x_v is measured here
+    n = 1 + nd
     k_state = np.concatenate([parts.K, parts.Ka[:2]])     # on z0..z7
-    # fref = -k_state z - Kp p ; inputs [z0..z7]; pending driven by s = kp (fref - F)
-    cu = np.zeros(n)
-    cu[1:] = -parts.Ka[2:]
-    dz = -k_state
+    # inputs [z0..z7, r]; fref = -k_state z - K_w w - Kp p
+    cu = -parts.Ka[2:].copy()
+    dz = np.zeros(9)
+    dz[:8] = -k_state
     A = np.zeros((n, n))
-    Bz = np.zeros((n, 8))
-    if nd:
+    Bz = np.zeros((n, 9))
+    A[0, 0] = 1.0 - a_ff
+    Bz[0, 8] = -a_ff * b
+    if nd:                              # s = kp (fref - F) - c (w + b r)
         kp = servo.kp_per_n
         A[1] = kp * cu
+        A[1, 0] -= c
         Bz[1] = kp * dz
         Bz[1, 7] -= kp
+        Bz[1, 8] -= c * b
         for i in range(1, nd):
             A[1 + i, i] = 1.0
-    return control.ss(A, Bz, cu.reshape(1, n), dz.reshape(1, 8), dt_s,
-                      inputs=[f"z{i}" for i in range(8)], outputs=["fref_out"], name="ctrl")
+    return control.ss(A, Bz, cu.reshape(1, n), dz.reshape(1, 9), dt_s,
+                      inputs=[*[f"z{i}" for i in range(8)], "r"], outputs=["fref_out"],
+                      name="ctrl")
 
 
-def force_loop_ss(fl: ForceLoopConfig, dt_s: float) -> control.StateSpace:
-    """The PI of ``controller/force_loop.py`` (unsaturated): ``fref, Fm`` -> ``s_pi``."""
+def force_loop_ss(fl: ForceLoopConfig, ff: FlowFeedforward, dt_s: float
+                  ) -> control.StateSpace:
+    """The force loop of ``controller/force_loop.py`` (unsaturated, feedforward at zero
+    load pressure): ``fref, Fm, r`` -> ``s_pi``.  States [I, w]:
+    s = kp e + ki (I + e T) - c (w + b r), I+ = I + e T, w+ = (1 - a) w - a b r."""
     kp, ki = fl.kp_per_n, fl.ki_per_ns
     g = kp + ki * dt_s
-    return control.ss([[1.0]], [[dt_s, -dt_s]], [[ki]], [[g, -g]], dt_s,
-                      inputs=["fref", "Fm"], outputs=["s_pi"], name="pi")
+    c, a_ff, b = ff.gain_s_per_m, ff.rate_filter_coeff, ff.rate_input_gain_per_s
+    A = np.array([[1.0, 0.0], [0.0, 1.0 - a_ff]])
+    B = np.array([[dt_s, -dt_s, 0.0], [0.0, 0.0, -a_ff * b]])
+    C = np.array([[ki, -c]])
+    D = np.array([[g, -g, -c * b]])
+    return control.ss(A, B, C, D, dt_s, inputs=["fref", "Fm", "r"], outputs=["s_pi"],
+                      name="pi")
 
 
 def delay_ss(ticks: int, dt_s: float, inp: str, out: str) -> control.StateSpace:
@@ -314,19 +341,22 @@ def lqg_loop_gain(cfg: RigConfig, md: ModelDesign, weights: list[float],
     if actuator == "ideal":
         blocks.append(delay_ss(delay_ticks, dt, "fref", "s"))
     else:
-        blocks += [force_loop_ss(cfg.force_loop, dt), delay_ss(delay_ticks, dt, "s_pi", "s")]
+        blocks += [force_loop_ss(cfg.force_loop, flow_feedforward(cfg), dt),
+                   delay_ss(delay_ticks, dt, "s_pi", "s")]
     return -connect(blocks, ["u"], ["fref_out"])
 
 
 def force_loop_gain(cfg: RigConfig, md: ModelDesign, delay_ticks: int = 0
                     ) -> control.StateSpace:
     """Loop gain of the PI force loop alone (outer loop open), broken at the spool
-    command, with the quarter car of model j attached (velocity coupling)."""
+    command, with the quarter car of model j attached (velocity coupling) and the flow
+    feedforward of the measured rattlespace (linearised at zero load pressure)."""
     dt = cfg.sample_time_s
     fl = cfg.force_loop
-    g = fl.kp_per_n + fl.ki_per_ns * dt
-    pi_fb = control.ss([[1.0]], [[dt]], [[fl.ki_per_ns]], [[g]], dt, inputs=["Fm"],
-                       outputs=["c"], name="pi")      # c = PI(+Fm), i.e. -(spool)
+    # c = -(spool) for a zero force reference: PI(+Fm) - s_ff(r)
+    fwd = force_loop_ss(fl, flow_feedforward(cfg), dt)
+    pi_fb = control.ss(fwd.A, fwd.B[:, 1:], -fwd.C, -fwd.D[:, 1:], dt, inputs=["Fm", "r"],
+                       outputs=["c"], name="pi")
     plant, _ = rig_plant_ss(md, cfg, "hydraulic")
     return connect([plant, pi_fb, delay_ss(delay_ticks, dt, "s_in", "s")], ["s_in"], ["c"])
 

@@ -85,6 +85,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.kernels import (
+    F_BIAS,
     F_FORGET,
     F_GOFF,
     F_GON,
@@ -134,6 +135,8 @@ from controller.kernels import (
     M_XBAR,
     MODE_AIR,
     MODE_GROUND,
+    S_BA,
+    S_BR,
     S_P,
     S_QS,
     S_W,
@@ -142,6 +145,7 @@ from controller.kernels import (
     V_AIR,
     activate,
     deactivate,
+    normalise_probabilities,
 )
 
 __all__ = [
@@ -238,7 +242,9 @@ def history_quantile(fv: np.ndarray, iv: np.ndarray, quantile: float) -> float:
 @nb.njit(cache=True, nogil=True)
 def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
              iv: np.ndarray, nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray) -> None:
-    """Active set := the k nearest grid models of ``centre`` (no airborne model)."""
+    """Active set := the k nearest grid models of ``centre`` (no airborne model); the
+    models that stay keep their probability, newcomers start at 1/k, then the
+    probabilities are rescaled to sum 1 over the new set."""
     k = iv[I_K]
     ng = iv[I_NG]
     J = st.shape[0]
@@ -257,6 +263,7 @@ def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
         j = nbr[centre, i]
         if not active[j]:
             activate(j, st, active, fv, iv, mat, qs0, p0)
+    normalise_probabilities(st, iv)
     iv[I_CENTRE] = centre
     iv[I_SINCE_RECENTRE] = 0
     iv[I_PROBE_PTR] = 0
@@ -384,6 +391,7 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
                         if worst >= 0:
                             deactivate(worst, st, active, iv)
                             activate(cand, st, active, fv, iv, mat, st[centre, S_QS], 1.0 / k)
+                            normalise_probabilities(st, iv)
                         break
     else:
         sentinel = iv[I_SENTINEL]
@@ -402,4 +410,9 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
             for i in range(4):
                 fv[F_XDEV + i] = st[sentinel, S_XPOST + i] - mat[sentinel, i, M_XBAR]
                 fv[F_XDEVM + i] = st[sentinel, S_XPRIOR + i] - mat[sentinel, i, M_XBAR]
+            fv[F_BIAS] = st[sentinel, S_BR]
+            fv[F_BIAS + 1] = st[sentinel, S_BA]
+            # the sentinel (kept out of the blending while airborne, p = 0) rejoins the
+            # on-ground set like a newcomer: the set restarts from uniform probabilities
+            st[sentinel, S_P] = 1.0 / iv[I_K]
             _move_to(sentinel, st, active, fv, iv, nbr, vec, mat)

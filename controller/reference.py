@@ -7,8 +7,9 @@ Written straight from the thesis equations rather than from the fused kernel:
     q_j = r_j' F_j^-1 r_j                                      (4.8)
     x⁺_j = x⁻_j + L_j r_j                                      (3.5)
     x⁻_j(next) = Φ_j x⁺_j + Γu_j u + Γg_j g                    (3.7)
-    u_j = -K_j [x⁺_j - x̄_j; x_f; x̂_v; u; s_pending]            (LQ, App. A per model)
-    x̂_v, s_pending: the spool model of controller/actuator.py on the blended output
+    u_j = -K_j [x⁺_j - x̄_j; x_f; x̂_v; u; w; s_pending]         (LQ, App. A per model)
+    x̂_v, w, s_pending: the spool model of controller/actuator.py on the blended output,
+        w the force loop's rate filter (``FlowFeedforward.step``, plain Python)
     p_j: densities of Eq. 4.6 into Eq. 4.2 (:func:`controller.bayes.bayes_update_numpy`)
     f_j: ``np.interp`` on the App. A firing-weight table
 
@@ -25,10 +26,12 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.actuator import FlowFeedforward
 from controller.artifact import Design
 from controller.bayes import bayes_update_numpy
 from controller.config import RigConfig
 from controller.kernels import MEAS_DIM, Q_MAX, QS_INIT, Blending, StepFlag
+from controller.monitor import monitor_settings
 from controller.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
@@ -39,6 +42,7 @@ from controller.moving_bank import (
     chi2_threshold_floor,
 )
 from controller.road_noise import nearest_noise_entry
+from controller.stop_guard import stop_guard_scale
 
 __all__ = ["ReferenceBank"]
 
@@ -73,8 +77,14 @@ class ReferenceBank:
         self.k = min(mb.active_models, len(self.ground))
         tau = mb.smoothing_time_s
         self.alpha = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
-        self.div_q = c.safety.estimator_divergence_q
-        self.div_ticks = c.safety.divergence_ticks
+        fw = c.fuzzy.window_s
+        self.beta = 1.0 - math.exp(-dt / fw) if fw > 0.0 else 1.0
+        self.relative = c.fuzzy.statistic == "relative"
+        aw = c.design.accel_mean_window_s
+        self.amean_weight = 1.0 - math.exp(-dt / aw) if aw > 0.0 else 0.0
+        self.mon = monitor_settings(c, dt, MEAS_DIM)
+        self.stop_k, self.stop_lo, self.stop_hi = (float(v) for v in d.bump_stop)
+        self.guard_width = c.design.stop_guard_m
         self.t_floor = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
         self.load_off = mb.liftoff_load_fraction               # lift-off reference
         self.load_on = mb.liftoff_load_fraction / mb.hysteresis_ratio   # touch-down reference
@@ -96,6 +106,8 @@ class ReferenceBank:
                                      c.noise.nominal_speed_mps, c.noise.nominal_roughness_gd)
         self.w = int(weight_set)
         self.blending = Blending(int(blending))
+        c_ff, a_ff, stall, floor = (float(v) for v in d.servo_model[5:9])
+        self.ff = FlowFeedforward(c_ff, a_ff, float(dt), stall, floor)
         self.reset()
 
     def _neighbours(self) -> dict[int, list[int]]:
@@ -118,9 +130,23 @@ class ReferenceBank:
         self.p = np.zeros(J)
         self.u = np.zeros(J)
         self.qs = np.full(J, QS_INIT)
+        self.qw = np.full(J, QS_INIT)
+        self.bias = np.zeros((J, 2))          # [rattlespace, acceleration] bias per model
+        self.bias_blend = np.zeros(2)
+        self.accel_mean = 0.0
+        self.window: list[float] = []         # the monitor's last N values of min q
+        self.monitor_ticks = 0
+        self.degraded = False
+        self.rearm_count = 0
+        self.unusable_count = 0
+        self.authority = 1.0
+        self.n_degradations = 0
+        self.stop_force = 0.0
+        self.guard = 1.0
         self.active = np.zeros(J, dtype=bool)
         self.xf = np.zeros(2)
         self.xv = 0.0
+        self.rate_state = math.nan
         self.pending: list[float] = [0.0] * self.d.compute_delay_ticks
         self.xhat = self.xinit.copy()
         self.xhatm = self.xinit.copy()
@@ -138,7 +164,6 @@ class ReferenceBank:
         self.centre = self.single
         self.since_switch = self.since_recentre = 0
         self.probe_ptr = self.probe_cnt = 0
-        self.divcnt = 0
         self.flags = StepFlag(0)
         self.n_updates = 0
         self.set_blending(self.blending)
@@ -147,12 +172,16 @@ class ReferenceBank:
         n = int(self.active.sum())
         self.p = np.where(self.active, 1.0 / n, 0.0)
         self.qs = np.full(J, QS_INIT)
+        self.qw = np.full(J, QS_INIT)
+        self.bias = np.zeros((J, 2))
 
     def _activate(self, j: int, qs0: float, p0: float) -> None:
         self.active[j] = True
         self.x_prior[j] = self.xbar[j] + self.xdevm
         self.x_post[j] = self.xbar[j] + self.xdev
+        self.bias[j] = self.bias_blend
         self.qs[j] = qs0
+        self.qw[j] = qs0
         self.p[j] = p0
         self.q[j] = self.wt[j] = self.u[j] = self.f[j] = 0.0
 
@@ -200,43 +229,72 @@ class ReferenceBank:
             self.flags = StepFlag.NONFINITE_INPUT
             return 0.0
         flags = StepFlag(0)
-        y = np.array([rattlespace_m + d.static_rattlespace_m, accel_mps2])
-        u_in = force_meas_n
+        # bump-stop force from the LVDT reading, a known input like the load-cell force
+        stop = 0.0
+        if rattlespace_m > self.stop_hi:
+            stop = self.stop_k * (rattlespace_m - self.stop_hi)
+        elif rattlespace_m < self.stop_lo:
+            stop = self.stop_k * (rattlespace_m - self.stop_lo)
+        self.stop_force = stop
+        accel = accel_mps2
+        if self.amean_weight > 0.0:           # minus the running mean (the sensor's bias)
+            self.accel_mean += self.amean_weight * (accel_mps2 - self.accel_mean)
+            accel = accel_mps2 - self.accel_mean
+        y_meas = np.array([rattlespace_m + d.static_rattlespace_m, accel])
+        u_in = force_meas_n + stop
+        e_min = math.inf
         moving = self.blending == Blending.MOVING
         sentinel = self.sentinel if (moving and self.mode_air) else -1
         contrib = np.zeros(self.J, dtype=bool)
         bad = np.zeros(self.J, dtype=bool)
         K = d.lq_gain[self.w - 1]
+        if math.isnan(self.rate_state):
+            self.rate_state = self.ff.initial_state(rattlespace_m)
         self.n_updates = int(self.active.sum())
         with np.errstate(all="ignore"):
             for j in np.flatnonzero(self.active):
                 Finv = np.linalg.inv(d.innovation_cov[j, s])
+                # the measurement-bias states enter the measurement equation additively
+                y = y_meas - self.bias[j]
                 r = y - d.C_meas[j] @ self.x_prior[j] - d.D_meas[j] * u_in - d.y_offset
                 q = float(r @ Finv @ r)
                 xp = self.x_prior[j] + d.kalman_gain[j, s] @ r
                 xn = d.Phi[j] @ xp + d.Gamma_u[j] * u_in + d.Gamma_g[j] * self.g
+                bn = self.bias[j] + d.bias_gain[j, s] @ r      # random walk: prior = posterior
                 uj = 0.0 if d.airborne[j] else float(
                     -K[j] @ np.concatenate([xp - self.xbar[j], self.xf])
-                    - d.actuator_gain[self.w - 1, j] @ np.array([self.xv, u_in, *self.pending]))
+                    - d.actuator_gain[self.w - 1, j]
+                    @ np.array([self.xv, force_meas_n, self.rate_state, *self.pending]))
                 if math.isnan(q) or not (np.all(np.isfinite(xp)) and np.all(np.isfinite(xn))
-                                         and math.isfinite(uj)):
+                                         and np.all(np.isfinite(bn)) and math.isfinite(uj)):
                     bad[j] = True
                     self.q[j] = Q_MAX
                     self.u[j] = 0.0
                     flags |= StepFlag.NONFINITE_STATE
                     continue
                 qc = min(q, Q_MAX)
-                self.x_post[j], self.x_prior[j] = xp, xn
+                self.x_post[j], self.x_prior[j], self.bias[j] = xp, xn, bn
                 self.q[j], self.u[j] = qc, uj
                 self.qs[j] += self.alpha * (qc - self.qs[j])
+                self.qw[j] += self.beta * (qc - self.qw[j])
                 contrib[j] = j != sentinel
+                if contrib[j]:
+                    e_min = min(e_min, max(abs(r[0]) / self.mon.rattlespace_bound_m,
+                                           abs(r[1]) / self.mon.accel_bound_mps2))
         # probabilities (Eq. 4.2 / 4.6), kept in every mode
         if contrib.any():
             self.p[contrib] = bayes_update_numpy(self.p[contrib], self.q[contrib],
                                                  d.innovation_logdet[contrib, s], MEAS_DIM,
                                                  self.floor)
         self.p[~contrib] = 0.0
-        f = np.interp(self.q, d.fuzzy_q_grid, d.fuzzy_weight_curve)
+        stat = self.qw if self.relative else self.q
+        s_min = float(np.min(stat[contrib])) if contrib.any() else math.inf
+        if self.relative:      # relative to the best, scaled to a matched filter's mean m
+            with np.errstate(all="ignore"):
+                x = MEAS_DIM * stat / s_min if s_min > 0.0 else np.where(stat > 0.0, Q_MAX, 0.0)
+        else:
+            x = self.q
+        f = np.interp(x, d.fuzzy_q_grid, d.fuzzy_weight_curve)
         f = np.where(np.isfinite(f), np.clip(f, 0.0, 1.0), 0.0)
         self.f = np.where(contrib, f, 0.0)
         if self.blending == Blending.BAYES:
@@ -246,7 +304,7 @@ class ReferenceBank:
         else:
             w = self.f.copy()
         w[~contrib] = 0.0
-        best = int(np.argmin(np.where(contrib, self.q, np.inf))) if contrib.any() else -1
+        best = int(np.argmin(np.where(contrib, stat, np.inf))) if contrib.any() else -1
         if w.sum() > 0.0:
             w = w / w.sum()
         elif best >= 0:
@@ -262,14 +320,14 @@ class ReferenceBank:
             self.xhat, self.xhatm = we @ self.x_post, we @ self.x_prior
             self.xdev = we @ (self.x_post - self.xbar)
             self.xdevm = we @ (self.x_prior - self.xbar)
+            self.bias_blend = we @ self.bias
         for j in np.flatnonzero(bad):
             x = self.xbar[j] + self.xdevm if we.sum() > 0.0 else self.xbar[j].copy()
             self.x_prior[j] = x
             self.x_post[j] = x
+            self.bias[j] = self.bias_blend if we.sum() > 0.0 else np.zeros(2)
         qmin = float(np.min(self.q[contrib])) if contrib.any() else math.inf
-        self.divcnt = self.divcnt + 1 if qmin > self.div_q else 0
-        if self.divcnt >= self.div_ticks:
-            flags |= StepFlag.DIVERGED
+        flags |= self._monitor(qmin, e_min)
         with np.errstate(all="ignore"):
             xf = d.human_filter_Ad @ self.xf + d.human_filter_Bd * accel_mps2
         if np.all(np.isfinite(xf)):
@@ -277,27 +335,76 @@ class ReferenceBank:
         else:
             self.xf = np.zeros(2)
             flags |= StepFlag.NONFINITE_STATE
+        out *= self.authority
+        self.guard = stop_guard_scale(out, rattlespace_m, self.stop_lo, self.stop_hi,
+                                      self.guard_width)
+        out *= self.guard
         if not math.isfinite(out):
             out = 0.0
             flags |= StepFlag.NONFINITE_STATE
-        self._servo(out, u_in)
+        self._servo(out, force_meas_n, rattlespace_m)
         if moving:
             self._tire_load_update(rattlespace_m, accel_mps2)
             self._supervise()
         self.flags = flags
         return out
 
-    def _servo(self, force_ref_n: float, force_meas_n: float) -> None:
-        """Spool model (controller/actuator.py): the PI's proportional command, delayed by
-        D ticks, through the first-order spool."""
-        decay, kp, flim, olim, _ = (float(v) for v in self.d.servo_model)
-        s = float(np.clip(kp * (float(np.clip(force_ref_n, -flim, flim)) - force_meas_n),
-                          -olim, olim))
+    def _monitor(self, q_min: float, e_min: float) -> StepFlag:
+        """controller/monitor.py written with a Python list as the window: the sum of the
+        last N values of min q against the degrade / re-arm levels; every model's
+        innovation beyond a sensor range for N ticks = DIVERGED; authority ramps."""
+        m = self.mon
+        flags = StepFlag(0)
+        self.monitor_ticks += 1
+        if self.monitor_ticks <= m.window_ticks:      # settling after a reset
+            return self._authority_step(flags)
+        self.window.append(min(q_min, Q_MAX))
+        if len(self.window) > m.window_ticks:
+            self.window.pop(0)
+        if len(self.window) == m.window_ticks:
+            total = math.fsum(self.window)
+            if not self.degraded:
+                if total > m.degrade_sum:
+                    self.degraded = True
+                    self.rearm_count = 0
+                    self.n_degradations += 1
+            elif total < m.rearm_sum:
+                self.rearm_count += 1
+                if self.rearm_count >= m.rearm_ticks:
+                    self.degraded = False
+            else:
+                self.rearm_count = 0
+        self.unusable_count = self.unusable_count + 1 if e_min > 1.0 else 0
+        if self.unusable_count >= m.window_ticks:
+            flags |= StepFlag.DIVERGED
+        return self._authority_step(flags)
+
+    def _authority_step(self, flags: StepFlag) -> StepFlag:
+        m = self.mon
+        if self.degraded:
+            flags |= StepFlag.DEGRADED
+            self.authority = max(0.0, self.authority - m.authority_step)
+        else:
+            self.authority = min(1.0, self.authority + m.authority_step)
+        return flags
+
+    def _servo(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float) -> None:
+        """Spool model (controller/actuator.py): the PI's proportional command plus the
+        flow feedforward, delayed by D ticks, through the first-order spool."""
+        decay, kp, flim, olim = (float(v) for v in self.d.servo_model[:4])
+        s_ff, self.rate_state = self.ff.step(self.rate_state, rattlespace_m, force_meas_n)
+        s = float(np.clip(kp * (float(np.clip(force_ref_n, -flim, flim)) - force_meas_n)
+                          + s_ff, -olim, olim))
         self.pending.insert(0, s)
         applied = self.pending.pop()
         self.xv = decay * self.xv + (1.0 - decay) * applied
 
     # ------------------------------------------------------------------ moving bank
+    def _normalise_p(self) -> None:
+        tot = float(self.p[self.active].sum())
+        n = int(self.active.sum())
+        self.p[self.active] = self.p[self.active] / tot if tot > 0.0 else 1.0 / n
+
     def _move_to(self, centre: int) -> None:
         keep = self.order[centre][: self.k]
         qs0 = self.qs[centre]
@@ -307,6 +414,7 @@ class ReferenceBank:
         for j in keep:
             if not self.active[j]:
                 self._activate(j, qs0, 1.0 / self.k)
+        self._normalise_p()
         self.centre = centre
         self.since_recentre = 0
         self.probe_ptr = self.probe_cnt = 0
@@ -390,6 +498,7 @@ class ReferenceBank:
                                 worst = max(others, key=lambda j: self.qs[j])
                                 self._deactivate(worst)
                                 self._activate(cand, self.qs[self.centre], 1.0 / self.k)
+                                self._normalise_p()
                             break
         else:
             g = self.g_on + (self.load - self.load_on)
@@ -403,6 +512,8 @@ class ReferenceBank:
                 self.g_off = 0.0
                 self.xdev = self.x_post[centre] - self.xbar[centre]
                 self.xdevm = self.x_prior[centre] - self.xbar[centre]
+                self.bias_blend = self.bias[centre].copy()
+                self.p[centre] = 1.0 / self.k       # rejoins the set like a newcomer
                 self._move_to(centre)
 
 

@@ -1,6 +1,14 @@
 """Monte Carlo robustness runs (thesis Ch. IV): the plant's M, m, K, Kt, C, Ct drawn
 normal around nominal, the controller kept at its nominal design.
 
+Ride height: the bump stops are part of the rig's geometry (centred on the nominal static
+rattlespace M_nom g / K_nom), and a rig technician sets the ride height of whatever
+body and spring are fitted by the spring preload.  So a drawn plant does not sit at its
+own M g / K (a 15 % plant would sit up to ~76 mm off centre with 80 mm of travel): its
+static position is the stops' centre plus a setting error drawn as its own parameter,
+N(0, ``ride_height_std_m``) (default :data:`RIDE_HEIGHT_STD_M` = 2 mm: the technician
+sets it to within a few millimetres; ``PlantParams.ride_height_offset_m``).
+
 Runs execute in parallel (``concurrent.futures.ProcessPoolExecutor``, one process per
 core by default) with a tqdm progress bar.  Each run is a :func:`hil.sim.simulate` call;
 the summary gives mean / std / min / max of every metric and lists the unstable runs
@@ -24,15 +32,22 @@ from numpy.typing import NDArray
 from controller.config import RigConfig
 from hil.plant import PlantParams
 from hil.roads import Road
-from hil.sim import cached_design, simulate
+from hil.sim import BANK_CONTROLLERS, cached_design, simulate
 
-__all__ = ["MonteCarloResult", "draw_params", "plot_runs", "run_montecarlo", "summarise"]
+__all__ = ["MAX_RIDE_HEIGHT_STD_M", "RIDE_HEIGHT_STD_M", "MonteCarloResult", "draw_params",
+           "plot_runs", "run_montecarlo", "summarise"]
 
 FloatArray = NDArray[np.float64]
 
 #: a drawn factor is kept at least this fraction of nominal (a 5 % spread never gets here)
 MIN_FACTOR = 0.2
 TRACE_DECIMATION = 10
+#: standard deviation of the ride-height setting error [m] (static rattlespace minus the
+#: bump stops' centre after the technician adjusted the spring preload)
+RIDE_HEIGHT_STD_M = 0.002
+#: largest ride-height setting error accepted [m] (beyond it the stops' 80 mm of travel
+#: are no longer a plausible setting)
+MAX_RIDE_HEIGHT_STD_M = 0.05
 
 
 @dataclass
@@ -52,11 +67,22 @@ MAX_SPREAD = 0.5
 
 
 def draw_params(cfg: RigConfig, runs: int, spread: float | dict[str, float] = 0.05,
-                seed: int = 0) -> list[PlantParams]:
+                seed: int = 0, ride_height_std_m: float | None = RIDE_HEIGHT_STD_M
+                ) -> list[PlantParams]:
     """``runs`` plant perturbations: each of M, m, K, C, Kt (scale), Ct (scale) is
-    nominal x N(1, spread) (``spread`` may be per parameter: keys M, m, K, C, Kt, Ct)."""
+    nominal x N(1, spread) (``spread`` may be per parameter: keys M, m, K, C, Kt, Ct),
+    and the ride height (static rattlespace about the stops' centre, set by spring
+    preload) is N(0, ``ride_height_std_m``) [m]; None keeps each plant at its own
+    M g / K (no preload adjustment).  The ride heights come from their own random stream,
+    so the same seed gives the same M, m, K, C, Kt, Ct whatever the ride-height setting,
+    and the first k of n draws are the k draws."""
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
+    if ride_height_std_m is not None and not (math.isfinite(ride_height_std_m)
+                                              and 0.0 <= ride_height_std_m
+                                              <= MAX_RIDE_HEIGHT_STD_M):
+        raise ValueError(f"ride_height_std_m must be in [0, {MAX_RIDE_HEIGHT_STD_M:g}] m, "
+                         f"got {ride_height_std_m}")
     names = ("M", "m", "K", "C", "Kt", "Ct")
     if isinstance(spread, dict):
         unknown = set(spread) - set(names)
@@ -69,13 +95,18 @@ def draw_params(cfg: RigConfig, runs: int, spread: float | dict[str, float] = 0.
         raise ValueError(f"spread must be in [0, {MAX_SPREAD}], got {spread}")
     rng = np.random.default_rng(seed)
     factors = np.maximum(1.0 + sd * rng.standard_normal((runs, len(names))), MIN_FACTOR)
+    offsets: list[float | None] = [None] * runs
+    if ride_height_std_m is not None:       # own stream: run i's draw does not depend on runs
+        rng_rh = np.random.default_rng([seed, 1])
+        offsets = [float(x) for x in ride_height_std_m * rng_rh.standard_normal(runs)]
     v = cfg.vehicle
     return [PlantParams(sprung_mass_kg=v.sprung_mass_kg * f[0],
                         unsprung_mass_kg=v.unsprung_mass_kg * f[1],
                         suspension_stiffness_n_per_m=v.suspension_stiffness_n_per_m * f[2],
                         suspension_damping_ns_per_m=v.suspension_damping_ns_per_m * f[3],
-                        tire_stiffness_scale=float(f[4]), tire_damping_scale=float(f[5]))
-            for f in factors]
+                        tire_stiffness_scale=float(f[4]), tire_damping_scale=float(f[5]),
+                        ride_height_offset_m=off)
+            for f, off in zip(factors, offsets, strict=True)]
 
 
 def _one_run(args: tuple[Any, ...]) -> tuple[int, dict[str, float], FloatArray]:
@@ -103,17 +134,19 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
                    weight_set: int = 1, spread: float | dict[str, float] = 0.05,
                    seed: int = 0, workers: int | None = None, progress: bool = True,
                    out_dir: str | Path | None = None,
-                   lvdt_zero: str = "actual") -> MonteCarloResult:
+                   lvdt_zero: str = "actual",
+                   ride_height_std_m: float | None = RIDE_HEIGHT_STD_M) -> MonteCarloResult:
     """Run ``runs`` perturbed plants in parallel; write ``montecarlo.png`` (and
     ``montecarlo.json``) into ``out_dir`` if given.
 
     ``lvdt_zero="actual"``: each perturbed rig's LVDT is zeroed at its own static
     position (calibrated at rest, like the thesis's deviation-coordinate models);
     ``"nominal"`` keeps the nominal zero, so the controller also sees the static offset
-    M g / K - M_nom g / K_nom (about 9 mm for +5 % M).
+    M g / K - M_nom g / K_nom (about 9 mm for +5 % M) -- or, with the ride height set by
+    preload (``ride_height_std_m``, see the module docstring), the setting error.
     """
-    params = draw_params(cfg, runs, spread, seed)
-    design = cached_design(cfg) if controller != "passive" else None
+    params = draw_params(cfg, runs, spread, seed, ride_height_std_m)
+    design = cached_design(cfg) if controller in BANK_CONTROLLERS else None
     workers = max(1, min(workers or os.cpu_count() or 1, runs))
     tasks = [(i, cfg, road, controller, weight_set, p, design, seed + 1000 + i, lvdt_zero)
              for i, p in enumerate(params)]

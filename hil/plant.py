@@ -11,18 +11,22 @@ Forces (positions from the unloaded springs, gravity acts):
     r       = x1 - x2                           rattlespace, compression positive
     F_bs    = k_bs (r - r0 - travel)   if r - r0 >  travel   (compression bump stop)
               k_bs (r - r0 + travel)   if r - r0 < -travel   (extension rebound stop)
-    F_s     = K r + C (x4 - x3) + F_bs + A P   (pushes body up, wheel down)
+    F_s     = K (r - s) + C (x4 - x3) + F_bs + A P   (pushes body up, wheel down)
     f_tire  = max(0, k' (1000 x2)^e + Ct(x2) x2')  for x2 > 0, else 0  (pushes, never pulls)
     M x3'   =  F_s - M g
     m x4'   = -F_s + f_tire - m g
 
 r0 = M_nom g / K_nom is the static rattlespace of the nominal rig (the bump-stop geometry
-does not move when Monte Carlo perturbs M or K).  The hydraulics are those of
-``hil.hydraulics``.  One call of the numba kernel :func:`advance_kernel` advances one
-controller tick with ``n_substeps`` classical RK4 steps (the hydraulic mode near 150 Hz
-and the valve's sqrt law are stiff relative to the 1 ms tick); the road velocity is held
-over the tick (the road module makes it the exact mean velocity of the tick, so the
-integrated road height matches the profile at every tick).
+does not move when Monte Carlo perturbs M or K).  s is the spring-preload shift: 0 unless
+``PlantParams.ride_height_offset_m`` is given, in which case a technician has set the
+preload so that the static rattlespace is r0 + that offset (s = r0 + offset - M g / K),
+as on a real rig; without it a perturbed plant sits at M g / K, off the stops' centre.
+The hydraulics are those of ``hil.hydraulics``.  One call of the numba kernel
+:func:`advance_kernel` advances one controller tick with ``n_substeps`` classical RK4
+steps (the hydraulic mode near 150 Hz and the valve's sqrt law are stiff relative to the
+1 ms tick); the road velocity is held over the tick (the road module makes it the exact
+mean velocity of the tick, so the integrated road height matches the profile at every
+tick).
 """
 
 from __future__ import annotations
@@ -45,8 +49,8 @@ N_STATES = 7
 # parameter vector layout (float64 array handed to the kernels)
 P_M, P_m, P_K, P_C, P_G, P_KT, P_KE, P_C2, P_C3, P_CSAT = range(10)
 P_TRAVEL, P_KBS, P_R0, P_A, P_PS, P_ALPHA, P_BETA, P_GAMMA, P_TAUV, P_TAUB = range(10, 20)
-P_STROKE, P_PRELIEF = 20, 21
-N_PARAMS = 22
+P_STROKE, P_PRELIEF, P_PRELOAD = 20, 21, 22
+N_PARAMS = 23
 # diagnostics vector layout (written by advance_kernel)
 D_TIRE_FORCE, D_ACCEL, D_POWER, D_OFF_GROUND_S, D_BUMP_S, D_NONFINITE = range(6)
 N_DIAG = 6
@@ -62,6 +66,9 @@ class PlantParams:
     suspension_damping_ns_per_m: float | None = None
     tire_stiffness_scale: float = 1.0
     tire_damping_scale: float = 1.0
+    #: static rattlespace minus the bump stops' centre [m] (compression positive) after a
+    #: technician set the ride height by spring preload; None = no preload adjustment
+    ride_height_offset_m: float | None = None
 
 
 @njit(cache=True)
@@ -75,7 +82,7 @@ def _forces(x1: float, x2: float, x3: float, x4: float, pr: float, wdot: float,
         fbs = p[P_KBS] * (dev - p[P_TRAVEL])
     elif dev < -p[P_TRAVEL]:
         fbs = p[P_KBS] * (dev + p[P_TRAVEL])
-    fs = p[P_K] * r + p[P_C] * (x4 - x3) + fbs + p[P_A] * pr
+    fs = p[P_K] * (r - p[P_PRELOAD]) + p[P_C] * (x4 - x3) + fbs + p[P_A] * pr
     ft = 0.0
     if x2 > 0.0:
         mm = 1000.0 * x2
@@ -196,6 +203,8 @@ def _param_vector(cfg: RigConfig, params: PlantParams) -> FloatArray:
     p[P_TAUB] = a.bypass_time_constant_s
     p[P_STROKE] = a.spool_stroke_m
     p[P_PRELIEF] = a.supply_pressure_pa
+    if params.ride_height_offset_m is not None:
+        p[P_PRELOAD] = p[P_R0] + params.ride_height_offset_m - p[P_M] * p[P_G] / p[P_K]
     return p
 
 
@@ -241,7 +250,7 @@ class RigPlant:
         p = self.p
         load = (p[P_M] + p[P_m]) * p[P_G]
         x2 = (load / p[P_KT]) ** (1.0 / p[P_KE]) / 1000.0
-        r = p[P_M] * p[P_G] / p[P_K]
+        r = p[P_M] * p[P_G] / p[P_K] + p[P_PRELOAD]
         return np.array([x2 + r, x2, 0.0, 0.0])
 
     def reset(self, state: FloatArray | None = None) -> None:
@@ -354,7 +363,7 @@ class RigPlant:
         y, p = self.state, self.p
         x1, x2, x3, x4, w = y[0], y[1], y[2], y[3], y[6]
         r = x1 - x2
-        e = 0.5 * p[P_M] * x3**2 + 0.5 * p[P_m] * x4**2 + 0.5 * p[P_K] * r**2
+        e = 0.5 * p[P_M] * x3**2 + 0.5 * p[P_m] * x4**2 + 0.5 * p[P_K] * (r - p[P_PRELOAD])**2
         dev = r - p[P_R0]
         excess = max(abs(dev) - p[P_TRAVEL], 0.0)
         e += 0.5 * p[P_KBS] * excess**2

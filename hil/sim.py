@@ -13,7 +13,9 @@ Per tick k (controller period dt = 1 / sample rate):
 
 A controller fault (``fault``: StepFlag NONFINITE_* / DIVERGED of the bank) or a sensor
 status bit latches the safe state like the service does: bypass open, spool centred, for
-the rest of the run.  A non-finite plant state ends the run early and marks it unstable.
+the rest of the run.  A degraded bank (StepFlag.DEGRADED) is no fault: it keeps
+controlling with its conservative law (zero force reference, controller/monitor.py).
+A non-finite plant state ends the run early and marks it unstable.
 
 This module holds the one tick loop, :func:`run_closed_loop`, which takes the controller
 as an object::
@@ -23,8 +25,12 @@ as an object::
     ctrl.fault                                  # True: latch the safe state
 
 :class:`BankController` is the LQG bank (``BankRuntime``) behind that interface;
-:func:`simulate` runs a bank mode (or passive) by name.  The study (``hil.study``) adds
-controllers that are not bank modes (skyhook, full-state LQ) through the same loop.
+:func:`simulate` runs a controller of :data:`CONTROLLERS` by name: passive (bypass open),
+``zero-force`` (:class:`ZeroForceController`: bypass closed, force reference 0 through the
+same force loop -- what the closed actuator itself costs), ``skyhook``
+(:class:`hil.skyhook.SkyhookController` with its tuned :data:`hil.skyhook.DEFAULT_GAINS`)
+or a bank mode.  The study (``hil.study``) adds other controllers (skyhook gain search,
+full-state LQ) through the same loop.
 """
 
 from __future__ import annotations
@@ -42,16 +48,20 @@ from hil.metrics import compute_metrics
 from hil.plant import PlantParams, RigPlant
 from hil.roads import Road
 from hil.sensors import SensorReading, SensorSuite
+from hil.skyhook import DEFAULT_GAINS, SkyhookController
 
 if TYPE_CHECKING:
     from controller.artifact import Design
 
-__all__ = ["CONTROLLERS", "DELAY_POINTS", "BankController", "LoopController", "SimResult",
-           "cached_design", "run_closed_loop", "simulate"]
+__all__ = ["BANK_CONTROLLERS", "CONTROLLERS", "DELAY_POINTS", "BankController",
+           "LoopController", "SimResult", "ZeroForceController", "cached_design",
+           "run_closed_loop", "simulate"]
 
 FloatArray = NDArray[np.float64]
 
-CONTROLLERS = ("passive", "lqg", "fuzzy", "bayes", "moving")
+#: the bank modes :func:`simulate` runs (they need a design)
+BANK_CONTROLLERS = ("lqg", "fuzzy", "bayes", "moving")
+CONTROLLERS = ("passive", "zero-force", "skyhook", *BANK_CONTROLLERS)
 #: where the loop delay sits: before the valve (the PI force loop runs on the controller
 #: side of the bus, inside the delay) or before a PI force loop local to the valve
 DELAY_POINTS = ("spool", "force_ref")
@@ -123,12 +133,14 @@ class BankController:
         self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
                          | StepFlag.DIVERGED)
         self._no_rule = int(StepFlag.NO_RULE_FIRED)
+        self._degraded = int(StepFlag.DEGRADED)
         self.reset()
 
     def reset(self) -> None:
         self.rt.reset()
         self.flags = 0
         self.no_rule_ticks = 0
+        self.degraded_ticks = 0
         self.ticks = 0
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
@@ -137,6 +149,8 @@ class BankController:
         self.ticks += 1
         if flags & self._no_rule:
             self.no_rule_ticks += 1
+        if flags & self._degraded:
+            self.degraded_ticks += 1
         return u
 
     @property
@@ -144,9 +158,13 @@ class BankController:
         return bool(self.flags & self._mask)
 
     def diagnostics(self) -> dict[str, float]:
-        """Fraction of ticks in which no fuzzy rule fired (fallback force used)."""
-        return {"no_rule_fired_fraction": self.no_rule_ticks / self.ticks if self.ticks
-                else 0.0}
+        """Fractions of ticks in which no fuzzy rule fired (fallback force used) and in
+        which the estimator monitor had the bank degraded (conservative law), and the
+        number of degradations."""
+        n = self.ticks
+        return {"no_rule_fired_fraction": self.no_rule_ticks / n if n else 0.0,
+                "degraded_fraction": self.degraded_ticks / n if n else 0.0,
+                "degradations": float(self.rt.counters()["degradations"])}
 
     @property
     def firing_weight(self) -> FloatArray:
@@ -157,24 +175,53 @@ class BankController:
         return np.asarray(self.rt.q)
 
 
+class ZeroForceController:
+    """Force reference 0 with the valve in closed-loop force control (bypass closed): the
+    actuator's own cost, the baseline any active law is added to.  Faults like the
+    service on a non-finite sensor reading."""
+
+    name = "zero-force"
+
+    def __init__(self) -> None:
+        self._fault = False
+
+    def reset(self) -> None:
+        self._fault = False
+
+    def step(self, reading: SensorReading, plant: RigPlant) -> float:
+        if not (math.isfinite(reading.rattlespace_m) and math.isfinite(reading.accel_mps2)
+                and math.isfinite(reading.force_n)):
+            self._fault = True
+        return 0.0
+
+    @property
+    def fault(self) -> bool:
+        return self._fault
+
+
 def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: int = 1, *,
              delay_ticks: int = 0, seed: int | None = None, params: PlantParams | None = None,
              design: Design | None = None, settle_s: float = 0.0,
              latch_on_sensor_status: bool = True, lvdt_zero: str = "nominal") -> SimResult:
-    """Closed-loop run of the bank mode (or ``"passive"``) ``controller`` over ``road``
-    (sampled at the controller rate): :func:`run_closed_loop` with a :class:`BankController`.
+    """Closed-loop run of ``controller`` (one of :data:`CONTROLLERS`) over ``road``
+    (sampled at the controller rate): :func:`run_closed_loop` with a :class:`BankController`,
+    :class:`ZeroForceController` or :class:`hil.skyhook.SkyhookController`.
 
     ``params`` perturbs the plant (the controller keeps its nominal design); ``design``
-    defaults to ``design_bank(cfg)`` (memoised); ``lvdt_zero`` see :class:`RigPlant`.
-    Raises ValueError on bad arguments.
+    defaults to ``design_bank(cfg)`` (memoised, bank modes only); ``lvdt_zero`` see
+    :class:`RigPlant`.  Raises ValueError on bad arguments.
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}: use one of "
                          f"{', '.join(CONTROLLERS)}")
     if weight_set < 1 or weight_set > len(cfg.design.weight_sets):
         raise ValueError(f"weight set {weight_set} not in 1..{len(cfg.design.weight_sets)}")
-    ctrl: BankController | None = None
-    if controller != "passive":
+    ctrl: LoopController | None = None
+    if controller == "zero-force":
+        ctrl = ZeroForceController()
+    elif controller == "skyhook":
+        ctrl = SkyhookController(cfg, DEFAULT_GAINS)
+    elif controller != "passive":
         design = design if design is not None else cached_design(cfg)
         ctrl = BankController(design, cfg, controller, weight_set, road)
     res = run_closed_loop(cfg, road, ctrl, delay_ticks=delay_ticks, seed=seed, params=params,
@@ -219,7 +266,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
     if controller is not None:
         from controller.force_loop import PIForceLoop
         controller.reset()
-        pi = PIForceLoop(cfg.force_loop, dt)
+        pi = PIForceLoop.from_config(cfg)
         ctrl_step = controller.step
     tr: dict[str, FloatArray] = {k: np.zeros(n) for k in TRACE_KEYS}
     weights_tr: FloatArray | None = None
@@ -262,7 +309,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
                 if delay_ref:
                     queue.append(fref)
                     fref = queue.pop(0)
-                spool = pi.step(fref, rd.force_n)
+                spool = pi.step(fref, rd.force_n, rd.rattlespace_m)
                 bypass = False
             if weights_tr is not None and q_tr is not None:
                 weights_tr[k] = getattr(controller, "firing_weight")  # noqa: B009

@@ -42,6 +42,7 @@ import can
 import numpy as np
 
 from controller.config import RigConfig
+from controller.kernels import StepFlag
 from rig.bus import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
 from rig.lifecycle import CommandResult, Lifecycle, Transition
 from rig.protocol import (
@@ -72,6 +73,7 @@ _OK = DecodeStatus.OK
 _OUT_OF_RANGE = DecodeStatus.OUT_OF_RANGE
 _NONE = FaultCode.NONE
 _ACTIVE = LifecycleState.ACTIVE
+_DEGRADED = int(StepFlag.DEGRADED)
 _FAULT = LifecycleState.FAULT
 _STOPPING = LifecycleState.STOPPING
 
@@ -100,7 +102,8 @@ class Runtime(Protocol):
 
 
 class ForceLoop(Protocol):
-    def step(self, force_ref_n: float, force_meas_n: float) -> float: ...
+    def step(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float
+             ) -> float: ...
     def reset(self) -> None: ...
 
 
@@ -254,6 +257,7 @@ class ControlLoop:
         self.spool_cmd = 0.0
         self.enable = 0
         self.bank_flags = 0
+        self.degradations = 0           # times the bank's monitor degraded (not faults)
         self.good_ticks = 0          # consecutive ticks with a good SensorData since reset
         self.rx_frames = 0
         self.tx_frames = 0
@@ -394,8 +398,10 @@ class ControlLoop:
                 rt = self.rt
                 force_ref = rt.step(self.rattlespace_m, self.accel_mps2, self.force_meas_n)
                 flags = int(rt.flags)
+                if (flags ^ self.bank_flags) & _DEGRADED:
+                    self._on_degraded_change(flags, now_ns, tick)
                 self.bank_flags = flags
-                mon.estimator(flags, force_ref, rt.q, rt.active)
+                mon.estimator(flags, force_ref)
                 if flags & 3:               # estimator state unusable: restart it warm
                     rt.reset()
                     self.good_ticks = 0
@@ -406,7 +412,7 @@ class ControlLoop:
             if mon.code is not _NONE:
                 self._latch(mon.code, mon.detail, now_ns)
             if lc.state is _ACTIVE:
-                spool = self.pi.step(force_ref, self.force_meas_n)
+                spool = self.pi.step(force_ref, self.force_meas_n, self.rattlespace_m)
                 mon.output(spool)
                 if mon.code is not _NONE:
                     self._latch(mon.code, mon.detail, now_ns)
@@ -522,6 +528,20 @@ class ControlLoop:
                 else:
                     mon.rig_status(False, 0, False, True)
 
+    def _on_degraded_change(self, flags: int, now_ns: int, tick: int) -> None:
+        """The bank's estimator monitor degraded or re-armed (not a fault): count, log at
+        most every 1000th, and record a note."""
+        degraded = bool(flags & _DEGRADED)
+        if degraded:
+            self.degradations += 1
+        if self.degradations % 1000 == 1 or not degraded:
+            log.warning("estimator %s (%d degradations so far)",
+                        "degraded: conservative law" if degraded else "re-armed",
+                        self.degradations)
+        self._record_event(now_ns, tick, "note",
+                           {"estimator": "degraded" if degraded else "re-armed",
+                            "degradations": self.degradations})
+
     def _latch(self, code: FaultCode, detail: int, now_ns: int, message: str = "") -> None:
         """Latch FAULT (if not already) and send the FaultReport now."""
         lc = self.lifecycle
@@ -580,7 +600,10 @@ class ControlLoop:
         lc = self.lifecycle
         msg = self._status_msg
         p99_s = self.lateness_p99_us * 1e-6
-        CONTROLLER_STATUS.encode(msg.data, self._tx_status, int(lc.state), int(lc.fault_code),
+        active_fault = lc.fault_code
+        if active_fault is _NONE and self.bank_flags & _DEGRADED:
+            active_fault = FaultCode.ESTIMATOR_DEGRADED
+        CONTROLLER_STATUS.encode(msg.data, self._tx_status, int(lc.state), int(active_fault),
                                  self.timing.overruns & 0xFFFF, self.blending & 0xF,
                                  self.weight_set & 0xF, min(p99_s, 0.065535))
         self._tx_status += 1
@@ -664,6 +687,8 @@ class ControlLoop:
             "fault_detail": lc.fault_detail,
             "fault_message": lc.fault_message,
             "condition": self.monitor.condition.name,
+            "estimator_degraded": bool(self.bank_flags & _DEGRADED),
+            "estimator_degradations": self.degradations,
             "health": self.health_problem() or "ok",
             "tick": self.tick_count,
             "blending": self.blending,

@@ -94,6 +94,9 @@ class FaultCode(IntEnum):
     SENSOR_STATUS = 13
     SHUTDOWN = 14
     SENSOR_FROZEN = 15
+    #: not a latched fault: ControllerStatus.ActiveFault while ACTIVE and the bank runs its
+    #: conservative law (StepFlag.DEGRADED); the lifecycle stays ACTIVE
+    ESTIMATOR_DEGRADED = 16
 
     @property
     def description(self) -> str:
@@ -119,8 +122,8 @@ _FAULT_DESCRIPTIONS: Final[dict[FaultCode, str]] = {
         "A sensor value, the estimator state, the force reference or the spool command "
         "was not a finite number.",
     FaultCode.ESTIMATOR_DIVERGED:
-        "The Kalman filter bank diverged: no tire model explained the measurements "
-        "(likelihood quotients q too large for too long).",
+        "The Kalman filter bank's estimate became unusable: every tire model's "
+        "innovation stayed beyond a sensor's range for a whole monitor window.",
     FaultCode.OVERRUN_STREAK:
         "The control loop woke up late on too many consecutive ticks "
         "(safety.overrun_streak): its timing could not be trusted.",
@@ -141,6 +144,11 @@ _FAULT_DESCRIPTIONS: Final[dict[FaultCode, str]] = {
     FaultCode.SENSOR_FROZEN:
         "A sensor value stayed bit-identical for more than safety.frozen_ticks frames "
         "while its counter advanced: the sensor is frozen.",
+    FaultCode.ESTIMATOR_DEGRADED:
+        "Not a latched fault: the estimator monitor found that no tire model fits the "
+        "measurements (windowed innovation statistic above its chi-square level), so the "
+        "bank commands zero force (the actuator follows the body, transparent) until the "
+        "statistic recovers and it re-arms by itself.",
 }
 
 

@@ -11,7 +11,7 @@ Per tick::
     mon.rig_status(crc_ok, counter, watchdog_tripped, supply_ok)                        # 0..n
     mon.bus_error(FaultCode.BUS_ERROR, detail)                                          # 0..n
     mon.end_receive()            # stale check
-    mon.estimator(flags, force_ref_n, q, active) ; mon.overrun(streak) ; mon.exception()
+    mon.estimator(flags, force_ref_n) ; mon.overrun(streak) ; mon.exception()
     if mon.code: ...             # FaultCode of the first condition seen this tick
 
 ``condition`` is the code of the last completed tick.  A reset is refused while
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
 from controller.config import RigConfig
@@ -66,23 +65,9 @@ DETAIL_RECV = 2             # BUS_ERROR: exception from recv
 DETAIL_RIG_STATUS_STALE = 3  # reset/arm refusal only: RigStatus missing or stale
 
 _STEP_NONFINITE = 1 | 2     # StepFlag.NONFINITE_INPUT | NONFINITE_STATE
-_STEP_DIVERGED = 8          # StepFlag.DIVERGED
+_STEP_DIVERGED = 8          # StepFlag.DIVERGED: the bank's monitor found the estimate unusable
 
 _NONE = FaultCode.NONE
-
-
-@numba.njit(cache=True, nogil=True)
-def _min_active(q: np.ndarray, active: np.ndarray) -> float:  # pragma: no cover - jitted
-    """min(q[active]) (inf when none is active); NaN in an active entry propagates."""
-    m = math.inf
-    for i in range(q.shape[0]):
-        if active[i]:
-            v = q[i]
-            if v < m or v != v:
-                m = v
-                if v != v:
-                    return v
-    return m
 
 
 class FaultMonitor:
@@ -95,8 +80,6 @@ class FaultMonitor:
         self.accel_limit_mps2 = s.accel_range_mps2
         self.stale_ticks = sa.stale_ticks
         self.overrun_streak_limit = sa.overrun_streak
-        self.divergence_q = sa.estimator_divergence_q
-        self.divergence_ticks = sa.divergence_ticks
         self.frozen_ticks = sa.frozen_ticks
         self.rig_status_stale_ticks = sa.rig_status_stale_ticks
         self.sensor_counter = CounterMonitor()
@@ -114,9 +97,9 @@ class FaultMonitor:
         _min_active(q, active)
 
     def reset_estimator_checks(self) -> None:
-        """After an operator reset (the estimator restarts): the divergence count.  The
+        """After an operator reset (the estimator restarts).  The estimator's own
+        statistics restart with the bank (``rt.reset()``, controller/monitor.py); the
         facts about the bus (last frame, counters, age) carry on."""
-        self.diverged_ticks = 0
 
     def reset(self) -> None:
         """Forget all history (start-up)."""
@@ -129,7 +112,6 @@ class FaultMonitor:
         self.sensor_seen = False
         self.sensor_age_ticks = 0       # ticks since the last valid SensorData
         self.fresh = False              # a valid SensorData arrived this tick
-        self.diverged_ticks = 0
         self.counts = np.zeros(256, dtype=np.int64)   # conditions seen, per FaultCode
         # frozen-sensor monitor: last accepted values and how often each repeated
         self.last_rattlespace_m = math.nan
@@ -254,24 +236,16 @@ class FaultMonitor:
             if self.sensor_seen and self.sensor_age_ticks > self.stale_ticks:
                 self._flag(FaultCode.SENSOR_STALE, self.sensor_age_ticks)
 
-    def estimator(self, flags: int, force_ref_n: float, q: np.ndarray,
-                  active: np.ndarray) -> None:
-        """Bank step outcome: StepFlag bits, output, and the divergence test on ``q``."""
+    def estimator(self, flags: int, force_ref_n: float) -> None:
+        """Bank step outcome: StepFlag bits and the output.  NONFINITE_* and DIVERGED (the
+        bank's monitor found the estimate unusable: controller/monitor.py) are faults;
+        DEGRADED is not (the bank runs its conservative law and re-arms by itself)."""
         if flags & _STEP_NONFINITE:
             self._flag(FaultCode.NONFINITE, DETAIL_ESTIMATOR)
         elif not math.isfinite(force_ref_n):
             self._flag(FaultCode.NONFINITE, DETAIL_OUTPUT)
         if flags & _STEP_DIVERGED:
             self._flag(FaultCode.ESTIMATOR_DIVERGED, 0)
-            return
-        # min likelihood quotient over the active models above the limit for long enough
-        q_min = _min_active(q, active)
-        if q_min > self.divergence_q:     # NaN compares False: NONFINITE covers it
-            self.diverged_ticks += 1
-            if self.diverged_ticks >= self.divergence_ticks:
-                self._flag(FaultCode.ESTIMATOR_DIVERGED, 1)
-        else:
-            self.diverged_ticks = 0
 
     def output(self, spool: float) -> None:
         if not math.isfinite(spool):

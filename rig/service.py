@@ -154,7 +154,7 @@ class Service:
         warmup_ticks = round(0.05 * cfg.design.sample_rate_hz)   # ControlLoop's default
         self.runtime = BankRuntime(self.design, blending=blending, weight_set=weight_set,
                                    cfg=cfg)
-        self.force_loop = PIForceLoop(cfg.force_loop, cfg.sample_time_s)
+        self.force_loop = PIForceLoop.from_config(cfg)
         if bus is None:
             from rig.bus import open_bus
 

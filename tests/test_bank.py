@@ -10,13 +10,15 @@ import numba as nb
 import numpy as np
 import pytest
 import scipy.linalg
-from hypothesis import HealthCheck, given, settings
+import scipy.signal
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from controller.artifact import Design
-from controller.bank import BankRuntime, Blending, StepFlag, bank_step
+from controller.bank import BankRuntime, Blending, StepFlag, bank_step, config_of
 from controller.config import RigConfig, default_config
 from controller.design import design_bank, design_models, measurement_noise_cov
+from controller.kernels import MEAS_DIM, QS_INIT
 from controller.reference import ReferenceBank, quarter_car_measurements
 from controller.road_noise import road_velocity_intensity
 
@@ -89,6 +91,7 @@ def _compare(rt: BankRuntime, ref: ReferenceBank, out: float, out_ref: float, k:
     np.testing.assert_allclose(rt.x_post, ref.x_post, rtol=1e-9, atol=1e-12,
                                err_msg=f"x+ at tick {k}")
     np.testing.assert_allclose(rt.xf, ref.xf, rtol=1e-9, atol=1e-12, err_msg=f"xf at {k}")
+    assert rt.stop_guard == pytest.approx(ref.guard, rel=1e-9, abs=1e-12), f"guard at {k}"
 
 
 def _run_pair(design: Design, cfg: RigConfig, mode: Blending, meas: dict[str, np.ndarray],
@@ -101,6 +104,8 @@ def _run_pair(design: Design, cfg: RigConfig, mode: Blending, meas: dict[str, np
         r, a, f = meas["rattlespace"][k], meas["accel"][k], meas["force"][k]
         if n // 3 <= k < n // 3 + 30:          # a burst of random, inconsistent samples
             r, a, f = rng.normal(0, 0.01), rng.normal(0, 20.0), rng.normal(0, 2000.0)
+        if n // 5 <= k < n // 5 + 20:          # onto the stops (the stop-force input)
+            r += 0.085 if k % 10 < 5 else -0.085
         if k == n // 2:
             r = math.nan
         out = rt.step(r, a, f)
@@ -136,6 +141,23 @@ def test_kernel_matches_reference_on_default_noise_lift_off(default_design: Desi
     assert c["set_switches"] >= 2 and c["load_liftoffs"] >= 1
 
 
+@pytest.mark.parametrize("mode", [Blending.SINGLE, Blending.FUZZY])
+def test_kernel_matches_reference_with_the_end_stop_guard_acting(mode: Blending) -> None:
+    """An end-stop guard zone as wide as the travel (0.08 m): the guard scales the force
+    on most ticks; kernel and reference agree on the force and on the factor."""
+    cfg = smooth_road_config(stop_guard_m=0.08)
+    design = design_bank(cfg)
+    meas = trajectory(cfg, 1200, seed=9, force_std=1500.0)
+    rt = BankRuntime(design, blending=mode, cfg=cfg)
+    ref = ReferenceBank(design, blending=mode, cfg=cfg)
+    partial = 0
+    for k in range(1200):
+        r, a, f = meas["rattlespace"][k], meas["accel"][k], meas["force"][k]
+        _compare(rt, ref, rt.step(r, a, f), ref.step(r, a, f), k)
+        partial += 0.0 < rt.stop_guard < 1.0
+    assert partial > 300
+
+
 def test_kernel_matches_reference_across_mode_switches(smooth_design: Design,
                                                        smooth_cfg: RigConfig) -> None:
     meas = trajectory(smooth_cfg, 800, seed=8)
@@ -150,36 +172,81 @@ def test_kernel_matches_reference_across_mode_switches(smooth_design: Design,
         _compare(rt, ref, out, out_ref, k)
 
 
-def test_single_filter_matches_textbook_kalman_filter(smooth_design: Design,
-                                                      smooth_cfg: RigConfig) -> None:
-    """Full covariance recursion (Eq. 3.3-3.8) started at the steady-state P (scipy DARE)
-    gives the same estimates and likelihood quotients as the fused steady-state kernel."""
-    cfg, d = smooth_cfg, smooth_design
-    rt = BankRuntime(d, blending=Blending.SINGLE)
+def test_single_filter_matches_textbook_kalman_filter() -> None:
+    """Full covariance recursion (Eq. 3.3-3.8) on the model augmented with random-walk
+    rattlespace and acceleration biases (y = C x + b + D u), started at the steady-state
+    P of scipy's DARE, with the bump-stop force computed here from the LVDT reading
+    (stops at the configured centre +/- travel) as part of the known input: the fused
+    kernel gives the same estimates, bias estimates and likelihood quotients."""
+    cfg = smooth_road_config(filter_accel_bias_drift=1e-3, accel_mean_window_s=0.0)
+    d = design_bank(cfg)
+    rt = BankRuntime(d, blending=Blending.SINGLE, cfg=cfg)
     j = rt.single_model
     md = design_models(cfg)[j]
     W = road_velocity_intensity(SMOOTH_SPEED, SMOOTH_GD)
-    Qd = md.dfm.Qd_unit * W
+    dt = cfg.sample_time_s
+    Qd = np.zeros((6, 6))
+    Qd[:4, :4] = md.dfm.Qd_unit * W
+    Qd[4, 4] = cfg.design.filter_rattlespace_bias_drift ** 2 * dt
+    Qd[5, 5] = cfg.design.filter_accel_bias_drift ** 2 * dt
     R = measurement_noise_cov(cfg)
-    Phi, C, D = d.Phi[j], d.C_meas[j], d.D_meas[j]
+    Phi = np.eye(6)
+    Phi[:4, :4] = d.Phi[j]
+    C = np.hstack([d.C_meas[j], np.eye(2)])
+    D = d.D_meas[j]
+    Gu, Gg = np.append(d.Gamma_u[j], [0.0, 0.0]), np.append(d.Gamma_g[j], [0.0, 0.0])
     P = scipy.linalg.solve_discrete_are(Phi.T, C.T, Qd, R)       # prior covariance
-    x = d.equilibrium[j].copy()
+    x = np.append(d.equilibrium[j], [0.0, 0.0])
     g = -d.y_offset[1]
+    centre, travel = cfg.design.bump_stop_centre_lvdt_m, cfg.vehicle.rattlespace_travel_m
+    k_stop = cfg.vehicle.bump_stop_stiffness_n_per_m
     meas = trajectory(cfg, 600, seed=11)
+    meas["rattlespace"][300:330] += 0.085         # onto the compression stop for 30 ms
+    meas["rattlespace"][400:420] -= 0.083         # onto the rebound stop
+    stops = 0
     for k in range(600):
-        y = np.array([meas["rattlespace"][k] + d.static_rattlespace_m, meas["accel"][k]])
-        u = meas["force"][k]
+        rs = meas["rattlespace"][k]
+        excess = max(rs - (centre + travel), 0.0) + min(rs - (centre - travel), 0.0)
+        stops += excess != 0.0
+        y = np.array([rs + d.static_rattlespace_m, meas["accel"][k]])
+        u = meas["force"][k] + k_stop * excess
         F = C @ P @ C.T + R                                           # (3.3)
         L = P @ C.T @ np.linalg.inv(F)                                # (3.4)
         r = y - C @ x - D * u - d.y_offset                            # (3.9)
         xp = x + L @ r                                                # (3.5)
         Pp = P - L @ C @ P                                            # (3.6)
         q = float(r @ np.linalg.solve(F, r))                          # (4.8)
-        rt.step(meas["rattlespace"][k], meas["accel"][k], u)
-        np.testing.assert_allclose(rt.x_post[j], xp, rtol=1e-8, atol=1e-11)
+        rt.step(rs, meas["accel"][k], meas["force"][k])
+        assert rt.bump_stop_force == pytest.approx(k_stop * excess, rel=1e-12, abs=1e-9)
+        np.testing.assert_allclose(rt.x_post[j], xp[:4], rtol=1e-8, atol=1e-9)
+        np.testing.assert_allclose(rt.bias_estimate, xp[4:], rtol=1e-7, atol=1e-12)
         assert rt.q[j] == pytest.approx(q, rel=1e-6, abs=1e-9)
-        x = Phi @ xp + d.Gamma_u[j] * u + d.Gamma_g[j] * g            # (3.7)
+        x = Phi @ xp + Gu * u + Gg * g                                # (3.7)
         P = Phi @ Pp @ Phi.T + Qd                                     # (3.8)
+    assert stops == 50
+
+
+def test_accelerometer_mean_removal_is_the_running_mean() -> None:
+    """The filters see the accelerometer reading minus its running mean, an exponential
+    average with time constant ``accel_mean_window_s`` started at 0.  A bank with the
+    removal fed raw readings estimates exactly what a bank without it estimates when fed
+    the readings minus that mean computed here (scipy.signal.lfilter)."""
+    window = 0.05
+    cfg_on = smooth_road_config(accel_mean_window_s=window)
+    cfg_off = smooth_road_config(accel_mean_window_s=0.0)
+    d_on, d_off = design_bank(cfg_on), design_bank(cfg_off)
+    on = BankRuntime(d_on, blending=Blending.SINGLE, cfg=cfg_on)
+    off = BankRuntime(d_off, blending=Blending.SINGLE, cfg=cfg_off)
+    meas = trajectory(cfg_on, 400, seed=12)
+    bias = 0.3                                     # a sensor offset [m/s^2]
+    a = meas["accel"] + bias
+    lam = math.exp(-cfg_on.sample_time_s / window)
+    mean = scipy.signal.lfilter([1.0 - lam], [1.0, -lam], a)
+    for k in range(400):
+        on.step(meas["rattlespace"][k], a[k], meas["force"][k])
+        off.step(meas["rattlespace"][k], a[k] - mean[k], meas["force"][k])
+        np.testing.assert_allclose(on.x_post, off.x_post, rtol=1e-9, atol=1e-9)
+    assert mean[-1] == pytest.approx(bias, abs=0.05)
 
 
 # ---------------------------------------------------------------------------- invariants
@@ -194,20 +261,30 @@ def runtimes(smooth_design: Design) -> dict[Blending, BankRuntime]:
     return {b: BankRuntime(smooth_design, blending=b) for b in Blending}
 
 
+#: a 31 mm rebound step: the moving bank lifts off, and lands again on tick 20 -- the set
+#: that came back (the sentinel had p = 0 while airborne) once summed to p = 2/3
+LIFT_OFF_AND_LAND = [(-0.03125, 0.0, 0.0)] + [(0.0, 0.0, 0.0)] * 25
+
+
 @settings(max_examples=60, deadline=None, suppress_health_check=FIXTURE_OK)
 @given(st.lists(MODERATE, min_size=1, max_size=40), st.sampled_from(list(Blending)))
+@example(LIFT_OFF_AND_LAND, Blending.MOVING)
 def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRuntime],
                                               seq: list[tuple[float, float, float]],
                                               mode: Blending) -> None:
     rt = runtimes[mode]
     rt.reset()
     for r, a, f in seq:
+        running = rt.active.copy()
         out = rt.step(r, a, f)
         assert math.isfinite(out)
         w, p = rt.firing_weight, rt.probability
         assert np.all((w >= 0.0) & (w <= 1.0)) and np.all((p >= 0.0) & (p <= 1.0))
         assert np.all(w[~rt.active] == 0.0) and np.all(p[~rt.active] == 0.0)
         assert np.sum(p) == pytest.approx(1.0, abs=1e-12)
+        if np.any(rt.active != running):
+            continue        # the moving bank changed its set after blending (switch,
+            # re-centre or probe): the leavers' weights are gone, the newcomers unweighted
         if StepFlag.NO_RULE_FIRED in rt.flags:
             assert mode in (Blending.FUZZY, Blending.MOVING)
             assert np.sum(w) in (0.0, 1.0)
@@ -215,6 +292,29 @@ def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRunti
             assert np.sum(w) == pytest.approx(1.0, abs=1e-12)
         raw = rt.raw_firing_weight
         assert np.all((raw >= 0.0) & (raw <= 1.0))
+
+
+def test_moving_set_after_touch_down_has_a_probability_distribution(
+        smooth_design: Design, smooth_cfg: RigConfig) -> None:
+    """Regression (found by the property above): at touch-down the sentinel, kept at p = 0
+    while airborne, rejoined the on-ground set with the two newcomers at 1/3 each, so the
+    probabilities summed to 2/3.  The set now restarts uniform; the numba bank and the
+    plain-numpy reference agree tick by tick."""
+    rt = BankRuntime(smooth_design, blending=Blending.MOVING, cfg=smooth_cfg)
+    ref = ReferenceBank(smooth_design, blending=Blending.MOVING, cfg=smooth_cfg)
+    rt.reset()
+    landed = False
+    for r, a, f in LIFT_OFF_AND_LAND:
+        was_air = rt.counters()["set_switches"] % 2 == 1
+        out = rt.step(r, a, f)
+        assert out == pytest.approx(ref.step(r, a, f), rel=1e-9, abs=1e-6)
+        np.testing.assert_allclose(rt.probability, ref.p, rtol=1e-9, atol=1e-12)
+        assert np.sum(rt.probability) == pytest.approx(1.0, abs=1e-12)
+        if was_air and rt.counters()["set_switches"] == 2:
+            landed = True
+            k = int(rt.active.sum())
+            np.testing.assert_allclose(rt.probability[rt.active], 1.0 / k)
+    assert landed and rt.counters()["set_switches"] == 2
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=FIXTURE_OK)
@@ -353,33 +453,105 @@ def test_at_rest_the_force_is_zero_and_all_filters_stay_put(default_design: Desi
                                    atol=1e-9)
 
 
-def test_no_rule_fired_fallbacks(smooth_design: Design) -> None:
-    """A sustained measurement no model explains: all firing weights 0."""
-    outs = {}
+def test_no_rule_fired_fallbacks(smooth_design: Design, smooth_cfg: RigConfig) -> None:
+    """Thesis statistic (raw per-tick q): a sustained measurement no model explains fires
+    no rule; 'passive' gives 0 N, 'best_model' the model with the smallest q."""
+    raw = smooth_cfg.replace(fuzzy={"statistic": "raw"})
     for fb in ("passive", "best_model"):
-        rt = BankRuntime(smooth_design, no_fire_fallback=fb)
+        rt = BankRuntime(smooth_design, cfg=raw, no_fire_fallback=fb)
+        forces = []
         for _ in range(30):
             out = rt.step(0.02, 30.0, 0.0)
-        assert StepFlag.NO_RULE_FIRED in rt.flags
-        assert np.all(rt.raw_firing_weight == 0.0)
-        outs[fb] = (out, rt.u_model[int(np.argmin(np.where(rt.active, rt.q, np.inf)))])
-    assert outs["passive"][0] == 0.0
-    assert outs["best_model"][0] == outs["best_model"][1] != 0.0
+            if StepFlag.NO_RULE_FIRED in rt.flags:
+                assert np.all(rt.raw_firing_weight == 0.0)
+                best = int(np.argmin(np.where(rt.active, rt.q, np.inf)))
+                assert out == (0.0 if fb == "passive" else rt.u_model[best])
+                forces.append(out)
+        assert len(forces) >= 20
+        assert any(f != 0.0 for f in forces) == (fb == "best_model")
 
 
-def test_divergence_flag(smooth_design: Design, smooth_cfg: RigConfig) -> None:
-    rt = BankRuntime(smooth_design)
-    n = smooth_cfg.safety.divergence_ticks
+def _relative_weights(qw: np.ndarray, design: Design) -> np.ndarray:
+    """App. A weights of x_j = m qw_j / min qw, normalised: an independent numpy version."""
+    from controller.fuzzy import firing_weight
+    cfg = config_of(design)
+    x = MEAS_DIM * qw / qw.min()
+    f = np.array([firing_weight(float(v), cfg.fuzzy) for v in x])
+    return f / f.sum()
+
+
+def test_relative_statistic_always_fires_and_never_drops_authority(
+        smooth_design: Design, smooth_cfg: RigConfig) -> None:
+    """Default statistic: each model's exponentially windowed q relative to the bank's
+    smallest, scaled to a matched filter's mean m = 2.  The best model sits at x = 2 and
+    fires (weight 0.7 of App. A before normalisation) whatever the mismatch, so the same
+    sustained inconsistent measurement that leaves the thesis statistic with no rule
+    fires normally; the weights equal the App. A curve evaluated here on the windowed
+    q (fuzzy.fuzzy_inference, exact centroid), and the force never falls to 0."""
+    rt = BankRuntime(smooth_design, cfg=smooth_cfg)
+    beta = 1.0 - math.exp(-smooth_cfg.sample_time_s / smooth_cfg.fuzzy.window_s)
+    qw = np.full(rt.n_models, QS_INIT)
+    for _ in range(60):
+        out = rt.step(0.02, 30.0, 0.0)
+        qw += beta * (np.minimum(rt.q, 1e12) - qw)
+        assert StepFlag.NO_RULE_FIRED not in rt.flags
+        assert out != 0.0 or rt.authority < 1.0
+        np.testing.assert_allclose(rt.firing_weight, _relative_weights(qw, smooth_design),
+                                   rtol=1e-6, atol=1e-9)
+    best = int(np.argmin(qw))
+    assert rt.raw_firing_weight[best] == pytest.approx(0.7, abs=1e-3)
+
+
+def test_monitor_degrades_ramps_and_rearms(smooth_design: Design,
+                                           smooth_cfg: RigConfig) -> None:
+    """Inconsistent measurements push the window sum of min q over the degrade level:
+    DEGRADED, the force authority ramps to 0 over the ramp time (the output is the
+    blended force times the authority) and the filters keep running; consistent data
+    brings the sum below the re-arm level and after the re-arm time the authority ramps
+    back to 1.  No DIVERGED: the estimate stays within the sensors' ranges."""
+    rt = BankRuntime(smooth_design, cfg=smooth_cfg)
+    mon = rt.monitor
+    meas = trajectory(smooth_cfg, 3000, seed=13)
+    rng = np.random.default_rng(14)
+    degraded_at = rearmed_at = None
+    for k in range(3000):
+        r, a, f = meas["rattlespace"][k], meas["accel"][k], meas["force"][k]
+        if 500 <= k < 600:                            # 100 ms of inconsistent readings
+            r, a = r + rng.normal(0.0, 0.003), a + rng.normal(0.0, 5.0)
+        out = rt.step(r, a, f)
+        assert StepFlag.DIVERGED not in rt.flags
+        if rt.degraded and degraded_at is None:
+            degraded_at = k
+        if degraded_at is not None and rearmed_at is None and not rt.degraded:
+            rearmed_at = k
+        if degraded_at is not None and rearmed_at is None:
+            steps = k - degraded_at + 1
+            assert rt.authority == pytest.approx(max(0.0, 1.0 - steps * mon.authority_step))
+            assert StepFlag.DEGRADED in rt.flags
+            if rt.authority == 0.0:
+                assert out == 0.0
+    assert degraded_at is not None and 500 <= degraded_at < 600
+    assert rearmed_at is not None and rearmed_at - degraded_at >= mon.rearm_ticks
+    assert rt.authority == 1.0 and rt.counters()["degradations"] == 1
+    assert rt.counters()["degraded_ticks"] == rearmed_at - degraded_at
+
+
+def test_monitor_unusable_estimate_sets_diverged(smooth_design: Design,
+                                                 smooth_cfg: RigConfig) -> None:
+    """LVDT readings alternating +/-95 mm every tick (each within the 100 mm range,
+    together impossible): every model's rattlespace innovation exceeds the range; after
+    a whole window of that, DIVERGED (the loop latches a fault); a reset clears it."""
+    rt = BankRuntime(smooth_design, cfg=smooth_cfg)
+    n = rt.monitor.window_ticks
     flagged_at = None
-    for k in range(3 * n):
-        rt.step(0.05, 100.0, 0.0)
+    for k in range(4 * n):
+        rt.step(0.095 if k % 2 else -0.095, 0.0, 0.0)
         if StepFlag.DIVERGED in rt.flags and flagged_at is None:
             flagged_at = k
-    assert flagged_at is not None and flagged_at >= n - 1
-    for _ in range(3):
-        rt.reset()
+    assert flagged_at is not None and n - 1 <= flagged_at < 3 * n
+    rt.reset()
     rt.step(0.0, 0.0, 0.0)
-    assert StepFlag.DIVERGED not in rt.flags
+    assert not rt.flags & (StepFlag.DIVERGED | StepFlag.DEGRADED)
 
 
 def test_set_road_and_weight_set(default_design: Design) -> None:

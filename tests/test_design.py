@@ -41,7 +41,7 @@ def test_shapes_and_fields(design: Design) -> None:
     assert design.lq_gain.shape == (2, J, 6)
     D = CFG.design.compute_delay_ticks
     assert design.compute_delay_ticks == D
-    assert design.actuator_gain.shape == (2, J, 2 + D)
+    assert design.actuator_gain.shape == (2, J, 3 + D)
     np.testing.assert_array_equal(design.servo_model, servo_model(CFG).as_array())
     assert design.airborne.tolist() == [False, False, False, True]
     assert design.grid_index.tolist() == [[0, 0], [1, 0], [2, 0], [-1, -1]]

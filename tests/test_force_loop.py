@@ -1,4 +1,6 @@
-"""PI force inner loop: closed-loop response against scipy, anti-windup, fault handling."""
+"""PI force inner loop: closed-loop response against scipy, anti-windup, fault handling
+(the plain PI, ``feedforward=None``; the flow feedforward is tested in
+tests/test_flow_feedforward.py)."""
 
 from __future__ import annotations
 
@@ -28,7 +30,7 @@ def _sim_pi(cfg: ForceLoopConfig, dt: float, ref: np.ndarray, *, naive: bool = F
     """PI (or a naive PI without anti-windup) driving the exact-ZOH first-order actuator;
     where ``blocked`` the actuator produces no force (bypass open, valve still driven)."""
     a = math.exp(-dt / TAU_S)
-    pi = PIForceLoop(cfg, dt)
+    pi = PIForceLoop(cfg, dt, None)
     force = 0.0
     integ = 0.0
     f_out, s_out = np.zeros(ref.size), np.zeros(ref.size)
@@ -40,7 +42,7 @@ def _sim_pi(cfg: ForceLoopConfig, dt: float, ref: np.ndarray, *, naive: bool = F
             s = min(max(cfg.kp_per_n * e + cfg.ki_per_ns * integ, -cfg.output_limit),
                     cfg.output_limit)
         else:
-            s = pi.step(r, force)
+            s = pi.step(r, force, 0.0)
         s_out[k] = s
         gain = 0.0 if blocked is not None and blocked[k] else GAIN_N
         force = a * force + (1.0 - a) * gain * s
@@ -88,9 +90,9 @@ def test_anti_windup_bounds_integrator_and_recovers_fast() -> None:
     cfg = TOY_GAINS
     dt = 1e-3
     # 1 s asking for force the actuator cannot give (blocked: stuck at 0 N)
-    pi = PIForceLoop(cfg, dt)
+    pi = PIForceLoop(cfg, dt, None)
     for _ in range(1000):
-        s = pi.step(7000.0, 0.0)       # actuator stuck at 0 N
+        s = pi.step(7000.0, 0.0, 0.0)       # actuator stuck at 0 N
         assert s == pytest.approx(cfg.output_limit)
     assert abs(cfg.ki_per_ns * pi.integral_ns) <= cfg.output_limit + 1e-12
     # blocked and saturated for 1 s, then a reachable reference with a working actuator:
@@ -112,25 +114,26 @@ def test_anti_windup_bounds_integrator_and_recovers_fast() -> None:
 
 def test_force_reference_is_saturated() -> None:
     cfg = default_config().force_loop
-    pi = PIForceLoop(cfg, 1e-3)
-    pi.step(1e12, 0.0)
+    pi = PIForceLoop(cfg, 1e-3, None)
+    pi.step(1e12, 0.0, 0.0)
     assert pi.error_n == pytest.approx(cfg.force_limit_n)
     pi.reset()
-    pi.step(-1e12, 0.0)
+    pi.step(-1e12, 0.0, 0.0)
     assert pi.error_n == pytest.approx(-cfg.force_limit_n)
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_nonfinite_input_returns_zero_and_flags(bad: float) -> None:
     cfg = default_config().force_loop
-    pi = PIForceLoop(cfg, 1e-3)
-    pi.step(500.0, 0.0)
+    pi = PIForceLoop(cfg, 1e-3, None)
+    pi.step(500.0, 0.0, 0.0)
     integ = pi.integral_ns
-    assert pi.step(bad, 0.0) == 0.0
+    assert pi.step(bad, 0.0, 0.0) == 0.0
     assert pi.flags == StepFlag.NONFINITE_INPUT
-    assert pi.step(100.0, bad) == 0.0
+    assert pi.step(100.0, bad, 0.0) == 0.0
+    assert pi.step(100.0, 0.0, bad) == 0.0
     assert pi.integral_ns == integ
-    pi.step(100.0, 0.0)
+    pi.step(100.0, 0.0, 0.0)
     assert pi.flags == StepFlag(0)
     pi.reset()
     assert pi.integral_ns == 0.0
@@ -138,17 +141,19 @@ def test_nonfinite_input_returns_zero_and_flags(bad: float) -> None:
 
 def test_bad_sample_time_is_an_error() -> None:
     with pytest.raises(ValueError, match="dt_s"):
-        PIForceLoop(default_config().force_loop, 0.0)
+        PIForceLoop(default_config().force_loop, 0.0, None)
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.tuples(st.floats(-1e15, 1e15), st.floats(-1e15, 1e15)),
-                min_size=1, max_size=50))
-def test_output_always_within_limit(seq: list[tuple[float, float]]) -> None:
-    cfg = default_config().force_loop
-    pi = PIForceLoop(cfg, 1e-3)
-    for r, m in seq:
-        s = pi.step(r, m)
+@given(st.lists(st.tuples(st.floats(-1e15, 1e15), st.floats(-1e15, 1e15),
+                          st.floats(-1e3, 1e3)), min_size=1, max_size=50))
+def test_output_always_within_limit(seq: list[tuple[float, float, float]]) -> None:
+    """With the rig's flow feedforward on (any LVDT reading, any force)."""
+    full = default_config()
+    cfg = full.force_loop
+    pi = PIForceLoop.from_config(full)
+    for r, m, x in seq:
+        s = pi.step(r, m, x)
         assert math.isfinite(s)
         assert abs(s) <= cfg.output_limit
         assert abs(cfg.ki_per_ns * pi.integral_ns) <= cfg.output_limit * (1 + 1e-12)

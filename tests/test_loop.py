@@ -194,7 +194,7 @@ def make_harness(cfg: RigConfig | None = None, rt: Any = None, role: str | None 
     rig_bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
     rt = rt if rt is not None else FakeRuntime()
     loop_kw.setdefault("warmup_ticks", 5)
-    loop = ControlLoop(cfg, ctl_bus, rt, PIForceLoop(cfg.force_loop, cfg.sample_time_s),
+    loop = ControlLoop(cfg, ctl_bus, rt, PIForceLoop.from_config(cfg),
                        **loop_kw)
     return LoopHarness(loop, RigSide(rig_bus), rt, [ctl_bus, rig_bus])
 
@@ -225,12 +225,13 @@ def test_active_command_follows_pi_force_loop(harness: LoopHarness) -> None:
     cfg = harness.loop.cfg
     harness.run(10)
     harness.arm()
-    ref_pi = PIForceLoop(cfg.force_loop, cfg.sample_time_s)
+    ref_pi = PIForceLoop.from_config(cfg)
     for k in range(30):
         rs = 0.002 * np.sin(0.3 * k)
         valves, _ = harness.step(rattlespace_m=rs, force_n=50.0)
         v = valves[0]
-        expected = ref_pi.step(-harness.rt.gain * round(rs / 5e-6) * 5e-6, 50.0)
+        rs_wire = round(rs / 5e-6) * 5e-6                 # the LVDT as the DBC carries it
+        expected = ref_pi.step(-harness.rt.gain * rs_wire, 50.0, rs_wire)
         assert v.enable == 1 and v.lifecycle == LifecycleState.ACTIVE
         assert v.spool_command == pytest.approx(expected, abs=2 / 32767)
         assert v.force_reference_n == pytest.approx(-harness.rt.gain * rs, abs=0.6)

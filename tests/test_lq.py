@@ -106,6 +106,31 @@ def test_lq_gain_matches_riccati_iteration() -> None:
     np.testing.assert_allclose(lq_gain(GROUND[2], HF, SETS[1]), Kk.ravel(), rtol=1e-6)
 
 
+@pytest.mark.parametrize("delay_ticks", [2, 3])
+def test_actuated_gain_with_longer_delays_is_the_riccati_fixed_point(delay_ticks: int
+                                                                     ) -> None:
+    """With the flow feedforward and D >= 2 pending commands the DARE pencil needs the
+    state balancing (and here scipy's second attempt) of ``dlqr_cross``; the gain is the
+    fixed point of the plain Riccati recursion all the same."""
+    from controller.actuator import servo_model
+    from controller.lq import actuated_lq_gain, actuated_lq_problem
+
+    cfg = CFG.replace(design={"compute_delay_ticks": delay_ticks})
+    servo = servo_model(cfg)
+    model = GROUND[0]
+    prob = actuated_lq_problem(model, HF, SETS[1], servo)
+    n = prob.Ad.shape[0]
+    A, B, N, R = prob.Ad, prob.Bd.reshape(n, 1), prob.Nd.reshape(n, 1), prob.Rd
+    P = prob.Qd.copy()
+    Kk = np.zeros((1, n))
+    for _ in range(20_000):
+        Kk = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A + N.T)
+        P = A.T @ P @ A - (A.T @ P @ B + N) @ Kk + prob.Qd
+        P = 0.5 * (P + P.T)
+    np.testing.assert_allclose(actuated_lq_gain(model, HF, SETS[1], servo), Kk.ravel(),
+                               rtol=1e-7)
+
+
 @pytest.mark.parametrize("w", range(len(SETS)))
 def test_lq_closed_loop_stable_for_every_model(w: int) -> None:
     for model in GROUND:

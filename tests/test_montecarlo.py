@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from controller.config import default_config
-from hil.montecarlo import draw_params, run_montecarlo, summarise
+from hil.montecarlo import RIDE_HEIGHT_STD_M, draw_params, run_montecarlo, summarise
 from hil.roads import make_road
 from hil.sim import simulate
 from rig.cli import main
@@ -49,10 +50,48 @@ def test_summary_matches_numpy() -> None:
     assert s["b"]["mean"] == 3.0
 
 
+def test_ride_height_is_its_own_normal_parameter() -> None:
+    """The ride height (static rattlespace about the stops' centre, set by preload) is
+    N(0, std) from its own stream: the M..Ct draws do not change with it."""
+    params = draw_params(CFG, 4000, 0.15, seed=5)
+    off = np.array([p.ride_height_offset_m for p in params], dtype=float)
+    assert abs(off.mean()) < 4 * RIDE_HEIGHT_STD_M / np.sqrt(off.size)
+    assert off.std() == pytest.approx(RIDE_HEIGHT_STD_M, rel=0.05)
+    masses = np.array([p.sprung_mass_kg for p in params], dtype=float)
+    assert abs(np.corrcoef(masses, off)[0, 1]) < 0.06
+    plain = draw_params(CFG, 4000, 0.15, seed=5, ride_height_std_m=None)
+    assert all(p.ride_height_offset_m is None for p in plain)
+    assert [p.sprung_mass_kg for p in plain] == [p.sprung_mass_kg for p in params]
+    with pytest.raises(ValueError, match="ride_height_std_m"):
+        draw_params(CFG, 2, 0.05, ride_height_std_m=-0.001)
+
+
+def test_preload_puts_a_perturbed_plant_at_its_drawn_ride_height() -> None:
+    """A +15 % mass / -15 % spring plant would sit (M g / K - M_nom g / K_nom) ~ 63 mm off
+    the stops' centre; with the preload set it sits at the drawn offset, and its passive
+    run (LVDT zeroed at rest) matches the nominal plant's dynamics."""
+    from hil.plant import P_R0, PlantParams, RigPlant
+    v = CFG.vehicle
+    heavy = dict(sprung_mass_kg=1.15 * v.sprung_mass_kg,
+                 suspension_stiffness_n_per_m=0.85 * v.suspension_stiffness_n_per_m)
+    loose = RigPlant(CFG, PlantParams(**heavy))
+    eq = loose.equilibrium()
+    assert eq[0] - eq[1] - loose.p[P_R0] == pytest.approx(
+        1.15 * v.sprung_mass_kg * v.gravity_mps2 / (0.85 * v.suspension_stiffness_n_per_m)
+        - v.sprung_mass_kg * v.gravity_mps2 / v.suspension_stiffness_n_per_m, rel=1e-12)
+    set_ = RigPlant(CFG, PlantParams(**heavy, ride_height_offset_m=0.003))
+    eq = set_.equilibrium()
+    assert eq[0] - eq[1] - set_.p[P_R0] == pytest.approx(0.003, abs=1e-12)
+    set_.reset()
+    for _ in range(200):                  # at rest it stays there (a true equilibrium)
+        set_.advance(DT, 0.0, True, 0.0, 0.0)
+    assert set_.rattlespace_m - set_.p[P_R0] == pytest.approx(0.003, abs=1e-9)
+
+
 def test_zero_spread_runs_reproduce_the_nominal_run_in_parallel(tmp_path: Path) -> None:
     road = make_road("bump", 11.176, 1.5, DT)
     res = run_montecarlo(CFG, road, 3, controller="passive", spread=0.0, workers=2,
-                         progress=False, out_dir=tmp_path)
+                         progress=False, out_dir=tmp_path, ride_height_std_m=0.0)
     nominal = simulate(CFG, road, "passive").metrics
     for key in ("absorbed_power", "rattlespace_peak_m", "tire_load_rms_ratio"):
         assert res.summary[key]["std"] == 0.0
@@ -84,3 +123,28 @@ def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert "absorbed_power" in out and "unstable runs: none" in out
     assert (tmp_path / "montecarlo.png").exists()
     assert main(["montecarlo", "--runs", "2", "--road", "nowhere", "--no-progress"]) == 2
+    for c in ("zero-force", "skyhook"):
+        assert main(["montecarlo", "--runs", "2", "--duration", "1", "--road", "iso-B",
+                     "--controller", c, "--workers", "1", "--no-progress", "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["faulted_runs"] == [] and out["summary"]["force_rms_n"]["min"] > 0.0
+
+
+@pytest.mark.parametrize(("argv", "expected"), [
+    ([], RIDE_HEIGHT_STD_M), (["--ride-height-std", "0.004"], 0.004),
+    (["--own-ride-height"], None), (["--own-ride-height", "--ride-height-std", "0.004"], None)])
+def test_cli_ride_height_options(monkeypatch: pytest.MonkeyPatch, argv: list[str],
+                                 expected: float | None) -> None:
+    """``--ride-height-std`` sets the preload's setting error, ``--own-ride-height`` keeps
+    each plant at its own M g / K (what the runs get: ``ride_height_std_m``)."""
+    import rig.commands.montecarlo as cmd
+    seen: dict[str, object] = {}
+
+    def fake(cfg: object, road: object, runs: int, **kw: object) -> object:
+        seen.update(kw)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(cmd, "run_montecarlo", fake)
+    assert main(["montecarlo", "--runs", "2", "--duration", "1", "--no-progress",
+                 *argv]) == 2
+    assert seen["ride_height_std_m"] == expected

@@ -340,36 +340,56 @@ def iso_road(cfg: RigConfig, road_class: str, seed: int, duration_s: float,
                 road.velocity_mps + hole.velocity_mps, road.roughness_gd)
 
 
+def _segments(mask: np.ndarray, offset: int) -> list[tuple[int, int]]:
+    """[start, end) index pairs of the True runs of ``mask`` (shifted by ``offset``)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
+    return [(int(a) + offset, int(b) + offset) for a, b in zip(edges[::2], edges[1::2],
+                                                               strict=True)]
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_lift_off_on_default_noise_entry_switches_and_returns(
         default_bank: tuple[RigConfig, Design], seed: int) -> None:
     """Regression: with the default ISO D noise entry the on-ground filters absorb a
     ~30-40 ms lift-off into their road-noise model (q stays below the learnt threshold),
     so the residual test alone switched late or never.  Closed loop on the nonlinear
-    plant, ISO D road at the nominal speed with a 60 mm pothole: one airborne phase that
-    starts while the wheel is still in the air and ends soon after touch-down."""
+    plant, ISO D road at the nominal speed with a 60 mm pothole (the wheel lands and may
+    bounce into a second flight): every flight of 25+ ms gets one airborne phase that
+    starts no later than 20 ms into the flight, while the wheel is still in the air, and
+    ends soon after touch-down; every airborne phase starts on a (nearly) unloaded tire --
+    a flight, or a near-flight with under 10 % of the static load, which the contact test
+    rightly treats alike -- so there is no chatter on a loaded tire."""
     cfg, d = default_bank
     road = iso_road(cfg, "D", seed, 1.5, pothole=True)
     res = simulate(cfg, road, "moving", seed=seed, design=d)
     assert res.metrics["n_faults"] == 0
     tr = res.traces
+    v = cfg.vehicle
+    true_load = tr["tire_force_n"] / ((v.sprung_mass_kg + v.unsprung_mass_kg)
+                                      * v.gravity_mps2)
     i0 = round(POTHOLE_AT_M / road.speed_mps / d.dt_s)
     window = slice(i0 - 100, i0 + 250)
-    off = np.flatnonzero(tr["off_ground_s"][window] > 0) + window.start
-    first, last = int(off[0]), int(off[-1])
-    assert last - first >= 25                         # a real lift-off of 25+ ms
+    flights = _segments(tr["off_ground_s"][window] > 0, window.start)
+    assert max(b - a for a, b in flights) >= 25          # a real lift-off of 25+ ms
     rb = _replay(d, cfg, road, tr)
-    air = rb["air"]
-    edges = np.flatnonzero(np.diff(air[window].astype(int))) + window.start + 1
-    assert edges.size == 2, edges                      # one airborne phase, no chatter
-    up, down = int(edges[0]), int(edges[1])
-    assert first <= up <= first + 20 and up < last     # detected while still in the air
-    assert last < down <= last + 30                    # back on the ground after touch-down
+    phases = _segments(rb["air"][window], window.start)
     dwell = round(cfg.moving_bank.dwell_time_s / d.dt_s)
-    assert down - up >= dwell
-    assert np.all(rb["updates"][up + 1:down] == 2)     # airborne filter + sentinel
     k = cfg.moving_bank.active_models
-    assert np.all(rb["updates"][down + 1:window.stop] == k)
+    for first, end in flights:
+        last = end - 1
+        if end - first < 25:
+            continue
+        (up, down), = [(u, v) for u, v in phases if u <= first + 20 and v > first]
+        assert up < last                                  # detected while still in the air
+        assert last < down <= last + 30                   # back on the ground after touch-down
+        assert down - up >= dwell
+        assert np.all(rb["updates"][up + 1:down] == 2)    # airborne filter + sentinel
+    for up, _down in phases:                              # no phase on a loaded tire
+        assert true_load[max(0, up - 30):up + 1].min() < 0.1, (up, flights)
+    on_ground = np.ones(window.stop - window.start, dtype=bool)
+    for up, down in phases:
+        on_ground[up - window.start:min(down + 1, window.stop) - window.start] = False
+    assert np.all(rb["updates"][window][on_ground] == k)
 
 
 @pytest.mark.parametrize(("road_class", "seed"), [("C", 1), ("C", 2), ("D", 2), ("D", 3)])
@@ -377,8 +397,9 @@ def test_no_false_lift_off_on_rough_roads(default_bank: tuple[RigConfig, Design]
                                           road_class: str, seed: int) -> None:
     """ISO C / D roads at the nominal speed, 5 s closed loop: no airborne phase unless the
     tire really (nearly) unloaded -- true tire load below 10 % of the static load within
-    the 30 ms before the switch.  On class C the tire never gets near that: no switch.
-    The load estimate tracks the true tire load (Delta ticks late)."""
+    the 30 ms before the switch.  On class C the tire never gets near that (it keeps
+    15 %+ of its static load): no switch.  The load estimate tracks the true tire load
+    (Delta ticks late)."""
     cfg, d = default_bank
     road = iso_road(cfg, road_class, seed, 5.0, pothole=False)
     res = simulate(cfg, road, "moving", seed=seed, design=d)
@@ -392,7 +413,7 @@ def test_no_false_lift_off_on_rough_roads(default_bank: tuple[RigConfig, Design]
     for up in ups:
         assert true_load[max(0, up - 30):up + 1].min() < 0.1, up
     if road_class == "C":
-        assert ups.size == 0 and true_load.min() > 0.2
+        assert ups.size == 0 and true_load.min() > 0.15
     lag = round(cfg.moving_bank.load_estimate_window_s / d.dt_s)
     err = rb["load"][100 + lag:] - true_load[100:-lag]
     on = ~rb["air"][100 + lag:]

@@ -300,8 +300,9 @@ def test_tracking_splits_the_reference_near_no_rule_fired_ticks() -> None:
     assert none.no_fire_share == 0.0 and math.isnan(none.ref_rms_above_near_no_fire_n)
 
 
-def test_short_active_phase_skips_the_analysis_but_not_the_page(work: Path) -> None:
-    p = work / "design.npz"
+def test_short_active_phase_skips_the_analysis_but_not_the_page(work: Path,
+                                                                recording: Path) -> None:
+    p = work / "design.npz"                 # written by the ``recording`` fixture
     rec = record_emulated_run(work / "short.mcap", 0.5, cfg=CFG, design_bytes=p.read_bytes(),
                               arm_at_s=0.3)
     s = load_series(rec)

@@ -144,9 +144,11 @@ class _Scripted:
         return self._fault
 
 
-def _replay_pi(force_ref: np.ndarray, meas_force: np.ndarray) -> np.ndarray:
-    pi = PIForceLoop(CFG.force_loop, DT)
-    return np.array([pi.step(r, f) for r, f in zip(force_ref, meas_force, strict=True)])
+def _replay_pi(force_ref: np.ndarray, meas_force: np.ndarray,
+               meas_rattlespace: np.ndarray) -> np.ndarray:
+    pi = PIForceLoop.from_config(CFG)
+    return np.array([pi.step(r, f, x) for r, f, x in zip(force_ref, meas_force,
+                                                          meas_rattlespace, strict=True)])
 
 
 @pytest.mark.parametrize("delay_point", ["spool", "force_ref"])
@@ -159,7 +161,8 @@ def test_delay_point_delays_exactly_what_it_names(delay_point: str) -> None:
     tr = run_closed_loop(CFG, road, _Scripted(seq), delay_ticks=d,
                          delay_point=delay_point).traces
     fref, spool, computed = tr["force_ref_n"], tr["spool_cmd"], tr["spool_computed"]
-    np.testing.assert_array_equal(computed, _replay_pi(fref, tr["meas_force_n"]))
+    np.testing.assert_array_equal(computed, _replay_pi(fref, tr["meas_force_n"],
+                                                       tr["meas_rattlespace_m"]))
     if delay_point == "spool":
         np.testing.assert_array_equal(fref, seq)
         np.testing.assert_array_equal(spool[d:], computed[:-d])
@@ -236,6 +239,32 @@ def test_bad_arguments() -> None:
         simulate(CFG, make_road("bump", SPEED_25MPH, 0.1, 2e-3), "passive")
 
 
+def test_skyhook_and_zero_force_by_name() -> None:
+    """``simulate`` runs skyhook with its tuned gains and zero-force (bypass closed, force
+    reference 0 through the same force loop: the zero-gain skyhook, bit for bit)."""
+    from hil.sim import ZeroForceController
+    from hil.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
+
+    road = make_road("rough-course", SPEED_25MPH, 1.0, DT, seed=4)
+    sky = simulate(CFG, road, "skyhook", seed=2)
+    want = run_closed_loop(CFG, road, SkyhookController(CFG, DEFAULT_GAINS), seed=2)
+    assert sky.controller == "skyhook"
+    np.testing.assert_array_equal(sky.traces["spool_cmd"], want.traces["spool_cmd"])
+    zero = simulate(CFG, road, "zero-force", seed=2)
+    ref = run_closed_loop(CFG, road, SkyhookController(CFG, SkyhookGains(0.0, 0.0, 0.0)),
+                          seed=2)
+    assert zero.controller == "zero-force"
+    assert np.all(zero.traces["force_ref_n"] == 0.0)
+    np.testing.assert_array_equal(zero.traces["spool_cmd"], ref.traces["spool_cmd"])
+    assert np.any(zero.traces["spool_cmd"] != 0.0)        # the valve is driven, closed
+    assert zero.metrics["n_faults"] == 0.0 and zero.metrics["force_rms_n"] > 0.0
+    z = ZeroForceController()
+    nan = SensorReading(math.nan, 0.0, 0.0, 0)
+    assert z.step(nan, RigPlant(CFG)) == 0.0 and z.fault
+    z.reset()
+    assert not z.fault
+
+
 def test_cli_json_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "--road", "bump", "--duration", "1", "--controller", "passive",
                  "--json"]) == 0
@@ -246,4 +275,10 @@ def test_cli_json_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sim", "--road", "bump", "--duration", "1", "--weights", "7"]) == 2
     assert main(["sim", "--road", "bump", "--duration", "0.5", "--controller", "all"]) == 0
     table = capsys.readouterr().out
-    assert all(c in table for c in ("passive", "lqg", "fuzzy", "bayes", "moving"))
+    assert all(c in table for c in ("passive", "zero-force", "skyhook", "lqg", "fuzzy",
+                                    "bayes", "moving"))
+    for c in ("zero-force", "skyhook"):
+        assert main(["sim", "--road", "rough-course", "--duration", "1", "--controller", c,
+                     "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["n_faults"] == 0.0 and out["force_rms_n"] > 0.0

@@ -111,6 +111,26 @@ def test_select_gains_rules() -> None:
 # -------------------------------------------------------------------------- full state
 
 
+def test_default_skyhook_gains_are_a_grid_point() -> None:
+    from hil.skyhook import DEFAULT_GAINS, TUNING_GRID
+    assert (DEFAULT_GAINS.c_sky_ns_per_m, DEFAULT_GAINS.c_ground_ns_per_m,
+            DEFAULT_GAINS.damper_cancel) in TUNING_GRID
+
+
+@pytest.mark.slow
+def test_default_skyhook_gains_are_the_search_result() -> None:
+    """``DEFAULT_GAINS`` is what the study's skyhook search (rough course, road seed 101,
+    :data:`hil.skyhook.TUNING_GRID`) picks with the default configuration."""
+    from hil.skyhook import DEFAULT_GAINS
+    from hil.study.matrix import plan, run_cases, tune_cases
+
+    cases = tune_cases(plan(False))
+    rows = run_cases(cases, CFG, 2, False, "skyhook search")
+    add_ratios(rows, cases)
+    sky = [r for r, c in zip(rows, cases, strict=True) if c.controller == "skyhook"]
+    assert select_gains(sky) == DEFAULT_GAINS
+
+
 def test_fullstate_force_is_the_lq_law() -> None:
     design = cached_design(CFG)
     fs = FullStateLQ(design, CFG, weight_set=2)
@@ -127,15 +147,21 @@ def test_fullstate_force_is_the_lq_law() -> None:
     np.testing.assert_allclose(fs.xf, design.human_filter_Ad @ xf0
                                + design.human_filter_Bd * 1.5, rtol=1e-12)
     if fs.ka is not None:       # actuator-aware design: the runtime's spool model
+        assert fs.ff is not None
         fs.reset()
+        fs.force(xbar, xbar, 0.0, force_n=0.0, rattlespace_m=0.002)    # rate filter at rest
+        fs.xf[:] = 0.0
         xf0 = fs.xf.copy()
         fs.xv = 0.1
         pend = list(fs.pending)
-        u = fs.force(xbar + dx, xbar, 0.0, force_n=100.0)
+        w0 = fs.rate_state
+        u = fs.force(xbar + dx, xbar, 0.0, force_n=100.0, rattlespace_m=0.003)
         assert u == pytest.approx(-(K[:4] @ dx) - K[4:] @ xf0
-                                  - fs.ka @ np.array([0.1, 100.0, *pend]), rel=1e-12)
+                                  - fs.ka @ np.array([0.1, 100.0, w0, *pend]), rel=1e-12)
         kp, flim, olim = fs.servo
-        s = min(max(kp * (min(max(u, -flim), flim) - 100.0), -olim), olim)
+        s_ff, w1 = fs.ff.step(w0, 0.003, 100.0)
+        assert s_ff != 0.0 and fs.rate_state == w1
+        s = min(max(kp * (min(max(u, -flim), flim) - 100.0) + s_ff, -olim), olim)
         applied = ([s, *pend])[-1]
         assert fs.xv == pytest.approx(fs.spool_decay * 0.1 + (1 - fs.spool_decay) * applied)
     assert fs.force(xbar, xbar, math.inf) == 0.0 and fs.fault
@@ -166,7 +192,7 @@ def test_fullstate_is_the_runtime_law_with_the_estimate_replaced(weight_set: int
         r, a = tr["rattlespace_m"][k] + 5e-5 * rng.standard_normal(), tr["accel_mps2"][k]
         f = tr["force_n"][k]
         u_rt = rt.step(r, a, f)
-        u_fs = fs.force(np.asarray(rt.x_post[j]).copy(), xbar, a, f)
+        u_fs = fs.force(np.asarray(rt.x_post[j]).copy(), xbar, a, f, r)
         assert u_fs == pytest.approx(u_rt, rel=1e-9, abs=1e-6), k
         n_checked += 1
     assert n_checked == road.n_ticks and np.max(np.abs(tr["force_n"])) > 100.0
@@ -284,3 +310,33 @@ def test_committed_thesis_claims_regenerate() -> None:
         assert values[key] == pytest.approx(value, rel=1e-6), key
     verdicts = [ok for _, _, ok in claims(rows)]
     assert verdicts == [c["holds"] for c in saved["claims"]]
+
+
+# ------------------------------------------------------- what each issue-11 change buys
+
+
+def test_old_divergence_rule_is_min_q_over_running_filters_for_50_ticks() -> None:
+    from hil.study.changes import old_divergence_rule
+    q = np.full((200, 3), 5.0)
+    q[:, 2] = 0.0                              # a filter not running reads 0
+    q[100:149, :2] = 2e4                       # 49 ticks over: not yet
+    assert not old_divergence_rule(q)
+    q[100:150, :2] = 2e4                       # 50 ticks over
+    assert old_divergence_rule(q)
+    q[120, 1] = 9e3                            # one running filter explains tick 120
+    assert not old_divergence_rule(q)
+
+
+def test_changes_table_undoes_the_flow_feedforward() -> None:
+    """``python -m hil.study.changes`` (quick): the flow-feedforward row runs the same
+    runs with and without the feedforward; the zero force reference is near passive with
+    it and about 3 x passive without (the closed actuator's own damping)."""
+    import re
+
+    from hil.study.changes import CHANGES, measure, table
+    (row,) = measure(CFG, [c for c in CHANGES if "feedforward +" in c.name], quick=True,
+                     jobs=1)
+    with_ff, without_ff = (float(re.search(r"zero-force ([0-9.]+)", cell).group(1))
+                           for cell in row[2:])
+    assert with_ff < 1.1 and without_ff > 2.0
+    assert table([row]).count("\n") == 2

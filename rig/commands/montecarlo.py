@@ -9,7 +9,7 @@ import argparse
 import sys
 
 from controller.config import load_config
-from hil.montecarlo import MAX_SPREAD, run_montecarlo
+from hil.montecarlo import MAX_RIDE_HEIGHT_STD_M, MAX_SPREAD, RIDE_HEIGHT_STD_M, run_montecarlo
 from hil.roads import ROAD_NAMES, RoadError, make_road
 from hil.sim import CONTROLLERS
 from rig import argtypes, strict_json
@@ -47,6 +47,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lvdt-zero", choices=("actual", "nominal"), default="actual",
                    help="LVDT zero of each perturbed rig: its own static position "
                         "(calibrated at rest, default) or the nominal one")
+    p.add_argument("--ride-height-std", default=RIDE_HEIGHT_STD_M, metavar="M",
+                   type=argtypes.real(0.0, MAX_RIDE_HEIGHT_STD_M, "m"),
+                   help="std of the ride-height setting error [m]: each plant's static "
+                        "position about the bump stops' centre, set by spring preload "
+                        f"(default {RIDE_HEIGHT_STD_M:g}, at most {MAX_RIDE_HEIGHT_STD_M:g})")
+    p.add_argument("--own-ride-height", action="store_true",
+                   help="no preload adjustment: each plant sits at its own M g / K "
+                        "(--ride-height-std is then not used)")
     p.add_argument("--json", action="store_true",
                    help="print the summary as strict JSON (null for a non-finite value)")
     p.add_argument("--no-progress", action="store_true")
@@ -59,7 +67,9 @@ def run(args: argparse.Namespace) -> int:
         res = run_montecarlo(cfg, road, args.runs, controller=args.controller,
                              weight_set=args.weights, spread=args.spread, seed=args.seed,
                              workers=args.workers, progress=not args.no_progress,
-                             out_dir=args.out, lvdt_zero=args.lvdt_zero)
+                             out_dir=args.out, lvdt_zero=args.lvdt_zero,
+                             ride_height_std_m=(None if args.own_ride_height
+                                                else args.ride_height_std))
     except (RoadError, ValueError) as exc:
         print(f"rig montecarlo: {exc}", file=sys.stderr)
         return 2

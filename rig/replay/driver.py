@@ -109,7 +109,7 @@ def _build_loop(cfg: RigConfig, design: Design, bus: can.BusABC, settings: Mappi
                 clock: Callable[[], int], recorder: Any = None) -> ControlLoop:
     rt = BankRuntime(design, blending=settings["blending"], weight_set=settings["weight_set"],
                      single_model=settings.get("single_model"), cfg=cfg)
-    pi = PIForceLoop(cfg.force_loop, cfg.sample_time_s)
+    pi = PIForceLoop.from_config(cfg)
     wt = settings.get("warmup_ticks")
     return ControlLoop(cfg, bus, rt, pi, recorder=recorder, blending=settings["blending"],
                        weight_set=settings["weight_set"], clock_ns=clock,

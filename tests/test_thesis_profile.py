@@ -1,0 +1,46 @@
+"""deploy/thesis.toml: the thesis-literal estimation and blending profile (issue 11)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from controller.bank import BankRuntime, Blending, StepFlag
+from controller.config import config_to_dict, default_config, load_config
+from controller.design import design_bank
+
+PROFILE = Path(__file__).resolve().parents[1] / "deploy" / "thesis.toml"
+EXPECTED = {
+    ("design", "bump_stop_filter_input"): False,
+    ("design", "filter_rattlespace_bias_drift"): 0.0,
+    ("design", "accel_mean_window_s"): 0.0,
+    ("design", "airborne_filter_wheel_force_intensity"): 0.0,
+    ("fuzzy", "statistic"): "raw",
+    ("fuzzy", "no_fire_fallback"): "passive",
+}
+
+
+def test_profile_differs_from_the_defaults_in_exactly_the_thesis_keys() -> None:
+    thesis, default = config_to_dict(load_config(PROFILE)), config_to_dict(default_config())
+    diff = {(s, k): v for s, sec in thesis.items() for k, v in sec.items()
+            if default[s][k] != v}
+    assert diff == EXPECTED
+
+
+def test_profile_design_and_runtime_are_thesis_literal() -> None:
+    """No bias states, no stop input, an airborne filter with the true (noise-free)
+    relative dynamics, and App. A on the raw q with the 0 N fallback: a sustained
+    measurement no model explains fires no rule and the force is 0."""
+    cfg = load_config(PROFILE)
+    d = design_bank(cfg)
+    assert np.all(d.bias_gain == 0.0) and d.bump_stop[0] == 0.0
+    air = int(np.flatnonzero(d.airborne)[0])
+    np.testing.assert_allclose(d.innovation_cov[air], np.broadcast_to(
+        np.diag([cfg.noise.rattlespace_std_m ** 2, cfg.noise.accel_std_mps2 ** 2]),
+        d.innovation_cov[air].shape), rtol=1e-3, atol=1e-15)   # L ~ 0, F = R: open loop
+    rt = BankRuntime(d, blending=Blending.FUZZY, cfg=cfg)
+    for _ in range(30):
+        out = rt.step(0.02, 30.0, 0.0)
+    assert StepFlag.NO_RULE_FIRED in rt.flags and out == 0.0
+    assert rt.step(0.09, 0.0, 0.0) is not None and rt.bump_stop_force == 0.0
