@@ -225,7 +225,6 @@ class ControlLoop:
         self.lifecycle = Lifecycle()
         self.lifecycle.add_listener(self._on_transition)
         self.monitor = FaultMonitor(cfg)
-        self.monitor.prepare(runtime.q, runtime.active)
         self.timing = TimingStats(self.period_ns,
                                   round(cfg.safety.overrun_threshold_s * 1e9),
                                   ring_size=timing_ring)

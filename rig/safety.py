@@ -89,13 +89,6 @@ class FaultMonitor:
         self.rig_watchdog_seen = False
         self.reset()
 
-    def prepare(self, q: np.ndarray, active: np.ndarray) -> None:
-        """Load (or compile) the per-tick kernels for the runtime's own arrays now, not
-        in the first tick with sensor data: numba compiles a jitted function at its
-        first call, from the cache in ~10 ms, from scratch in ~100 ms or more, which
-        in the loop would silence the valve command past the drive's 5 ms watchdog."""
-        _min_active(q, active)
-
     def reset_estimator_checks(self) -> None:
         """After an operator reset (the estimator restarts).  The estimator's own
         statistics restart with the bank (``rt.reset()``, controller/monitor.py); the

@@ -452,10 +452,10 @@ def test_histogram_percentile_empty_is_nan() -> None:
 
 @pytest.mark.timeout(300)
 def test_first_ticks_with_sensor_data_load_no_numba_code(tmp_path: Path) -> None:
-    """Start-up RIG_WATCHDOG of issue 12: the safety monitor's numba kernel was compiled
-    (or loaded from the cache, ~10 ms) in the loop's first tick with sensor data, far
-    beyond the drive's 5 ms watchdog.  In a fresh process (nothing compiled yet), the
-    loop's first 300 ticks with data take numba's compiler lock zero times."""
+    """Every numba kernel a tick calls is loaded before the first tick: a first call
+    loads from the cache in ~10 ms (compiles for far longer), beyond the drive's 5 ms
+    watchdog.  In a fresh process (nothing compiled yet), the loop's first 300 ticks
+    with data take numba's compiler lock zero times."""
     script = textwrap.dedent("""
         import json, sys, time
         from numba.core import event
