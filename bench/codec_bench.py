@@ -1,4 +1,4 @@
-"""Per-frame encode / decode time of the precompiled codec (rig.protocol) vs cantools.
+"""Per-frame encode / decode time of the precompiled codec (rig.wire.protocol) vs cantools.
 
 ``run() -> list[dict]``: one row per frame type and direction with the median time per
 frame over several batches.  Ours includes the E2E CRC (compute on encode, check on
@@ -21,10 +21,10 @@ if str(ROOT) not in sys.path:  # runnable as a script
 
 import cantools  # noqa: E402
 
-from rig.protocol import CODECS  # noqa: E402
+from rig.wire.protocol import CODECS  # noqa: E402
 
 NAME = "codec"
-TITLE = "CAN codec: rig.protocol vs cantools, median per frame"
+TITLE = "CAN codec: rig.wire.protocol vs cantools, median per frame"
 SAMPLE = {
     "ValveCommand": {"ValveCommand_Counter": 5, "Enable": 1, "Lifecycle": 1,
                      "SpoolCommand": 0.4321, "ForceReference": -1234.5,
@@ -53,7 +53,7 @@ def _median_ns(fn: Any, n: int, batches: int) -> float:
 
 
 def run(quick: bool = False) -> list[dict[str, Any]]:
-    db: Any = cantools.database.load_file(str(ROOT / "rig" / "rig.dbc"))
+    db: Any = cantools.database.load_file(str(ROOT / "rig" / "wire" / "rig.dbc"))
     n, batches = (300, 3) if quick else (3000, 7)
     rows: list[dict[str, Any]] = []
     for codec in CODECS.values():

@@ -29,11 +29,11 @@ if str(ROOT) not in sys.path:  # runnable as a script
 import numba as nb  # noqa: E402
 import numpy as np  # noqa: E402
 
-from controller.bank import BankRuntime, Blending, bank_step  # noqa: E402
 from controller.config import RigConfig, default_config  # noqa: E402
 from controller.design import design_bank  # noqa: E402
-from controller.reference import quarter_car_measurements  # noqa: E402
 from controller.road_noise import road_velocity_intensity  # noqa: E402
+from controller.runtime.bank import BankRuntime, Blending, bank_step  # noqa: E402
+from tests.support.reference_bank import quarter_car_measurements  # noqa: E402
 
 NAME = "controller"
 TITLE = "Controller step (BankRuntime.step, one call per tick), microseconds"

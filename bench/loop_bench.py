@@ -63,8 +63,8 @@ def _harness(cfg: Any, design_path: str, road_s: float, rig_cpus: tuple[int, ...
              realtime: Any = None, **options: Any) -> Any:
     """Service + emulated rig process (:class:`hil.harness.RigHarness`)."""
     from hil.harness import RigHarness, RigProcessOptions
-    from rig.realtime import RealtimeRequest
-    from rig.service import ServiceOptions
+    from rig.rt.realtime import RealtimeRequest
+    from rig.service.runner import ServiceOptions
 
     return RigHarness(
         cfg, ServiceOptions(design_path=design_path, realtime=realtime,
@@ -77,8 +77,8 @@ def _harness(cfg: Any, design_path: str, road_s: float, rig_cpus: tuple[int, ...
 def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtime: bool,
              design_path: str, switch_interval_s: float = 0.0001,
              cpus: tuple[int, ...] = ()) -> dict[str, Any]:
-    from rig.protocol import LifecycleState
-    from rig.realtime import RealtimeRequest
+    from rig.rt.realtime import RealtimeRequest
+    from rig.wire.protocol import LifecycleState
 
     rate = cfg.design.sample_rate_hz
     tmp = tempfile.TemporaryDirectory()
@@ -145,7 +145,7 @@ def run_sleeper(seconds: float, realtime: bool, switch_interval_s: float = 0.000
     sleeps to absolute 1 ms deadlines (no spin, no work) for ``seconds`` after the same
     warm-up; a deadline more than one period behind is skipped and counted, as in the
     loop.  Its lateness is what the OS and the machine give any real-time task."""
-    from rig.realtime import RealtimeRequest, apply_realtime, release_cpu_latency, restore_gc
+    from rig.rt.realtime import RealtimeRequest, apply_realtime, release_cpu_latency, restore_gc
 
     report = (apply_realtime(RealtimeRequest(switch_interval_s=switch_interval_s, cpus=cpus))
               if realtime else None)
@@ -227,9 +227,9 @@ def tick_hot_and_cold(cfg: Any, design_path: str, n: int = 4000) -> dict[str, fl
     to back ("hot") and 0.8 ms apart ("cold": what the loop sees after its sleep), in one
     thread: the floor of the step time and what cold caches add to it."""
     from hil.node import RigNode
-    from hil.roads import make_road
-    from rig.service import Service, ServiceOptions
-    from rig.socketpair_bus import SocketPairBus, socketpair_wire
+    from hil.sim.roads import make_road
+    from rig.bus.socketpair import SocketPairBus, socketpair_wire
+    from rig.service.runner import Service, ServiceOptions
 
     a, b = socketpair_wire()
     rig_bus, bus = SocketPairBus(a), SocketPairBus(b)
@@ -269,8 +269,8 @@ def bus_cost(kind: str, n: int = 5000) -> dict[str, float]:
     (``kind="socketpair"``, what the loop uses) or python-can's ``virtual`` bus."""
     import can
 
-    from rig.bus import make_tx_message
-    from rig.socketpair_bus import SocketPairBus, socketpair_wire
+    from rig.bus.core import make_tx_message
+    from rig.bus.socketpair import SocketPairBus, socketpair_wire
 
     if kind == "socketpair":
         ends = socketpair_wire()
@@ -336,7 +336,7 @@ def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
     """Run the cases one after another in this process; the result of ``--json``."""
     from controller.artifact import save_design
     from controller.config import default_config
-    from hil.sim import cached_design
+    from hil.sim.closed_loop import cached_design
 
     # telemetry on a free loopback port (the design is for this configuration)
     cfg = default_config().replace(

@@ -26,17 +26,17 @@ import can
 import numpy as np
 
 from controller.artifact import save_design
-from controller.bank import BankRuntime
 from controller.config import RigConfig, config_to_toml, default_config
 from controller.design import design_bank
-from controller.force_loop import PIForceLoop
+from controller.runtime.bank import BankRuntime
+from controller.runtime.force_loop import PIForceLoop
 from hil.faults import FaultSchedule
 from hil.node import RigNode
-from hil.roads import make_road
-from rig.bus import open_bus, shutdown_all
-from rig.loop import ControlLoop
-from rig.recording import RunRecorder
+from hil.sim.roads import make_road
+from rig.bus.core import open_bus, shutdown_all
+from rig.recording.recorder import RunRecorder
 from rig.replay import load_recorded_run, replay_recording
+from rig.service.loop import ControlLoop
 
 __all__ = ["record_emulated_run"]
 

@@ -19,10 +19,10 @@ if str(ROOT) not in sys.path:  # runnable as a script
     sys.path.insert(0, str(ROOT))
 
 from controller.config import default_config  # noqa: E402
-from hil.plant import RigPlant  # noqa: E402
-from hil.roads import make_road  # noqa: E402
-from hil.sensors import SensorSuite  # noqa: E402
-from hil.sim import CONTROLLERS, cached_design, simulate  # noqa: E402
+from hil.sim.closed_loop import CONTROLLERS, cached_design, simulate  # noqa: E402
+from hil.sim.plant import RigPlant  # noqa: E402
+from hil.sim.roads import make_road  # noqa: E402
+from hil.sim.sensors import SensorSuite  # noqa: E402
 
 NAME = "sim"
 TITLE = "Emulated rig: per-tick cost and offline real-time factor at 1 kHz (median)"

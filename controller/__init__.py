@@ -1,7 +1,7 @@
 """Pure functional core of the LQG fuzzy-logic active-suspension controller.
 
 No I/O here: offline design produces a versioned artifact of plain arrays
-(:mod:`controller.design`), and the runtime step (:mod:`controller.bank`) works on
+(:mod:`controller.design`), and the runtime step (:mod:`controller.runtime.bank`) works on
 preallocated arrays only.  Units are SI throughout.
 """
 

@@ -1,7 +1,7 @@
 """Linearised servo-hydraulic actuator under the PI force loop and the valve flow
 feedforward: the design model of the force path (docs/design.md section 7).
 
-The emulated rig's actuator (``hil/hydraulics.py``, Alleyne & Hedrick form) linearised at
+The emulated rig's actuator (``hil/sim/hydraulics.py``, Alleyne & Hedrick form) linearised at
 zero load pressure, force F = A P:
 
     x_v' = (s - x_v) / tau                          spool (normalised), s = spool command
@@ -31,7 +31,7 @@ F = 3 kN (P = 0.29 Ps) the same spool passes 16 % less flow in the loaded direct
 drop across the metering edge vanishes (near stall).  The design linearises at F = 0
 (correction 1); the runtime applies it.
 
-The PI force loop (``controller/force_loop.py``) runs in the controller; its proportional
+The PI force loop (``controller/runtime/force_loop.py``) runs in the controller; its proportional
 path s_k = kp (fref_k - F_k) + s_ff,k is part of the design model, its integral (corner
 ki / kp a decade below the crossover) is left out.  The spool command reaches the valve
 ``delay_ticks`` ticks later and is held over the tick (ZOH).
@@ -100,7 +100,7 @@ class FlowFeedforward:
 
     def step(self, w: float, rattlespace_m: float, force_meas_n: float) -> tuple[float, float]:
         """(s_ff, next w) for LVDT reading r [m] and load-cell force F [N] (module
-        docstring).  Plain Python; ``controller.kernels.servo_update`` is the numba twin."""
+        docstring).  Plain Python; ``controller.runtime.kernels.servo_update`` is the numba twin."""
         b = self.rate_input_gain_per_s
         rho = w + b * rattlespace_m
         w_next = (1.0 - self.rate_filter_coeff) * rho - b * rattlespace_m

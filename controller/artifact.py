@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from controller.actuator import SERVO_MODEL_SIZE
 from controller.config import RigConfig, config_hash, config_to_toml, design_config_hash
-from controller.kernels import MAX_DELAY
+from controller.runtime.kernels import MAX_DELAY
 
 __all__ = [
     "ARTIFACT_VERSION",

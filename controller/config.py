@@ -279,7 +279,7 @@ class MovingBankConfig:
     """Ch. VI: on-ground / airborne sets, switched on tire-load CUSUMs and residual thresholds.
 
     Lift-off and touch-down are decided by two CUSUM tests on a model-free tire-load
-    estimate, plus the learnt residual threshold (controller/moving_bank.py)."""
+    estimate, plus the learnt residual threshold (controller/runtime/moving_bank.py)."""
 
     active_models: int = _f(3, lo=1, hi=MAX_BANK_MODELS, doc="k, size of the moving subset")
     threshold_quantile: float = _f(0.999, lo=0.5, hi=1.0, hi_open=True,

@@ -6,23 +6,24 @@ Discrete python-control blocks on the 1 kHz sample grid, joined by
 - ``plant`` (:func:`rig_plant_ss`): linear quarter-car model j in deviation coordinates,
   with the true human filter F(s) as a state (exact performance output), and either an
   *ideal* actuator (force = the held command; the load cell at tick k reads the command
-  of tick k-1) or the *hydraulic* actuator of ``hil/hydraulics.py`` linearised at zero
+  of tick k-1) or the *hydraulic* actuator of ``hil/sim/hydraulics.py`` linearised at zero
   load pressure (:mod:`controller.actuator`, ZOH on the spool command).  Sampled at
   t_k: rattlespace, true acceleration A[2] x + F / M, force, and the performance outputs;
   optional noise inputs (state noise of the road, sensor noise);
-- ``accel``: the accelerometer low-pass of ``hil/sensors.py`` (Tustin, pre-warped);
+- ``accel``: the accelerometer low-pass of ``hil/sim/sensors.py`` (Tustin, pre-warped);
 - ``ctrl`` (:func:`runtime_controller_ss`): the runtime bank for model j
-  (``controller/bank.py``): Kalman update and propagation with the measured force,
+  (``controller/runtime/bank.py``): Kalman update and propagation with the measured force,
   human filter on the measured acceleration, the spool model of ``controller/actuator.py``
   on its own output and the measured rattlespace, fref = -K [x+; xf] - K_a [x̂_v; F; w;
   s_pending];
-- ``pi``: ``controller/force_loop.py`` (backward-Euler PI, unsaturated, plus the valve
+- ``pi``: ``controller/runtime/force_loop.py`` (backward-Euler PI, unsaturated, plus the valve
   flow feedforward of the measured rattlespace, linearised at zero load pressure);
 - ``delay``: ``delay_ticks`` ticks between the PI output and the valve, i.e. inside the
-  force loop too, as in ``hil/sim.py`` and on the CAN loop (the PI runs in the controller).
+  force loop too, as in ``hil/sim/closed_loop.py`` and on the CAN loop (the PI runs in
+  the controller).
 
 Timing: with ``delay_ticks = 0`` the sensors sample at t_k and the spool command
-computed from them acts over [t_k, t_k+1) (``hil/sim.py``).  The CAN loop
+computed from them acts over [t_k, t_k+1) (``hil/sim/closed_loop.py``).  The CAN loop
 (``hil/node.py`` advances the plant with the latest valve command, then samples and
 sends) equals that when the command reaches the rig before its next tick, and is one
 tick later otherwise: 0 or 1, set by the phase of the two free-running 1 kHz timers.
@@ -169,7 +170,7 @@ def rig_plant_ss(md: ModelDesign, cfg: RigConfig, actuator: Actuator, *,
 
 
 def accel_sensor_ss(cfg: RigConfig, *, noise: bool = False) -> control.StateSpace:
-    """The accelerometer low-pass of ``hil/sensors.py`` (``a_true`` [+ ``v_a``] -> ``a``;
+    """The accelerometer low-pass of ``hil/sim/sensors.py`` (``a_true`` [+ ``v_a``] -> ``a``;
     the noise is added after the filter, as there)."""
     dt = cfg.sample_time_s
     wc = 2.0 * math.pi * cfg.sensors.accel_bandwidth_hz
@@ -289,7 +290,7 @@ def fullstate_controller_ss(parts: LoopParts, n_plant: int, dt_s: float
 
 def force_loop_ss(fl: ForceLoopConfig, ff: FlowFeedforward, dt_s: float
                   ) -> control.StateSpace:
-    """The force loop of ``controller/force_loop.py`` (unsaturated, feedforward at zero
+    """The force loop of ``controller/runtime/force_loop.py`` (unsaturated, feedforward at zero
     load pressure): ``fref, Fm, r`` -> ``s_pi``.  States [I, w]:
     s = kp e + ki (I + e T) - c (w + b r), I+ = I + e T, w+ = (1 - a) w - a b r."""
     kp, ki = fl.kp_per_n, fl.ki_per_ns
@@ -331,7 +332,7 @@ def lqg_loop_gain(cfg: RigConfig, md: ModelDesign, weights: list[float],
                   outer_delay_ticks: int = 0) -> control.StateSpace:
     """Loop gain at the force reference (negative feedback: the closed loop is
     ``control.feedback(L, 1)``).  ``delay_ticks`` sit between the PI and the valve
-    (inside the force loop, as in ``hil/sim.py``; for the ideal actuator between the
+    (inside the force loop, as in ``hil/sim/closed_loop.py``; for the ideal actuator between the
     command and the force); ``outer_delay_ticks`` only on the force reference."""
     dt = cfg.sample_time_s
     parts = loop_parts(cfg, md, weights)

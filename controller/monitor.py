@@ -1,6 +1,6 @@
 """Estimator monitor settings: innovation statistics -> degrade / re-arm / fault levels.
 
-The bank (:func:`controller.bank._monitor`) keeps the sum over the last N ticks of the
+The bank (:func:`controller.runtime.bank._monitor`) keeps the sum over the last N ticks of the
 smallest likelihood quotient q = r' F^-1 r among the contributing filters:
 
     S_k = sum_{i = k-N+1..k} min_j q_j,i

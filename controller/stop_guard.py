@@ -15,8 +15,8 @@ away from the stop is never changed, the output is continuous in r and F, and at
 stop the force toward it is 0: the suspension there is the passive one (the actuator
 with the flow feedforward is transparent at zero force reference).
 
-This is the plain-Python statement of the law, used by controller/reference.py and
-hil/fullstate.py; the runtime's numba kernel is ``controller.kernels.stop_guard``.
+This is the plain-Python statement of the law, used by tests/support/reference_bank.py and
+hil/sim/fullstate.py; the runtime's numba kernel is ``controller.runtime.kernels.stop_guard``.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """The controller service against the emulated rig in real time: one harness for
 ``rig demo``, the loop benchmark (``bench/loop_bench.py``) and the tests.
 
-The service (:class:`rig.service.Service`, its loop in the calling thread) and the
+The service (:class:`rig.service.runner.Service`, its loop in the calling thread) and the
 emulated rig (:class:`hil.rig_process.RigProcess`, a process of its own) are connected
-by one :mod:`rig.socketpair_bus` wire, as ``rig run`` and ``rig hil`` are by a vcan/can
+by one :mod:`rig.bus.socketpair` wire, as ``rig run`` and ``rig hil`` are by a vcan/can
 interface on the bench.  Each side has its own real-time set-up (the service's
 ``ServiceOptions.realtime``, the rig's ``RigProcessOptions.realtime``); neither shares a
 GIL, a garbage collector or a memory lock with the other.
@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from controller.config import RigConfig
 from hil.rig_process import RigProcess, RigProcessError, RigProcessOptions, RigTrace
-from rig.socketpair_bus import SocketPairBus, socketpair_wire
+from rig.bus.socketpair import SocketPairBus, socketpair_wire
 
 __all__ = ["HarnessResult", "RigHarness", "RigProcessError", "RigProcessOptions"]
 
@@ -68,16 +68,16 @@ class HarnessResult:
 class RigHarness:
     """The service and the emulated rig process on one wire (see the module docstring).
 
-    ``service_options`` as for :class:`rig.service.Service` (``interface`` / ``channel``
+    ``service_options`` as for :class:`rig.service.runner.Service` (``interface`` / ``channel``
     are ignored: the bus is the wire); ``metadata`` goes into the recording; ``stop``:
-    the command's installed :class:`rig.stop_signals.StopSignals`.  Raises what the
+    the command's installed :class:`rig.rt.stop_signals.StopSignals`.  Raises what the
     service's constructor raises (after stopping the rig process)."""
 
     def __init__(self, cfg: RigConfig, service_options: Any,
                  rig_options: RigProcessOptions | None = None, *,
                  metadata: dict[str, Any] | None = None, stop: Any = None,
                  rig_start_ticks: int = RIG_START_TICKS) -> None:
-        from rig.service import Service
+        from rig.service.runner import Service
 
         self.cfg = cfg
         self.rig_options = rig_options or RigProcessOptions()
@@ -99,7 +99,7 @@ class RigHarness:
         self.service.loop.lifecycle.add_listener(self._on_transition)
 
     def _on_transition(self, tr: Any) -> None:
-        from rig.protocol import LifecycleState
+        from rig.wire.protocol import LifecycleState
 
         if tr.state is LifecycleState.STOPPING:
             self.rig.request_stop()

@@ -9,9 +9,9 @@ Every tick (``cfg.design.sample_rate_hz``) :meth:`RigNode.tick`:
    valid command arrived for more than ``watchdog_timeout_s`` (default 5 ms) and then
    holds the safe state (bypass open, spool 0 = passive suspension) and flags
    ``WatchdogTripped`` until a valid command with ``Enable = 1`` arrives;
-3. advances the :class:`hil.plant.RigPlant` one tick with the last valid command
+3. advances the :class:`hil.sim.plant.RigPlant` one tick with the last valid command
    (``Enable = 0``, tripped watchdog or no command yet -> bypass open, spool 0);
-4. reads the :class:`hil.sensors.SensorSuite` and sends SensorData (rolling counter +
+4. reads the :class:`hil.sim.sensors.SensorSuite` and sends SensorData (rolling counter +
    CRC), and RigStatus every ``sample_rate / status_rate_hz`` ticks, applying the
    :class:`hil.faults.FaultSchedule` windows active at this tick.
 
@@ -34,11 +34,11 @@ from numpy.typing import NDArray
 
 from controller.config import RigConfig
 from hil.faults import FaultKind, FaultSchedule, FaultWindow
-from hil.plant import RigPlant
-from hil.roads import Road
-from hil.sensors import SensorSuite
-from rig.bus import classify_bus_exception, classify_error_frame, make_tx_message
-from rig.protocol import (
+from hil.sim.plant import RigPlant
+from hil.sim.roads import Road
+from hil.sim.sensors import SensorSuite
+from rig.bus.core import classify_bus_exception, classify_error_frame, make_tx_message
+from rig.wire.protocol import (
     CONTROLLER_STATUS,
     CONTROLLER_STATUS_ID,
     FAULT_REPORT,
@@ -131,7 +131,7 @@ class RigNode:
     """The emulated rig on a CAN bus (see the module docstring).
 
     ``bus`` is any ``can.BusABC`` (filters for ValveCommand / FaultReport /
-    ControllerStatus are the caller's choice: :func:`rig.bus.open_bus` with
+    ControllerStatus are the caller's choice: :func:`rig.bus.core.open_bus` with
     ``role="rig"``).  ``road`` is replayed cyclically; ``seed`` (default
     ``cfg.sensors.seed``) seeds the sensor noise, ``faults.seed`` the random faults.
     """

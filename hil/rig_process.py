@@ -2,7 +2,7 @@
 
 On the bench the emulated rig (``rig hil``) and the controller (``rig run``) are separate
 processes on a vcan/can interface; in ``rig demo``, the loop benchmark and the tests they
-are separate processes too, on one :mod:`rig.socketpair_bus` wire, so neither shares a
+are separate processes too, on one :mod:`rig.bus.socketpair` wire, so neither shares a
 GIL, a garbage collector or a scheduler class with the other.  :class:`RigProcess` is the
 controller side's handle; :func:`main` (``python -m hil.rig_process``, never run by hand)
 is the rig side.
@@ -14,7 +14,7 @@ Life of the rig process:
    (its end of the wire, the shared trace);
 2. builds the road, the plant and the sensors, runs three ticks of a throw-away node on
    a private bus (numba and first-call costs, so that no slow tick reaches the drive
-   watchdog), applies its own real-time set-up (:mod:`rig.realtime`) and reports
+   watchdog), applies its own real-time set-up (:mod:`rig.rt.realtime`) and reports
    ``ready`` on stdout;
 3. ticks from the time given by ``start <t_ns>`` (``time.monotonic_ns``, a clock shared
    by all processes) on absolute deadlines until ``stop`` or the end of stdin (the
@@ -55,7 +55,7 @@ from numpy.typing import NDArray
 
 from controller.config import RigConfig, config_to_toml
 from hil.node import DEFAULT_WATCHDOG_S, RigNode
-from rig.realtime import RealtimeRequest
+from rig.rt.realtime import RealtimeRequest
 
 __all__ = ["TRACE_FIELDS", "RigProcess", "RigProcessError", "RigProcessOptions", "RigTrace",
            "main"]
@@ -77,7 +77,7 @@ class RigProcessError(RuntimeError):
 class RigProcessOptions:
     """What the emulated rig runs with (the configuration comes separately)."""
 
-    road: str = "rough-course"          # hil.roads.make_road name (or csv:PATH)
+    road: str = "rough-course"          # hil.sim.roads.make_road name (or csv:PATH)
     speed_mps: float = 11.176
     road_s: float = 60.0                # road generated; longer runs replay it cyclically
     seed: int | None = None             # road and sensor noise; None = cfg.sensors.seed
@@ -146,7 +146,7 @@ class RigTrace:
 
 class RigProcess:
     """Start the emulated rig as ``python -m hil.rig_process`` on ``wire_end`` (one end of
-    :func:`rig.socketpair_bus.socketpair_wire`; handed over and closed here).
+    :func:`rig.bus.socketpair.socketpair_wire`; handed over and closed here).
 
     Construction returns at once (the rig sets itself up in parallel, e.g. while the
     controller designs its bank); :meth:`wait_ready` waits for it, :meth:`start_at`
@@ -387,8 +387,8 @@ def main() -> int:
         import tomllib
 
         from controller.config import parse_config
-        from hil.roads import make_road
-        from rig.socketpair_bus import SocketPairBus
+        from hil.sim.roads import make_road
+        from rig.bus.socketpair import SocketPairBus
 
         cfg = parse_config(tomllib.loads(setup["config_toml"]))
         seed = int(setup["seed"])
@@ -417,7 +417,7 @@ def main() -> int:
     if rt is None:
         _drop_inherited_realtime()
     else:
-        from rig.realtime import apply_realtime
+        from rig.rt.realtime import apply_realtime
 
         request: dict[str, Any] = dict(rt)
         request["cpus"] = tuple(request.get("cpus", ()))

@@ -182,8 +182,8 @@ def weight_set(text: str) -> int:
 # ---------------------------------------------------------------------------- other values
 
 def road(text: str) -> str:
-    """A road name of :func:`hil.roads.make_road`; a ``csv:`` file is read and checked."""
-    from hil.roads import RoadError, check_road
+    """A road name of :func:`hil.sim.roads.make_road`; a ``csv:`` file is read and checked."""
+    from hil.sim.roads import RoadError, check_road
 
     try:
         return check_road(text)

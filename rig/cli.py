@@ -19,9 +19,9 @@ from collections.abc import Sequence
 
 from controller.config import ConfigError, load_config
 from rig.argtypes import OneLineParser, bind_config, overwrite_problem
-from rig.stop_signals import StopSignals
+from rig.rt.stop_signals import StopSignals
 
-#: subcommands that SIGTERM / SIGINT stop cleanly at any point (rig.stop_signals): the
+#: subcommands that SIGTERM / SIGINT stop cleanly at any point (rig.rt.stop_signals): the
 #: handlers are installed before anything of theirs runs
 STOPPABLE = ("run", "demo")
 

@@ -1,5 +1,5 @@
 """Where ``rig`` may write its outputs: one set of rules for the command line's argument
-checks (:mod:`rig.argtypes`, at parse time) and the recorder (:class:`rig.recording.
+checks (:mod:`rig.argtypes`, at parse time) and the recorder (:class:`rig.recording.recorder.
 RunRecorder`, at start).
 
 - A recording is never overwritten: a new run needs a new ``.mcap`` name, and none of
@@ -72,7 +72,7 @@ def recording_file(target: str | Path, now: datetime | None = None) -> Path:
 
 
 def _segment(base: Path, index: int) -> Path:
-    from rig.record_writer import segment_path
+    from rig.recording.writer import segment_path
 
     return segment_path(base, index)
 

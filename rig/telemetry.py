@@ -26,7 +26,7 @@ from typing import Any
 import zenoh
 
 from controller.config import TelemetryConfig
-from rig.mcap_schema import encode_json
+from rig.recording.schema import encode_json
 
 __all__ = ["COMMANDS", "MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "SESSION_ATTEMPTS",
            "TelemetryPublisher", "validate_command", "zenoh_config"]

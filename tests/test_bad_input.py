@@ -386,7 +386,7 @@ def test_recorder_never_overwrites(files: dict[str, Path], tmp_path: Path) -> No
     from datetime import UTC, datetime
 
     from rig.output_paths import recording_file
-    from rig.recording import RecorderStartError, RunRecorder
+    from rig.recording.recorder import RecorderStartError, RunRecorder
 
     for target, frag in ((files["existing_mcap"], "never overwritten"),
                          (files["rotated"], "rotated.001.mcap exists")):

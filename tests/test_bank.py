@@ -15,12 +15,12 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from controller.artifact import Design
-from controller.bank import BankRuntime, Blending, StepFlag, bank_step, config_of
 from controller.config import RigConfig, default_config
 from controller.design import design_bank, design_models, measurement_noise_cov
-from controller.kernels import MEAS_DIM, QS_INIT
-from controller.reference import ReferenceBank, quarter_car_measurements
 from controller.road_noise import road_velocity_intensity
+from controller.runtime.bank import BankRuntime, Blending, StepFlag, bank_step, config_of
+from controller.runtime.kernels import MEAS_DIM, QS_INIT
+from tests.support.reference_bank import ReferenceBank, quarter_car_measurements
 
 SMOOTH_SPEED, SMOOTH_GD = 5.0, 16e-6       # ISO class A at 5 m/s: tight filters
 

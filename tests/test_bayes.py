@@ -10,12 +10,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.bank import BankRuntime, Blending
-from controller.bayes import bayes_update, bayes_update_numpy, log_likelihood_constant
 from controller.config import default_config
 from controller.design import design_bank
-from controller.reference import quarter_car_measurements
 from controller.road_noise import road_velocity_intensity
+from controller.runtime.bank import BankRuntime, Blending
+from controller.runtime.bayes import bayes_update, bayes_update_numpy, log_likelihood_constant
+from tests.support.reference_bank import quarter_car_measurements
 
 M = 2
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from controller.config import config_to_toml, default_config
-from rig.recording import read_run
+from rig.recording.recorder import read_run
 
 ROOT = Path(__file__).resolve().parents[1]
 

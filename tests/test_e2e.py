@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rig.e2e import (
+from rig.wire.e2e import (
     CRC8_CHECK_VALUE,
     CRC8_TABLE,
     CRC8_TABLE2,

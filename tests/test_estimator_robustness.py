@@ -2,7 +2,7 @@
 gain with and without the rattlespace-bias state (a linear solve on the design matrices),
 the closed-loop stability of soft plants (eigenvalues of the assembled linear loop), and
 the airborne model's part in Bayes blending (the piecewise-linear quarter car of
-controller/reference.py, whose contact flag is the truth)."""
+tests/support/reference_bank.py, whose contact flag is the truth)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from controller.artifact import Design
-from controller.bank import BankRuntime, Blending, default_single_model
 from controller.config import RigConfig, default_config, load_config
 from controller.design import design_bank
 from controller.human_filter import discretize_zoh
 from controller.plant import linear_model, static_tire_deflection_m, tire_damping_ns_per_m
 from controller.road_noise import nearest_noise_entry
+from controller.runtime.bank import BankRuntime, Blending, default_single_model
 from tests.test_bank import trajectory
 from tests.test_thesis_profile import PROFILE
 

@@ -11,7 +11,7 @@ import pytest
 
 from controller.config import ConfigError
 from hil.faults import FaultKind, FaultSchedule, FaultWindow
-from rig.protocol import CounterMonitor, CounterStatus, DecodeStatus
+from rig.wire.protocol import CounterMonitor, CounterStatus, DecodeStatus
 from tests.test_node import CFG, Harness, harness
 
 # window 100..150 ticks at 1 kHz

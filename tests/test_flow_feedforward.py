@@ -1,6 +1,6 @@
 """Valve flow feedforward of the force loop (controller/actuator.py, docs/design.md 7).
 
-Independent references: the emulator's valve law (``hil/hydraulics.py``) for the flow the
+Independent references: the emulator's valve law (``hil/sim/hydraulics.py``) for the flow the
 feedforward must supply at any load pressure; scipy's ``lfilter`` for the rate filter;
 the continuous closed form of the linearised actuator under the PI for the apparent
 damping it leaves; the plain-Python ``FlowFeedforward`` against its numba twin in the bank
@@ -21,13 +21,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.actuator import FlowFeedforward, flow_feedforward, servo_model
-from controller.bank import BankRuntime
 from controller.config import ConfigError, default_config
 from controller.design import design_bank
-from controller.force_loop import PIForceLoop
-from controller.kernels import F_PEND, Blending
 from controller.margins import connect, force_loop_ss
-from hil.hydraulics import load_pressure_rate, valve_flow_term
+from controller.runtime.bank import BankRuntime
+from controller.runtime.force_loop import PIForceLoop
+from controller.runtime.kernels import F_PEND, Blending
+from hil.sim.hydraulics import load_pressure_rate, valve_flow_term
 
 CFG = default_config()
 DT = CFG.sample_time_s
@@ -211,8 +211,8 @@ def test_feedforward_makes_the_closed_actuator_transparent() -> None:
 def test_zero_force_run_costs_about_passive_on_the_rough_course() -> None:
     """Nonlinear emulated rig, 10 s rough course at 25 mph: force reference 0 with the
     valve closed is within 5 % of passive with the feedforward, ~3x passive without."""
-    from hil.roads import make_road
-    from hil.sim import simulate
+    from hil.sim.closed_loop import simulate
+    from hil.sim.roads import make_road
 
     road = make_road("rough-course", 11.176, 10.0, DT, 1)
     passive = simulate(CFG, road, "passive", seed=1).metrics["absorbed_power"]

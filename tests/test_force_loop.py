@@ -14,8 +14,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.config import ForceLoopConfig, default_config
-from controller.force_loop import PIForceLoop
-from controller.kernels import StepFlag
+from controller.runtime.force_loop import PIForceLoop
+from controller.runtime.kernels import StepFlag
 
 GAIN_N = 10_000.0      # first-order actuator: F' = (GAIN_N * spool - F) / TAU
 TAU_S = 0.003

@@ -19,9 +19,9 @@ import pytest
 from controller.config import RigConfig, default_config
 from hil.harness import RigHarness, RigProcessError, RigProcessOptions
 from hil.rig_process import TRACE_FIELDS
-from rig.protocol import FaultCode, LifecycleState
-from rig.recording import read_run
-from rig.service import ServiceOptions
+from rig.recording.recorder import read_run
+from rig.service.runner import ServiceOptions
+from rig.wire.protocol import FaultCode, LifecycleState
 
 ROOT = Path(__file__).resolve().parents[1]
 #: a machine with no CPU to spare must not fault this configuration
@@ -33,7 +33,7 @@ CFG: RigConfig = default_config().replace(**PATIENT)
 @pytest.fixture(scope="module")
 def design_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from controller.artifact import save_design
-    from hil.sim import cached_design
+    from hil.sim.closed_loop import cached_design
 
     path = tmp_path_factory.mktemp("design") / "design.npz"
     save_design(cached_design(CFG), path)
@@ -117,12 +117,12 @@ def test_rig_process_that_dies_stops_the_run(design_path: Path) -> None:
 def test_bad_road_is_reported_before_the_service_is_built(design_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch
                                                          ) -> None:
-    import rig.service
+    import rig.service.runner
 
     def no_service(*_a: Any, **_k: Any) -> None:
         raise AssertionError("the service was built although the rig could not start")
 
-    monkeypatch.setattr(rig.service, "Service", no_service)
+    monkeypatch.setattr(rig.service.runner, "Service", no_service)
     with pytest.raises(RigProcessError, match="nope"):
         _harness(design_path, road="nope")
 
@@ -134,7 +134,7 @@ def test_rig_process_ends_with_the_controller_process(tmp_path: Path) -> None:
         import sys, time
         from controller.config import default_config
         from hil.rig_process import RigProcess, RigProcessOptions
-        from rig.socketpair_bus import socketpair_wire
+        from rig.bus.socketpair import socketpair_wire
         ours, theirs = socketpair_wire()
         rig = RigProcess(default_config(), RigProcessOptions(road_s=2.0, realtime=None),
                          theirs)

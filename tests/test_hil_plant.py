@@ -1,4 +1,4 @@
-"""The emulated rig's nonlinear quarter car + servo-hydraulics (hil/plant.py)."""
+"""The emulated rig's nonlinear quarter car + servo-hydraulics (hil/sim/plant.py)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from scipy.linalg import expm
 
 from controller.config import default_config
 from controller.plant import linear_model, static_equilibrium, tire_damping_ns_per_m, tire_force_n
-from hil.hydraulics import max_force_n, no_load_velocity_mps
-from hil.plant import PlantParams, RigPlant, derivatives
+from hil.sim.hydraulics import max_force_n, no_load_velocity_mps
+from hil.sim.plant import PlantParams, RigPlant, derivatives
 
 CFG = default_config()
 DT = 1e-3

@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.config import default_config
-from rig.lifecycle import Lifecycle, Transition
-from rig.protocol import FaultCode, LifecycleState
+from rig.service.lifecycle import Lifecycle, Transition
+from rig.wire.protocol import FaultCode, LifecycleState
 from tests.test_loop import LoopHarness, make_harness
 
 S = LifecycleState

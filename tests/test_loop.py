@@ -28,10 +28,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.config import RigConfig, default_config
-from controller.force_loop import PIForceLoop
-from rig.bus import open_bus
-from rig.loop import ControlLoop
-from rig.protocol import (
+from controller.runtime.force_loop import PIForceLoop
+from rig.bus.core import open_bus
+from rig.service.loop import ControlLoop
+from rig.service.timing import TimingStats, histogram_percentile_us
+from rig.wire.protocol import (
     CONTROLLER_STATUS,
     CONTROLLER_STATUS_ID,
     FAULT_REPORT,
@@ -46,7 +47,6 @@ from rig.protocol import (
     LifecycleState,
     ValveCommand,
 )
-from rig.timing import TimingStats, histogram_percentile_us
 
 PERIOD_NS = 1_000_000
 
@@ -346,12 +346,12 @@ def test_tick_allocates_nothing_in_steady_state(harness: LoopHarness) -> None:
         one()
     snap1 = tracemalloc.take_snapshot()
     tracemalloc.stop()
-    stats = snap1.filter_traces([tracemalloc.Filter(True, "*rig/loop.py"),
-                                 tracemalloc.Filter(True, "*rig/safety.py"),
-                                 tracemalloc.Filter(True, "*rig/timing.py")]).compare_to(
-        snap0.filter_traces([tracemalloc.Filter(True, "*rig/loop.py"),
-                             tracemalloc.Filter(True, "*rig/safety.py"),
-                             tracemalloc.Filter(True, "*rig/timing.py")]), "lineno")
+    stats = snap1.filter_traces([tracemalloc.Filter(True, "*rig/service/loop.py"),
+                                 tracemalloc.Filter(True, "*rig/service/safety.py"),
+                                 tracemalloc.Filter(True, "*rig/service/timing.py")]).compare_to(
+        snap0.filter_traces([tracemalloc.Filter(True, "*rig/service/loop.py"),
+                             tracemalloc.Filter(True, "*rig/service/safety.py"),
+                             tracemalloc.Filter(True, "*rig/service/timing.py")]), "lineno")
     grown = sum(s.size_diff for s in stats if s.size_diff > 0)
     assert grown < 2048, [str(s) for s in stats[:5]]
 
@@ -462,9 +462,9 @@ def test_first_ticks_with_sensor_data_load_no_numba_code(tmp_path: Path) -> None
         from controller.artifact import load_design
         from controller.config import default_config
         from hil.node import RigNode
-        from hil.roads import make_road
-        from rig.service import Service, ServiceOptions
-        from rig.socketpair_bus import SocketPairBus, socketpair_wire
+        from hil.sim.roads import make_road
+        from rig.service.runner import Service, ServiceOptions
+        from rig.bus.socketpair import SocketPairBus, socketpair_wire
 
         class Count(event.Listener):
             n = 0
@@ -496,7 +496,7 @@ def test_first_ticks_with_sensor_data_load_no_numba_code(tmp_path: Path) -> None
         svc.close()
     """)
     from controller.artifact import save_design
-    from hil.sim import cached_design
+    from hil.sim.closed_loop import cached_design
 
     design = tmp_path / "design.npz"
     save_design(cached_design(default_config()), design)

@@ -15,10 +15,8 @@ import numpy as np
 import pytest
 
 from controller.artifact import Design
-from controller.bank import BankRuntime, default_single_model
 from controller.config import default_config
 from controller.design import design_bank, design_models
-from controller.kernels import Blending
 from controller.margins import (
     closed_loop_stable,
     crossovers,
@@ -28,6 +26,8 @@ from controller.margins import (
     lqg_loop_gain,
     runtime_controller_ss,
 )
+from controller.runtime.bank import BankRuntime, default_single_model
+from controller.runtime.kernels import Blending
 
 CFG = default_config()
 DT = CFG.sample_time_s
@@ -172,8 +172,8 @@ def test_bank_beats_passive_on_the_rough_course_with_loop_delay(controller: str,
     """Closed loop on the nonlinear emulated rig (10 s rough course, 25 mph, set 1): the
     bank cuts absorbed power by more than half with the 0..1 ticks of the CAN loop and
     with 2 ticks.  The old design gave 1.6x passive at one tick."""
-    from hil.roads import make_road
-    from hil.sim import simulate
+    from hil.sim.closed_loop import simulate
+    from hil.sim.roads import make_road
 
     road = make_road("rough-course", 11.176, 10.0, DT, 1)
     passive = simulate(CFG, road, "passive", 1, seed=1).metrics["absorbed_power"]

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from controller.bank import BankRuntime, Blending
 from controller.config import ConfigError, default_config
 from controller.design import design_bank
 from controller.monitor import monitor_settings
+from controller.runtime.bank import BankRuntime, Blending
 from tests.test_bank import smooth_road_config, trajectory
 
 

@@ -1,4 +1,4 @@
-"""Monte Carlo robustness runs (hil/montecarlo.py, ``rig montecarlo``)."""
+"""Monte Carlo robustness runs (hil/sim/montecarlo.py, ``rig montecarlo``)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from controller.config import default_config
-from hil.montecarlo import RIDE_HEIGHT_STD_M, draw_params, run_montecarlo, summarise
-from hil.roads import make_road
-from hil.sim import simulate
+from hil.sim.closed_loop import simulate
+from hil.sim.montecarlo import RIDE_HEIGHT_STD_M, draw_params, run_montecarlo, summarise
+from hil.sim.roads import make_road
 from rig.cli import main
 
 CFG = default_config()
@@ -70,7 +70,7 @@ def test_preload_puts_a_perturbed_plant_at_its_drawn_ride_height() -> None:
     """A +15 % mass / -15 % spring plant would sit (M g / K - M_nom g / K_nom) ~ 63 mm off
     the stops' centre; with the preload set it sits at the drawn offset, and its passive
     run (LVDT zeroed at rest) matches the nominal plant's dynamics."""
-    from hil.plant import P_R0, PlantParams, RigPlant
+    from hil.sim.plant import P_R0, PlantParams, RigPlant
     v = CFG.vehicle
     heavy = dict(sprung_mass_kg=1.15 * v.sprung_mass_kg,
                  suspension_stiffness_n_per_m=0.85 * v.suspension_stiffness_n_per_m)

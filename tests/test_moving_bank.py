@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from controller.artifact import Design
-from controller.bank import BankRuntime, Blending
 from controller.config import ConfigError, RigConfig, default_config, parse_config
 from controller.design import design_bank
-from controller.kernels import F_LOAD, I_DWELL, S_QS
-from controller.moving_bank import (
+from controller.road_noise import road_velocity_intensity
+from controller.runtime.bank import BankRuntime, Blending
+from controller.runtime.kernels import F_LOAD, I_DWELL, S_QS
+from controller.runtime.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
     HIST_LO_LOG10,
@@ -25,10 +26,9 @@ from controller.moving_bank import (
     supervise,
     tire_load_update,
 )
-from controller.reference import quarter_car_measurements
-from controller.road_noise import road_velocity_intensity
-from hil.roads import Road, make_road
-from hil.sim import cached_design, simulate
+from hil.sim.closed_loop import cached_design, simulate
+from hil.sim.roads import Road, make_road
+from tests.support.reference_bank import quarter_car_measurements
 
 V, GD = 5.0, 16e-6
 DEFL_9 = [0.045, 0.04, 0.035, 0.03, 0.025, 0.02, 0.015, 0.01, 0.005]
@@ -299,7 +299,7 @@ def test_subset_moves_towards_the_true_model_on_a_27_grid(grid27: tuple) -> None
 
 # ---------------------------------------------------------------------------- nonlinear plant
 
-POTHOLE_AT_M = 5.0          # hil.roads "pothole": 60 mm deep, 0.6 m long, at 5 m
+POTHOLE_AT_M = 5.0          # hil.sim.roads "pothole": 60 mm deep, 0.6 m long, at 5 m
 
 
 def _replay(d: Design, cfg: RigConfig, road: Road, meas: dict[str, np.ndarray]

@@ -20,9 +20,9 @@ import pytest
 from controller.config import RigConfig, default_config
 from hil.faults import FaultSchedule
 from hil.node import RigNode
-from hil.roads import make_road
-from rig.bus import make_tx_message, open_bus, set_receive_buffer
-from rig.protocol import (
+from hil.sim.roads import make_road
+from rig.bus.core import make_tx_message, open_bus, set_receive_buffer
+from rig.wire.protocol import (
     RIG_RX_IDS,
     RIG_STATUS,
     RIG_STATUS_ID,
@@ -248,11 +248,11 @@ def test_run_realtime_stops_on_event_and_duration() -> None:
         assert h.node.tick_count == 150
 
 
-# ----------------------------------------------------------------- rig.bus
+# ----------------------------------------------------------------- rig.bus.core
 
 
 def test_open_bus_role_filters_and_drain_latest() -> None:
-    from rig.bus import drain_latest, open_bus, safe_send
+    from rig.bus.core import drain_latest, open_bus, safe_send
 
     channel = f"test-{uuid.uuid4().hex}"
     cfg = CFG.can
@@ -286,14 +286,14 @@ def test_open_bus_role_filters_and_drain_latest() -> None:
         ctl.shutdown()
         rig.shutdown()
     # a shut-down bus: mapped to a fault, not raised
-    from rig.protocol import FaultCode
+    from rig.wire.protocol import FaultCode
     assert safe_send(ctl, msg) is FaultCode.BUS_ERROR
     assert drain_latest(ctl, {}) == (0, FaultCode.BUS_ERROR)
 
 
 def test_open_bus_rejects_unknown_role_and_interface() -> None:
     from controller.config import ConfigError
-    from rig.bus import open_bus
+    from rig.bus.core import open_bus
 
     with pytest.raises(ConfigError):
         open_bus(CFG.can, role="spectator")
@@ -304,8 +304,8 @@ def test_open_bus_rejects_unknown_role_and_interface() -> None:
 def test_bus_error_classification() -> None:
     import errno
 
-    from rig.bus import classify_bus_exception, classify_error_frame
-    from rig.protocol import FaultCode
+    from rig.bus.core import classify_bus_exception, classify_error_frame
+    from rig.wire.protocol import FaultCode
 
     assert classify_bus_exception(OSError(errno.ENETDOWN, "down")) is FaultCode.BUS_OFF
     assert classify_bus_exception(OSError(errno.ENOBUFS, "full")) is FaultCode.BUS_ERROR
@@ -408,7 +408,7 @@ def test_set_receive_buffer_requests_size_and_falls_back() -> None:
 def test_set_receive_buffer_refused_is_logged_not_raised(
         caplog: pytest.LogCaptureFixture) -> None:
     s = _FakeSocket(refuse={socket.SO_RCVBUF, getattr(socket, "SO_RCVBUFFORCE", -1)})
-    with caplog.at_level("WARNING", logger="rig.bus"):
+    with caplog.at_level("WARNING", logger="rig.bus.core"):
         assert set_receive_buffer(s, 1 << 20) is None
     assert "receive buffer" in caplog.text
 

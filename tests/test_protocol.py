@@ -1,4 +1,4 @@
-"""The precompiled codec against cantools (the reference) loading rig/rig.dbc."""
+"""The precompiled codec against cantools (the reference) loading rig/wire/rig.dbc."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rig.protocol import (
+from rig.wire.protocol import (
     CODECS,
     SENSOR_DATA,
     VALVE_COMMAND,
@@ -24,7 +24,7 @@ from rig.protocol import (
 )
 from tests.test_e2e import crc8_bitwise
 
-DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "rig.dbc"))
+DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "wire" / "rig.dbc"))
 CODEC_LIST = list(CODECS.values())
 IDS = [c.frame_id for c in CODEC_LIST]
 

@@ -23,8 +23,8 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from controller.config import RecordingConfig, config_hash, config_to_toml, default_config
-from rig.mcap_schema import RECORDING_FORMAT_VERSION, SIGNAL_KEYS, TIMING_KEYS, TOPICS
-from rig.recording import CanFrameRecord, EventRecord, RunRecorder, read_run, segment_paths
+from rig.recording.recorder import CanFrameRecord, EventRecord, RunRecorder, read_run, segment_paths
+from rig.recording.schema import RECORDING_FORMAT_VERSION, SIGNAL_KEYS, TIMING_KEYS, TOPICS
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)
@@ -319,7 +319,7 @@ CHILD = """
 import sys, time
 from dataclasses import replace
 from controller.config import default_config, config_to_toml
-from rig.recording import RunRecorder
+from rig.recording.recorder import RunRecorder
 cfg = default_config()
 rec = RunRecorder(sys.argv[1], replace(cfg.recording, chunk_bytes=4096),
                   config_toml=config_to_toml(cfg), design_bytes=None, metadata={})
@@ -581,7 +581,7 @@ _ARRAY_DTYPES = {"<f8": np.float64, "|b1": np.bool_, "<i8": np.int64, "<i4": np.
 
 @st.composite
 def packed_records(draw: st.DrawFn) -> tuple[Any, list[tuple[list[Any], list[np.ndarray]]]]:
-    from rig.record_codec import TickLayout
+    from rig.recording.codec import TickLayout
 
     fields: list[tuple[str, str, Any]] = [("tick", "int", None)]
     for i in range(draw(st.integers(0, 6))):
@@ -652,7 +652,7 @@ def test_packed_tick_records_read_back_as_declared(
 
 
 def test_packed_tick_record_rejects_a_wrong_shape(tmp_path: Path) -> None:
-    from rig.record_codec import TickLayout
+    from rig.recording.codec import TickLayout
 
     layout = TickLayout((("tick", "int", None), ("q", "<f8", (3,))))
     with recorder(tmp_path / "shape.mcap", tick_layout=layout) as rec:
@@ -666,7 +666,7 @@ def test_packed_tick_record_rejects_a_wrong_shape(tmp_path: Path) -> None:
 def test_a_dropped_batch_keeps_its_tick_layout(tmp_path: Path) -> None:
     """The layout declared while the pipe is full is kept back like an event: the packed
     records sent once the writer catches up still decode."""
-    from rig.record_codec import TickLayout
+    from rig.recording.codec import TickLayout
 
     path = tmp_path / "layout.mcap"
     rec = recorder(path, pipe_bytes=4096)

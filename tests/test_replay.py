@@ -33,22 +33,12 @@ from mcap.writer import Writer
 
 from bench.replay_bench import record_emulated_run
 from controller.artifact import load_design, save_design
-from controller.bank import BankRuntime
 from controller.config import default_config
 from controller.design import design_bank
+from controller.runtime.bank import BankRuntime
 from rig.cli import main as rig_main
-from rig.mcap_schema import RECORDING_FORMAT_VERSION
-from rig.protocol import (
-    FAULT_REPORT_ID,
-    SENSOR_DATA,
-    SENSOR_DATA_ID,
-    VALVE_COMMAND,
-    VALVE_COMMAND_ID,
-    DecodeStatus,
-    SensorData,
-    ValveCommand,
-)
-from rig.recording import read_run
+from rig.recording.recorder import read_run
+from rig.recording.schema import RECORDING_FORMAT_VERSION
 from rig.replay import (
     LogReplayBus,
     McapReplayBus,
@@ -58,6 +48,16 @@ from rig.replay import (
     replay_recording,
 )
 from rig.report import load_series
+from rig.wire.protocol import (
+    FAULT_REPORT_ID,
+    SENSOR_DATA,
+    SENSOR_DATA_ID,
+    VALVE_COMMAND,
+    VALVE_COMMAND_ID,
+    DecodeStatus,
+    SensorData,
+    ValveCommand,
+)
 
 pytestmark = pytest.mark.timeout(300)
 CFG = default_config()
@@ -525,7 +525,7 @@ class FlakyBus(can.BusABC):
 def flaky_recording(work: Path, design_blob: bytes) -> Path:
     """1 s through the real loop with error frames, an extended-ID frame and recv /
     send exceptions; reset and re-armed after every fault."""
-    from rig.bus import CAN_ERR_BUSERROR, CAN_ERR_BUSOFF, CAN_ERR_LOSTARB
+    from rig.bus.core import CAN_ERR_BUSERROR, CAN_ERR_BUSOFF, CAN_ERR_LOSTARB
 
     flaky: list[FlakyBus] = []
 
@@ -655,9 +655,9 @@ def test_send_attempts_straddling_two_pieces() -> None:
 def test_a_recorded_bus_exception_is_rebuilt_alike(exc: Exception) -> None:
     """Recorded as the loop records it, rebuilt by replay: same class, message, errno
     and fault classification."""
-    from rig.bus import classify_bus_exception, errno_of
-    from rig.loop import _bus_exception
+    from rig.bus.core import classify_bus_exception, errno_of
     from rig.replay.bus_faults import bus_fault_of
+    from rig.service.loop import _bus_exception
 
     fault = bus_fault_of({"tick": 3, "kind": "note", "detail": json.loads(json.dumps(
         _bus_exception("recv", exc)))})

@@ -24,10 +24,9 @@ from controller.actuator import servo_model
 from controller.artifact import save_design
 from controller.config import default_config
 from controller.design import design_bank
-from controller.kernels import StepFlag
+from controller.runtime.kernels import StepFlag
 from rig.cli import main as rig_main
-from rig.protocol import VALVE_COMMAND_ID, FaultCode
-from rig.recording import read_run
+from rig.recording.recorder import read_run
 from rig.replay import ScanResult, replay_recording
 from rig.report import (
     Phase,
@@ -48,10 +47,11 @@ from rig.report.plots import (
     WIDTH_IN,
     envelope,
 )
+from rig.wire.protocol import VALVE_COMMAND_ID, FaultCode
 
 pytestmark = pytest.mark.timeout(300)
 CFG = default_config()
-DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "rig.dbc"))
+DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "wire" / "rig.dbc"))
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
                   "--disable-background-networking", "--disable-component-update",
                   "--disable-sync", "--no-first-run", "--hide-scrollbars",

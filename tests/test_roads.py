@@ -1,4 +1,4 @@
-"""Road profiles (hil/roads.py): ISO 8608 RMS and PSD, speed scaling, velocity consistency."""
+"""Road profiles (hil/sim/roads.py): ISO 8608 RMS and PSD, speed scaling, velocity consistency."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.integrate import quad
 from scipy.signal import welch
 
-from hil.roads import (
+from hil.sim.roads import (
     ISO_CLASSES,
     ISO_N0,
     ISO_N1,
@@ -144,7 +144,7 @@ def test_bad_csv_and_arguments(tmp_path: Path) -> None:
 
 
 def test_check_road_accepts_what_make_road_builds(tmp_path: Path) -> None:
-    from hil.roads import ROAD_NAMES, check_road
+    from hil.sim.roads import ROAD_NAMES, check_road
 
     for name in ROAD_NAMES:
         if name != "csv:PATH":

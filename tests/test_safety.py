@@ -19,21 +19,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.config import default_config
-from controller.force_loop import PIForceLoop
+from controller.runtime.force_loop import PIForceLoop
 from hil.faults import FaultSchedule
-from rig.bus import open_bus
-from rig.loop import ControlLoop
-from rig.protocol import (
-    FAULT_REPORT,
-    FAULT_REPORT_ID,
-    VALVE_COMMAND,
-    VALVE_COMMAND_ID,
-    FaultCode,
-    FaultReport,
-    LifecycleState,
-    ValveCommand,
-)
-from rig.safety import (
+from rig.bus.core import open_bus
+from rig.service.loop import ControlLoop
+from rig.service.safety import (
     DETAIL_ACCEL,
     DETAIL_ESTIMATOR,
     DETAIL_FORCE,
@@ -43,6 +33,16 @@ from rig.safety import (
     DETAIL_SEND,
     DETAIL_SENSOR_DATA,
     FaultMonitor,
+)
+from rig.wire.protocol import (
+    FAULT_REPORT,
+    FAULT_REPORT_ID,
+    VALVE_COMMAND,
+    VALVE_COMMAND_ID,
+    FaultCode,
+    FaultReport,
+    LifecycleState,
+    ValveCommand,
 )
 from tests.test_loop import LoopHarness, make_harness
 
@@ -539,14 +539,14 @@ class HilPair:
 
 @pytest.fixture(scope="module")
 def design() -> Any:
-    from hil.sim import cached_design
+    from hil.sim.closed_loop import cached_design
     return cached_design(CFG)
 
 
 def make_hil(design: Any, faults: FaultSchedule | None = None) -> HilPair:
-    from controller.bank import BankRuntime
+    from controller.runtime.bank import BankRuntime
     from hil.node import RigNode
-    from hil.roads import make_road
+    from hil.sim.roads import make_road
 
     channel = f"hil-{uuid.uuid4().hex}"
     ctl = open_bus(CFG.can, role="controller", interface="virtual", channel=channel)

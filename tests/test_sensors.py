@@ -1,4 +1,4 @@
-"""Sensor models of the emulated rig (hil/sensors.py)."""
+"""Sensor models of the emulated rig (hil/sim/sensors.py)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.config import default_config
-from hil.plant import RigPlant
-from hil.sensors import SensorStatus, SensorSuite
+from hil.sim.plant import RigPlant
+from hil.sim.sensors import SensorStatus, SensorSuite
 
 CFG = default_config()
 DT = 1e-3

@@ -19,10 +19,10 @@ from typing import Any
 import pytest
 
 from controller.config import default_config
-from rig.protocol import FaultCode, LifecycleState
-from rig.recording import read_run
-from rig.sdnotify import SdNotifier
-from rig.service import Service, ServiceOptions, parse_blending
+from rig.recording.recorder import read_run
+from rig.rt.sdnotify import SdNotifier
+from rig.service.runner import Service, ServiceOptions, parse_blending
+from rig.wire.protocol import FaultCode, LifecycleState
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_config()
@@ -33,8 +33,8 @@ CHILD = textwrap.dedent("""
     import json, sys, threading
     from controller.config import default_config
     from hil.node import RigNode
-    from hil.roads import make_road
-    from rig.bus import open_bus
+    from hil.sim.roads import make_road
+    from rig.bus.core import open_bus
     from rig.cli import main
 
     channel, record, design = sys.argv[1], sys.argv[2], sys.argv[3]
@@ -58,7 +58,7 @@ CHILD = textwrap.dedent("""
 @pytest.fixture(scope="module")
 def design_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from controller.artifact import save_design
-    from hil.sim import cached_design
+    from hil.sim.closed_loop import cached_design
 
     path = tmp_path_factory.mktemp("design") / "design.npz"
     save_design(cached_design(CFG), path)

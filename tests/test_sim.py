@@ -1,4 +1,5 @@
-"""Fast offline closed-loop simulator, metrics and ``rig sim`` (hil/sim.py, hil/metrics.py)."""
+"""Fast offline closed-loop simulator, metrics and ``rig sim``
+(hil/sim/closed_loop.py, controller/metrics.py)."""
 
 from __future__ import annotations
 
@@ -11,12 +12,12 @@ import pytest
 from scipy import signal
 
 from controller.config import default_config
-from controller.force_loop import PIForceLoop
-from hil.metrics import WK_TABLE, compute_metrics, filter_signal, human_filter_tf, wk_tf
-from hil.plant import RigPlant
-from hil.roads import make_road
-from hil.sensors import SensorReading
-from hil.sim import BankController, cached_design, run_closed_loop, simulate
+from controller.metrics import WK_TABLE, compute_metrics, filter_signal, human_filter_tf, wk_tf
+from controller.runtime.force_loop import PIForceLoop
+from hil.sim.closed_loop import BankController, cached_design, run_closed_loop, simulate
+from hil.sim.plant import RigPlant
+from hil.sim.roads import make_road
+from hil.sim.sensors import SensorReading
 from rig.cli import main
 
 CFG = default_config()
@@ -242,8 +243,8 @@ def test_bad_arguments() -> None:
 def test_skyhook_and_zero_force_by_name() -> None:
     """``simulate`` runs skyhook with its tuned gains and zero-force (bypass closed, force
     reference 0 through the same force loop: the zero-gain skyhook, bit for bit)."""
-    from hil.sim import ZeroForceController
-    from hil.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
+    from hil.sim.closed_loop import ZeroForceController
+    from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 
     road = make_road("rough-course", SPEED_25MPH, 1.0, DT, seed=4)
     sky = simulate(CFG, road, "skyhook", seed=2)

@@ -1,4 +1,4 @@
-"""The socket-pair CAN wire (rig.socketpair_bus): SocketCAN's frame layout (checked against
+"""The socket-pair CAN wire (rig.bus.socketpair): SocketCAN's frame layout (checked against
 python-can's own SocketCAN packer), order, filters while draining, overflow, a vanished
 peer, timeouts; and the control loop running on it."""
 
@@ -15,9 +15,8 @@ from can.interfaces.socketcan.socketcan import build_can_frame, dissect_can_fram
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rig.bus import classify_bus_exception
-from rig.protocol import FaultCode
-from rig.socketpair_bus import (
+from rig.bus.core import classify_bus_exception
+from rig.bus.socketpair import (
     CAN_MTU,
     CANFD_MTU,
     SocketPairBus,
@@ -25,6 +24,7 @@ from rig.socketpair_bus import (
     encode_frame,
     socketpair_wire,
 )
+from rig.wire.protocol import FaultCode
 
 FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 

@@ -10,11 +10,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.config import default_config
-from controller.kernels import F_BS_HI, F_BS_LO, F_GUARD_S, F_GUARD_W, FV_HEAD, stop_guard
+from controller.runtime.kernels import F_BS_HI, F_BS_LO, F_GUARD_S, F_GUARD_W, FV_HEAD, stop_guard
 from controller.stop_guard import stop_guard_scale
-from hil.plant import PlantParams
-from hil.roads import make_road
-from hil.sim import simulate
+from hil.sim.closed_loop import simulate
+from hil.sim.plant import PlantParams
+from hil.sim.roads import make_road
 
 LO, HI = -0.08, 0.08
 

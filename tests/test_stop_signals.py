@@ -1,4 +1,4 @@
-"""SIGTERM / SIGINT at any point of `rig run` and `rig demo` (rig.stop_signals): exit 0, one
+"""SIGTERM / SIGINT at any point of `rig run` and `rig demo` (rig.rt.stop_signals): exit 0, one
 message, and a complete recording or none.
 
 The set-up phases are hit exactly by sending the signal to this very process from inside
@@ -21,8 +21,8 @@ import pytest
 
 from controller.config import config_to_toml, default_config
 from rig.cli import main
-from rig.recording import read_run
-from rig.stop_signals import StopRequested, StopSignals
+from rig.recording.recorder import read_run
+from rig.rt.stop_signals import StopRequested, StopSignals
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_config()
@@ -31,7 +31,7 @@ CFG = default_config()
 @pytest.fixture(scope="module")
 def design_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from controller.artifact import save_design
-    from hil.sim import cached_design
+    from hil.sim.closed_loop import cached_design
 
     path = tmp_path_factory.mktemp("design") / "design.npz"
     save_design(cached_design(CFG), path)
@@ -118,14 +118,14 @@ def test_rig_run_sigterm_during_the_design(tmp_path: Path, monkeypatch: pytest.M
 def test_rig_run_sigterm_before_the_loop(phase: str, design_path: Path, tmp_path: Path,
                                          monkeypatch: pytest.MonkeyPatch,
                                          capsys: pytest.CaptureFixture[str]) -> None:
-    import rig.bus
-    import rig.recording
-    import rig.sdnotify
+    import rig.bus.core
+    import rig.recording.recorder
+    import rig.rt.sdnotify
 
     target, name, before = {
-        "bus": (rig.bus, "open_bus", True),                  # while the bus opens
-        "recording": (rig.recording.RunRecorder, "__init__", False),  # writer running
-        "ready": (rig.sdnotify.SdNotifier, "ready", True),   # just before the first tick
+        "bus": (rig.bus.core, "open_bus", True),                  # while the bus opens
+        "recording": (rig.recording.recorder.RunRecorder, "__init__", False),  # writer running
+        "ready": (rig.rt.sdnotify.SdNotifier, "ready", True),   # just before the first tick
     }[phase]
     _patch_then_signal(monkeypatch, target, name, before)
     assert main(_run_argv(design_path, tmp_path / "run.mcap")) == 0

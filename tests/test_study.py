@@ -1,4 +1,4 @@
-"""Control performance study (hil/study, hil/skyhook.py, hil/fullstate.py, rig study)."""
+"""Control performance study (hil/study, hil/sim/skyhook.py, hil/sim/fullstate.py, rig study)."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ from hypothesis import strategies as st
 
 from controller.analysis import analyze
 from controller.config import default_config
-from hil.fullstate import FullStateLQ
-from hil.plant import RigPlant
-from hil.roads import make_road
-from hil.sensors import SensorReading
-from hil.sim import BankController, cached_design, run_closed_loop
-from hil.skyhook import SkyhookController, SkyhookGains, select_gains
+from hil.sim.closed_loop import BankController, cached_design, run_closed_loop
+from hil.sim.fullstate import FullStateLQ
+from hil.sim.plant import RigPlant
+from hil.sim.roads import make_road
+from hil.sim.sensors import SensorReading
+from hil.sim.skyhook import SkyhookController, SkyhookGains, select_gains
 from hil.study.cases import Case, lq_cost, run_case, study_road
 from hil.study.matrix import RATIO_METRICS, add_ratios
 from hil.study.report import LABEL_ORDER
@@ -112,7 +112,7 @@ def test_select_gains_rules() -> None:
 
 
 def test_default_skyhook_gains_are_a_grid_point() -> None:
-    from hil.skyhook import DEFAULT_GAINS, TUNING_GRID
+    from hil.sim.skyhook import DEFAULT_GAINS, TUNING_GRID
     assert (DEFAULT_GAINS.c_sky_ns_per_m, DEFAULT_GAINS.c_ground_ns_per_m,
             DEFAULT_GAINS.damper_cancel) in TUNING_GRID
 
@@ -120,8 +120,8 @@ def test_default_skyhook_gains_are_a_grid_point() -> None:
 @pytest.mark.slow
 def test_default_skyhook_gains_are_the_search_result() -> None:
     """``DEFAULT_GAINS`` is what the study's skyhook search (rough course, road seed 101,
-    :data:`hil.skyhook.TUNING_GRID`) picks with the default configuration."""
-    from hil.skyhook import DEFAULT_GAINS
+    :data:`hil.sim.skyhook.TUNING_GRID`) picks with the default configuration."""
+    from hil.sim.skyhook import DEFAULT_GAINS
     from hil.study.matrix import plan, run_cases, tune_cases
 
     cases = tune_cases(plan(False))
@@ -175,8 +175,8 @@ def test_fullstate_is_the_runtime_law_with_the_estimate_replaced(weight_set: int
     posterior estimate (instead of the true state), FullStateLQ reproduces the force of
     BankRuntime (SINGLE) tick by tick, actuator part included -- so full-state vs LQG in
     the study differs by the estimate only."""
-    from controller.bank import BankRuntime
-    from controller.kernels import Blending
+    from controller.runtime.bank import BankRuntime
+    from controller.runtime.kernels import Blending
     design = cached_design(CFG)
     rt = BankRuntime(design, blending=Blending.SINGLE, weight_set=weight_set, cfg=CFG)
     fs = FullStateLQ(design, CFG, weight_set)

@@ -657,10 +657,10 @@ class _SteppedService:
 
         from controller.artifact import load_design, save_design
         from hil.node import RigNode
-        from hil.roads import make_road
-        from hil.sim import cached_design
-        from rig.bus import open_bus
-        from rig.service import Service, ServiceOptions
+        from hil.sim.closed_loop import cached_design
+        from hil.sim.roads import make_road
+        from rig.bus.core import open_bus
+        from rig.service.runner import Service, ServiceOptions
 
         cfg = default_config().replace(telemetry={
             "endpoints": [f"tcp/127.0.0.1:{port}"], "commands_enabled": True})
@@ -790,9 +790,9 @@ def test_service_reports_a_failed_session(tmp_path: Path) -> None:
     """status(), systemd STATUS= and the control loop going on."""
     import uuid
 
-    from hil.sim import cached_design
-    from rig.sdnotify import SdNotifier
-    from rig.service import Service, ServiceOptions
+    from hil.sim.closed_loop import cached_design
+    from rig.rt.sdnotify import SdNotifier
+    from rig.service.runner import Service, ServiceOptions
 
     sock_path = str(tmp_path / "notify.sock")
     server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from controller.bank import BankRuntime, Blending, StepFlag
 from controller.config import config_to_dict, default_config, load_config
 from controller.design import design_bank
+from controller.runtime.bank import BankRuntime, Blending, StepFlag
 
 PROFILE = Path(__file__).resolve().parents[1] / "deploy" / "thesis.toml"
 EXPECTED = {

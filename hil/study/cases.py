@@ -3,7 +3,7 @@
 A case names the controller, weight set (or custom weights), road, speed, duration,
 seeds, loop delay, sample rate and plant perturbation.  :func:`run_case` builds
 everything inside the worker process (the design is memoised per configuration by
-``hil.sim.cached_design``) and returns a flat row of metrics, optionally with decimated
+``hil.sim.closed_loop.cached_design``) and returns a flat row of metrics, optionally with decimated
 traces for the figures.
 
 Roads of one (name, speed, duration, seed) are generated once on a fine
@@ -19,18 +19,19 @@ from typing import Any
 
 import numpy as np
 
+import controller.design
+
 # the controller modules are imported here, before the study's worker processes fork, so
 # that every run of one study uses the same code even while the tree is being edited
-import controller.bank
-import controller.design
-import controller.force_loop  # noqa: F401
+import controller.runtime.bank
+import controller.runtime.force_loop  # noqa: F401
 from controller.config import RigConfig
-from hil.fullstate import FullStateLQ
-from hil.metrics import filter_signal, human_filter_tf
-from hil.plant import PlantParams
-from hil.roads import Road, make_road
-from hil.sim import BankController, LoopController, cached_design, run_closed_loop
-from hil.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
+from controller.metrics import filter_signal, human_filter_tf
+from hil.sim.closed_loop import BankController, LoopController, cached_design, run_closed_loop
+from hil.sim.fullstate import FullStateLQ
+from hil.sim.plant import PlantParams
+from hil.sim.roads import Road, make_road
+from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 
 __all__ = ["CONTROLLERS", "ROAD_BASE_RATE_HZ", "TRACE_DECIMATION", "Case", "case_config",
            "lq_cost", "make_controller", "run_case", "study_road"]
@@ -51,7 +52,7 @@ class Case:
     road_seed: int = 1
     sensor_seed: int = 7
     delay_ms: float = 0.0
-    delay_point: str = "spool"             # "spool" | "force_ref" (hil.sim.DELAY_POINTS)
+    delay_point: str = "spool"             # hil.sim.closed_loop.DELAY_POINTS
     rate_hz: float | None = None           # None: the configuration's rate
     params: PlantParams | None = None
     param_tag: str = "nominal"

@@ -36,10 +36,10 @@ from typing import Any
 import numpy as np
 
 from controller.config import RigConfig, default_config, load_config
-from hil.montecarlo import RIDE_HEIGHT_STD_M, draw_params
-from hil.roads import make_road
-from hil.sim import BankController, cached_design, run_closed_loop, simulate
-from hil.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
+from hil.sim.closed_loop import BankController, cached_design, run_closed_loop, simulate
+from hil.sim.montecarlo import RIDE_HEIGHT_STD_M, draw_params
+from hil.sim.roads import make_road
+from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 
 __all__ = ["CHANGES", "OLD_SKYHOOK", "Change", "Run", "main", "measure", "old_divergence_rule"]
 
@@ -81,7 +81,7 @@ def _config(base: RigConfig, run: Run) -> RigConfig:
 
 def old_divergence_rule(q: np.ndarray) -> bool:
     """Would the removed test have latched DIVERGED?  ``q`` (ticks, models) as recorded by
-    :func:`hil.sim.run_closed_loop` (0 for a filter not running): min over the running
+    :func:`hil.sim.closed_loop.run_closed_loop` (0 for a filter not running): min over the running
     filters above :data:`OLD_DIVERGENCE_Q` for :data:`OLD_DIVERGENCE_TICKS` ticks."""
     running = np.where(q > 0.0, q, np.inf)
     over = np.min(running, axis=1) > OLD_DIVERGENCE_Q

@@ -5,7 +5,7 @@ Groups of cases:
 ``tune``      skyhook gain search on the rough course (its own road seed)
 ``main``      every controller (both weight sets) on the thesis case and the road set
 ``mc5/mc15``  Monte Carlo, M m K C Kt Ct ~ nominal x N(1, 5 % / 15 %), rig LVDT zeroed
-              at its own static position (``hil.montecarlo`` convention)
+              at its own static position (``hil.sim.montecarlo`` convention)
 ``mismatch``  tire stiffness law 20 % softer / stiffer than designed
 ``delay``     loop delay 0..25 ms (thesis case, fuzzy bank; LQG and skyhook alongside),
               once before the valve (PI force loop inside the delay, as ``simulate``)
@@ -27,9 +27,9 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from controller.config import RigConfig
-from hil.montecarlo import draw_params
-from hil.plant import PlantParams
-from hil.skyhook import DEFAULT_GAINS, TUNING_GRID, SkyhookGains
+from hil.sim.montecarlo import draw_params
+from hil.sim.plant import PlantParams
+from hil.sim.skyhook import DEFAULT_GAINS, TUNING_GRID, SkyhookGains
 from hil.study.cases import Case, run_case
 
 __all__ = ["RATIO_METRICS", "StudyPlan", "add_ratios", "bank_labels", "main_cases",

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from controller.config import RigConfig, config_hash
-from hil.sim import cached_design
-from hil.skyhook import SkyhookGains, select_gains
+from hil.sim.closed_loop import cached_design
+from hil.sim.skyhook import SkyhookGains, select_gains
 from hil.study.matrix import add_ratios, main_cases, other_cases, plan, run_cases, tune_cases
 from hil.study.report import claim_values, claims, tables_markdown, write_csv, write_figures
 from hil.study.tradeoff import TradeoffGrid, tradeoff_grid

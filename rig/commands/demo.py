@@ -1,6 +1,6 @@
 """``rig demo``: the controller service against the emulated rig, in real time.
 
-The service (:class:`rig.service.Service`, its loop in the main thread) and the emulated
+The service (:class:`rig.service.runner.Service`, its loop in the main thread) and the emulated
 rig (:class:`hil.node.RigNode` in a process of its own) talk CAN over a socket pair, as
 ``rig run`` and ``rig hil`` do over vcan on the bench; :class:`hil.harness.RigHarness`
 sets them up (the same harness as the loop benchmark and the tests).  The summary's
@@ -152,7 +152,7 @@ class _Progress:
 
 def _half_metrics(cfg: RigConfig, trace: Mapping[str, np.ndarray], t0: int, t1: int,
                   lateness_ns: np.ndarray, step_ns: np.ndarray) -> dict[str, float]:
-    from hil.metrics import compute_metrics
+    from controller.metrics import compute_metrics
 
     tr = {k: v[t0:t1] for k, v in trace.items()}
     v = cfg.vehicle
@@ -221,11 +221,11 @@ def _table(passive: dict[str, float], active: dict[str, float]) -> str:
 def run(args: argparse.Namespace) -> int:
     from hil.harness import RigHarness, RigProcessError, RigProcessOptions
     from hil.node import DEFAULT_WATCHDOG_S
-    from hil.roads import RoadError, make_road
-    from rig.protocol import LifecycleState
-    from rig.realtime import RealtimeRequest
-    from rig.service import ServiceOptions
-    from rig.stop_signals import StopRequested, StopSignals
+    from hil.sim.roads import RoadError, make_road
+    from rig.rt.realtime import RealtimeRequest
+    from rig.rt.stop_signals import StopRequested, StopSignals
+    from rig.service.runner import ServiceOptions
+    from rig.wire.protocol import LifecycleState
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr)

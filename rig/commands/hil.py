@@ -19,9 +19,9 @@ import can
 from controller.config import load_config
 from hil.faults import FaultSchedule
 from hil.node import DEFAULT_WATCHDOG_S, RigNode
-from hil.roads import RoadError, make_road
+from hil.sim.roads import RoadError, make_road
 from rig import argtypes
-from rig.bus import open_bus
+from rig.bus.core import open_bus
 
 #: longest road generated; longer runs replay it cyclically
 MAX_ROAD_S = 120.0
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
 
     old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        from rig.realtime import RealtimeRequest, apply_realtime
+        from rig.rt.realtime import RealtimeRequest, apply_realtime
         apply_realtime(RealtimeRequest(fifo_priority=args.rt_priority, lock_memory=False,
                                        timer_slack_ns=1, freeze_gc=False))
     except ImportError:  # pragma: no cover - optional

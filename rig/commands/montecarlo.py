@@ -9,9 +9,9 @@ import argparse
 import sys
 
 from controller.config import load_config
-from hil.montecarlo import MAX_RIDE_HEIGHT_STD_M, MAX_SPREAD, RIDE_HEIGHT_STD_M, run_montecarlo
-from hil.roads import ROAD_NAMES, RoadError, make_road
-from hil.sim import CONTROLLERS
+from hil.sim.closed_loop import CONTROLLERS
+from hil.sim.montecarlo import MAX_RIDE_HEIGHT_STD_M, MAX_SPREAD, RIDE_HEIGHT_STD_M, run_montecarlo
+from hil.sim.roads import ROAD_NAMES, RoadError, make_road
 from rig import argtypes, strict_json
 
 #: most Monte Carlo runs and worker processes of one command

@@ -3,7 +3,7 @@
 Exit status 0 after SIGTERM / SIGINT / ``--duration`` (valve left in its safe state,
 recording closed); 2 for a bad configuration, design artifact or bus.  SIGTERM / SIGINT
 before the loop started (while the bank is designed, the bus or the recording opens)
-also exit 0, with a message and no recording (:mod:`rig.stop_signals`).
+also exit 0, with a message and no recording (:mod:`rig.rt.stop_signals`).
 """
 
 from __future__ import annotations
@@ -54,10 +54,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from controller.artifact import DesignMismatch
-    from rig.realtime import RealtimeRequest
-    from rig.recording import RecorderStartError
-    from rig.service import Service, ServiceOptions
-    from rig.stop_signals import StopRequested, StopSignals
+    from rig.recording.recorder import RecorderStartError
+    from rig.rt.realtime import RealtimeRequest
+    from rig.rt.stop_signals import StopRequested, StopSignals
+    from rig.service.runner import Service, ServiceOptions
 
     stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,

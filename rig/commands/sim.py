@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from controller.config import load_config
-from hil.roads import ROAD_NAMES, RoadError, make_road
-from hil.sim import CONTROLLERS, SimResult, simulate
+from hil.sim.closed_loop import CONTROLLERS, SimResult, simulate
+from hil.sim.roads import ROAD_NAMES, RoadError, make_road
 from rig import argtypes, strict_json
 
 #: longest loop delay simulated (a second at 1 kHz)

@@ -1,7 +1,7 @@
 """Replay of recorded runs through the live loop code (``docs/replay.md``).
 
 A replay is one more ``can.BusABC`` behind the project's one bus abstraction, feeding
-an unmodified :class:`rig.loop.ControlLoop` with a virtual clock.  Modules:
+an unmodified :class:`rig.service.loop.ControlLoop` with a virtual clock.  Modules:
 
 * :mod:`rig.replay.scan` -- the MCAP scanner (also used by ``rig report``): batches of
   JSON payloads per chunk and topic; clear errors for files that are not replayable;

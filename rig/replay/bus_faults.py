@@ -3,8 +3,8 @@
 When ``bus.recv`` raises (``can.CanError`` / ``OSError``) the loop records a ``note``
 event ``{"bus_exception": "recv", "type", "error", "errno"}`` at that tick and stops
 draining; when ``bus.send`` fails, ``{"bus_exception": "send", ..., "arbitration_id"}``
-and the frame is missing from ``/can/tx`` (``rig.loop._bus_exception``).  The loop's
-fault classification (``rig.bus.classify_bus_exception``) looks only at the errno, so
+and the frame is missing from ``/can/tx`` (``rig.service.loop._bus_exception``).  The loop's
+fault classification (``rig.bus.core.classify_bus_exception``) looks only at the errno, so
 an exception rebuilt from the type name, message and errno (:meth:`BusFault.exception`)
 gives the same BUS_ERROR / BUS_OFF.
 

@@ -18,7 +18,7 @@ from typing import Any, Final
 
 import can
 
-from rig.bus import receive_filters
+from rig.bus.core import receive_filters
 from rig.replay.bus_faults import BusFault
 from rig.replay.recorded import ERROR_FRAME, EXTENDED_ID, RxFrame, TxFrame, load_recorded_run
 from rig.replay.scan import RecordingError
@@ -207,7 +207,7 @@ class McapReplayBus(_ReplayBus):
 class LogReplayBus(_ReplayBus):
     """Frames of a candump ``.log`` / ``.asc`` / ``.blf`` file (``can.LogReader``);
     :meth:`advance_time` releases those stamped at or before ``t_s``.  By default only
-    the frames the controller subscribes to pass (``rig.bus.receive_filters``)."""
+    the frames the controller subscribes to pass (``rig.bus.core.receive_filters``)."""
 
     def __init__(self, path: str | Path, *, role: str | None = "controller") -> None:
         p = Path(path)

@@ -1,4 +1,4 @@
-"""The replay driver: an unmodified :class:`rig.loop.ControlLoop` fed a recording.
+"""The replay driver: an unmodified :class:`rig.service.loop.ControlLoop` fed a recording.
 
 :func:`replay_recording` drives the loop with the recorded tick times (a virtual
 clock: no sleeping), the recorded wake-up lateness and compute time (they feed the
@@ -26,13 +26,10 @@ import can
 import numpy as np
 
 from controller.artifact import Design
-from controller.bank import BankRuntime
 from controller.config import RigConfig, config_hash, config_to_toml, parse_config
-from controller.force_loop import PIForceLoop
-from rig.lifecycle import Transition
-from rig.loop import ControlLoop
-from rig.protocol import LifecycleState
-from rig.recording import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT, RunRecorder
+from controller.runtime.bank import BankRuntime
+from controller.runtime.force_loop import PIForceLoop
+from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT, RunRecorder
 from rig.replay.buses import LOG_SUFFIXES, LogReplayBus, McapReplayBus
 from rig.replay.reader import PIPELINE_MIN_BYTES, ReaderProcess, idle_cpu
 from rig.replay.recorded import (
@@ -53,6 +50,9 @@ from rig.replay.result import (
     series_comparison,
 )
 from rig.replay.scan import RecordingError
+from rig.service.lifecycle import Transition
+from rig.service.loop import ControlLoop
+from rig.wire.protocol import LifecycleState
 
 __all__ = ["replay_file", "replay_log", "replay_recording"]
 
@@ -220,7 +220,7 @@ def replay_recording(path: str | Path, *, cfg: RigConfig | None = None,
                      design: Design | None = None, design_bytes: bytes | None = None,
                      out: str | Path | None = None, run: RecordedRun | None = None,
                      reader_process: bool | None = None) -> ReplayResult:
-    """Replay an MCAP recording through :class:`rig.loop.ControlLoop` (module docstring).
+    """Replay an MCAP recording through :class:`rig.service.loop.ControlLoop` (module docstring).
 
     ``cfg`` / ``design`` default to the recording's attachments; given another, the
     result's ``comparison`` compares the two controllers (open loop).  ``out`` writes

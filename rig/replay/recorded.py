@@ -26,7 +26,8 @@ from numpy.typing import NDArray
 
 from controller.artifact import Design, DesignMismatch, load_design
 from controller.config import RigConfig, parse_config
-from rig.mcap_schema import (
+from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
+from rig.recording.schema import (
     TOPIC_CAN_RX,
     TOPIC_CAN_TX,
     TOPIC_EVENTS,
@@ -34,7 +35,6 @@ from rig.mcap_schema import (
     TOPIC_SIGNALS,
     TOPIC_TIMING,
 )
-from rig.recording import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
 from rig.replay.bus_faults import BusFault, SendAttempts, bus_fault_of
 from rig.replay.scan import Handler, RecordingError, ScanResult, scan_recording
 

@@ -10,8 +10,8 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from rig.protocol import VALVE_COMMAND, VALVE_COMMAND_ID, ValveCommand
 from rig.replay.recorded import RecordedRun, TxFrame
+from rig.wire.protocol import VALVE_COMMAND, VALVE_COMMAND_ID, ValveCommand
 
 __all__ = ["OPEN_LOOP_NOTE", "ReplayResult", "compare_tx", "max_abs_diff",
            "series_comparison"]

@@ -3,7 +3,7 @@
 :func:`scan_recording` hands each wanted topic one batch per chunk (the JSON payloads
 of the chunk's messages of that topic, concatenated, with their MCAP sequence numbers)
 instead of decoding every message into Python objects as
-:func:`rig.recording.read_run` does (~25 us/tick): replay must read a 1 kHz recording
+:func:`rig.recording.recorder.read_run` does (~25 us/tick): replay must read a 1 kHz recording
 50x faster than real time.  It names what is wrong with a file (not an MCAP, foreign,
 wrong version, missing channels, truncated or corrupt at byte N, damaged summary or
 closing magic, a missing or foreign segment of a run) and reads a truncated file up to
@@ -22,7 +22,8 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from rig.mcap_schema import (
+from rig.recording.recorder import METADATA_NAME
+from rig.recording.schema import (
     MESSAGE_ENCODING,
     RECORDING_FORMAT_VERSION,
     TOPIC_CAN_RX,
@@ -30,7 +31,7 @@ from rig.mcap_schema import (
     TOPIC_EVENTS,
     TOPIC_SIGNALS,
 )
-from rig.record_segments import (
+from rig.recording.segments import (
     MCAP_MAGIC,
     SEGMENT_END_NAME,
     SegmentChain,
@@ -38,7 +39,6 @@ from rig.record_segments import (
     SegmentHead,
     tail_problem,
 )
-from rig.recording import METADATA_NAME
 
 __all__ = [
     "MCAP_MAGIC",
@@ -369,7 +369,7 @@ class _Segment:
 
     def _data_end(self, buf: bytes, off: int, end: int) -> None:
         """At the DataEnd record (every chunk handed out): the data-section CRC, then
-        the Footer, its summary CRC and the closing magic (rig.record_segments)."""
+        the Footer, its summary CRC and the closing magic (rig.recording.segments)."""
         (crc,) = _U32.unpack_from(buf, off + 9)
         if crc and zlib.crc32(memoryview(buf)[:off]) != crc:
             self._stop(f"data section damaged (CRC mismatch over bytes 0-{off}): the "
@@ -427,7 +427,7 @@ def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
     tail, a damaged summary or closing magic ends the scan after the last complete
     chunk (``complete`` False, ``stopped_at`` says where).  With ``follow_segments``
     the next segment is the one the segment's end record names, and it is read only if
-    it belongs to the run (:class:`rig.record_segments.SegmentChain`); a missing or
+    it belongs to the run (:class:`rig.recording.segments.SegmentChain`); a missing or
     foreign segment ends the scan, ``stopped_at`` naming what is missing."""
     path = Path(path)
     if not path.exists():

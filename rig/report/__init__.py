@@ -5,7 +5,7 @@
 the design's models, each in its own colour), the key of the phase shading used on every
 time plot (passive / active / fault latched), passive vs active metrics side by side
 (bars and a table), the events as a table (time, code, plain-language reason: a fault's
-reason is its :attr:`rig.protocol.FaultCode.description`), then rattlespace, sprung
+reason is its :attr:`rig.wire.protocol.FaultCode.description`), then rattlespace, sprung
 acceleration, the applied force reference vs the measured force with the tracking error,
 why that error is what it is (:mod:`rig.report.tracking`), firing weight and likelihood
 quotient q per model, lifecycle with numbered event markers, loop timing, and for an

@@ -1,7 +1,7 @@
 """The recording's ``/rig/events`` as table rows: time, code and a plain-language reason.
 
 The reason of a fault is the fault code's own description
-(:attr:`rig.protocol.FaultCode.description`); lifecycle transitions and operator
+(:attr:`rig.wire.protocol.FaultCode.description`); lifecycle transitions and operator
 commands carry their reason / message in the event (docs/recording.md).
 """
 
@@ -11,8 +11,8 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
-from rig.protocol import FaultCode
 from rig.report.series import RunSeries
+from rig.wire.protocol import FaultCode
 
 __all__ = ["EventRow", "event_rows"]
 

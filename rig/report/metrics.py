@@ -1,7 +1,7 @@
 """Summary metrics of a recording: the whole run, and passive vs active side by side.
 
 Computed from the measured signals (independent of the controller's own view), filters
-from :mod:`hil.metrics` run over the whole series and are then averaged per phase:
+from :mod:`controller.metrics` run over the whole series and are then averaged per phase:
 
 * absorbed power proxy: mean square of the sprung acceleration through the thesis's
   human-body filter F(s) of the recorded configuration [(m/s²)²];
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from hil.metrics import filter_signal, wk_tf
+from controller.metrics import filter_signal, wk_tf
 from rig.report.series import Phase, RunSeries
 
 __all__ = ["SUMMARY_ROWS", "SummaryRow", "phase_metrics", "run_metrics"]

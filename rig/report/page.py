@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from controller.kernels import Blending
+from controller.runtime.kernels import Blending
 from rig.replay import OPEN_LOOP_NOTE
 from rig.report.events import EventRow, event_rows
 from rig.report.metrics import SUMMARY_ROWS, phase_metrics, run_metrics

@@ -23,11 +23,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.config import ConfigError, RigConfig, default_config, parse_config
-from controller.kernels import StepFlag
-from rig.mcap_schema import TOPIC_EVENTS, TOPIC_INTERNALS, TOPIC_SIGNALS, TOPIC_TIMING
-from rig.protocol import LifecycleState
-from rig.recording import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
+from controller.runtime.kernels import StepFlag
+from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
+from rig.recording.schema import TOPIC_EVENTS, TOPIC_INTERNALS, TOPIC_SIGNALS, TOPIC_TIMING
 from rig.replay import RecordingError, ScanResult, scan_recording, split_json
+from rig.wire.protocol import LifecycleState
 
 __all__ = ["LIFECYCLE_NAMES", "SIGNAL_FIELDS", "TIMING_FIELDS", "Phase", "RunSeries", "Segment",
            "load_series"]

@@ -119,7 +119,7 @@ def period_stats_s(times: list[float]) -> dict[str, float]:
 
 def command_delay_ticks(frames: list[Decoded]) -> np.ndarray:
     """Per ValveCommand, the loop delay in the offline simulator's terms (``delay_ticks``
-    of ``hil.sim.simulate``): the number of SensorData frames sent between the frame the
+    of ``hil.sim.closed_loop.simulate``): the number of SensorData frames sent between the frame the
     command echoes and the command.  The rig applies a command at its next tick, so 0 =
     the command is applied in the tick right after the reading it was computed from."""
     out = []

@@ -1,6 +1,6 @@
 """Helpers for the real-SocketCAN suite: process management, captures, E2E protection.
 
-Everything here is independent of the project's own codec (``rig.protocol``) on purpose:
+Everything here is independent of the project's own codec (``rig.wire.protocol``) on purpose:
 the suite checks the service's frames against this second implementation and cantools.
 """
 
@@ -21,7 +21,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
 PYTHON = sys.executable
-DBC_PATH = REPO / "rig" / "rig.dbc"
+DBC_PATH = REPO / "rig" / "wire" / "rig.dbc"
 CHANNEL = os.environ.get("SOCKETCAN_CHANNEL", "vcan0")
 
 

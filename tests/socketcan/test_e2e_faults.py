@@ -16,8 +16,8 @@ RIG_WATCHDOG          SIGSTOP of the service > drive watchdog       RigStatus Wa
 SHUTDOWN              SIGTERM of the service                        --
 ====================  ===========================================  ====================
 
-Not injectable from outside the service, covered by the unit tests of rig/loop.py and
-rig/safety.py: NONFINITE (CAN signals are scaled integers, they cannot carry NaN),
+Not injectable from outside the service, covered by the unit tests of rig/service/loop.py and
+rig/service/safety.py: NONFINITE (CAN signals are scaled integers, they cannot carry NaN),
 ESTIMATOR_DIVERGED, OVERRUN_STREAK (the service's own timing), EXCEPTION.
 
 After each fault the test resets and re-arms the service over Zenoh (the operator's
@@ -322,7 +322,7 @@ def test_shutdown_leaves_the_valve_safe_and_reports_it(fault_run: ScenarioResult
 
 
 def test_recording_survives_the_faults(fault_run: ScenarioResult) -> None:
-    from rig.recording import read_run
+    from rig.recording.recorder import read_run
 
     assert len(fault_run.recordings) == 1
     run = read_run(fault_run.recordings[0])

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hil.metrics import filter_signal, human_filter_tf
+from controller.metrics import filter_signal, human_filter_tf
 from tests.socketcan import capture as cap
 from tests.socketcan.harness import (
     RATE_HZ,
@@ -83,7 +83,7 @@ def test_no_frame_lost_or_duplicated(closed_loop: ScenarioResult) -> None:
     # the rig saw every command (its own counter monitor) and nothing bad
     assert " lost=0 " in r.rig_output and " bad=0 " in r.rig_output, r.rig_output
     # the service received every SensorData frame sent while it ran, once, in order
-    from rig.recording import read_run
+    from rig.recording.recorder import read_run
 
     run = read_run(r.recordings[0])
     rx = [(f.tick, bytes(f.data)) for f in run.frames
@@ -128,8 +128,8 @@ def _armed_window(r: ScenarioResult) -> tuple[list[cap.Decoded], int, int, int, 
 
 
 def _simulations(r: ScenarioResult) -> dict[str, Any]:
-    from hil.roads import make_road
-    from hil.sim import simulate
+    from hil.sim.closed_loop import simulate
+    from hil.sim.roads import make_road
     from rig.commands.hil import MAX_ROAD_S
 
     cfg = r.cfg
@@ -235,7 +235,7 @@ def test_loop_timing_on_the_bus(closed_loop: ScenarioResult) -> None:
     assert lat.size > 0.9 * len(after_first_sd), (lat.size, len(after_first_sd))
     record("sensor-to-command latency median", 1e3 * float(np.median(lat)), "ms")
     record("sensor-to-command latency p99", 1e3 * float(np.percentile(lat, 99)), "ms")
-    from rig.recording import read_run
+    from rig.recording.recorder import read_run
 
     run = read_run(r.recordings[0])
     late = np.array([t.data.get("wake_late_s") or 0.0 for t in run.records])
@@ -260,7 +260,7 @@ def test_telemetry_reaches_a_separate_zenoh_process(closed_loop: ScenarioResult)
 
 
 def test_mcap_recording_is_complete(closed_loop: ScenarioResult) -> None:
-    from rig.recording import read_run
+    from rig.recording.recorder import read_run
 
     r = closed_loop
     assert len(r.recordings) == 1, r.recordings

@@ -2,12 +2,12 @@
 
 ``Service(cfg, ServiceOptions(...))`` loads the design artifact (or designs the bank at
 start), opens the bus, the recording (MCAP, own thread) and the telemetry (Zenoh, own
-thread), and builds the :class:`rig.loop.ControlLoop`.  :meth:`Service.run`:
+thread), and builds the :class:`rig.service.loop.ControlLoop`.  :meth:`Service.run`:
 
-1. real-time set-up of the loop thread (best effort, reported: :mod:`rig.realtime`);
+1. real-time set-up of the loop thread (best effort, reported: :mod:`rig.rt.realtime`);
 2. systemd ``READY=1`` (+ ``STATUS=``), the loop then pings ``WATCHDOG=1`` itself at half
-   of ``WATCHDOG_USEC`` (:mod:`rig.sdnotify`);
-3. SIGTERM / SIGINT set the stop event (:mod:`rig.stop_signals`; the commands install
+   of ``WATCHDOG_USEC`` (:mod:`rig.rt.sdnotify`);
+3. SIGTERM / SIGINT set the stop event (:mod:`rig.rt.stop_signals`; the commands install
    the handlers before the service is built, so that a signal during the design or while
    the bus opens stops it too, see ``stop=``);
 4. the loop runs until stopped or ``duration_s``; with ``arm`` it arms as soon as the
@@ -34,16 +34,16 @@ from typing import Any
 import can
 
 from controller.config import RigConfig, config_hash, config_to_toml
-from rig.loop import ControlLoop
-from rig.realtime import (
+from rig.rt.realtime import (
     RealtimeReport,
     RealtimeRequest,
     apply_realtime,
     release_cpu_latency,
     restore_gc,
 )
-from rig.sdnotify import SdNotifier
-from rig.stop_signals import StopSignals
+from rig.rt.sdnotify import SdNotifier
+from rig.rt.stop_signals import StopSignals
+from rig.service.loop import ControlLoop
 
 __all__ = ["BLENDING_NAMES", "Service", "ServiceOptions", "design_bytes", "parse_blending"]
 
@@ -93,9 +93,9 @@ def design_bytes(design: Any) -> bytes:
 class Service:
     """One controller service instance (see the module docstring).
 
-    ``stop``: the command's :class:`rig.stop_signals.StopSignals` (already installed);
+    ``stop``: the command's :class:`rig.rt.stop_signals.StopSignals` (already installed);
     the design is then interruptible, the other set-up steps check it in between
-    (:class:`rig.stop_signals.StopRequested` out of the constructor, after closing what
+    (:class:`rig.rt.stop_signals.StopRequested` out of the constructor, after closing what
     was opened) and :attr:`stop_event` is its event.  Without it :meth:`run` installs the
     handlers itself (``opts.install_signal_handlers``)."""
 
@@ -129,8 +129,8 @@ class Service:
 
     def _build(self, cfg: RigConfig, opts: ServiceOptions, bus: can.BusABC | None,
                notifier: SdNotifier | None, metadata: dict[str, Any] | None) -> None:
-        from controller.bank import BankRuntime
-        from controller.force_loop import PIForceLoop
+        from controller.runtime.bank import BankRuntime
+        from controller.runtime.force_loop import PIForceLoop
 
         t0 = time.monotonic()
         self._check_stop()
@@ -156,7 +156,7 @@ class Service:
                                    cfg=cfg)
         self.force_loop = PIForceLoop.from_config(cfg)
         if bus is None:
-            from rig.bus import open_bus
+            from rig.bus.core import open_bus
 
             interface = opts.interface or cfg.can.interface
             # virtual bus: no software receive filters (python-can's recv(timeout=0)
@@ -171,7 +171,7 @@ class Service:
         if opts.record is not None:
             record_on = True
         if record_on:
-            from rig.recording import RunRecorder
+            from rig.recording.recorder import RunRecorder
 
             target = opts.record or cfg.recording.directory
             meta = {"source": "rig run", "config_hash": config_hash(cfg),

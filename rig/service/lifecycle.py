@@ -30,7 +30,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from rig.protocol import FaultCode, LifecycleState
+from rig.wire.protocol import FaultCode, LifecycleState
 
 __all__ = ["CommandResult", "Lifecycle", "Transition"]
 

@@ -10,13 +10,13 @@ Written straight from the thesis equations rather than from the fused kernel:
     u_j = -K_j [x⁺_j - x̄_j; x_f; x̂_v; u; w; s_pending]         (LQ, App. A per model)
     x̂_v, w, s_pending: the spool model of controller/actuator.py on the blended output,
         w the force loop's rate filter (``FlowFeedforward.step``, plain Python)
-    p_j: densities of Eq. 4.6 into Eq. 4.2 (:func:`controller.bayes.bayes_update_numpy`)
+    p_j: densities of Eq. 4.6 into Eq. 4.2 (:func:`controller.runtime.bayes.bayes_update_numpy`)
     f_j: ``np.interp`` on the App. A firing-weight table
 
-and the moving-bank rules of :mod:`controller.moving_bank` re-implemented with Python
+and the moving-bank rules of :mod:`controller.runtime.moving_bank` re-implemented with Python
 lists, a decaying numpy histogram and the two tire-load CUSUMs written as Page's
 recursion g = max(0, g + increment).  Semantics (flags, fallbacks, bumpless starts)
-follow docs/architecture.md "Runtime step" and :mod:`controller.bank`.
+follow docs/architecture.md "Runtime step" and :mod:`controller.runtime.bank`.
 """
 
 from __future__ import annotations
@@ -28,11 +28,12 @@ from numpy.typing import NDArray
 
 from controller.actuator import FlowFeedforward
 from controller.artifact import Design
-from controller.bayes import bayes_update_numpy
 from controller.config import RigConfig
-from controller.kernels import MEAS_DIM, Q_MAX, QS_INIT, Blending, StepFlag
 from controller.monitor import monitor_settings
-from controller.moving_bank import (
+from controller.road_noise import nearest_noise_entry
+from controller.runtime.bayes import bayes_update_numpy
+from controller.runtime.kernels import MEAS_DIM, Q_MAX, QS_INIT, Blending, StepFlag
+from controller.runtime.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
     HIST_LO_LOG10,
@@ -41,7 +42,6 @@ from controller.moving_bank import (
     RECENTRE_RATIO,
     chi2_threshold_floor,
 )
-from controller.road_noise import nearest_noise_entry
 from controller.stop_guard import stop_guard_scale
 
 __all__ = ["ReferenceBank"]
@@ -50,13 +50,13 @@ FloatArray = NDArray[np.float64]
 
 
 class ReferenceBank:
-    """Same constructor and ``step`` contract as :class:`controller.bank.BankRuntime`."""
+    """Same constructor and ``step`` contract as :class:`controller.runtime.bank.BankRuntime`."""
 
     def __init__(self, design: Design, blending: Blending | int = Blending.FUZZY,
                  weight_set: int = 1, single_model: int | None = None, *,
                  cfg: RigConfig | None = None, no_fire_fallback: str | None = None,
                  prob_floor: float = 1e-4, probe_period_s: float = 0.05) -> None:
-        from controller.bank import config_of, default_single_model
+        from controller.runtime.bank import config_of, default_single_model
 
         d = design
         self.d = d

@@ -1,6 +1,6 @@
 """End-to-end protection of the rig's CAN frames (AUTOSAR E2E profile 1 style).
 
-Every frame of ``rig/rig.dbc`` carries, in byte 0, a CRC-8 SAE J1850 (polynomial 0x1D,
+Every frame of ``rig/wire/rig.dbc`` carries, in byte 0, a CRC-8 SAE J1850 (polynomial 0x1D,
 initial value 0xFF, final XOR 0xFF; check value 0x4B for ``b"123456789"``) computed over
 the frame's data ID -- the CAN identifier as two bytes, low byte first -- followed by
 payload bytes 1..7.  The low nibble of byte 1 is a rolling counter 0..15.

@@ -14,7 +14,7 @@ processes talk over one ``socket.socketpair(AF_UNIX, SOCK_SEQPACKET)``:
   the peer, the sender is not blocked and not told (counted in :attr:`overflows`);
 - a peer that closed its end (or died) makes every ``recv`` and ``send`` raise
   ``can.CanOperationError`` with ``error_code`` ECONNRESET / EPIPE, which
-  :func:`rig.bus.classify_bus_exception` maps to ``BUS_ERROR`` (on a real bus a missing
+  :func:`rig.bus.core.classify_bus_exception` maps to ``BUS_ERROR`` (on a real bus a missing
   node shows up as missing acknowledgements, not as bus-off);
 - receive filters (``can_filters``) are applied while draining, like SocketCAN's kernel
   filters: ``recv(timeout=0)`` skips non-matching frames instead of returning None at

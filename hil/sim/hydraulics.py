@@ -20,7 +20,7 @@ A Ps = 10.3 kN at Ps = 10.3425 MPa, about twice the 5.5 kN static body weight of
 500 kg quarter car, and gamma = 1.545e9 x (1e-3 / 3.35e-4) = 4.6e9 keeps the no-load
 velocity capability of Alleyne & Hedrick's actuator (gamma x_s sqrt(Ps) / (alpha A)).
 
-Every function here is a numba kernel (no Python objects) used by ``hil.plant``.
+Every function here is a numba kernel (no Python objects) used by ``hil.sim.plant``.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Segment sets and file integrity of recordings, shared by the readers
-(:func:`rig.recording.read_run`, :func:`rig.replay.scan_recording`).
+(:func:`rig.recording.recorder.read_run`, :func:`rig.replay.scan_recording`).
 
 A run is written as ``run.mcap``, ``run.001.mcap``, ... (``[recording] rotate_*``).  Each
 segment opens with a ``rig`` metadata record that names its run and place

@@ -1,8 +1,8 @@
 """Wire format between the loop process and the recording writer process.
 
-The loop never encodes JSON or touches MCAP: :class:`rig.recording.RunRecorder` packs
+The loop never encodes JSON or touches MCAP: :class:`rig.recording.recorder.RunRecorder` packs
 each item into a few bytes and hands a whole tick's batch to a pipe; the writer process
-(:mod:`rig.record_writer`) decodes the items with this module and writes the MCAP file.
+(:mod:`rig.recording.writer`) decodes the items with this module and writes the MCAP file.
 Both ends come from the same installation, so the format is internal; it is versioned
 (:data:`STREAM_MAGIC`) only to fail clearly if they ever differ.
 

@@ -28,7 +28,7 @@ as an object::
 :func:`simulate` runs a controller of :data:`CONTROLLERS` by name: passive (bypass open),
 ``zero-force`` (:class:`ZeroForceController`: bypass closed, force reference 0 through the
 same force loop -- what the closed actuator itself costs), ``skyhook``
-(:class:`hil.skyhook.SkyhookController` with its tuned :data:`hil.skyhook.DEFAULT_GAINS`)
+(:class:`hil.sim.skyhook.SkyhookController` with its tuned :data:`hil.sim.skyhook.DEFAULT_GAINS`)
 or a bank mode.  The study (``hil.study``) adds other controllers (skyhook gain search,
 full-state LQ) through the same loop.
 """
@@ -44,11 +44,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.config import RigConfig, config_hash
-from hil.metrics import compute_metrics
-from hil.plant import PlantParams, RigPlant
-from hil.roads import Road
-from hil.sensors import SensorReading, SensorSuite
-from hil.skyhook import DEFAULT_GAINS, SkyhookController
+from controller.metrics import compute_metrics
+from hil.sim.plant import PlantParams, RigPlant
+from hil.sim.roads import Road
+from hil.sim.sensors import SensorReading, SensorSuite
+from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController
 
 if TYPE_CHECKING:
     from controller.artifact import Design
@@ -119,8 +119,8 @@ class BankController:
 
     def __init__(self, design: Design, cfg: RigConfig, blending: str, weight_set: int,
                  road: Road) -> None:
-        from controller.bank import BankRuntime
-        from controller.kernels import Blending, StepFlag
+        from controller.runtime.bank import BankRuntime
+        from controller.runtime.kernels import Blending, StepFlag
         modes = {"lqg": Blending.SINGLE, "fuzzy": Blending.FUZZY, "bayes": Blending.BAYES,
                  "moving": Blending.MOVING}
         if blending not in modes:
@@ -205,7 +205,7 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
              latch_on_sensor_status: bool = True, lvdt_zero: str = "nominal") -> SimResult:
     """Closed-loop run of ``controller`` (one of :data:`CONTROLLERS`) over ``road``
     (sampled at the controller rate): :func:`run_closed_loop` with a :class:`BankController`,
-    :class:`ZeroForceController` or :class:`hil.skyhook.SkyhookController`.
+    :class:`ZeroForceController` or :class:`hil.sim.skyhook.SkyhookController`.
 
     ``params`` perturbs the plant (the controller keeps its nominal design); ``design``
     defaults to ``design_bank(cfg)`` (memoised, bank modes only); ``lvdt_zero`` see
@@ -244,7 +244,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
     ``"force_ref"`` the force reference (PI force loop local to the valve, undelayed).
     ``record_weights`` adds the traces ``firing_weight`` and ``q`` (ticks x models) of a
     controller that has them (:class:`BankController`).  The metrics are
-    :func:`hil.metrics.compute_metrics` plus run bookkeeping, ``tire_deflection_rms_m``
+    :func:`controller.metrics.compute_metrics` plus run bookkeeping, ``tire_deflection_rms_m``
     (deviation from static, after ``settle_s``) and the controller's ``diagnostics()``.
     Raises ValueError on bad arguments.
     """
@@ -264,7 +264,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
     pi: Any = None
     ctrl_step: Any = None
     if controller is not None:
-        from controller.force_loop import PIForceLoop
+        from controller.runtime.force_loop import PIForceLoop
         controller.reset()
         pi = PIForceLoop.from_config(cfg)
         ctrl_step = controller.step

@@ -1,7 +1,7 @@
 """The recording writer process: item stream on stdin -> MCAP files.
 
-Started by :class:`rig.recording.RunRecorder` as ``python -m rig.record_writer``; never
-run by hand.  It reads the stream of :mod:`rig.record_codec` from stdin, encodes JSON,
+Started by :class:`rig.recording.recorder.RunRecorder` as ``python -m rig.recording.writer``; never
+run by hand.  It reads the stream of :mod:`rig.recording.codec` from stdin, encodes JSON,
 fills MCAP chunks, flushes every finished chunk to the OS and rotates segments.  All of
 this used to run on a thread of the control loop's process, where it held the GIL for
 tens of microseconds at a time and delayed the loop's wake-ups; in its own process it
@@ -32,7 +32,17 @@ from typing import IO, Any
 
 from mcap.writer import CompressionType, Writer
 
-from rig.mcap_schema import (
+from rig.recording.codec import (
+    FRAME_ERROR,
+    FRAME_EXTENDED,
+    FRAME_RX,
+    STREAM_MAGIC,
+    TickDecoder,
+    decode_item,
+    iter_items,
+    split_items,
+)
+from rig.recording.schema import (
     EVENT_KINDS,
     MESSAGE_ENCODING,
     RECORDING_FORMAT_VERSION,
@@ -49,17 +59,7 @@ from rig.mcap_schema import (
     encode_json,
     schema_bytes,
 )
-from rig.record_codec import (
-    FRAME_ERROR,
-    FRAME_EXTENDED,
-    FRAME_RX,
-    STREAM_MAGIC,
-    TickDecoder,
-    decode_item,
-    iter_items,
-    split_items,
-)
-from rig.record_segments import SEGMENT_END_NAME, segment_path
+from rig.recording.segments import SEGMENT_END_NAME, segment_path
 
 __all__ = ["McapRunSink", "main", "segment_path"]
 
@@ -106,7 +106,7 @@ class McapRunSink:
     # ------------------------------------------------------------------ segments
     def _open_segment(self, first_tick: int | None = None) -> None:
         """Start segment ``len(paths)``; its ``rig`` metadata names the run, the segment
-        index, the sequence number and tick of its first item (rig.record_segments)."""
+        index, the sequence number and tick of its first item (rig.recording.segments)."""
         path = segment_path(self.base, len(self.paths))
         stream = open(path, "wb")  # noqa: SIM115 (closed in finish_segment)
         # enable_data_crcs: the DataEnd record carries the CRC of the whole data section
@@ -458,7 +458,7 @@ def main() -> int:
     if backlog.error and not clean_end:
         error = error or backlog.error
     if not clean_end and error is None:
-        print(f"rig.record_writer: the loop process ended without closing {sink.base}; "
+        print(f"rig.recording.writer: the loop process ended without closing {sink.base}; "
               f"everything it sent is written", file=sys.stderr)
     progress("final")
     return 0 if error is None else 1

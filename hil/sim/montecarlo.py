@@ -10,7 +10,7 @@ N(0, ``ride_height_std_m``) (default :data:`RIDE_HEIGHT_STD_M` = 2 mm: the techn
 sets it to within a few millimetres; ``PlantParams.ride_height_offset_m``).
 
 Runs execute in parallel (``concurrent.futures.ProcessPoolExecutor``, one process per
-core by default) with a tqdm progress bar.  Each run is a :func:`hil.sim.simulate` call;
+core by default) with a tqdm progress bar.  Each run is a :func:`hil.sim.closed_loop.simulate` call;
 the summary gives mean / std / min / max of every metric and lists the unstable runs
 (non-finite state, bump-stop slamming) and the runs with a latched fault.  ``plot_runs``
 draws the rattlespace traces of all runs (like the thesis's Fig. 4.1) with matplotlib's
@@ -30,9 +30,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.config import RigConfig
-from hil.plant import PlantParams
-from hil.roads import Road
-from hil.sim import BANK_CONTROLLERS, cached_design, simulate
+from hil.sim.closed_loop import BANK_CONTROLLERS, cached_design, simulate
+from hil.sim.plant import PlantParams
+from hil.sim.roads import Road
 
 __all__ = ["MAX_RIDE_HEIGHT_STD_M", "RIDE_HEIGHT_STD_M", "MonteCarloResult", "draw_params",
            "plot_runs", "run_montecarlo", "summarise"]

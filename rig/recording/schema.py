@@ -3,7 +3,7 @@
 Every channel uses message encoding ``json`` and schema encoding ``jsonschema`` so that
 Foxglove (and any MCAP tool) can decode and plot the fields without project code.
 
-A tick record handed to :meth:`rig.recording.RunRecorder.tick` is one flat dict; the
+A tick record handed to :meth:`rig.recording.recorder.RunRecorder.tick` is one flat dict; the
 writer splits it by key into up to three messages that share one MCAP ``sequence``:
 
 * keys in :data:`SIGNAL_KEYS` and ``tick``         -> ``/rig/signals``
@@ -41,7 +41,7 @@ __all__ = [
 
 #: Bumped when a channel, field meaning or attachment name changes incompatibly.
 #: 2: segment identity and end records (run id, index, sequence / tick ranges) and the
-#: data-section CRC (rig.record_segments)
+#: data-section CRC (rig.recording.segments)
 RECORDING_FORMAT_VERSION: Final = 2
 SCHEMA_ENCODING: Final = "jsonschema"
 MESSAGE_ENCODING: Final = "json"

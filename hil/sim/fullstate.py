@@ -14,12 +14,12 @@ by the *measured* acceleration, and when the design carries an actuator part
 (``design.actuator_gain``, ``design.actuator_model = "hydraulic"``) the law feeds back the
 runtime's spool model x̂_v, the measured force F, the state w of the force loop's rate
 filter (flow feedforward, run on the measured rattlespace) and the D spool commands still
-on their way to the valve (``design.servo_model``, as ``controller/reference.py``), and
+on their way to the valve (``design.servo_model``, as ``tests/support/reference_bank.py``), and
 the force goes through the bank's end-stop guard (``controller/stop_guard.py``).
 
 The force still goes through the PI force loop and the servo-hydraulics, so it shares
 the actuator's limits with the other controllers.  It reads the plant, so it exists only
-in simulation (``hil.sim.run_closed_loop``).
+in simulation (``hil.sim.closed_loop.run_closed_loop``).
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ from controller.actuator import FlowFeedforward
 from controller.artifact import Design
 from controller.config import RigConfig
 from controller.stop_guard import stop_guard_scale
-from hil.plant import RigPlant
-from hil.sensors import SensorReading
+from hil.sim.plant import RigPlant
+from hil.sim.sensors import SensorReading
 
 __all__ = ["FullStateLQ"]
 
@@ -48,7 +48,7 @@ class FullStateLQ:
 
     def __init__(self, design: Design, cfg: RigConfig, weight_set: int = 1,
                  model: int | None = None) -> None:
-        from controller.bank import default_single_model
+        from controller.runtime.bank import default_single_model
         if not 1 <= weight_set <= design.n_weight_sets:
             raise ValueError(f"weight_set {weight_set}: allowed 1..{design.n_weight_sets}")
         j = default_single_model(design, cfg) if model is None else int(model)

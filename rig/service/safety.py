@@ -35,8 +35,8 @@ import math
 import numpy as np
 
 from controller.config import RigConfig
-from rig.e2e import CounterMonitor, CounterStatus
-from rig.protocol import FaultCode
+from rig.wire.e2e import CounterMonitor, CounterStatus
+from rig.wire.protocol import FaultCode
 
 __all__ = [
     "DETAIL_ACCEL",

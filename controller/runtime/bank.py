@@ -23,8 +23,8 @@ the fuzzy statistic (``fuzzy.statistic``: "relative" = 2 q̄_j / min_k q̄_k wit
 exponentially windowed q, so the best model always fires; "raw" = q_j, the thesis),
 normalised over the contributing models (if none fires: ``no_fire_fallback``,
 "passive" = 0 N or "best_model" = min statistic, and ``StepFlag.NO_RULE_FIRED``); BAYES --
-MMAE probabilities (:mod:`controller.bayes`); MOVING -- fuzzy within the moving subset
-(:mod:`controller.moving_bank`); SINGLE -- one model, the plain LQG.  The blended force is
+MMAE probabilities (:mod:`controller.runtime.bayes`); MOVING -- fuzzy within the moving subset
+(:mod:`controller.runtime.moving_bank`); SINGLE -- one model, the plain LQG.  The blended force is
 multiplied by the force authority of the estimator monitor (:mod:`controller.monitor`:
 the window sum of min q against its chi-square levels; DEGRADED ramps it to 0, re-arming
 ramps it back), then by the end-stop guard (:mod:`controller.stop_guard`: a force toward a
@@ -36,7 +36,7 @@ filter in every mode (telemetry; a switch of blending starts warm).
 Faults (never raised): a non-finite input returns 0.0 with NONFINITE_INPUT and leaves
 the state untouched.  A filter whose q, estimate or force becomes non-finite (huge
 inputs can overflow) is reset to its equilibrium plus the blended deviation of the
-healthy filters (see :func:`controller.kernels.activate`) and NONFINITE_STATE is set; a
+healthy filters (see :func:`controller.runtime.kernels.activate`) and NONFINITE_STATE is set; a
 non-finite blended force returns 0.0.  Every contributing model's innovation beyond a
 sensor's range for a whole monitor window sets DIVERGED (the estimate is unusable: a
 fault for the loop); DEGRADED is not a fault.  q is clamped to ``Q_MAX``.
@@ -55,9 +55,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.artifact import Design
-from controller.bayes import bayes_update, log_likelihood_constant
 from controller.config import RigConfig, default_config, parse_config
-from controller.kernels import (
+from controller.monitor import monitor_settings
+from controller.plant import static_tire_deflection_m
+from controller.road_noise import nearest_noise_entry
+from controller.runtime.bayes import bayes_update, log_likelihood_constant
+from controller.runtime.kernels import (
     F_ALPHA,
     F_AMEAN,
     F_AMEAN_ALPHA,
@@ -220,8 +223,7 @@ from controller.kernels import (
     servo_update,
     stop_guard,
 )
-from controller.monitor import monitor_settings
-from controller.moving_bank import (
+from controller.runtime.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
     HIST_LO_LOG10,
@@ -234,8 +236,6 @@ from controller.moving_bank import (
     supervise,
     tire_load_update,
 )
-from controller.plant import static_tire_deflection_m
-from controller.road_noise import nearest_noise_entry
 
 __all__ = ["BankRuntime", "Blending", "StepFlag", "config_of", "default_single_model"]
 
@@ -986,7 +986,7 @@ class BankRuntime:
     @property
     def tire_load_estimate(self) -> float:
         """Moving bank: the estimated tire load as a fraction of the static load (M + m) g
-        (model-free, :func:`controller.moving_bank.tire_load_update`; lags Δ ticks)."""
+        (model-free, :func:`controller.runtime.moving_bank.tire_load_update`; lags Δ ticks)."""
         return float(self._fv[F_LOAD])
 
     @property

@@ -125,11 +125,11 @@ F_FFB = 75          # b = a / T [1/s]
 F_FFSTALL = 76      # stall force A Ps [N]
 F_FFFLOOR = 77      # floor of the relative valve pressure drop
 F_FFW = 78          # w, state of the rate filter [m/s]; NaN = no reading since reset
-# --- fv: tire-contact test of the moving bank (controller/moving_bank.py)
+# --- fv: tire-contact test of the moving bank (controller/runtime/moving_bank.py)
 F_LOFF = 80         # lift-off CUSUM reference: estimated tire load / static load
 F_LON = 81          # touch-down CUSUM reference (F_LOFF / hysteresis ratio)
 F_LH = 82           # decision threshold of both CUSUMs [load fraction x ticks]
-F_LOAD = 83         # estimated tire load / static load (controller/moving_bank.py)
+F_LOAD = 83         # estimated tire load / static load (controller/runtime/moving_bank.py)
 F_GOFF = 84         # lift-off CUSUM statistic
 F_GON = 85          # touch-down CUSUM statistic
 F_LINVG = 86        # 1 / g

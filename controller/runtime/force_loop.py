@@ -33,7 +33,7 @@ import math
 
 from controller.actuator import FlowFeedforward, flow_feedforward
 from controller.config import ForceLoopConfig, RigConfig
-from controller.kernels import StepFlag
+from controller.runtime.kernels import StepFlag
 
 __all__ = ["PIForceLoop"]
 

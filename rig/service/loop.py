@@ -42,10 +42,14 @@ import can
 import numpy as np
 
 from controller.config import RigConfig
-from controller.kernels import StepFlag
-from rig.bus import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
-from rig.lifecycle import CommandResult, Lifecycle, Transition
-from rig.protocol import (
+from controller.runtime.kernels import StepFlag
+from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
+from rig.recording.codec import TickLayout
+from rig.rt.sdnotify import SdNotifier
+from rig.service.lifecycle import CommandResult, Lifecycle, Transition
+from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
+from rig.service.timing import TimingStats
+from rig.wire.protocol import (
     CONTROLLER_STATUS,
     FAULT_REPORT,
     RIG_STATUS,
@@ -59,10 +63,6 @@ from rig.protocol import (
     RigStatus,
     SensorData,
 )
-from rig.record_codec import TickLayout
-from rig.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
-from rig.sdnotify import SdNotifier
-from rig.timing import TimingStats
 
 __all__ = ["COMMANDS", "ControlLoop", "Recorder", "Runtime", "Telemetry",
            "tick_record_layout"]
@@ -82,7 +82,7 @@ COMMANDS = ("arm", "disarm", "reset", "blending", "weight_set", "road")
 
 
 class Runtime(Protocol):
-    """What the loop needs of ``controller.bank.BankRuntime``."""
+    """What the loop needs of ``controller.runtime.bank.BankRuntime``."""
 
     @property
     def flags(self) -> Any: ...
@@ -108,7 +108,7 @@ class ForceLoop(Protocol):
 
 
 class Recorder(Protocol):
-    """``rig.recording.RunRecorder`` as the loop uses it (all calls non-blocking)."""
+    """``rig.recording.recorder.RunRecorder`` as the loop uses it (all calls non-blocking)."""
 
     @property
     def dropped(self) -> int: ...

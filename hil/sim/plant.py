@@ -21,7 +21,7 @@ does not move when Monte Carlo perturbs M or K).  s is the spring-preload shift:
 ``PlantParams.ride_height_offset_m`` is given, in which case a technician has set the
 preload so that the static rattlespace is r0 + that offset (s = r0 + offset - M g / K),
 as on a real rig; without it a perturbed plant sits at M g / K, off the stops' centre.
-The hydraulics are those of ``hil.hydraulics``.  One call of the numba kernel
+The hydraulics are those of ``hil.sim.hydraulics``.  One call of the numba kernel
 :func:`advance_kernel` advances one controller tick with ``n_substeps`` classical RK4
 steps (the hydraulic mode near 150 Hz and the valve's sqrt law are stiff relative to the
 1 ms tick); the road velocity is held over the tick (the road module makes it the exact
@@ -39,7 +39,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from controller.config import RigConfig
-from hil.hydraulics import hydraulic_power_w, load_pressure_rate
+from hil.sim.hydraulics import hydraulic_power_w, load_pressure_rate
 
 __all__ = ["N_STATES", "PlantParams", "RigPlant", "advance_kernel", "derivatives"]
 

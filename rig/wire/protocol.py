@@ -1,4 +1,4 @@
-"""The rig's CAN protocol: frame IDs, enumerations and a fast codec for ``rig/rig.dbc``.
+"""The rig's CAN protocol: frame IDs, enumerations and a fast codec for ``rig/wire/rig.dbc``.
 
 The DBC is the source of truth and cantools the reference codec; this module is a
 hand-compiled equivalent (``struct`` layouts, precomputed CRC tables) proven
@@ -17,7 +17,7 @@ Decoders never raise and never allocate beyond the unpacked tuple: they return a
 :class:`DecodeStatus` and fill the output object only when length and CRC are good.
 ``OUT_OF_RANGE`` means the frame is intact but some raw value lies outside its DBC range
 or is not a defined ``VAL_`` value; the fields are filled and ``out.range_mask`` says
-which.  Rolling-counter supervision is separate: :class:`rig.e2e.CounterMonitor`.
+which.  Rolling-counter supervision is separate: :class:`rig.wire.e2e.CounterMonitor`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from collections.abc import Mapping
 from enum import IntEnum, IntFlag
 from typing import Any, ClassVar, Final, NamedTuple
 
-from rig.e2e import CRC8_TABLE, CRC8_TABLE2, CounterMonitor, CounterStatus, frame_crc_start
+from rig.wire.e2e import CRC8_TABLE, CRC8_TABLE2, CounterMonitor, CounterStatus, frame_crc_start
 
 __all__ = [
     "CODECS",
@@ -70,7 +70,7 @@ SENSOR_DATA_ID: Final = 0x100
 RIG_STATUS_ID: Final = 0x200
 CONTROLLER_STATUS_ID: Final = 0x300
 FRAME_LENGTH: Final = 8
-#: frames each role receives (receive filters of :func:`rig.bus.open_bus`)
+#: frames each role receives (receive filters of :func:`rig.bus.core.open_bus`)
 CONTROLLER_RX_IDS: Final = (SENSOR_DATA_ID, RIG_STATUS_ID)
 RIG_RX_IDS: Final = (VALVE_COMMAND_ID, FAULT_REPORT_ID, CONTROLLER_STATUS_ID)
 

@@ -5,7 +5,7 @@ The 1 kHz loop calls :meth:`RunRecorder.can_frame`, :meth:`RunRecorder.tick_valu
 (or the generic :meth:`RunRecorder.tick`) and :meth:`RunRecorder.event`.  Each packs
 the item into a preallocated batch buffer (no JSON, no I/O); every ``batch_ticks``
 ticks the batch goes to a pipe in one non-blocking ``write``.  The writer process
-(:mod:`rig.record_writer`) reads the pipe, encodes JSON, fills MCAP chunks
+(:mod:`rig.recording.writer`) reads the pipe, encodes JSON, fills MCAP chunks
 (``cfg.chunk_bytes``), flushes every finished chunk to the OS and rotates into numbered
 files (``rotate_bytes`` / ``rotate_seconds``).  A SIGKILL of the whole service loses at
 most the open chunk; a SIGKILL of the loop process alone loses at most the unsent batch:
@@ -48,17 +48,8 @@ from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader
 
 from controller.config import RecordingConfig
-from rig.mcap_schema import (
-    RECORDING_FORMAT_VERSION,
-    TOPIC_CAN_RX,
-    TOPIC_CAN_TX,
-    TOPIC_EVENTS,
-    TOPIC_INTERNALS,
-    TOPIC_SIGNALS,
-    TOPIC_TIMING,
-)
 from rig.output_paths import new_recording_problem, recording_file
-from rig.record_codec import (
+from rig.recording.codec import (
     FRAME_ERROR,
     FRAME_EXTENDED,
     FRAME_HEAD,
@@ -75,7 +66,16 @@ from rig.record_codec import (
     encode_layout,
     encode_pickled_tick,
 )
-from rig.record_segments import (
+from rig.recording.schema import (
+    RECORDING_FORMAT_VERSION,
+    TOPIC_CAN_RX,
+    TOPIC_CAN_TX,
+    TOPIC_EVENTS,
+    TOPIC_INTERNALS,
+    TOPIC_SIGNALS,
+    TOPIC_TIMING,
+)
+from rig.recording.segments import (
     SEGMENT_END_NAME,
     SegmentChain,
     SegmentEnd,
@@ -83,7 +83,7 @@ from rig.record_segments import (
     segment_path,
     tail_problem,
 )
-from rig.record_writer import (
+from rig.recording.writer import (
     CONFIG_ATTACHMENT,
     DESIGN_ATTACHMENT,
     METADATA_NAME,
@@ -216,8 +216,8 @@ class RunRecorder:
         self._retry: collections.deque[bytes] = collections.deque(maxlen=_EVENT_RETRY)
 
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "rig.record_writer"], stdin=subprocess.PIPE,
-            # cwd: where `-m rig.record_writer` finds this very copy of the package
+            [sys.executable, "-m", "rig.recording.writer"], stdin=subprocess.PIPE,
+            # cwd: where `-m rig.recording.writer` finds this very copy of the package
             stdout=subprocess.PIPE, cwd=Path(__file__).resolve().parents[1],
             start_new_session=True, text=False)
         assert self._proc.stdin is not None and self._proc.stdout is not None
@@ -593,7 +593,7 @@ def read_run(path: str | Path, *, follow_segments: bool = True) -> RunData:
     With ``follow_segments`` the run is read from its first segment on, segment by
     segment as each one's end record names the next, and a segment is used only when it
     belongs (same run id, next index, sequence numbers continuing,
-    :mod:`rig.record_segments`).  Reading stops at the first incomplete, damaged,
+    :mod:`rig.recording.segments`).  Reading stops at the first incomplete, damaged,
     missing or foreign segment, and ``stopped_at`` says which and what is missing.
     ``ValueError`` when ``path`` is a later segment of its run (read from the first)."""
     path = Path(path)

@@ -24,7 +24,7 @@ from typing import Any, Final
 import can
 
 from controller.config import CanConfig, ConfigError
-from rig.protocol import CONTROLLER_RX_IDS, FRAME_LENGTH, RIG_RX_IDS, FaultCode
+from rig.wire.protocol import CONTROLLER_RX_IDS, FRAME_LENGTH, RIG_RX_IDS, FaultCode
 
 __all__ = [
     "ROLES",

@@ -26,8 +26,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from controller.config import RigConfig
-from hil.plant import RigPlant
-from hil.sensors import SensorReading
+from hil.sim.plant import RigPlant
+from hil.sim.sensors import SensorReading
 
 __all__ = ["DEFAULT_GAINS", "TUNING_GRID", "TUNING_LIMITS", "SkyhookController",
            "SkyhookGains", "select_gains"]

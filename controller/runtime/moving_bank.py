@@ -70,7 +70,7 @@ and k = 3 would otherwise only ever move along the deflection axis), every probe
 the worst non-centre member is swapped for the next candidate in the centre's
 neighbour list (round robin over the next ``nprobe`` nearest).  A newly activated
 filter starts bumpless -- at its own equilibrium plus the blended deviation from
-equilibrium (:func:`controller.kernels.activate`) -- with the centre's smoothed q; at
+equilibrium (:func:`controller.runtime.kernels.activate`) -- with the centre's smoothed q; at
 touch-down the blend is the airborne filter's, so the returning on-ground filters start
 from the sentinel's deviation instead (an on-ground view; the airborne predictor's
 relative states have drifted).
@@ -84,7 +84,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from controller.kernels import (
+from controller.runtime.kernels import (
     F_BIAS,
     F_FORGET,
     F_GOFF,

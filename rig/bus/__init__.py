@@ -1,0 +1,2 @@
+"""python-can buses: opening SocketCAN / virtual / socket-pair buses, error
+classification."""

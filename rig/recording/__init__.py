@@ -1,0 +1,1 @@
+"""MCAP recording: schemas, the packed tick codec, the writer process, segments."""

@@ -1,0 +1,1 @@
+"""Test support: the plain-numpy reference bank, harnesses, fixtures."""
