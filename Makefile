@@ -21,6 +21,7 @@ test: $(STAMP)
 	bash scripts/ensure-debian-packages.sh
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports
 	$(PY) -m pytest -n 2 --timeout 600 -q
 	bash tests/socketcan/run.sh
 
@@ -33,6 +34,7 @@ socketcan: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports
 
 bench: $(STAMP)
 	$(PY) -m bench

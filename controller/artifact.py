@@ -23,8 +23,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.actuator import SERVO_MODEL_SIZE
-from controller.config import RigConfig, config_hash, config_to_toml, design_config_hash
-from controller.runtime.kernels import MAX_DELAY
+from controller.config import (
+    MAX_COMPUTE_DELAY_TICKS,
+    RigConfig,
+    config_hash,
+    config_to_toml,
+    design_config_hash,
+)
 
 __all__ = [
     "ARTIFACT_VERSION",
@@ -146,7 +151,7 @@ def _validate(d: Design) -> None:
             and np.all(np.isfinite(sm))):
         raise DesignMismatch(f"field 'servo_model' must be {SERVO_MODEL_SIZE} finite numbers")
     if not (0.0 <= sm[0] < 1.0 and sm[1] >= 0.0 and sm[2] > 0.0 and sm[3] > 0.0
-            and sm[4] == round(sm[4]) and 0 <= sm[4] <= MAX_DELAY
+            and sm[4] == round(sm[4]) and 0 <= sm[4] <= MAX_COMPUTE_DELAY_TICKS
             and sm[5] >= 0.0 and 0.0 < sm[6] <= 1.0 and sm[7] > 0.0 and 0.0 < sm[8] <= 1.0):
         raise DesignMismatch(f"field 'servo_model' out of range: {sm.tolist()}")
     for name, shape in _expected_shapes(d).items():

@@ -85,6 +85,11 @@ _short.maxstring = _short.maxother = 200
 _short.maxdict = 4
 
 
+#: largest ``design.compute_delay_ticks``: the runtime keeps this many pending spool
+#: commands in its buffers (controller.runtime.kernels)
+MAX_COMPUTE_DELAY_TICKS = 4
+
+
 class ConfigError(ValueError):
     """A configuration value is missing, unknown, of the wrong type or out of range."""
 
@@ -221,7 +226,7 @@ class DesignConfig:
                                  "linearised servo-valve/actuator under the PI's proportional "
                                  "path + compute delay; 'ideal' = force source (thesis Ch. II; "
                                  "fragile with the real actuator, docs/design.md section 7)")
-    compute_delay_ticks: int = _f(1, lo=0, hi=4,
+    compute_delay_ticks: int = _f(1, lo=0, hi=MAX_COMPUTE_DELAY_TICKS,
                                   doc="ticks from the sensor sample to the valve that the "
                                       "'hydraulic' design assumes (CAN loop: 0 or 1)")
 

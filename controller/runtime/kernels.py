@@ -40,6 +40,8 @@ from enum import IntEnum, IntFlag
 import numba as nb
 import numpy as np
 
+from controller.config import MAX_COMPUTE_DELAY_TICKS
+
 __all__ = ["Blending", "StepFlag"]
 
 
@@ -76,7 +78,7 @@ M_LB = 14           # (2) rows 0 / 1: bias-state gains (rattlespace / accelerati
 MAT_COLS = 16
 # --- vec columns
 V_D, V_FINV, V_LOGDET, V_KF, V_AIR, V_LLC, V_KA = 0, 2, 6, 7, 9, 10, 11
-MAX_DELAY = 4       # largest design.compute_delay_ticks the runtime supports
+MAX_DELAY = MAX_COMPUTE_DELAY_TICKS   # pending spool commands kept (design.compute_delay_ticks)
 VEC_COLS = V_KA + 3 + MAX_DELAY
 # --- st columns
 S_XPRIOR, S_XPOST, S_Q, S_W, S_P, S_U = 0, 4, 8, 9, 10, 11
