@@ -10,6 +10,7 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -463,6 +464,31 @@ def test_writer_behind_drops_whole_batches_keeps_events_and_counts(tmp_path: Pat
     assert [f.tick for f in run.frames] == list(range(n_ok))
     assert [r.tick for r in run.records] == list(range(n_ok))
     assert [(e.tick, e.detail) for e in run.events] == [(300, {"code": 3})]
+
+
+def test_close_waits_for_the_writer_instead_of_dropping_the_last_batch(
+        tmp_path: Path) -> None:
+    """The last batch holds the safe command of a stopping run: close() sends it even
+    when the pipe is full at that moment (it waits for the writer, which resumes)."""
+    path = tmp_path / "last.mcap"
+    rec = recorder(path, queue_size=16, pipe_bytes=4096)
+    os.kill(rec.pid, signal.SIGSTOP)      # the writer (started by this test) stops reading
+    resume = threading.Timer(0.5, os.kill, (rec.pid, signal.SIGCONT))
+    try:
+        k = 0
+        while rec.tick(k, {"tick": k}):   # fill the pipe
+            k += 1
+        dropped = rec.dropped
+        rec.can_frame(k + 1, k + 1, 0x080, b"\x00\x00", False)   # batched, not yet sent
+        resume.start()
+        rec.close()
+    except BaseException:
+        resume.cancel()
+        os.kill(rec.pid, signal.SIGCONT)
+        raise
+    assert rec.error is None and rec.dropped == dropped
+    run = read_run(path)
+    assert [(f.tick, f.arbitration_id) for f in run.frames][-1] == (k + 1, 0x080)
 
 
 def test_item_larger_than_the_pipe_is_sent_in_pieces(tmp_path: Path) -> None:

@@ -474,12 +474,16 @@ class RunRecorder:
         footer), wait for it (``timeout_s``).  Idempotent."""
         if self._closed:
             return
+        if not self._failed:
+            # the loop has stopped: the last batch (the safe command, the final events)
+            # waits for the writer instead of being dropped when the pipe is full
+            os.set_blocking(self._fd, True)
+            self.blocking = True
         self.flush()
         self._closed = True
         fd_ok = not self._failed
         if fd_ok:
             try:
-                os.set_blocking(self._fd, True)
                 for blob in self._retry:
                     self._write_all(blob)
                 self._retry.clear()
