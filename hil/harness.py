@@ -96,13 +96,8 @@ class RigHarness:
             raise
         self.result = HarnessResult()
         self._period_ns = self.service.loop.period_ns
-        self.service.loop.lifecycle.add_listener(self._on_transition)
-
-    def _on_transition(self, tr: Any) -> None:
-        from rig.wire.protocol import LifecycleState
-
-        if tr.state is LifecycleState.STOPPING:
-            self.rig.request_stop()
+        # the rig stops once the safe command is on the wire, not before: it must see it
+        self.service.after_shutdown_frames.append(self.rig.request_stop)
 
     @property
     def trace(self) -> RigTrace:

@@ -39,7 +39,7 @@ def rcfg(**kw: Any) -> RecordingConfig:
 
 def recorder(path: Path, **kw: Any) -> RunRecorder:
     opts = {k: kw.pop(k) for k in ("poll_s", "compression", "max_chunk_age_s", "pipe_bytes",
-                                   "tick_layout") if k in kw}
+                                   "tick_layout", "blocking") if k in kw}
     return RunRecorder(path, rcfg(**kw), config_toml=TOML, design_bytes=b"\x93NUMPY-design",
                        metadata={"operator": "test", "seed": 7}, **{"poll_s": 0.001, **opts})
 
@@ -530,10 +530,12 @@ def test_malformed_record_is_skipped_not_fatal(tmp_path: Path) -> None:
 
 
 def test_throughput_1khz_three_frames_one_record(tmp_path: Path) -> None:
-    """Recorder load of the 1 kHz loop: 3 frames + 1 record per tick.  Reported, with a
-    loose sanity bound only (timing goals live in bench/)."""
+    """Recorder load of the 1 kHz loop: 3 frames + 1 record per tick, everything written.
+    The figures are printed only (timing goals live in bench/): the recorder waits for
+    the writer here (``blocking``, as in offline replay), so a busy machine slows the
+    test down instead of dropping batches."""
     n = 3000
-    rec = recorder(tmp_path / "tp.mcap", poll_s=0.002)
+    rec = recorder(tmp_path / "tp.mcap", poll_s=0.002, blocking=True)
     records = [tick_record(k) for k in range(n)]
     t0 = time.perf_counter()
     cpu0 = time.thread_time()
@@ -551,8 +553,9 @@ def test_throughput_1khz_three_frames_one_record(tmp_path: Path) -> None:
           f"{n} ticks written in {total_s:.3f} s = {n / total_s:.0f} ticks/s "
           f"({100 * total_s / (n / 1000):.1f} % of real time at 1 kHz); "
           f"{size / n:.0f} B/tick zstd")
-    assert rec.dropped == 0 and len(read_run(rec.paths[0]).records) == n
-    assert n / total_s > 1000   # must at least keep up with 1 kHz
+    run = read_run(rec.paths[0])
+    assert rec.dropped == 0 and [r.tick for r in run.records] == list(range(n))
+    assert len(run.frames) == 3 * n
 
 
 @pytest.fixture(scope="module")

@@ -117,6 +117,8 @@ class Service:
         self.telemetry: Any = None
         self.loop: Any = None
         self._closed = False
+        #: called once the shutdown frames (safe valve command, SHUTDOWN report) are out
+        self.after_shutdown_frames: list[Callable[[], None]] = []
         try:
             self._build(cfg, opts, bus, notifier, metadata)
         except BaseException:
@@ -347,6 +349,11 @@ class Service:
         self._closed = True
         self.notifier.stopping(f"stopping: {self.exit_reason or 'close'}")
         self.loop.shutdown(self.exit_reason or "shutdown")
+        for callback in self.after_shutdown_frames:
+            try:
+                callback()
+            except Exception:
+                log.exception("after-shutdown callback")
         if self.telemetry is not None:
             self.telemetry.close()
         if self.recorder is not None:
