@@ -106,7 +106,7 @@ def run(quick: bool = False) -> list[dict[str, Any]]:
         ("fuzzy J=3", d3, Blending.FUZZY),
         ("fuzzy J=4 (default, +airborne)", d4, Blending.FUZZY),
         ("bayes J=3", d3, Blending.BAYES),
-        ("single (plain LQG)", d4, Blending.SINGLE),
+        ("single (plain LQG)", d4, Blending.LQG),
         ("moving 9x3+air=28, k=3", d27, Blending.MOVING),
     ]
     rows: list[dict[str, Any]] = []

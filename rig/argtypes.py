@@ -24,11 +24,12 @@ import argparse
 import dataclasses
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
 from controller.config import RigConfig
+from controller.modes import BANK_MODES
 from rig.output_paths import new_file_problem, output_dir_problem, recording_target_problem
 
 __all__ = [
@@ -37,6 +38,8 @@ __all__ = [
     "OneLineParser",
     "OutputFile",
     "active_config",
+    "add_controller_option",
+    "add_weights_option",
     "bind_config",
     "config_int",
     "config_real",
@@ -177,6 +180,36 @@ def weight_set(text: str) -> int:
     if not 1 <= value <= n:
         _fail(f"{text} is not a weight set; allowed {allowed}")
     return value
+
+
+def add_weights_option(parser: argparse.ArgumentParser, default: int | None) -> None:
+    """``--weights N`` as every subcommand spells it (``--weight-set`` is a hidden alias);
+    ``default`` None = the configuration's ``design.weight_set``."""
+    shown = "design.weight_set" if default is None else str(default)
+    parser.add_argument("--weights", type=weight_set, default=default, metavar="N",
+                        help=f"weight set, 1-based into design.weight_sets (default: {shown})")
+    parser.add_argument("--weight-set", dest="weights", type=weight_set,
+                        help=argparse.SUPPRESS)
+
+
+def _mode_name(text: str) -> str:
+    """Mode names are typed in lower case; ``single`` is the old name of ``lqg``."""
+    name = text.strip().lower()
+    return "lqg" if name == "single" else name
+
+
+def add_controller_option(parser: argparse.ArgumentParser, modes: Sequence[str],
+                          default: str, extra: Sequence[str] = ()) -> None:
+    """``--controller MODE`` with the mode names of :mod:`controller.modes` (``extra``: a
+    command's own values such as ``all``); where only bank modes are allowed (the
+    service) ``--blending`` stays a hidden alias."""
+    choices = (*modes, *extra)
+    parser.add_argument("--controller", type=_mode_name, default=default, choices=choices,
+                        metavar="MODE",
+                        help=f"controller mode: {', '.join(choices)} (default {default})")
+    if set(modes) <= set(BANK_MODES):
+        parser.add_argument("--blending", dest="controller", type=_mode_name,
+                            choices=choices, help=argparse.SUPPRESS)
 
 
 # ---------------------------------------------------------------------------- other values

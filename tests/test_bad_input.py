@@ -200,10 +200,13 @@ ARGUMENT_CASES: list[tuple[list[str], tuple[str, ...]]] = [
       for cmd in ("demo", "sim", "montecarlo", "hil") for v in ("1e300", "nan", "0", "-5")],
     # weight sets: 1..len(design.weight_sets)
     *[([cmd, opt, v], (opt, "allowed 1..2"))
-      for cmd, opt in (("demo", "--weight-set"), ("run", "--weight-set"),
+      for cmd, opt in (("demo", "--weights"), ("run", "--weights"), ("demo", "--weight-set"),
                        ("analyze", "--weights"), ("sim", "--weights"),
                        ("montecarlo", "--weights")) for v in ("0", "3", "one")],
-    (["demo", "--config", "{three_sets}", "--weight-set", "4"], ("allowed 1..3",)),
+    (["demo", "--config", "{three_sets}", "--weights", "4"], ("allowed 1..3",)),
+    # controller modes: the names of controller.modes
+    *[([cmd, "--controller", "kalman"], ("--controller", "invalid choice", "fuzzy"))
+      for cmd in ("demo", "run", "sim", "montecarlo")],
     # seeds: non-negative 64-bit
     *[([cmd, "--seed", v], ("--seed", "[0, 9223372036854775807]"))
       for cmd in ("demo", "sim", "montecarlo", "hil") for v in ("-1", str(2**64))],
@@ -409,7 +412,7 @@ def test_recorder_never_overwrites(files: dict[str, Path], tmp_path: Path) -> No
     # still about --duration
     (["run", "--interface", "socketcan", "--channel", "nosuchcan9", "--duration", "inf",
       "--no-record", "--no-telemetry"], "--duration: inf is not a finite number"),
-    (["demo", "--weight-set", "0"], "--weight-set: 0 is not a weight set"),
+    (["demo", "--weights", "0"], "--weights: 0 is not a weight set"),
     (["demo", "--speed", "1e300"], "--speed: 1e300 is out of range"),
     (["hil", "--config", "{utf8}"], "UTF-8"),
     (["design", "--config", "{nested}", "--out", "x.npz"], "nested at most"),

@@ -141,7 +141,7 @@ def test_kernel_matches_reference_on_default_noise_lift_off(default_design: Desi
     assert c["set_switches"] >= 2 and c["load_liftoffs"] >= 1
 
 
-@pytest.mark.parametrize("mode", [Blending.SINGLE, Blending.FUZZY])
+@pytest.mark.parametrize("mode", [Blending.LQG, Blending.FUZZY])
 def test_kernel_matches_reference_with_the_end_stop_guard_acting(mode: Blending) -> None:
     """An end-stop guard zone as wide as the travel (0.08 m): the guard scales the force
     on most ticks; kernel and reference agree on the force and on the factor."""
@@ -162,7 +162,7 @@ def test_kernel_matches_reference_across_mode_switches(smooth_design: Design,
                                                        smooth_cfg: RigConfig) -> None:
     meas = trajectory(smooth_cfg, 800, seed=8)
     rt, ref = BankRuntime(smooth_design), ReferenceBank(smooth_design)
-    order = [Blending.BAYES, Blending.SINGLE, Blending.MOVING, Blending.FUZZY]
+    order = [Blending.BAYES, Blending.LQG, Blending.MOVING, Blending.FUZZY]
     for k in range(800):
         if k % 200 == 199:
             rt.set_blending(order[k // 200])
@@ -180,7 +180,7 @@ def test_single_filter_matches_textbook_kalman_filter() -> None:
     kernel gives the same estimates, bias estimates and likelihood quotients."""
     cfg = smooth_road_config(filter_accel_bias_drift=1e-3, accel_mean_window_s=0.0)
     d = design_bank(cfg)
-    rt = BankRuntime(d, blending=Blending.SINGLE, cfg=cfg)
+    rt = BankRuntime(d, blending=Blending.LQG, cfg=cfg)
     j = rt.single_model
     md = design_models(cfg)[j]
     W = road_velocity_intensity(SMOOTH_SPEED, SMOOTH_GD)
@@ -235,8 +235,8 @@ def test_accelerometer_mean_removal_is_the_running_mean() -> None:
     cfg_on = smooth_road_config(accel_mean_window_s=window)
     cfg_off = smooth_road_config(accel_mean_window_s=0.0)
     d_on, d_off = design_bank(cfg_on), design_bank(cfg_off)
-    on = BankRuntime(d_on, blending=Blending.SINGLE, cfg=cfg_on)
-    off = BankRuntime(d_off, blending=Blending.SINGLE, cfg=cfg_off)
+    on = BankRuntime(d_on, blending=Blending.LQG, cfg=cfg_on)
+    off = BankRuntime(d_off, blending=Blending.LQG, cfg=cfg_off)
     meas = trajectory(cfg_on, 400, seed=12)
     bias = 0.3                                     # a sensor offset [m/s^2]
     a = meas["accel"] + bias
@@ -435,7 +435,7 @@ def test_no_allocation_per_tick(runtimes: dict[Blending, BankRuntime]) -> None:
 
 
 def test_default_single_model_is_nearest_static_deflection(default_design: Design) -> None:
-    rt = BankRuntime(default_design, blending=Blending.SINGLE)
+    rt = BankRuntime(default_design, blending=Blending.LQG)
     assert default_design.model_names[rt.single_model] == "x2_25mm"
     assert rt.active.sum() == 1 and rt.active[rt.single_model]
     with pytest.raises(ValueError, match="single_model"):

@@ -143,7 +143,7 @@ def test_force_loop_rejects_a_feedforward_for_another_rate() -> None:
 @pytest.fixture(scope="module")
 def bank_and_pi() -> tuple[BankRuntime, PIForceLoop]:
     cfg = CFG.replace(force_loop={"ki_per_ns": 0.0})   # the spool model has no integral
-    rt = BankRuntime(design_bank(cfg), blending=Blending.SINGLE, weight_set=1, cfg=cfg)
+    rt = BankRuntime(design_bank(cfg), blending=Blending.LQG, weight_set=1, cfg=cfg)
     return rt, PIForceLoop.from_config(cfg)
 
 

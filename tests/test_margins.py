@@ -136,7 +136,7 @@ def design() -> Design:
 
 
 def test_runtime_bank_is_the_linear_controller() -> None:
-    """The numba bank in SINGLE mode (nominal noise entry) equals the linear controller
+    """The numba bank in LQG mode (nominal noise entry) equals the linear controller
     block of the analysis sample by sample: Kalman filter, human filter, spool model with
     the flow feedforward and actuator gains (small inputs: no force or spool clipping, no
     bump stop; the feedforward's sqrt pressure law, linearised at zero load in the block,
@@ -151,7 +151,7 @@ def test_runtime_bank_is_the_linear_controller() -> None:
     servo = design.servo_model.copy()
     servo[7] = 1e300                          # stall force: sqrt(1 - F / stall) == 1
     design = dataclasses.replace(design, servo_model=servo)
-    rt = BankRuntime(design, blending=Blending.SINGLE, weight_set=2, cfg=cfg)
+    rt = BankRuntime(design, blending=Blending.LQG, weight_set=2, cfg=cfg)
     rt.set_road(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
     rt.reset()
     ctrl = runtime_controller_ss(md, loop_parts(cfg, md, SETS[1]), DT)

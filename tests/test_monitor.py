@@ -53,7 +53,7 @@ def test_false_alarm_rate_on_a_matched_plant() -> None:
                                                "estimator_false_alarm": 0.01,
                                                "estimator_window_s": 0.05})
     d = design_bank(cfg)
-    rt = BankRuntime(d, blending=Blending.SINGLE, cfg=cfg)
+    rt = BankRuntime(d, blending=Blending.LQG, cfg=cfg)
     n = 40_000
     meas = trajectory(cfg, n, seed=21)
     q = np.empty(n)

@@ -21,7 +21,7 @@ import pytest
 from controller.config import default_config
 from rig.recording.recorder import read_run
 from rig.rt.sdnotify import SdNotifier
-from rig.service.runner import Service, ServiceOptions, parse_blending
+from rig.service.runner import Service, ServiceOptions
 from rig.wire.protocol import FaultCode, LifecycleState
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -212,7 +212,3 @@ def test_command_handler_and_stop_event(design_path: Path) -> None:
     assert svc.loop.lifecycle.state is LifecycleState.STOPPING
 
 
-def test_parse_blending() -> None:
-    assert parse_blending("FUZZY") == 0 and parse_blending(3) == 3
-    with pytest.raises(ValueError, match="allowed"):
-        parse_blending("kalman")

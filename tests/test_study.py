@@ -173,12 +173,12 @@ def test_fullstate_force_is_the_lq_law() -> None:
 def test_fullstate_is_the_runtime_law_with_the_estimate_replaced(weight_set: int) -> None:
     """Second implementation of the single-LQG control law: fed the runtime's own
     posterior estimate (instead of the true state), FullStateLQ reproduces the force of
-    BankRuntime (SINGLE) tick by tick, actuator part included -- so full-state vs LQG in
+    BankRuntime (LQG) tick by tick, actuator part included -- so full-state vs LQG in
     the study differs by the estimate only."""
     from controller.runtime.bank import BankRuntime
     from controller.runtime.kernels import Blending
     design = cached_design(CFG)
-    rt = BankRuntime(design, blending=Blending.SINGLE, weight_set=weight_set, cfg=CFG)
+    rt = BankRuntime(design, blending=Blending.LQG, weight_set=weight_set, cfg=CFG)
     fs = FullStateLQ(design, CFG, weight_set)
     j = rt.single_model
     assert fs.model == j

@@ -752,7 +752,7 @@ def test_every_operator_command_end_to_end(port: int) -> None:
             True, {"command": "blending", "accepted": True, "result": "blending 1"})
         assert svc.runtime.blending == 1 and status()["blending"] == 1
         ok, body = cmd("blending", {"blending": "kalman"})
-        assert not ok and "allowed fuzzy, bayes, moving, single" in body["error"]
+        assert not ok and "allowed lqg, fuzzy, bayes, moving" in body["error"]
         assert cmd("weight_set", {"weight_set": 2})[0] and loop.weight_set == 2
         ok, body = cmd("weight_set", {"weight_set": 99})
         assert not ok and body["error"].startswith("weight_set:")

@@ -24,7 +24,7 @@ exponentially windowed q, so the best model always fires; "raw" = q_j, the thesi
 normalised over the contributing models (if none fires: ``no_fire_fallback``,
 "passive" = 0 N or "best_model" = min statistic, and ``StepFlag.NO_RULE_FIRED``); BAYES --
 MMAE probabilities (:mod:`controller.runtime.bayes`); MOVING -- fuzzy within the moving subset
-(:mod:`controller.runtime.moving_bank`); SINGLE -- one model, the plain LQG.  The blended force is
+(:mod:`controller.runtime.moving_bank`); LQG -- one model, the plain LQG.  The blended force is
 multiplied by the force authority of the estimator monitor (:mod:`controller.monitor`:
 the window sum of min q against its chi-square levels; DEGRADED ramps it to 0, re-arming
 ramps it back), then by the end-stop guard (:mod:`controller.stop_guard`: a force toward a
@@ -244,7 +244,7 @@ FloatArray = NDArray[np.float64]
 _FUZZY = int(Blending.FUZZY)
 _BAYES = int(Blending.BAYES)
 _MOVING = int(Blending.MOVING)
-_SINGLE = int(Blending.SINGLE)
+_LQG = int(Blending.LQG)
 _NONFINITE_INPUT = int(StepFlag.NONFINITE_INPUT)
 _NONFINITE_STATE = int(StepFlag.NONFINITE_STATE)
 _NO_RULE_FIRED = int(StepFlag.NO_RULE_FIRED)
@@ -482,7 +482,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             st[j, S_F] = f
             if blend == _BAYES:
                 w = st[j, S_P]
-            elif blend == _SINGLE:
+            elif blend == _LQG:
                 w = 1.0
             else:
                 w = f
@@ -579,7 +579,7 @@ def bank_configure(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.
     iv[I_MODE] = MODE_GROUND
     iv[I_SENTINEL] = -1
     single = iv[I_SINGLE]
-    if blend == _SINGLE:
+    if blend == _LQG:
         for j in range(J):
             if active[j] and j != single:
                 deactivate(j, st, active, iv)

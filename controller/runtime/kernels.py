@@ -35,23 +35,15 @@ Everything the kernels touch is preallocated here; the kernels allocate nothing.
 from __future__ import annotations
 
 import math
-from enum import IntEnum, IntFlag
+from enum import IntFlag
 
 import numba as nb
 import numpy as np
 
 from controller.config import MAX_COMPUTE_DELAY_TICKS
+from rig.wire.protocol import Blending
 
 __all__ = ["Blending", "StepFlag"]
-
-
-class Blending(IntEnum):
-    """How the bank's model forces are combined (values == DBC ``Blending``)."""
-
-    FUZZY = 0
-    BAYES = 1
-    MOVING = 2
-    SINGLE = 3
 
 
 class StepFlag(IntFlag):

@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from controller.config import RigConfig, config_hash
 from controller.metrics import compute_metrics
+from controller.modes import BANK_MODES, CONTROLLER_MODES
 from hil.sim.plant import PlantParams, RigPlant
 from hil.sim.roads import Road
 from hil.sim.sensors import SensorReading, SensorSuite
@@ -60,8 +61,8 @@ __all__ = ["BANK_CONTROLLERS", "CONTROLLERS", "DELAY_POINTS", "BankController",
 FloatArray = NDArray[np.float64]
 
 #: the bank modes :func:`simulate` runs (they need a design)
-BANK_CONTROLLERS = ("lqg", "fuzzy", "bayes", "moving")
-CONTROLLERS = ("passive", "zero-force", "skyhook", *BANK_CONTROLLERS)
+BANK_CONTROLLERS = tuple(BANK_MODES)
+CONTROLLERS = CONTROLLER_MODES
 #: where the loop delay sits: before the valve (the PI force loop runs on the controller
 #: side of the bus, inside the delay) or before a PI force loop local to the valve
 DELAY_POINTS = ("spool", "force_ref")
@@ -121,7 +122,7 @@ class BankController:
                  road: Road) -> None:
         from controller.runtime.bank import BankRuntime
         from controller.runtime.kernels import Blending, StepFlag
-        modes = {"lqg": Blending.SINGLE, "fuzzy": Blending.FUZZY, "bayes": Blending.BAYES,
+        modes = {"lqg": Blending.LQG, "fuzzy": Blending.FUZZY, "bayes": Blending.BAYES,
                  "moving": Blending.MOVING}
         if blending not in modes:
             raise ValueError(f"bank blending {blending!r}: allowed {sorted(modes)}")

@@ -27,6 +27,7 @@ import controller.runtime.bank
 import controller.runtime.force_loop  # noqa: F401
 from controller.config import RigConfig
 from controller.metrics import filter_signal, human_filter_tf
+from controller.modes import BANK_MODES
 from hil.sim.closed_loop import BankController, LoopController, cached_design, run_closed_loop
 from hil.sim.fullstate import FullStateLQ
 from hil.sim.plant import PlantParams
@@ -36,7 +37,9 @@ from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 __all__ = ["CONTROLLERS", "ROAD_BASE_RATE_HZ", "TRACE_DECIMATION", "Case", "case_config",
            "lq_cost", "make_controller", "run_case", "study_road"]
 
-CONTROLLERS = ("passive", "skyhook", "lqg", "fuzzy", "bayes", "moving", "fullstate")
+#: the study's controllers: the reference laws worth comparing, the bank modes of
+#: controller.modes, and the full-state LQ (the simulator's true-state reference)
+CONTROLLERS = ("passive", "skyhook", *BANK_MODES, "fullstate")
 ROAD_BASE_RATE_HZ = 4000.0
 TRACE_DECIMATION = 10
 

@@ -12,9 +12,7 @@ _KEYS = ("absorbed_power_ratio", "rattlespace_rms_ratio", "tire_deflection_rms_r
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--weights", type=argtypes.weight_set, default=None, metavar="N",
-                        help="weight set (1-based into design.weight_sets; "
-                             "default: design.weight_set)")
+    argtypes.add_weights_option(parser, None)
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
 
 

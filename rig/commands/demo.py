@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from controller.config import RigConfig, load_config
+from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
 
 SETTLE_S = 0.5     # skipped at the start of each half (start-up / switching transients)
@@ -58,11 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=argtypes.config_real("noise.nominal_speed_mps", "m/s"),
                    default=11.176, metavar="MPS",
                    help="vehicle speed [m/s] (default 11.176 = 25 mph)")
-    p.add_argument("--blending", default="fuzzy",
-                   choices=("fuzzy", "bayes", "moving", "single"))
-    p.add_argument("--weight-set", type=argtypes.weight_set, default=None, metavar="N",
-                   help="weight set, 1-based into design.weight_sets "
-                        "(default: design.weight_set)")
+    argtypes.add_controller_option(p, tuple(BANK_MODES), "fuzzy")
+    argtypes.add_weights_option(p, None)
     p.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     p.add_argument("--no-realtime", action="store_true", help="skip the real-time set-up")
     p.add_argument("--max-rearms", type=argtypes.integer(0, MAX_REARMS), default=10,
@@ -250,8 +248,8 @@ def run(args: argparse.Namespace) -> int:
             cfg, ServiceOptions(
                 duration_s=None, record=args.record,
                 recording=False if args.no_record else None,
-                telemetry=False if args.no_telemetry else None, blending=args.blending,
-                weight_set=args.weight_set, realtime=realtime,
+                telemetry=False if args.no_telemetry else None, controller=args.controller,
+                weights=args.weights, realtime=realtime,
                 timing_ring=2 * n_ticks + 10_000),
             RigProcessOptions(road=args.road, speed_mps=args.speed,
                               road_s=args.duration + 1.0, seed=args.seed,
@@ -328,7 +326,7 @@ def run(args: argparse.Namespace) -> int:
     active = _half_metrics(cfg, rig_trace, min(armed_at, n_done), n_done, late, step)
     summary: dict[str, Any] = {
         "duration_s": args.duration, "road": args.road, "speed_mps": args.speed,
-        "blending": args.blending, "weight_set": loop.weight_set,
+        "controller": args.controller, "weights": loop.weight_set,
         "armed_at_s": armed_at / rate if state["armed_at"] >= 0 else None,
         "passive": passive, "active": active,
         "ratios": {k: (active[k] / passive[k] if passive.get(k) else None)
@@ -352,7 +350,7 @@ def run(args: argparse.Namespace) -> int:
               f"{args.duration:g} s", file=sys.stderr)
     out = sys.stderr if args.json else sys.stdout
     print(f"\nrig demo: {args.road} at {args.speed} m/s, {args.duration:g} s "
-          f"(passive, then {args.blending} bank armed at "
+          f"(passive, then {args.controller} bank armed at "
           f"{summary['armed_at_s'] if summary['armed_at_s'] is not None else '-'} s)", file=out)
     print(_table(passive, active), file=out)
     for f in faults:

@@ -36,9 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
                                                     lo_open=True),
                    default=10.0, help="s per run (default 10)")
-    p.add_argument("--controller", default="fuzzy", choices=CONTROLLERS)
-    p.add_argument("--weights", type=argtypes.weight_set, default=1,
-                   help="weight set, 1-based into design.weight_sets (default 1)")
+    argtypes.add_controller_option(p, CONTROLLERS, "fuzzy")
+    argtypes.add_weights_option(p, 1)
     p.add_argument("--seed", type=argtypes.seed, default=1)
     p.add_argument("--workers", type=argtypes.integer(1, MAX_WORKERS), default=None,
                    help="processes (default: all cores)")

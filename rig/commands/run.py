@@ -16,6 +16,7 @@ from pathlib import Path
 import can
 
 from controller.config import load_config
+from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
 
 
@@ -36,11 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(a recording is never overwritten)")
     p.add_argument("--no-record", action="store_true", help="do not record")
     p.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
-    p.add_argument("--blending", default="fuzzy",
-                   choices=("fuzzy", "bayes", "moving", "single"))
-    p.add_argument("--weight-set", type=argtypes.weight_set, default=None, metavar="N",
-                   help="weight set, 1-based into design.weight_sets "
-                        "(default: design.weight_set)")
+    argtypes.add_controller_option(p, tuple(BANK_MODES), "fuzzy")
+    argtypes.add_weights_option(p, None)
     p.add_argument("--no-realtime", action="store_true",
                    help="skip the real-time set-up (SCHED_FIFO, mlockall, gc freeze...)")
     p.add_argument("--rt-priority", type=argtypes.rt_priority, default=50, metavar="P",
@@ -69,8 +67,8 @@ def run(args: argparse.Namespace) -> int:
         design_path=args.design, interface=args.interface, channel=args.channel,
         arm=args.arm, duration_s=args.duration, record=args.record,
         recording=False if args.no_record else None,
-        telemetry=False if args.no_telemetry else None, blending=args.blending,
-        weight_set=args.weight_set, realtime=rt)
+        telemetry=False if args.no_telemetry else None, controller=args.controller,
+        weights=args.weights, realtime=rt)
     try:
         service = Service(cfg, opts, stop=stop)
     except StopRequested as exc:

@@ -45,9 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
                                                     lo_open=True),
                    default=20.0, help=f"s (default 20, at most {argtypes.MAX_OFFLINE_S:g})")
-    p.add_argument("--controller", default="fuzzy", choices=(*CONTROLLERS, "all"))
-    p.add_argument("--weights", type=argtypes.weight_set, default=1,
-                   help="weight set, 1-based into design.weight_sets (default 1)")
+    argtypes.add_controller_option(p, CONTROLLERS, "fuzzy", extra=("all",))
+    argtypes.add_weights_option(p, 1)
     p.add_argument("--seed", type=argtypes.seed, default=1, help="road and sensor-noise seed")
     p.add_argument("--delay", type=argtypes.integer(0, MAX_DELAY_TICKS, "ticks"), default=0,
                    metavar="TICKS", help=f"loop delay (0..{MAX_DELAY_TICKS})")

@@ -34,6 +34,7 @@ from typing import Any
 import can
 
 from controller.config import RigConfig, config_hash, config_to_toml
+from controller.modes import blending_of
 from rig.rt.realtime import (
     RealtimeReport,
     RealtimeRequest,
@@ -45,22 +46,9 @@ from rig.rt.sdnotify import SdNotifier
 from rig.rt.stop_signals import StopSignals
 from rig.service.loop import ControlLoop
 
-__all__ = ["BLENDING_NAMES", "Service", "ServiceOptions", "design_bytes", "parse_blending"]
+__all__ = ["Service", "ServiceOptions", "design_bytes"]
 
 log = logging.getLogger(__name__)
-
-BLENDING_NAMES = ("fuzzy", "bayes", "moving", "single")
-
-
-def parse_blending(value: str | int) -> int:
-    """'fuzzy' / 'FUZZY' / 0 -> 0 ...; ValueError names the allowed values."""
-    if isinstance(value, int) and not isinstance(value, bool):
-        if 0 <= value < len(BLENDING_NAMES):
-            return value
-    elif isinstance(value, str) and value.lower() in BLENDING_NAMES:
-        return BLENDING_NAMES.index(value.lower())
-    raise ValueError(f"blending {value!r}: allowed {', '.join(BLENDING_NAMES)} or 0..3")
-
 
 @dataclass(frozen=True)
 class ServiceOptions:
@@ -73,8 +61,8 @@ class ServiceOptions:
     record: str | None = None             # directory or .mcap path; None = cfg.recording
     recording: bool | None = None         # None = cfg.recording.enabled
     telemetry: bool | None = None         # None = cfg.telemetry.enabled
-    blending: str | int = "fuzzy"
-    weight_set: int | None = None         # None = cfg.design.weight_set
+    controller: str = "fuzzy"             # a bank mode of controller.modes
+    weights: int | None = None            # weight set, 1-based; None = cfg.design.weight_set
     realtime: RealtimeRequest | None = field(default_factory=RealtimeRequest)  # None = none
     install_signal_handlers: bool = True  # in run(), unless Service(stop=...) was given
     timing_ring: int = 1 << 16            # per-tick timing samples kept (ring buffer)
@@ -151,8 +139,8 @@ class Service:
             self.design_blob = design_bytes(self.design)
             log.info("bank designed at start in %.1f s", time.monotonic() - t0)
         self._check_stop()
-        blending = parse_blending(opts.blending)
-        weight_set = cfg.design.weight_set if opts.weight_set is None else opts.weight_set
+        blending = int(blending_of(opts.controller))
+        weight_set = cfg.design.weight_set if opts.weights is None else opts.weights
         warmup_ticks = round(0.05 * cfg.design.sample_rate_hz)   # ControlLoop's default
         self.runtime = BankRuntime(self.design, blending=blending, weight_set=weight_set,
                                    cfg=cfg)
@@ -266,7 +254,7 @@ class Service:
         if name == "weight_set":
             arg = int(args["weight_set"])
         elif name == "blending":
-            arg = parse_blending(args["blending"])
+            arg = int(blending_of(args["blending"]))
         elif name == "road":
             arg = (float(args["speed_mps"]), float(args["roughness_gd"]))
         res = self.loop.request(name, arg, timeout_s=self.command_timeout_s)

@@ -44,6 +44,7 @@ __all__ = [
     "SENSOR_DATA_ID",
     "VALVE_COMMAND",
     "VALVE_COMMAND_ID",
+    "Blending",
     "ControllerStatus",
     "ControllerStatusCodec",
     "CounterMonitor",
@@ -152,6 +153,16 @@ _FAULT_DESCRIPTIONS: Final[dict[FaultCode, str]] = {
 }
 
 
+class Blending(IntEnum):
+    """DBC ``VAL_ 768 Blending``: how the bank's model forces are combined.  The names
+    users type for these modes live in :mod:`controller.modes`."""
+
+    FUZZY = 0
+    BAYES = 1
+    MOVING = 2
+    LQG = 3
+
+
 class LifecycleState(IntEnum):
     """DBC ``VAL_ ... Lifecycle / FaultState / State``."""
 
@@ -193,7 +204,7 @@ class SignalSpec(NamedTuple):
 
 _LIFECYCLE_VALUES: Final = frozenset(int(v) for v in LifecycleState)
 _FAULT_VALUES: Final = frozenset(int(v) for v in FaultCode)
-_BLENDING_VALUES: Final = frozenset(range(4))
+_BLENDING_VALUES: Final = frozenset(int(v) for v in Blending)
 _SPOOL_SCALE: Final = 3.05185094759972e-05  # 1/32767 as written in the DBC
 _OK, _BAD_LENGTH, _UNKNOWN_ID, _BAD_CRC, _OUT_OF_RANGE = (
     DecodeStatus.OK, DecodeStatus.BAD_LENGTH, DecodeStatus.UNKNOWN_ID, DecodeStatus.BAD_CRC,

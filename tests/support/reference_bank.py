@@ -194,7 +194,7 @@ class ReferenceBank:
         self.blending = b
         self.mode_air = False
         self.sentinel = -1
-        if b == Blending.SINGLE:
+        if b == Blending.LQG:
             for j in range(self.J):
                 if self.active[j] and j != self.single:
                     self._deactivate(j)
@@ -299,7 +299,7 @@ class ReferenceBank:
         self.f = np.where(contrib, f, 0.0)
         if self.blending == Blending.BAYES:
             w = self.p.copy()
-        elif self.blending == Blending.SINGLE:
+        elif self.blending == Blending.LQG:
             w = contrib.astype(float)
         else:
             w = self.f.copy()
