@@ -75,9 +75,9 @@ def test_accelerometer_bandwidth_is_the_minus_3db_point() -> None:
 
 
 @pytest.mark.parametrize(("idx", "bit", "value", "limit"), [
-    (0, SensorStatus.LVDT, 0.5, CFG.sensors.lvdt_range_m),
-    (1, SensorStatus.LOAD_CELL, -1e5, CFG.sensors.load_cell_range_n),
-    (2, SensorStatus.ACCEL, 1e4, CFG.sensors.accel_range_mps2),
+    (0, SensorStatus.LVDT_FAULT, 0.5, CFG.sensors.lvdt_range_m),
+    (1, SensorStatus.LOAD_CELL_FAULT, -1e5, CFG.sensors.load_cell_range_n),
+    (2, SensorStatus.ACCEL_FAULT, 1e4, CFG.sensors.accel_range_mps2),
 ])
 def test_clipping_sets_status(idx: int, bit: SensorStatus, value: float, limit: float) -> None:
     s = _suite(sensors={"accel_bandwidth_hz": 1e5})

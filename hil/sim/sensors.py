@@ -21,23 +21,16 @@ same order, so equal seeds give bit-identical readings.
 from __future__ import annotations
 
 import math
-from enum import IntFlag
 from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from controller.config import NoiseConfig, SensorConfig
+from rig.wire.protocol import SensorStatus
 
 __all__ = ["BLOCK", "SensorReading", "SensorStatus", "SensorSuite", "TrueSignalSource"]
 
 BLOCK = 1024
-
-
-class SensorStatus(IntFlag):
-    OK = 0
-    LVDT = 1
-    LOAD_CELL = 2
-    ACCEL = 4
 
 
 class SensorReading(NamedTuple):
@@ -120,12 +113,12 @@ class SensorSuite:
         if s.lvdt_resolution_m > 0.0 and math.isfinite(r):
             r = s.lvdt_resolution_m * round(r / s.lvdt_resolution_m)
         r, bad = _clip(r, s.lvdt_range_m)
-        status |= SensorStatus.LVDT if bad else 0
+        status |= SensorStatus.LVDT_FAULT if bad else 0
         f, bad = _clip(force_n + s.load_cell_offset_n + n_f, s.load_cell_range_n)
-        status |= SensorStatus.LOAD_CELL if bad else 0
+        status |= SensorStatus.LOAD_CELL_FAULT if bad else 0
         a, bad = _clip(self.accel_filter(accel_mps2 + s.accel_bias_mps2) + n_a,
                        s.accel_range_mps2)
-        status |= SensorStatus.ACCEL if bad else 0
+        status |= SensorStatus.ACCEL_FAULT if bad else 0
         return SensorReading(r, f, a, int(status))
 
     def read(self, plant: TrueSignalSource) -> SensorReading:

@@ -49,6 +49,7 @@ from mcap.stream_reader import StreamReader
 
 from controller.config import RecordingConfig
 from rig.output_paths import new_recording_problem, recording_file
+from rig.recording import schema
 from rig.recording.codec import (
     FRAME_ERROR,
     FRAME_EXTENDED,
@@ -66,15 +67,7 @@ from rig.recording.codec import (
     encode_layout,
     encode_pickled_tick,
 )
-from rig.recording.schema import (
-    RECORDING_FORMAT_VERSION,
-    TOPIC_CAN_RX,
-    TOPIC_CAN_TX,
-    TOPIC_EVENTS,
-    TOPIC_INTERNALS,
-    TOPIC_SIGNALS,
-    TOPIC_TIMING,
-)
+from rig.recording.schema import RECORDING_FORMAT_VERSION
 from rig.recording.segments import (
     SEGMENT_END_NAME,
     SegmentChain,
@@ -105,7 +98,7 @@ __all__ = [
     "segment_paths",
 ]
 
-_RECORD_TOPICS = (TOPIC_SIGNALS, TOPIC_INTERNALS, TOPIC_TIMING)
+_RECORD_TOPICS = (schema.TOPIC_SIGNALS, schema.TOPIC_INTERNALS, schema.TOPIC_TIMING)
 _EVENT_RETRY = 1024        # events of dropped batches kept back for the next batch
 _KEPT_BACK = frozenset({ITEM_EVENT, ITEM_LAYOUT})
 _BATCH_BYTES = 1 << 16     # batch buffer; a fuller one is flushed before the next item
@@ -701,14 +694,14 @@ def _read_segment(path: Path, run: RunData, index: int, *, chain: SegmentChain |
                         last_rec = (rec.sequence, msg)
                         parts[:] = [int(msg.pop(PARTS_KEY, 1)), 1]
                         run.records.append(TickRecord(index, msg["t_ns"], msg["tick"], msg))
-                    elif topic in (TOPIC_CAN_RX, TOPIC_CAN_TX):
+                    elif topic in (schema.TOPIC_CAN_RX, schema.TOPIC_CAN_TX):
                         last_rec = None
                         run.frames.append(CanFrameRecord(
                             index, msg["t_ns"], msg["tick"], msg["id"],
-                            bytes.fromhex(msg["data"]), topic == TOPIC_CAN_RX,
+                            bytes.fromhex(msg["data"]), topic == schema.TOPIC_CAN_RX,
                             bool(msg.get("error_frame", False)),
                             bool(msg.get("extended_id", False))))
-                    elif topic == TOPIC_EVENTS:
+                    elif topic == schema.TOPIC_EVENTS:
                         last_rec = None
                         run.events.append(EventRecord(index, msg["t_ns"], msg["tick"],
                                                       msg["kind"], msg["detail"]))

@@ -32,6 +32,7 @@ from typing import IO, Any
 
 from mcap.writer import CompressionType, Writer
 
+from rig.recording import schema
 from rig.recording.codec import (
     FRAME_ERROR,
     FRAME_EXTENDED,
@@ -49,12 +50,6 @@ from rig.recording.schema import (
     SCHEMA_ENCODING,
     SIGNAL_KEYS,
     TIMING_KEYS,
-    TOPIC_CAN_RX,
-    TOPIC_CAN_TX,
-    TOPIC_EVENTS,
-    TOPIC_INTERNALS,
-    TOPIC_SIGNALS,
-    TOPIC_TIMING,
     TOPICS,
     encode_json,
     schema_bytes,
@@ -127,9 +122,9 @@ class McapRunSink:
             writer.add_attachment(now, now, DESIGN_ATTACHMENT, "application/octet-stream",
                                   self._design)
         self._channels = {}
-        for topic, schema in TOPICS.items():
-            sid = writer.register_schema(schema["title"], SCHEMA_ENCODING,
-                                         schema_bytes(schema))
+        for topic, topic_schema in TOPICS.items():
+            sid = writer.register_schema(topic_schema["title"], SCHEMA_ENCODING,
+                                         schema_bytes(topic_schema))
             self._channels[topic] = writer.register_channel(topic, MESSAGE_ENCODING, sid)
         stream.flush()
         self.paths.append(path)
@@ -220,7 +215,7 @@ class McapRunSink:
                 extra += b',"extended_id":true'
             payload = b'{"tick":%d,"t_ns":%d,"id":%d,"data":"%s","dlc":%d%s}' % (
                 tick, t_ns, arb, data.hex().encode(), len(data), extra)
-            ch = self._channels[TOPIC_CAN_RX if flags & FRAME_RX else TOPIC_CAN_TX]
+            ch = self._channels[schema.TOPIC_CAN_RX if flags & FRAME_RX else schema.TOPIC_CAN_TX]
             w.add_message(ch, log_time, payload, log_time, seq)
         elif kind == "tick":
             record: Mapping[str, Any] = item[2]
@@ -235,9 +230,9 @@ class McapRunSink:
                     tim[k] = v
                 elif k not in _RESERVED:
                     intl[k] = v
-            parts = [(TOPIC_SIGNALS, sig)]
-            parts += [(t, m) for t, m in ((TOPIC_INTERNALS, intl), (TOPIC_TIMING, tim))
-                      if len(m) > 2]
+            parts = [(schema.TOPIC_SIGNALS, sig)]
+            parts += [(t, m) for t, m in ((schema.TOPIC_INTERNALS, intl),
+                                          (schema.TOPIC_TIMING, tim)) if len(m) > 2]
             sig[PARTS_KEY] = len(parts)   # lets a reader spot a record torn by a crash
             encoded = [(topic, encode_json(msg)) for topic, msg in parts]
             for topic, blob in encoded:
@@ -251,7 +246,7 @@ class McapRunSink:
                 detail = str(detail)
             msg = {"tick": int(tick), "t_ns": t_ns, "kind": kind_s,
                    "detail": dict(detail) if isinstance(detail, Mapping) else detail}
-            w.add_message(self._channels[TOPIC_EVENTS], log_time, encode_json(msg),
+            w.add_message(self._channels[schema.TOPIC_EVENTS], log_time, encode_json(msg),
                           log_time, seq)
         else:
             raise ValueError(f"unknown item {kind!r}")

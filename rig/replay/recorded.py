@@ -26,15 +26,8 @@ from numpy.typing import NDArray
 
 from controller.artifact import Design, DesignMismatch, load_design
 from controller.config import RigConfig, parse_config
+from rig.recording import schema
 from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
-from rig.recording.schema import (
-    TOPIC_CAN_RX,
-    TOPIC_CAN_TX,
-    TOPIC_EVENTS,
-    TOPIC_INTERNALS,
-    TOPIC_SIGNALS,
-    TOPIC_TIMING,
-)
 from rig.replay.bus_faults import BusFault, SendAttempts, bus_fault_of
 from rig.replay.scan import Handler, RecordingError, ScanResult, scan_recording
 
@@ -262,9 +255,9 @@ class RunDecoder:
         self._attempts = SendAttempts()
 
     def handlers(self) -> dict[str, Handler]:
-        return {TOPIC_SIGNALS: self.sig, TOPIC_TIMING: self.tim,
-                TOPIC_INTERNALS: self._on_internals, TOPIC_CAN_RX: self.rx,
-                TOPIC_CAN_TX: self.tx, TOPIC_EVENTS: self.events}
+        return {schema.TOPIC_SIGNALS: self.sig, schema.TOPIC_TIMING: self.tim,
+                schema.TOPIC_INTERNALS: self._on_internals, schema.TOPIC_CAN_RX: self.rx,
+                schema.TOPIC_CAN_TX: self.tx, schema.TOPIC_EVENTS: self.events}
 
     def _on_internals(self, joined: bytes, seqs: NDArray[np.uint32]) -> None:
         if self.first is None and joined:
