@@ -3,7 +3,7 @@
 ``run() -> list[dict]``: one row per frame type and direction with the median time per
 frame over several batches.  Ours includes the E2E CRC (compute on encode, check on
 decode) and the range checks; cantools' encode is timed without computing the CRC (it
-has none), so the ratio understates our advantage.  ``python bench/codec_bench.py``
+has none), so the ratio understates our advantage.  ``python -m bench.codec_bench``
 prints the table.
 """
 
@@ -15,13 +15,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cantools
+
+from rig.wire.protocol import CODECS
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # runnable as a script
-    sys.path.insert(0, str(ROOT))
-
-import cantools  # noqa: E402
-
-from rig.wire.protocol import CODECS  # noqa: E402
 
 NAME = "codec"
 TITLE = "CAN codec: rig.wire.protocol vs cantools, median per frame"

@@ -1,5 +1,7 @@
 """Controller step time: ``BankRuntime.step`` per tick, as the 1 kHz loop calls it.
 
+ROOT = Path(__file__).resolve().parents[1]
+
 Each case times many single steps with ``time.perf_counter_ns`` around each call (after
 a warm-up, garbage collector disabled during the run) and reports the median, p99 and
 p99.9 in microseconds, plus the kernel-only mean (the same steps called from a compiled
@@ -10,7 +12,7 @@ Cases: fuzzy J=3 (the thesis's three deflections, no airborne model), fuzzy J=4 
 default design, with the airborne model), Bayes J=3, single (plain LQG), and a 9 x 3
 grid + airborne (28 models) run as a moving bank with k = 3.  The goal is a median
 below 10 us and p99.9 below 50 us for fuzzy J=3, and the 28-model moving bank within
-1.3x of fuzzy J=3.  ``python bench/controller_bench.py [--quick]`` prints the table.
+1.3x of fuzzy J=3.  ``python -m bench.controller_bench [--quick]`` prints the table.
 """
 
 from __future__ import annotations
@@ -19,36 +21,21 @@ import gc
 import math
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # runnable as a script
-    sys.path.insert(0, str(ROOT))
+import numpy as np
 
-import numba as nb  # noqa: E402
-import numpy as np  # noqa: E402
-
-from controller.config import RigConfig, default_config  # noqa: E402
-from controller.design import design_bank  # noqa: E402
-from controller.road_noise import road_velocity_intensity  # noqa: E402
-from controller.runtime.bank import BankRuntime, Blending, bank_step  # noqa: E402
-from tests.support.reference_bank import quarter_car_measurements  # noqa: E402
+from controller.config import RigConfig, default_config
+from controller.design import design_bank
+from controller.road_noise import road_velocity_intensity
+from controller.runtime.bank import BankRuntime, Blending, bank_steps
+from tests.support.reference_bank import quarter_car_measurements
 
 NAME = "controller"
 TITLE = "Controller step (BankRuntime.step, one call per tick), microseconds"
 
 GRID_DEFLECTIONS_M = [0.045, 0.04, 0.035, 0.03, 0.025, 0.02, 0.015, 0.01, 0.005]
 GRID_DAMPING_SCALES = [0.5, 1.0, 2.0]
-
-
-@nb.njit(nogil=True)          # not cached: it compiles bank_step in
-def _kernel_loop(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
-                 fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, data: np.ndarray) -> float:
-    acc = 0.0
-    for k in range(data.shape[0]):
-        acc += bank_step(mat, vec, st, active, fv, iv, nbr, data[k, 0], data[k, 1], data[k, 2])
-    return acc
 
 
 def _inputs(cfg: RigConfig, n: int, seed: int = 1) -> np.ndarray:
@@ -82,10 +69,10 @@ def _time_case(rt: BankRuntime, data: np.ndarray) -> dict[str, float]:
             gc.enable()
     rt.reset()
     args = (rt._mat, rt._vec, rt._st, rt._active, rt._fv, rt._iv, rt._nbr)
-    _kernel_loop(*args, data[:10])
+    bank_steps(*args, data[:10])
     rt.reset()
     t0 = time.perf_counter_ns()
-    _kernel_loop(*args, data)
+    bank_steps(*args, data)
     kernel_ns = (time.perf_counter_ns() - t0) / len(rows)
     us = times / 1000.0
     return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),

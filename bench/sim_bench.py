@@ -2,7 +2,7 @@
 
 ``run() -> list[dict]``: one row per item with the median over repeats: microseconds per
 1 ms tick and the real-time factor (simulated seconds per wall-clock second) at 1 kHz
-control.  The goal is >= 20x real time for every controller.  ``python bench/sim_bench.py``
+control.  The goal is >= 20x real time for every controller.  ``python -m bench.sim_bench``
 prints the table (``--quick`` for a short run).
 """
 
@@ -14,15 +14,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # runnable as a script
-    sys.path.insert(0, str(ROOT))
+from controller.config import default_config
+from hil.sim.closed_loop import CONTROLLERS, cached_design, simulate
+from hil.sim.plant import RigPlant
+from hil.sim.roads import make_road
+from hil.sim.sensors import SensorSuite
 
-from controller.config import default_config  # noqa: E402
-from hil.sim.closed_loop import CONTROLLERS, cached_design, simulate  # noqa: E402
-from hil.sim.plant import RigPlant  # noqa: E402
-from hil.sim.roads import make_road  # noqa: E402
-from hil.sim.sensors import SensorSuite  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 NAME = "sim"
 TITLE = "Emulated rig: per-tick cost and offline real-time factor at 1 kHz (median)"

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 import tracemalloc
 
-import numba as nb
 import numpy as np
 import pytest
 import scipy.linalg
@@ -18,7 +17,14 @@ from controller.artifact import Design
 from controller.config import RigConfig, default_config
 from controller.design import design_bank, design_models, measurement_noise_cov
 from controller.road_noise import road_velocity_intensity
-from controller.runtime.bank import BankRuntime, Blending, StepFlag, bank_step, config_of
+from controller.runtime.bank import (
+    BankRuntime,
+    Blending,
+    StepFlag,
+    bank_step,
+    bank_steps,
+    config_of,
+)
 from controller.runtime.kernels import MEAS_DIM, QS_INIT
 from tests.support.reference_bank import ReferenceBank, quarter_car_measurements
 
@@ -384,15 +390,6 @@ def test_huge_inputs_flag_nonfinite_state_and_recover(smooth_design: Design) -> 
     assert not (rt.flags & (StepFlag.NONFINITE_STATE | StepFlag.DIVERGED))
 
 
-@nb.njit
-def _drive(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
-           fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, data: np.ndarray) -> float:
-    acc = 0.0
-    for k in range(data.shape[0]):
-        acc += bank_step(mat, vec, st, active, fv, iv, nbr, data[k, 0], data[k, 1], data[k, 2])
-    return acc
-
-
 def test_no_allocation_per_tick(runtimes: dict[Blending, BankRuntime]) -> None:
     """The kernel allocates nothing (numba NRT statistics over 10k ticks called from
     compiled code); through ``step`` the Python heap does not grow (tracemalloc) and
@@ -407,11 +404,11 @@ def test_no_allocation_per_tick(runtimes: dict[Blending, BankRuntime]) -> None:
     for mode, rt in runtimes.items():
         rt.reset()
         args = (rt._mat, rt._vec, rt._st, rt._active, rt._fv, rt._iv, rt._nbr)
-        _drive(*args, data[:10])
+        bank_steps(*args, data[:10])
         deltas = []
         for n in (10, 10_000):
             s0 = rtsys.get_allocation_stats()
-            _drive(*args, data[:n])
+            bank_steps(*args, data[:n])
             s1 = rtsys.get_allocation_stats()
             deltas.append(s1.alloc - s0.alloc)
         assert deltas[0] == deltas[1], (mode, deltas)       # nothing per tick
