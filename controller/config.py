@@ -35,6 +35,7 @@ __all__ = [
     "MAX_CONFIG_BYTES",
     "MAX_LIST_LEN",
     "ActuatorConfig",
+    "BayesConfig",
     "CanConfig",
     "ConfigError",
     "DesignConfig",
@@ -280,6 +281,15 @@ class FuzzyConfig:
 
 
 @dataclass(frozen=True)
+class BayesConfig:
+    """Bayesian MMAE blending (``--controller bayes``)."""
+
+    probability_floor: float = _f(1e-4, lo=0.0, hi=0.5, lo_open=True,
+                                  doc="lowest model probability, so a model can come back "
+                                      "(must be below 1/J for a bank of J models)")
+
+
+@dataclass(frozen=True)
 class MovingBankConfig:
     """Ch. VI: on-ground / airborne sets, switched on tire-load CUSUMs and residual thresholds.
 
@@ -305,6 +315,8 @@ class MovingBankConfig:
                                        doc="difference step of the model-free tire-load "
                                            "estimate (LVDT second difference): longer = "
                                            "less noise, more lag")
+    probe_period_s: float = _f(0.05, lo=0.0, hi=10.0, lo_open=True,
+                               doc="how often the probe slot tries the next neighbour model")
 
 
 @dataclass(frozen=True)
@@ -377,6 +389,8 @@ class SensorConfig:
 
 @dataclass(frozen=True)
 class SafetyConfig:
+    arm_warmup_s: float = _f(0.05, lo=0.0, hi=60.0,
+                             doc="good sensor ticks the estimator needs before arming")
     stale_ticks: int = _f(2, lo=1, hi=1000, doc="sensor frame missing for more ticks = fault")
     overrun_streak: int = _f(5, lo=1, hi=100000)
     overrun_threshold_s: float = _f(0.0005, lo=0.0, hi=1.0, lo_open=True,
@@ -447,6 +461,10 @@ class RecordingConfig:
     rotate_seconds: float = _f(3600.0, lo=1.0, hi=1e7)
     chunk_bytes: int = _f(256 * 1024, lo=1024, hi=2**30)
     queue_size: int = _f(65536, lo=16, hi=10_000_000)
+    batch_ticks: int = _f(8, lo=1, hi=1000,
+                          doc="ticks whose records go to the writer process in one write "
+                              "(fewer system calls on the loop thread; a dropped batch loses "
+                              "that many ticks)")
 
 
 @dataclass(frozen=True)
@@ -456,6 +474,7 @@ class RigConfig:
     design: DesignConfig = field(default_factory=DesignConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
+    bayes: BayesConfig = field(default_factory=BayesConfig)
     moving_bank: MovingBankConfig = field(default_factory=MovingBankConfig)
     force_loop: ForceLoopConfig = field(default_factory=ForceLoopConfig)
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
@@ -779,7 +798,7 @@ def config_hash(cfg: RigConfig) -> str:
 #: the sections a design artifact depends on (controller.design and what it calls read
 #: vehicle, tire, design, noise, fuzzy, actuator and force_loop; moving_bank shapes the
 #: bank built from the artifact).  sensors/safety/can/telemetry/recording do not.
-DESIGN_SECTIONS: tuple[str, ...] = ("vehicle", "tire", "design", "noise", "fuzzy",
+DESIGN_SECTIONS: tuple[str, ...] = ("vehicle", "tire", "design", "noise", "fuzzy", "bayes",
                                     "moving_bank", "force_loop", "actuator")
 
 

@@ -101,9 +101,12 @@ def _compare(rt: BankRuntime, ref: ReferenceBank, out: float, out_ref: float, k:
 
 
 def _run_pair(design: Design, cfg: RigConfig, mode: Blending, meas: dict[str, np.ndarray],
-              junk_seed: int, **kw: object) -> tuple[BankRuntime, ReferenceBank]:
-    rt = BankRuntime(design, blending=mode, **kw)  # type: ignore[arg-type]
-    ref = ReferenceBank(design, blending=mode, **kw)  # type: ignore[arg-type]
+              junk_seed: int, bank_cfg: RigConfig | None = None
+              ) -> tuple[BankRuntime, ReferenceBank]:
+    """The kernel and the reference bank side by side (``bank_cfg``: run-time settings
+    other than the design's)."""
+    rt = BankRuntime(design, blending=mode, cfg=bank_cfg)
+    ref = ReferenceBank(design, blending=mode, cfg=bank_cfg)
     rng = np.random.default_rng(junk_seed)
     n = meas["accel"].size
     for k in range(n):
@@ -132,7 +135,7 @@ def test_kernel_matches_reference_on_grid_with_moving_bank(
         grid_design: Design, grid_cfg: RigConfig, fallback: str) -> None:
     meas = trajectory(grid_cfg, 2500, seed=5, drop_at=1800, force_std=1500.0)
     rt, _ = _run_pair(grid_design, grid_cfg, Blending.MOVING, meas, junk_seed=6,
-                      no_fire_fallback=fallback)
+                      bank_cfg=grid_cfg.replace(fuzzy={"no_fire_fallback": fallback}))
     c = rt.counters()
     assert c["set_switches"] >= 2 and c["recentres"] >= 1    # the comparison covered both
 
@@ -455,7 +458,7 @@ def test_no_rule_fired_fallbacks(smooth_design: Design, smooth_cfg: RigConfig) -
     no rule; 'passive' gives 0 N, 'best_model' the model with the smallest q."""
     raw = smooth_cfg.replace(fuzzy={"statistic": "raw"})
     for fb in ("passive", "best_model"):
-        rt = BankRuntime(smooth_design, cfg=raw, no_fire_fallback=fb)
+        rt = BankRuntime(smooth_design, cfg=raw.replace(fuzzy={"no_fire_fallback": fb}))
         forces = []
         for _ in range(30):
             out = rt.step(0.02, 30.0, 0.0)
@@ -574,3 +577,19 @@ def test_set_road_and_weight_set(default_design: Design) -> None:
     np.testing.assert_array_equal(run(1), u1)
     with pytest.raises(ValueError, match="weight_set"):
         rt.set_weight_set(3)
+
+
+def test_run_time_settings_come_from_the_config(smooth_design: Design,
+                                                smooth_cfg: RigConfig) -> None:
+    """No loose keyword arguments: the probability floor and the probe period are config
+    keys, checked against the bank they are used with."""
+    from controller.runtime.kernels import F_PFLOOR, I_PROBE
+
+    cfg = smooth_cfg.replace(bayes={"probability_floor": 1e-3},
+                             moving_bank={"probe_period_s": 0.2})
+    rt = BankRuntime(smooth_design, blending=Blending.BAYES, cfg=cfg)
+    assert rt._fv[F_PFLOOR] == 1e-3
+    assert rt._iv[I_PROBE] == round(0.2 / float(smooth_design.dt_s))
+    too_high = smooth_cfg.replace(bayes={"probability_floor": 0.5})
+    with pytest.raises(ValueError, match=r"bayes\.probability_floor"):
+        BankRuntime(smooth_design, cfg=too_high)

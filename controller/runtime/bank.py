@@ -773,8 +773,7 @@ class BankRuntime:
 
     def __init__(self, design: Design, blending: Blending | int = Blending.FUZZY,
                  weight_set: int = 1, single_model: int | None = None, *,
-                 cfg: RigConfig | None = None, no_fire_fallback: str | None = None,
-                 prob_floor: float = 1e-4, probe_period_s: float = 0.05) -> None:
+                 cfg: RigConfig | None = None) -> None:
         design.validate()
         self.design = design
         self.cfg = cfg if cfg is not None else config_of(design)
@@ -782,11 +781,11 @@ class BankRuntime:
         J = design.n_models
         self.n_models = J
         dt = float(design.dt_s)
-        fallback = no_fire_fallback or cfg_.fuzzy.no_fire_fallback
-        if fallback not in ("passive", "best_model"):
-            raise ValueError(f"no_fire_fallback {fallback!r}: allowed 'passive', 'best_model'")
-        if not (0.0 < prob_floor < 1.0 / J):
-            raise ValueError(f"prob_floor {prob_floor!r}: allowed (0, 1/J = {1.0 / J:g})")
+        fallback = cfg_.fuzzy.no_fire_fallback
+        prob_floor = cfg_.bayes.probability_floor
+        if not prob_floor < 1.0 / J:
+            raise ValueError(f"bayes.probability_floor {prob_floor!r}: must be below "
+                             f"1/J = {1.0 / J:g} for this bank of {J} models")
         if single_model is None:
             single_model = default_single_model(design, cfg_)
         if not (0 <= int(single_model) < J) or bool(design.airborne[int(single_model)]):
@@ -863,7 +862,7 @@ class BankRuntime:
         iv[I_NG] = n_ground
         iv[I_K] = k
         iv[I_DWELL] = max(1, round(mb.dwell_time_s / dt))
-        iv[I_PROBE] = max(1, round(probe_period_s / dt))
+        iv[I_PROBE] = max(1, round(cfg_.moving_bank.probe_period_s / dt))
         iv[I_FSTAT] = FSTAT_RELATIVE if cfg_.fuzzy.statistic == "relative" else FSTAT_RAW
         iv[I_MON_N] = mon.window_ticks
         iv[I_MON_RING] = off_mon

@@ -216,7 +216,8 @@ class ControlLoop:
         self.heartbeat_every = max(1, round(rate / cfg.safety.heartbeat_hz))
         self.telemetry_every = max(1, round(rate / cfg.telemetry.rate_hz))
         #: ticks of good sensor data the estimator needs after a reset before arming
-        self.warmup_ticks = (round(0.05 * rate) if warmup_ticks is None else warmup_ticks)
+        self.warmup_ticks = (round(cfg.safety.arm_warmup_s * rate) if warmup_ticks is None
+                             else warmup_ticks)
         self.blending = int(blending)
         self.weight_set = int(cfg.design.weight_set if weight_set is None else weight_set)
 

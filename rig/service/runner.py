@@ -141,7 +141,7 @@ class Service:
         self._check_stop()
         blending = int(blending_of(opts.controller))
         weight_set = cfg.design.weight_set if opts.weights is None else opts.weights
-        warmup_ticks = round(0.05 * cfg.design.sample_rate_hz)   # ControlLoop's default
+        warmup_ticks = round(cfg.safety.arm_warmup_s * cfg.design.sample_rate_hz)
         self.runtime = BankRuntime(self.design, blending=blending, weight_set=weight_set,
                                    cfg=cfg)
         self.force_loop = PIForceLoop.from_config(cfg)
@@ -170,10 +170,9 @@ class Service:
                     # the rest of what replay needs to build the same loop and runtime
                     "warmup_ticks": warmup_ticks, "single_model": None}
             meta.update(metadata or {})
-            # one pipe write per 8 ticks (8 ms at 1 kHz): fewer wake-ups of the writer
             self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
                                         design_bytes=self.design_blob, metadata=meta,
-                                        batch_ticks=8)
+                                        batch_ticks=cfg.recording.batch_ticks)
             self._check_stop()
         self.loop = ControlLoop(cfg, bus, self.runtime, self.force_loop,
                                 recorder=self.recorder, notifier=self.notifier,

@@ -54,8 +54,7 @@ class ReferenceBank:
 
     def __init__(self, design: Design, blending: Blending | int = Blending.FUZZY,
                  weight_set: int = 1, single_model: int | None = None, *,
-                 cfg: RigConfig | None = None, no_fire_fallback: str | None = None,
-                 prob_floor: float = 1e-4, probe_period_s: float = 0.05) -> None:
+                 cfg: RigConfig | None = None) -> None:
         from controller.runtime.bank import config_of, default_single_model
 
         d = design
@@ -65,8 +64,8 @@ class ReferenceBank:
         self.J = d.n_models
         dt = d.dt_s
         self.g = -float(d.y_offset[1])
-        self.fallback = no_fire_fallback or c.fuzzy.no_fire_fallback
-        self.floor = prob_floor
+        self.fallback = c.fuzzy.no_fire_fallback
+        self.floor = c.bayes.probability_floor
         self.single = default_single_model(d, c) if single_model is None else int(single_model)
         self.xinit = d.equilibrium[self.single].copy()
         self.xbar = np.where(np.isfinite(d.equilibrium), d.equilibrium, self.xinit[None, :])
@@ -98,7 +97,7 @@ class ReferenceBank:
         self.lam = 1.0 - 1.0 / n_window
         self.min_learn = max(1, int(n_window // 4))
         self.dwell = max(1, round(mb.dwell_time_s / dt))
-        self.probe_ticks = max(1, round(probe_period_s / dt))
+        self.probe_ticks = max(1, round(c.moving_bank.probe_period_s / dt))
         self.nprobe = max(0, min(len(self.ground) - self.k, MAX_PROBE_CANDIDATES))
         self.width = (HIST_HI_LOG10 - HIST_LO_LOG10) / HIST_BINS
         self.order = self._neighbours()
