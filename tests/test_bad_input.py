@@ -25,9 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from controller.artifact import save_design
 from controller.config import config_to_toml, default_config
-from controller.design import design_bank
 from rig import argtypes, strict_json
 from rig.cli import SUBCOMMANDS, build_parser, main
 
@@ -80,10 +78,8 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="module")
-def design_file(files: dict[str, Path]) -> Path:
-    p = files["dir"] / "design.npz"
-    save_design(design_bank(CFG), p)
-    return p
+def design_file(design_path: Path) -> Path:
+    return design_path
 
 
 @pytest.fixture(scope="module")

@@ -76,10 +76,8 @@ def work() -> Any:
 
 
 @pytest.fixture(scope="module")
-def design_blob(work: Path) -> bytes:
-    p = work / "design.npz"
-    save_design(design_bank(CFG), p)
-    return p.read_bytes()
+def design_blob(design_path: Path) -> bytes:
+    return design_path.read_bytes()
 
 
 @pytest.fixture(scope="module")
@@ -178,7 +176,7 @@ def _bank_alone(run: Any, design: Any, cfg: Any) -> np.ndarray:
 
 
 def test_other_design_is_compared_open_loop_and_written(plain_recording: Path,
-                                                        work: Path) -> None:
+                                                        work: Path, design_path: Path) -> None:
     cfg2 = CFG.replace(design={"weight_set": 2})
     design2 = design_bank(cfg2)
     p2 = work / "design2.npz"
@@ -196,7 +194,7 @@ def test_other_design_is_compared_open_loop_and_written(plain_recording: Path,
     np.testing.assert_array_equal(res.force_ref_n, _bank_alone(run, design2, cfg2))
     # ... and the recorded one equals the recorded design run alone
     np.testing.assert_array_equal(run.force_ref_n,
-                                  _bank_alone(run, load_design(work / "design.npz"), CFG))
+                                  _bank_alone(run, load_design(design_path), CFG))
     new = read_run(out)
     assert new.complete
     meta = new.metadata["rig"]
@@ -229,7 +227,7 @@ def test_cli_other_design(plain_recording: Path, work: Path,
 
 @pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
 def test_candump_log_replay_matches_the_recording(plain_recording: Path, work: Path,
-                                                  suffix: str) -> None:
+                                                  suffix: str, design_path: Path) -> None:
     run = load_recorded_run(plain_recording)
     path = work / f"plain{suffix}"
     with can.Logger(str(path)) as logger:
@@ -240,7 +238,7 @@ def test_candump_log_replay_matches_the_recording(plain_recording: Path, work: P
             logger.on_message_received(can.Message(
                 timestamp=(1_000_000_000 + tick * 1_000_000 + 300_000) * 1e-9,
                 arbitration_id=fid, data=data, is_extended_id=False))
-    design = load_design(work / "design.npz")
+    design = load_design(design_path)
     res = replay_log(path, CFG, design)
     assert res.kind == "log" and res.ticks == run.tick.size
     assert res.rx_frames_fed == len(run.rx)

@@ -69,10 +69,9 @@ def work() -> Any:
 
 
 @pytest.fixture(scope="module")
-def recording(work: Path) -> Path:
-    p = work / "design.npz"
-    save_design(design_bank(CFG), p)
-    return record_emulated_run(work / "run.mcap", SECONDS, cfg=CFG, design_bytes=p.read_bytes(),
+def recording(work: Path, design_path: Path) -> Path:
+    return record_emulated_run(work / "run.mcap", SECONDS, cfg=CFG,
+                               design_bytes=design_path.read_bytes(),
                                arm_at_s=ARM_S,
                                late_ticks={k: 900_000 for k in range(LATE_TICK, LATE_TICK + 6)},
                                commands={RESET_TICK: ("reset", None),
@@ -301,9 +300,9 @@ def test_tracking_splits_the_reference_near_no_rule_fired_ticks() -> None:
 
 
 def test_short_active_phase_skips_the_analysis_but_not_the_page(work: Path,
-                                                                recording: Path) -> None:
-    p = work / "design.npz"                 # written by the ``recording`` fixture
-    rec = record_emulated_run(work / "short.mcap", 0.5, cfg=CFG, design_bytes=p.read_bytes(),
+                                                                design_path: Path) -> None:
+    rec = record_emulated_run(work / "short.mcap", 0.5, cfg=CFG,
+                              design_bytes=design_path.read_bytes(),
                               arm_at_s=0.3)
     s = load_series(rec)
     assert not force_tracking(s).ok

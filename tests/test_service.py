@@ -55,16 +55,6 @@ CHILD = textwrap.dedent("""
 """)
 
 
-@pytest.fixture(scope="module")
-def design_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from controller.artifact import save_design
-    from hil.sim.closed_loop import cached_design
-
-    path = tmp_path_factory.mktemp("design") / "design.npz"
-    save_design(cached_design(CFG), path)
-    return path
-
-
 def _wait_for(proc: subprocess.Popen[str], texts: tuple[str, ...], timeout_s: float,
               lines: list[str]) -> str:
     assert proc.stderr is not None

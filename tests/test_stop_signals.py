@@ -28,16 +28,6 @@ ROOT = Path(__file__).resolve().parents[1]
 CFG = default_config()
 
 
-@pytest.fixture(scope="module")
-def design_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from controller.artifact import save_design
-    from hil.sim.closed_loop import cached_design
-
-    path = tmp_path_factory.mktemp("design") / "design.npz"
-    save_design(cached_design(CFG), path)
-    return path
-
-
 def _sigterm_self() -> None:
     os.kill(os.getpid(), signal.SIGTERM)
 

@@ -1,0 +1,26 @@
+"""Fixtures shared by the test modules.  Test-only helpers live in ``tests/support/``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from controller.artifact import Design, save_design
+from controller.config import default_config
+from hil.sim.closed_loop import cached_design
+
+
+@pytest.fixture(scope="session")
+def default_design() -> Design:
+    """The bank designed from the built-in defaults (cached per process)."""
+    return cached_design(default_config())
+
+
+@pytest.fixture(scope="session")
+def design_path(tmp_path_factory: pytest.TempPathFactory, default_design: Design) -> Path:
+    """:func:`default_design` saved as an artifact file (``rig run --design``); a module
+    that needs another configuration's design defines its own ``design_path``."""
+    path = tmp_path_factory.mktemp("design") / "design.npz"
+    save_design(default_design, path)
+    return path
