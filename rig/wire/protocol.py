@@ -1,8 +1,12 @@
 """The rig's CAN protocol: frame IDs, enumerations and a fast codec for ``rig/wire/rig.dbc``.
 
-The DBC is the source of truth and cantools the reference codec; this module is a
-hand-compiled equivalent (``struct`` layouts, precomputed CRC tables) proven
-byte-identical to cantools by ``tests/test_protocol.py``.  Hot-path use::
+The DBC is the source of truth and cantools the reference codec.  Every number of the
+protocol (IDs, bit positions, scales, ranges, ``VAL_`` tables, the ``struct`` layouts)
+comes from :mod:`rig.wire.dbc_constants`, generated from the DBC by
+``python -m rig.wire.generate`` (a test requires that regenerating changes nothing); this
+module adds the hand-optimised encode/decode functions over those constants and the
+precomputed CRC tables, proven byte-identical to cantools by ``tests/test_protocol.py``.
+Hot-path use::
 
     buf = bytearray(8)                      # e.g. a preallocated can.Message's .data
     mask = VALVE_COMMAND.encode(buf, counter, enable, lifecycle, spool, force_n, echo)
@@ -27,6 +31,119 @@ from collections.abc import Mapping
 from enum import IntEnum, IntFlag
 from typing import Any, ClassVar, Final, NamedTuple
 
+from rig.wire import dbc_constants as K  # noqa: N812  (K: the DBC constants)
+from rig.wire.dbc_constants import (
+    CONTROLLER_STATUS_ACTIVE_FAULT_MAX,
+    CONTROLLER_STATUS_ACTIVE_FAULT_MIN,
+    CONTROLLER_STATUS_ACTIVE_FAULT_VALUES,
+    CONTROLLER_STATUS_BLENDING_MASK,
+    CONTROLLER_STATUS_BLENDING_MAX,
+    CONTROLLER_STATUS_BLENDING_MIN,
+    CONTROLLER_STATUS_BLENDING_SHIFT,
+    CONTROLLER_STATUS_BLENDING_VALUES,
+    CONTROLLER_STATUS_COUNTER_MASK,
+    CONTROLLER_STATUS_COUNTER_SIGNAL,
+    CONTROLLER_STATUS_JITTER_P99_MAX,
+    CONTROLLER_STATUS_JITTER_P99_MIN,
+    CONTROLLER_STATUS_JITTER_P99_SCALE,
+    CONTROLLER_STATUS_LENGTH,
+    CONTROLLER_STATUS_NAME,
+    CONTROLLER_STATUS_OVERRUN_COUNT_MAX,
+    CONTROLLER_STATUS_OVERRUN_COUNT_MIN,
+    CONTROLLER_STATUS_STATE_MASK,
+    CONTROLLER_STATUS_STATE_MAX,
+    CONTROLLER_STATUS_STATE_MIN,
+    CONTROLLER_STATUS_STATE_SHIFT,
+    CONTROLLER_STATUS_STATE_VALUES,
+    CONTROLLER_STATUS_STRUCT,
+    CONTROLLER_STATUS_WEIGHT_SET_MASK,
+    CONTROLLER_STATUS_WEIGHT_SET_MAX,
+    CONTROLLER_STATUS_WEIGHT_SET_MIN,
+    CONTROLLER_STATUS_WEIGHT_SET_SHIFT,
+    FAULT_REPORT_COUNTER_MASK,
+    FAULT_REPORT_COUNTER_SIGNAL,
+    FAULT_REPORT_FAULT_CODE_MAX,
+    FAULT_REPORT_FAULT_CODE_MIN,
+    FAULT_REPORT_FAULT_CODE_VALUES,
+    FAULT_REPORT_FAULT_DETAIL_MAX,
+    FAULT_REPORT_FAULT_DETAIL_MIN,
+    FAULT_REPORT_FAULT_STATE_MASK,
+    FAULT_REPORT_FAULT_STATE_MAX,
+    FAULT_REPORT_FAULT_STATE_MIN,
+    FAULT_REPORT_FAULT_STATE_SHIFT,
+    FAULT_REPORT_FAULT_STATE_VALUES,
+    FAULT_REPORT_FAULT_TICK_RAW_MAX,
+    FAULT_REPORT_LENGTH,
+    FAULT_REPORT_NAME,
+    FAULT_REPORT_STRUCT,
+    RIG_STATUS_BYPASS_OPEN_MASK,
+    RIG_STATUS_BYPASS_OPEN_SHIFT,
+    RIG_STATUS_COUNTER_MASK,
+    RIG_STATUS_COUNTER_SIGNAL,
+    RIG_STATUS_LENGTH,
+    RIG_STATUS_LOAD_PRESSURE_MAX,
+    RIG_STATUS_LOAD_PRESSURE_MIN,
+    RIG_STATUS_LOAD_PRESSURE_SCALE,
+    RIG_STATUS_NAME,
+    RIG_STATUS_SPOOL_POSITION_MAX,
+    RIG_STATUS_SPOOL_POSITION_MIN,
+    RIG_STATUS_SPOOL_POSITION_RAW_MAX,
+    RIG_STATUS_SPOOL_POSITION_RAW_MIN,
+    RIG_STATUS_SPOOL_POSITION_SCALE,
+    RIG_STATUS_STRUCT,
+    RIG_STATUS_SUPPLY_OK_MASK,
+    RIG_STATUS_SUPPLY_OK_SHIFT,
+    RIG_STATUS_SUPPLY_PRESSURE_MAX,
+    RIG_STATUS_SUPPLY_PRESSURE_MIN,
+    RIG_STATUS_SUPPLY_PRESSURE_SCALE,
+    RIG_STATUS_WATCHDOG_TRIPPED_MASK,
+    RIG_STATUS_WATCHDOG_TRIPPED_SHIFT,
+    SENSOR_DATA_COUNTER_MASK,
+    SENSOR_DATA_COUNTER_SIGNAL,
+    SENSOR_DATA_LENGTH,
+    SENSOR_DATA_LOAD_CELL_FORCE_MAX,
+    SENSOR_DATA_LOAD_CELL_FORCE_MIN,
+    SENSOR_DATA_LOAD_CELL_FORCE_SCALE,
+    SENSOR_DATA_NAME,
+    SENSOR_DATA_RATTLESPACE_MAX,
+    SENSOR_DATA_RATTLESPACE_MIN,
+    SENSOR_DATA_RATTLESPACE_SCALE,
+    SENSOR_DATA_SENSOR_STATUS_MASK,
+    SENSOR_DATA_SENSOR_STATUS_MAX,
+    SENSOR_DATA_SENSOR_STATUS_MIN,
+    SENSOR_DATA_SENSOR_STATUS_SHIFT,
+    SENSOR_DATA_SPRUNG_ACCEL_MAX,
+    SENSOR_DATA_SPRUNG_ACCEL_MIN,
+    SENSOR_DATA_SPRUNG_ACCEL_SCALE,
+    SENSOR_DATA_STRUCT,
+    VALVE_COMMAND_COUNTER_MASK,
+    VALVE_COMMAND_COUNTER_SIGNAL,
+    VALVE_COMMAND_ENABLE_MASK,
+    VALVE_COMMAND_ENABLE_SHIFT,
+    VALVE_COMMAND_FORCE_REFERENCE_MAX,
+    VALVE_COMMAND_FORCE_REFERENCE_MIN,
+    VALVE_COMMAND_FORCE_REFERENCE_SCALE,
+    VALVE_COMMAND_LENGTH,
+    VALVE_COMMAND_LIFECYCLE_MASK,
+    VALVE_COMMAND_LIFECYCLE_MAX,
+    VALVE_COMMAND_LIFECYCLE_MIN,
+    VALVE_COMMAND_LIFECYCLE_SHIFT,
+    VALVE_COMMAND_LIFECYCLE_VALUES,
+    VALVE_COMMAND_NAME,
+    VALVE_COMMAND_SENSOR_COUNTER_ECHO_MASK,
+    VALVE_COMMAND_SENSOR_COUNTER_ECHO_MAX,
+    VALVE_COMMAND_SENSOR_COUNTER_ECHO_MIN,
+    VALVE_COMMAND_SENSOR_COUNTER_ECHO_SHIFT,
+    VALVE_COMMAND_SPOOL_COMMAND_MAX,
+    VALVE_COMMAND_SPOOL_COMMAND_MIN,
+    VALVE_COMMAND_SPOOL_COMMAND_RAW_MAX,
+    VALVE_COMMAND_SPOOL_COMMAND_RAW_MIN,
+    VALVE_COMMAND_SPOOL_COMMAND_SCALE,
+    VALVE_COMMAND_STRUCT,
+    Blending,
+    FaultCode,
+    LifecycleState,
+)
 from rig.wire.e2e import CRC8_TABLE, CRC8_TABLE2, CounterMonitor, CounterStatus, frame_crc_start
 
 __all__ = [
@@ -65,111 +182,15 @@ __all__ = [
     "ValveCommandCodec",
 ]
 
-VALVE_COMMAND_ID: Final = 0x080
-FAULT_REPORT_ID: Final = 0x081
-SENSOR_DATA_ID: Final = 0x100
-RIG_STATUS_ID: Final = 0x200
-CONTROLLER_STATUS_ID: Final = 0x300
-FRAME_LENGTH: Final = 8
+FRAME_LENGTH: Final = K.VALVE_COMMAND_LENGTH
+VALVE_COMMAND_ID: Final = K.VALVE_COMMAND_ID
+FAULT_REPORT_ID: Final = K.FAULT_REPORT_ID
+SENSOR_DATA_ID: Final = K.SENSOR_DATA_ID
+RIG_STATUS_ID: Final = K.RIG_STATUS_ID
+CONTROLLER_STATUS_ID: Final = K.CONTROLLER_STATUS_ID
 #: frames each role receives (receive filters of :func:`rig.bus.core.open_bus`)
 CONTROLLER_RX_IDS: Final = (SENSOR_DATA_ID, RIG_STATUS_ID)
 RIG_RX_IDS: Final = (VALVE_COMMAND_ID, FAULT_REPORT_ID, CONTROLLER_STATUS_ID)
-
-
-class FaultCode(IntEnum):
-    """DBC ``VAL_ 129 FaultCode`` / ``VAL_ 768 ActiveFault``."""
-
-    NONE = 0
-    SENSOR_STALE = 1
-    SENSOR_CRC = 2
-    SENSOR_COUNTER = 3
-    SENSOR_RANGE = 4
-    NONFINITE = 5
-    ESTIMATOR_DIVERGED = 6
-    OVERRUN_STREAK = 7
-    BUS_ERROR = 8
-    BUS_OFF = 9
-    EXCEPTION = 10
-    RIG_WATCHDOG = 11
-    SUPPLY_LOSS = 12
-    SENSOR_STATUS = 13
-    SHUTDOWN = 14
-    SENSOR_FROZEN = 15
-    #: not a latched fault: ControllerStatus.ActiveFault while ACTIVE and the bank runs its
-    #: conservative law (StepFlag.DEGRADED); the lifecycle stays ACTIVE
-    ESTIMATOR_DEGRADED = 16
-
-    @property
-    def description(self) -> str:
-        """What the code means, in plain language for the rig engineer (event tables,
-        reports); the condition and the detail byte per code: docs/service.md."""
-        return _FAULT_DESCRIPTIONS[self]
-
-
-_FAULT_DESCRIPTIONS: Final[dict[FaultCode, str]] = {
-    FaultCode.NONE: "No fault.",
-    FaultCode.SENSOR_STALE:
-        "No valid SensorData frame for longer than safety.stale_ticks: the controller "
-        "could no longer see the rig.",
-    FaultCode.SENSOR_CRC:
-        "A SensorData or RigStatus frame failed its end-to-end check (CRC or length): "
-        "it was corrupted on the way.",
-    FaultCode.SENSOR_COUNTER:
-        "A frame's rolling counter repeated or jumped: the sender is stuck or frames "
-        "were lost.",
-    FaultCode.SENSOR_RANGE:
-        "A sensor reading (rattlespace, force or acceleration) left its valid range.",
-    FaultCode.NONFINITE:
-        "A sensor value, the estimator state, the force reference or the spool command "
-        "was not a finite number.",
-    FaultCode.ESTIMATOR_DIVERGED:
-        "The Kalman filter bank's estimate became unusable: every tire model's "
-        "innovation stayed beyond a sensor's range for a whole monitor window.",
-    FaultCode.OVERRUN_STREAK:
-        "The control loop woke up late on too many consecutive ticks "
-        "(safety.overrun_streak): its timing could not be trusted.",
-    FaultCode.BUS_ERROR:
-        "The CAN bus reported an error: a send or receive failed, or an error frame "
-        "arrived.",
-    FaultCode.BUS_OFF: "The CAN controller went bus-off or the interface disappeared.",
-    FaultCode.EXCEPTION: "The control tick raised an unexpected exception.",
-    FaultCode.RIG_WATCHDOG:
-        "The rig's drive watchdog tripped: no valid valve command reached the drive "
-        "within its timeout, so the drive opened the bypass on its own.",
-    FaultCode.SUPPLY_LOSS: "The rig reported loss of hydraulic supply pressure.",
-    FaultCode.SENSOR_STATUS:
-        "A sensor reported its own fault (SensorStatus: LVDT, load cell or "
-        "accelerometer).",
-    FaultCode.SHUTDOWN:
-        "The service was stopping: valve to its safe state (not a latched fault).",
-    FaultCode.SENSOR_FROZEN:
-        "A sensor value stayed bit-identical for more than safety.frozen_ticks frames "
-        "while its counter advanced: the sensor is frozen.",
-    FaultCode.ESTIMATOR_DEGRADED:
-        "Not a latched fault: the estimator monitor found that no tire model fits the "
-        "measurements (windowed innovation statistic above its chi-square level), so the "
-        "bank commands zero force (the actuator follows the body, transparent) until the "
-        "statistic recovers and it re-arms by itself.",
-}
-
-
-class Blending(IntEnum):
-    """DBC ``VAL_ 768 Blending``: how the bank's model forces are combined.  The names
-    users type for these modes live in :mod:`controller.modes`."""
-
-    FUZZY = 0
-    BAYES = 1
-    MOVING = 2
-    LQG = 3
-
-
-class LifecycleState(IntEnum):
-    """DBC ``VAL_ ... Lifecycle / FaultState / State``."""
-
-    INACTIVE = 0
-    ACTIVE = 1
-    FAULT = 2
-    STOPPING = 3
 
 
 class SensorStatus(IntFlag):
@@ -202,10 +223,6 @@ class SignalSpec(NamedTuple):
     choices: tuple[int, ...] | None = None  #: defined VAL_ values, if any
 
 
-_LIFECYCLE_VALUES: Final = frozenset(int(v) for v in LifecycleState)
-_FAULT_VALUES: Final = frozenset(int(v) for v in FaultCode)
-_BLENDING_VALUES: Final = frozenset(int(v) for v in Blending)
-_SPOOL_SCALE: Final = 3.05185094759972e-05  # 1/32767 as written in the DBC
 _OK, _BAD_LENGTH, _UNKNOWN_ID, _BAD_CRC, _OUT_OF_RANGE = (
     DecodeStatus.OK, DecodeStatus.BAD_LENGTH, DecodeStatus.UNKNOWN_ID, DecodeStatus.BAD_CRC,
     DecodeStatus.OUT_OF_RANGE,
@@ -215,8 +232,46 @@ _T1: Final = CRC8_TABLE
 _T2: Final = CRC8_TABLE2
 
 
-def _raw_limit(x: float, scale: float) -> int:
-    return round(x / scale)
+def _specs(frame: str) -> tuple[SignalSpec, ...]:
+    """The frame's signals (counter and CRC apart) as :class:`SignalSpec`, from the
+    generated :mod:`rig.wire.dbc_constants`."""
+    out = []
+    for stem in getattr(K, f"{frame}_SIGNALS"):
+        def get(what: str, default: Any = None, _p: str = f"{frame}_{stem}_") -> Any:
+            return getattr(K, _p + what, default)
+        values = get("VALUES")
+        out.append(SignalSpec(get("ATTR"), get("DBC"), get("START"), get("LENGTH"),
+                              get("SIGNED"), get("SCALE"), get("MIN"), get("MAX"),
+                              None if values is None else tuple(sorted(values))))
+    return tuple(out)
+
+
+def _bit(frame: str, stem: str) -> int:
+    """The bit of a signal in the encoders' clamp mask and ``range_mask`` (its position
+    among the frame's signals, as in the frame object's FIELDS)."""
+    return 1 << getattr(K, f"{frame}_SIGNALS").index(stem)
+
+
+_VC_LIFECYCLE_BIT: Final = _bit("VALVE_COMMAND", "LIFECYCLE")
+_VC_SPOOL_COMMAND_BIT: Final = _bit("VALVE_COMMAND", "SPOOL_COMMAND")
+_VC_FORCE_REFERENCE_BIT: Final = _bit("VALVE_COMMAND", "FORCE_REFERENCE")
+_VC_SENSOR_COUNTER_ECHO_BIT: Final = _bit("VALVE_COMMAND", "SENSOR_COUNTER_ECHO")
+_FR_FAULT_STATE_BIT: Final = _bit("FAULT_REPORT", "FAULT_STATE")
+_FR_FAULT_CODE_BIT: Final = _bit("FAULT_REPORT", "FAULT_CODE")
+_FR_FAULT_DETAIL_BIT: Final = _bit("FAULT_REPORT", "FAULT_DETAIL")
+_SD_SENSOR_STATUS_BIT: Final = _bit("SENSOR_DATA", "SENSOR_STATUS")
+_SD_RATTLESPACE_BIT: Final = _bit("SENSOR_DATA", "RATTLESPACE")
+_SD_LOAD_CELL_FORCE_BIT: Final = _bit("SENSOR_DATA", "LOAD_CELL_FORCE")
+_SD_SPRUNG_ACCEL_BIT: Final = _bit("SENSOR_DATA", "SPRUNG_ACCEL")
+_RS_SUPPLY_PRESSURE_BIT: Final = _bit("RIG_STATUS", "SUPPLY_PRESSURE")
+_RS_SPOOL_POSITION_BIT: Final = _bit("RIG_STATUS", "SPOOL_POSITION")
+_RS_LOAD_PRESSURE_BIT: Final = _bit("RIG_STATUS", "LOAD_PRESSURE")
+_CS_STATE_BIT: Final = _bit("CONTROLLER_STATUS", "STATE")
+_CS_ACTIVE_FAULT_BIT: Final = _bit("CONTROLLER_STATUS", "ACTIVE_FAULT")
+_CS_OVERRUN_COUNT_BIT: Final = _bit("CONTROLLER_STATUS", "OVERRUN_COUNT")
+_CS_BLENDING_BIT: Final = _bit("CONTROLLER_STATUS", "BLENDING")
+_CS_WEIGHT_SET_BIT: Final = _bit("CONTROLLER_STATUS", "WEIGHT_SET")
+_CS_JITTER_P99_BIT: Final = _bit("CONTROLLER_STATUS", "JITTER_P99")
 
 
 class _Frame:
@@ -353,124 +408,123 @@ class _Codec:
 
 
 class ValveCommandCodec(_Codec):
-    """0x080 ValveCommand, controller -> rig, every tick."""
+    """ValveCommand, controller -> rig, every tick."""
 
     FRAME_ID = VALVE_COMMAND_ID
-    NAME = "ValveCommand"
+    NAME = VALVE_COMMAND_NAME
     FRAME_TYPE = ValveCommand
-    COUNTER_SIGNAL = "ValveCommand_Counter"
-    SIGNALS = (
-        SignalSpec("enable", "Enable", 12, 1, False, 1, 0, 1),
-        SignalSpec("lifecycle", "Lifecycle", 13, 3, False, 1, 0, 7,
-                   tuple(sorted(_LIFECYCLE_VALUES))),
-        SignalSpec("spool_command", "SpoolCommand", 16, 16, True, _SPOOL_SCALE, -1.0, 1.0),
-        SignalSpec("force_reference_n", "ForceReference", 32, 16, True, 0.5, -16384.0,
-                   16383.5),
-        SignalSpec("sensor_counter_echo", "SensorCounterEcho", 48, 4, False, 1, 0, 15),
-    )
-    _S = struct.Struct("<BBhhBx")
-    _SPOOL_RAW_LO = _raw_limit(-1.0, _SPOOL_SCALE)
-    _SPOOL_RAW_HI = _raw_limit(1.0, _SPOOL_SCALE)
+    COUNTER_SIGNAL = VALVE_COMMAND_COUNTER_SIGNAL
+    SIGNALS = _specs("VALVE_COMMAND")
+    _S = struct.Struct(VALVE_COMMAND_STRUCT)
 
     def encode(self, buf: bytearray | memoryview, counter: int, enable: int, lifecycle: int,
                spool_command: float, force_reference_n: float,
                sensor_counter_echo: int) -> int:
         m = 0
-        if not 0 <= lifecycle <= 7:
-            m |= 2
-            lifecycle = 0 if lifecycle < 0 else 7
-        elif lifecycle not in _LIFECYCLE_VALUES:
-            m |= 2
-        if not -1.0 <= spool_command <= 1.0:
-            m |= 4
-            spool_command = -1.0 if spool_command < -1.0 else (
-                1.0 if spool_command > 1.0 else 0.0)
-        if not -16384.0 <= force_reference_n <= 16383.5:
-            m |= 8
-            force_reference_n = -16384.0 if force_reference_n < -16384.0 else (
-                16383.5 if force_reference_n > 16383.5 else 0.0)
-        if not 0 <= sensor_counter_echo <= 15:
-            m |= 16
-            sensor_counter_echo = 0 if sensor_counter_echo < 0 else 15
-        self._S.pack_into(buf, 0, 0,
-                          (counter & 0xF) | (0x10 if enable else 0) | (lifecycle << 5),
-                          round(spool_command / _SPOOL_SCALE), round(force_reference_n / 0.5),
-                          sensor_counter_echo)
+        if not VALVE_COMMAND_LIFECYCLE_MIN <= lifecycle <= VALVE_COMMAND_LIFECYCLE_MAX:
+            m |= _VC_LIFECYCLE_BIT
+            lifecycle = (VALVE_COMMAND_LIFECYCLE_MIN
+                         if lifecycle < VALVE_COMMAND_LIFECYCLE_MIN
+                         else VALVE_COMMAND_LIFECYCLE_MAX)
+        elif lifecycle not in VALVE_COMMAND_LIFECYCLE_VALUES:
+            m |= _VC_LIFECYCLE_BIT
+        lo, hi = VALVE_COMMAND_SPOOL_COMMAND_MIN, VALVE_COMMAND_SPOOL_COMMAND_MAX
+        if not lo <= spool_command <= hi:
+            m |= _VC_SPOOL_COMMAND_BIT
+            spool_command = lo if spool_command < lo else (hi if spool_command > hi else 0.0)
+        lo, hi = VALVE_COMMAND_FORCE_REFERENCE_MIN, VALVE_COMMAND_FORCE_REFERENCE_MAX
+        if not lo <= force_reference_n <= hi:
+            m |= _VC_FORCE_REFERENCE_BIT
+            force_reference_n = lo if force_reference_n < lo else (
+                hi if force_reference_n > hi else 0.0)
+        lo, hi = VALVE_COMMAND_SENSOR_COUNTER_ECHO_MIN, VALVE_COMMAND_SENSOR_COUNTER_ECHO_MAX
+        if not lo <= sensor_counter_echo <= hi:
+            m |= _VC_SENSOR_COUNTER_ECHO_BIT
+            sensor_counter_echo = lo if sensor_counter_echo < lo else hi
+        self._S.pack_into(
+            buf, 0, 0,
+            (counter & VALVE_COMMAND_COUNTER_MASK)
+            | ((1 << VALVE_COMMAND_ENABLE_SHIFT) if enable else 0)
+            | (lifecycle << VALVE_COMMAND_LIFECYCLE_SHIFT),
+            round(spool_command / VALVE_COMMAND_SPOOL_COMMAND_SCALE),
+            round(force_reference_n / VALVE_COMMAND_FORCE_REFERENCE_SCALE),
+            sensor_counter_echo << VALVE_COMMAND_SENSOR_COUNTER_ECHO_SHIFT)
         buf[0] = self._crc(buf)
         return m
 
     def decode(self, data: bytes | bytearray | memoryview, out: ValveCommand) -> DecodeStatus:
-        if len(data) != 8:
+        if len(data) != VALVE_COMMAND_LENGTH:
             return _BAD_LENGTH
         crc, b1, spool, force, echo = self._S.unpack(data)
         if crc != self._crc(data):
             return _BAD_CRC
-        lifecycle = b1 >> 5
-        m = 0 if lifecycle in _LIFECYCLE_VALUES else 2
-        if not self._SPOOL_RAW_LO <= spool <= self._SPOOL_RAW_HI:
-            m |= 4
-        out.counter = b1 & 0xF
-        out.enable = (b1 >> 4) & 1
+        lifecycle = (b1 >> VALVE_COMMAND_LIFECYCLE_SHIFT) & VALVE_COMMAND_LIFECYCLE_MASK
+        m = 0 if lifecycle in VALVE_COMMAND_LIFECYCLE_VALUES else _VC_LIFECYCLE_BIT
+        if not (VALVE_COMMAND_SPOOL_COMMAND_RAW_MIN <= spool
+                <= VALVE_COMMAND_SPOOL_COMMAND_RAW_MAX):
+            m |= _VC_SPOOL_COMMAND_BIT
+        out.counter = b1 & VALVE_COMMAND_COUNTER_MASK
+        out.enable = (b1 >> VALVE_COMMAND_ENABLE_SHIFT) & VALVE_COMMAND_ENABLE_MASK
         out.lifecycle = lifecycle
-        out.spool_command = spool * _SPOOL_SCALE
-        out.force_reference_n = force * 0.5
-        out.sensor_counter_echo = echo & 0xF
+        out.spool_command = spool * VALVE_COMMAND_SPOOL_COMMAND_SCALE
+        out.force_reference_n = force * VALVE_COMMAND_FORCE_REFERENCE_SCALE
+        out.sensor_counter_echo = ((echo >> VALVE_COMMAND_SENSOR_COUNTER_ECHO_SHIFT)
+                                   & VALVE_COMMAND_SENSOR_COUNTER_ECHO_MASK)
         out.range_mask = m
         return _OUT_OF_RANGE if m else _OK
 
 
 class FaultReportCodec(_Codec):
-    """0x081 FaultReport, controller -> rig, when a fault latches (and with the heartbeat).
+    """FaultReport, controller -> rig, when a fault latches (and with the heartbeat).
 
     ``fault_tick`` is a tick counter and is taken modulo 2**32 like the rolling counter.
     """
 
     FRAME_ID = FAULT_REPORT_ID
-    NAME = "FaultReport"
+    NAME = FAULT_REPORT_NAME
     FRAME_TYPE = FaultReport
-    COUNTER_SIGNAL = "FaultReport_Counter"
-    SIGNALS = (
-        SignalSpec("fault_state", "FaultState", 12, 4, False, 1, 0, 15,
-                   tuple(sorted(_LIFECYCLE_VALUES))),
-        SignalSpec("fault_code", "FaultCode", 16, 8, False, 1, 0, 255,
-                   tuple(sorted(_FAULT_VALUES))),
-        SignalSpec("fault_tick", "FaultTick", 24, 32, False, 1, 0, 4294967295),
-        SignalSpec("fault_detail", "FaultDetail", 56, 8, False, 1, 0, 255),
-    )
-    _S = struct.Struct("<BBBIB")
+    COUNTER_SIGNAL = FAULT_REPORT_COUNTER_SIGNAL
+    SIGNALS = _specs("FAULT_REPORT")
+    _S = struct.Struct(FAULT_REPORT_STRUCT)
 
     def encode(self, buf: bytearray | memoryview, counter: int, fault_state: int,
                fault_code: int, fault_tick: int, fault_detail: int) -> int:
         m = 0
-        if not 0 <= fault_state <= 15:
-            m |= 1
-            fault_state = 0 if fault_state < 0 else 15
-        elif fault_state not in _LIFECYCLE_VALUES:
-            m |= 1
-        if not 0 <= fault_code <= 255:
-            m |= 2
-            fault_code = 0 if fault_code < 0 else 255
-        elif fault_code not in _FAULT_VALUES:
-            m |= 2
-        if not 0 <= fault_detail <= 255:
-            m |= 8
-            fault_detail = 0 if fault_detail < 0 else 255
-        self._S.pack_into(buf, 0, 0, (counter & 0xF) | (fault_state << 4), fault_code,
-                          fault_tick & 0xFFFFFFFF, fault_detail)
+        lo, hi = FAULT_REPORT_FAULT_STATE_MIN, FAULT_REPORT_FAULT_STATE_MAX
+        if not lo <= fault_state <= hi:
+            m |= _FR_FAULT_STATE_BIT
+            fault_state = lo if fault_state < lo else hi
+        elif fault_state not in FAULT_REPORT_FAULT_STATE_VALUES:
+            m |= _FR_FAULT_STATE_BIT
+        lo, hi = FAULT_REPORT_FAULT_CODE_MIN, FAULT_REPORT_FAULT_CODE_MAX
+        if not lo <= fault_code <= hi:
+            m |= _FR_FAULT_CODE_BIT
+            fault_code = lo if fault_code < lo else hi
+        elif fault_code not in FAULT_REPORT_FAULT_CODE_VALUES:
+            m |= _FR_FAULT_CODE_BIT
+        lo, hi = FAULT_REPORT_FAULT_DETAIL_MIN, FAULT_REPORT_FAULT_DETAIL_MAX
+        if not lo <= fault_detail <= hi:
+            m |= _FR_FAULT_DETAIL_BIT
+            fault_detail = lo if fault_detail < lo else hi
+        self._S.pack_into(buf, 0, 0,
+                          (counter & FAULT_REPORT_COUNTER_MASK)
+                          | (fault_state << FAULT_REPORT_FAULT_STATE_SHIFT),
+                          fault_code, fault_tick % (FAULT_REPORT_FAULT_TICK_RAW_MAX + 1),
+                          fault_detail)
         buf[0] = self._crc(buf)
         return m
 
     def decode(self, data: bytes | bytearray | memoryview, out: FaultReport) -> DecodeStatus:
-        if len(data) != 8:
+        if len(data) != FAULT_REPORT_LENGTH:
             return _BAD_LENGTH
         crc, b1, code, tick, detail = self._S.unpack(data)
         if crc != self._crc(data):
             return _BAD_CRC
-        state = b1 >> 4
-        m = 0 if state in _LIFECYCLE_VALUES else 1
-        if code not in _FAULT_VALUES:
-            m |= 2
-        out.counter = b1 & 0xF
+        state = (b1 >> FAULT_REPORT_FAULT_STATE_SHIFT) & FAULT_REPORT_FAULT_STATE_MASK
+        m = 0 if state in FAULT_REPORT_FAULT_STATE_VALUES else _FR_FAULT_STATE_BIT
+        if code not in FAULT_REPORT_FAULT_CODE_VALUES:
+            m |= _FR_FAULT_CODE_BIT
+        out.counter = b1 & FAULT_REPORT_COUNTER_MASK
         out.fault_state = state
         out.fault_code = code
         out.fault_tick = tick
@@ -480,197 +534,200 @@ class FaultReportCodec(_Codec):
 
 
 class SensorDataCodec(_Codec):
-    """0x100 SensorData, rig -> controller, every tick."""
+    """SensorData, rig -> controller, every tick."""
 
     FRAME_ID = SENSOR_DATA_ID
-    NAME = "SensorData"
+    NAME = SENSOR_DATA_NAME
     FRAME_TYPE = SensorData
-    COUNTER_SIGNAL = "SensorData_Counter"
-    SIGNALS = (
-        SignalSpec("sensor_status", "SensorStatus", 12, 4, False, 1, 0, 15),
-        SignalSpec("rattlespace_m", "Rattlespace", 16, 16, True, 5e-06, -0.16384, 0.163835),
-        SignalSpec("load_cell_force_n", "LoadCellForce", 32, 16, True, 0.5, -16384.0,
-                   16383.5),
-        SignalSpec("sprung_accel_mps2", "SprungAccel", 48, 16, True, 0.005, -163.84,
-                   163.835),
-    )
-    _S = struct.Struct("<BBhhh")
+    COUNTER_SIGNAL = SENSOR_DATA_COUNTER_SIGNAL
+    SIGNALS = _specs("SENSOR_DATA")
+    _S = struct.Struct(SENSOR_DATA_STRUCT)
 
     def encode(self, buf: bytearray | memoryview, counter: int, sensor_status: int,
                rattlespace_m: float, load_cell_force_n: float,
                sprung_accel_mps2: float) -> int:
         m = 0
-        if not 0 <= sensor_status <= 15:
-            m |= 1
-            sensor_status = 0 if sensor_status < 0 else 15
-        if not -0.16384 <= rattlespace_m <= 0.163835:
-            m |= 2
-            rattlespace_m = -0.16384 if rattlespace_m < -0.16384 else (
-                0.163835 if rattlespace_m > 0.163835 else 0.0)
-        if not -16384.0 <= load_cell_force_n <= 16383.5:
-            m |= 4
-            load_cell_force_n = -16384.0 if load_cell_force_n < -16384.0 else (
-                16383.5 if load_cell_force_n > 16383.5 else 0.0)
-        if not -163.84 <= sprung_accel_mps2 <= 163.835:
-            m |= 8
-            sprung_accel_mps2 = -163.84 if sprung_accel_mps2 < -163.84 else (
-                163.835 if sprung_accel_mps2 > 163.835 else 0.0)
-        self._S.pack_into(buf, 0, 0, (counter & 0xF) | (sensor_status << 4),
-                          round(rattlespace_m / 5e-06), round(load_cell_force_n / 0.5),
-                          round(sprung_accel_mps2 / 0.005))
+        s_lo, s_hi = SENSOR_DATA_SENSOR_STATUS_MIN, SENSOR_DATA_SENSOR_STATUS_MAX
+        if not s_lo <= sensor_status <= s_hi:
+            m |= _SD_SENSOR_STATUS_BIT
+            sensor_status = s_lo if sensor_status < s_lo else s_hi
+        lo, hi = SENSOR_DATA_RATTLESPACE_MIN, SENSOR_DATA_RATTLESPACE_MAX
+        if not lo <= rattlespace_m <= hi:
+            m |= _SD_RATTLESPACE_BIT
+            rattlespace_m = lo if rattlespace_m < lo else (hi if rattlespace_m > hi else 0.0)
+        lo, hi = SENSOR_DATA_LOAD_CELL_FORCE_MIN, SENSOR_DATA_LOAD_CELL_FORCE_MAX
+        if not lo <= load_cell_force_n <= hi:
+            m |= _SD_LOAD_CELL_FORCE_BIT
+            load_cell_force_n = lo if load_cell_force_n < lo else (
+                hi if load_cell_force_n > hi else 0.0)
+        lo, hi = SENSOR_DATA_SPRUNG_ACCEL_MIN, SENSOR_DATA_SPRUNG_ACCEL_MAX
+        if not lo <= sprung_accel_mps2 <= hi:
+            m |= _SD_SPRUNG_ACCEL_BIT
+            sprung_accel_mps2 = lo if sprung_accel_mps2 < lo else (
+                hi if sprung_accel_mps2 > hi else 0.0)
+        self._S.pack_into(buf, 0, 0,
+                          (counter & SENSOR_DATA_COUNTER_MASK)
+                          | (sensor_status << SENSOR_DATA_SENSOR_STATUS_SHIFT),
+                          round(rattlespace_m / SENSOR_DATA_RATTLESPACE_SCALE),
+                          round(load_cell_force_n / SENSOR_DATA_LOAD_CELL_FORCE_SCALE),
+                          round(sprung_accel_mps2 / SENSOR_DATA_SPRUNG_ACCEL_SCALE))
         buf[0] = self._crc(buf)
         return m
 
     def decode(self, data: bytes | bytearray | memoryview, out: SensorData) -> DecodeStatus:
-        if len(data) != 8:
+        if len(data) != SENSOR_DATA_LENGTH:
             return _BAD_LENGTH
         crc, b1, rs, force, acc = self._S.unpack(data)
         if crc != self._crc(data):
             return _BAD_CRC
-        out.counter = b1 & 0xF
-        out.sensor_status = b1 >> 4
-        out.rattlespace_m = rs * 5e-06
-        out.load_cell_force_n = force * 0.5
-        out.sprung_accel_mps2 = acc * 0.005
+        out.counter = b1 & SENSOR_DATA_COUNTER_MASK
+        out.sensor_status = ((b1 >> SENSOR_DATA_SENSOR_STATUS_SHIFT)
+                             & SENSOR_DATA_SENSOR_STATUS_MASK)
+        out.rattlespace_m = rs * SENSOR_DATA_RATTLESPACE_SCALE
+        out.load_cell_force_n = force * SENSOR_DATA_LOAD_CELL_FORCE_SCALE
+        out.sprung_accel_mps2 = acc * SENSOR_DATA_SPRUNG_ACCEL_SCALE
         out.range_mask = 0  # every raw value of this frame is inside its DBC range
         return _OK
 
 
 class RigStatusCodec(_Codec):
-    """0x200 RigStatus, rig -> controller, 100 Hz."""
+    """RigStatus, rig -> controller, 100 Hz."""
 
     FRAME_ID = RIG_STATUS_ID
-    NAME = "RigStatus"
+    NAME = RIG_STATUS_NAME
     FRAME_TYPE = RigStatus
-    COUNTER_SIGNAL = "RigStatus_Counter"
-    SIGNALS = (
-        SignalSpec("bypass_open", "BypassOpen", 12, 1, False, 1, 0, 1),
-        SignalSpec("watchdog_tripped", "WatchdogTripped", 13, 1, False, 1, 0, 1),
-        SignalSpec("supply_ok", "SupplyOk", 14, 1, False, 1, 0, 1),
-        SignalSpec("supply_pressure_pa", "SupplyPressure", 16, 16, False, 1000, 0.0,
-                   65535000.0),
-        SignalSpec("spool_position", "SpoolPosition", 32, 16, True, _SPOOL_SCALE, -1.0, 1.0),
-        SignalSpec("load_pressure_pa", "LoadPressure", 48, 16, True, 1000, -32768000.0,
-                   32767000.0),
-    )
-    _S = struct.Struct("<BBHhh")
-    _SPOOL_RAW_LO = _raw_limit(-1.0, _SPOOL_SCALE)
-    _SPOOL_RAW_HI = _raw_limit(1.0, _SPOOL_SCALE)
+    COUNTER_SIGNAL = RIG_STATUS_COUNTER_SIGNAL
+    SIGNALS = _specs("RIG_STATUS")
+    _S = struct.Struct(RIG_STATUS_STRUCT)
 
     def encode(self, buf: bytearray | memoryview, counter: int, bypass_open: int,
                watchdog_tripped: int, supply_ok: int, supply_pressure_pa: float,
                spool_position: float, load_pressure_pa: float) -> int:
         m = 0
-        if not 0.0 <= supply_pressure_pa <= 65535000.0:
-            m |= 8
-            supply_pressure_pa = 65535000.0 if supply_pressure_pa > 65535000.0 else 0.0
-        if not -1.0 <= spool_position <= 1.0:
-            m |= 16
-            spool_position = -1.0 if spool_position < -1.0 else (
-                1.0 if spool_position > 1.0 else 0.0)
-        if not -32768000.0 <= load_pressure_pa <= 32767000.0:
-            m |= 32
-            load_pressure_pa = -32768000.0 if load_pressure_pa < -32768000.0 else (
-                32767000.0 if load_pressure_pa > 32767000.0 else 0.0)
-        b1 = ((counter & 0xF) | (0x10 if bypass_open else 0)
-              | (0x20 if watchdog_tripped else 0) | (0x40 if supply_ok else 0))
-        self._S.pack_into(buf, 0, 0, b1, round(supply_pressure_pa / 1000),
-                          round(spool_position / _SPOOL_SCALE), round(load_pressure_pa / 1000))
+        lo, hi = RIG_STATUS_SUPPLY_PRESSURE_MIN, RIG_STATUS_SUPPLY_PRESSURE_MAX
+        if not lo <= supply_pressure_pa <= hi:
+            m |= _RS_SUPPLY_PRESSURE_BIT
+            supply_pressure_pa = lo if supply_pressure_pa < lo else (
+                hi if supply_pressure_pa > hi else 0.0)
+        lo, hi = RIG_STATUS_SPOOL_POSITION_MIN, RIG_STATUS_SPOOL_POSITION_MAX
+        if not lo <= spool_position <= hi:
+            m |= _RS_SPOOL_POSITION_BIT
+            spool_position = lo if spool_position < lo else (
+                hi if spool_position > hi else 0.0)
+        lo, hi = RIG_STATUS_LOAD_PRESSURE_MIN, RIG_STATUS_LOAD_PRESSURE_MAX
+        if not lo <= load_pressure_pa <= hi:
+            m |= _RS_LOAD_PRESSURE_BIT
+            load_pressure_pa = lo if load_pressure_pa < lo else (
+                hi if load_pressure_pa > hi else 0.0)
+        b1 = ((counter & RIG_STATUS_COUNTER_MASK)
+              | ((1 << RIG_STATUS_BYPASS_OPEN_SHIFT) if bypass_open else 0)
+              | ((1 << RIG_STATUS_WATCHDOG_TRIPPED_SHIFT) if watchdog_tripped else 0)
+              | ((1 << RIG_STATUS_SUPPLY_OK_SHIFT) if supply_ok else 0))
+        self._S.pack_into(buf, 0, 0, b1,
+                          round(supply_pressure_pa / RIG_STATUS_SUPPLY_PRESSURE_SCALE),
+                          round(spool_position / RIG_STATUS_SPOOL_POSITION_SCALE),
+                          round(load_pressure_pa / RIG_STATUS_LOAD_PRESSURE_SCALE))
         buf[0] = self._crc(buf)
         return m
 
     def decode(self, data: bytes | bytearray | memoryview, out: RigStatus) -> DecodeStatus:
-        if len(data) != 8:
+        if len(data) != RIG_STATUS_LENGTH:
             return _BAD_LENGTH
         crc, b1, supply, spool, load = self._S.unpack(data)
         if crc != self._crc(data):
             return _BAD_CRC
-        m = 0 if self._SPOOL_RAW_LO <= spool <= self._SPOOL_RAW_HI else 16
-        out.counter = b1 & 0xF
-        out.bypass_open = (b1 >> 4) & 1
-        out.watchdog_tripped = (b1 >> 5) & 1
-        out.supply_ok = (b1 >> 6) & 1
-        out.supply_pressure_pa = supply * 1000.0
-        out.spool_position = spool * _SPOOL_SCALE
-        out.load_pressure_pa = load * 1000.0
+        m = (0 if RIG_STATUS_SPOOL_POSITION_RAW_MIN <= spool
+             <= RIG_STATUS_SPOOL_POSITION_RAW_MAX else _RS_SPOOL_POSITION_BIT)
+        out.counter = b1 & RIG_STATUS_COUNTER_MASK
+        out.bypass_open = (b1 >> RIG_STATUS_BYPASS_OPEN_SHIFT) & RIG_STATUS_BYPASS_OPEN_MASK
+        out.watchdog_tripped = ((b1 >> RIG_STATUS_WATCHDOG_TRIPPED_SHIFT)
+                                & RIG_STATUS_WATCHDOG_TRIPPED_MASK)
+        out.supply_ok = (b1 >> RIG_STATUS_SUPPLY_OK_SHIFT) & RIG_STATUS_SUPPLY_OK_MASK
+        out.supply_pressure_pa = supply * RIG_STATUS_SUPPLY_PRESSURE_SCALE
+        out.spool_position = spool * RIG_STATUS_SPOOL_POSITION_SCALE
+        out.load_pressure_pa = load * RIG_STATUS_LOAD_PRESSURE_SCALE
         out.range_mask = m
         return _OUT_OF_RANGE if m else _OK
 
 
 class ControllerStatusCodec(_Codec):
-    """0x300 ControllerStatus, controller -> rig, heartbeat."""
+    """ControllerStatus, controller -> rig, heartbeat."""
 
     FRAME_ID = CONTROLLER_STATUS_ID
-    NAME = "ControllerStatus"
+    NAME = CONTROLLER_STATUS_NAME
     FRAME_TYPE = ControllerStatus
-    COUNTER_SIGNAL = "ControllerStatus_Counter"
-    SIGNALS = (
-        SignalSpec("state", "State", 12, 4, False, 1, 0, 15, tuple(sorted(_LIFECYCLE_VALUES))),
-        SignalSpec("active_fault", "ActiveFault", 16, 8, False, 1, 0, 255,
-                   tuple(sorted(_FAULT_VALUES))),
-        SignalSpec("overrun_count", "OverrunCount", 24, 16, False, 1, 0, 65535),
-        SignalSpec("blending", "Blending", 40, 4, False, 1, 0, 15,
-                   tuple(sorted(_BLENDING_VALUES))),
-        SignalSpec("weight_set", "WeightSet", 44, 4, False, 1, 0, 15),
-        SignalSpec("jitter_p99_s", "JitterP99", 48, 16, False, 1e-06, 0.0, 0.065535),
-    )
-    _S = struct.Struct("<BBBHBH")
+    COUNTER_SIGNAL = CONTROLLER_STATUS_COUNTER_SIGNAL
+    SIGNALS = _specs("CONTROLLER_STATUS")
+    _S = struct.Struct(CONTROLLER_STATUS_STRUCT)
 
     def encode(self, buf: bytearray | memoryview, counter: int, state: int, active_fault: int,
                overrun_count: int, blending: int, weight_set: int,
                jitter_p99_s: float) -> int:
         m = 0
-        if not 0 <= state <= 15:
-            m |= 1
-            state = 0 if state < 0 else 15
-        elif state not in _LIFECYCLE_VALUES:
-            m |= 1
-        if not 0 <= active_fault <= 255:
-            m |= 2
-            active_fault = 0 if active_fault < 0 else 255
-        elif active_fault not in _FAULT_VALUES:
-            m |= 2
-        if not 0 <= overrun_count <= 65535:
-            m |= 4
-            overrun_count = 0 if overrun_count < 0 else 65535
-        if not 0 <= blending <= 15:
-            m |= 8
-            blending = 0 if blending < 0 else 15
-        elif blending not in _BLENDING_VALUES:
-            m |= 8
-        if not 0 <= weight_set <= 15:
-            m |= 16
-            weight_set = 0 if weight_set < 0 else 15
-        if not 0.0 <= jitter_p99_s <= 0.065535:
-            m |= 32
-            jitter_p99_s = 0.065535 if jitter_p99_s > 0.065535 else 0.0
-        self._S.pack_into(buf, 0, 0, (counter & 0xF) | (state << 4), active_fault,
-                          overrun_count, blending | (weight_set << 4),
-                          round(jitter_p99_s / 1e-06))
+        lo, hi = CONTROLLER_STATUS_STATE_MIN, CONTROLLER_STATUS_STATE_MAX
+        if not lo <= state <= hi:
+            m |= _CS_STATE_BIT
+            state = lo if state < lo else hi
+        elif state not in CONTROLLER_STATUS_STATE_VALUES:
+            m |= _CS_STATE_BIT
+        lo, hi = CONTROLLER_STATUS_ACTIVE_FAULT_MIN, CONTROLLER_STATUS_ACTIVE_FAULT_MAX
+        if not lo <= active_fault <= hi:
+            m |= _CS_ACTIVE_FAULT_BIT
+            active_fault = lo if active_fault < lo else hi
+        elif active_fault not in CONTROLLER_STATUS_ACTIVE_FAULT_VALUES:
+            m |= _CS_ACTIVE_FAULT_BIT
+        lo, hi = CONTROLLER_STATUS_OVERRUN_COUNT_MIN, CONTROLLER_STATUS_OVERRUN_COUNT_MAX
+        if not lo <= overrun_count <= hi:
+            m |= _CS_OVERRUN_COUNT_BIT
+            overrun_count = lo if overrun_count < lo else hi
+        lo, hi = CONTROLLER_STATUS_BLENDING_MIN, CONTROLLER_STATUS_BLENDING_MAX
+        if not lo <= blending <= hi:
+            m |= _CS_BLENDING_BIT
+            blending = lo if blending < lo else hi
+        elif blending not in CONTROLLER_STATUS_BLENDING_VALUES:
+            m |= _CS_BLENDING_BIT
+        lo, hi = CONTROLLER_STATUS_WEIGHT_SET_MIN, CONTROLLER_STATUS_WEIGHT_SET_MAX
+        if not lo <= weight_set <= hi:
+            m |= _CS_WEIGHT_SET_BIT
+            weight_set = lo if weight_set < lo else hi
+        lo_s, hi_s = CONTROLLER_STATUS_JITTER_P99_MIN, CONTROLLER_STATUS_JITTER_P99_MAX
+        if not lo_s <= jitter_p99_s <= hi_s:
+            m |= _CS_JITTER_P99_BIT
+            jitter_p99_s = lo_s if jitter_p99_s < lo_s else (
+                hi_s if jitter_p99_s > hi_s else 0.0)
+        self._S.pack_into(buf, 0, 0,
+                          (counter & CONTROLLER_STATUS_COUNTER_MASK)
+                          | (state << CONTROLLER_STATUS_STATE_SHIFT),
+                          active_fault, overrun_count,
+                          (blending << CONTROLLER_STATUS_BLENDING_SHIFT)
+                          | (weight_set << CONTROLLER_STATUS_WEIGHT_SET_SHIFT),
+                          round(jitter_p99_s / CONTROLLER_STATUS_JITTER_P99_SCALE))
         buf[0] = self._crc(buf)
         return m
 
     def decode(self, data: bytes | bytearray | memoryview,
                out: ControllerStatus) -> DecodeStatus:
-        if len(data) != 8:
+        if len(data) != CONTROLLER_STATUS_LENGTH:
             return _BAD_LENGTH
         crc, b1, fault, overruns, b5, jitter = self._S.unpack(data)
         if crc != self._crc(data):
             return _BAD_CRC
-        state = b1 >> 4
-        blending = b5 & 0xF
-        m = 0 if state in _LIFECYCLE_VALUES else 1
-        if fault not in _FAULT_VALUES:
-            m |= 2
-        if blending not in _BLENDING_VALUES:
-            m |= 8
-        out.counter = b1 & 0xF
+        state = (b1 >> CONTROLLER_STATUS_STATE_SHIFT) & CONTROLLER_STATUS_STATE_MASK
+        blending = ((b5 >> CONTROLLER_STATUS_BLENDING_SHIFT)
+                    & CONTROLLER_STATUS_BLENDING_MASK)
+        m = 0 if state in CONTROLLER_STATUS_STATE_VALUES else _CS_STATE_BIT
+        if fault not in CONTROLLER_STATUS_ACTIVE_FAULT_VALUES:
+            m |= _CS_ACTIVE_FAULT_BIT
+        if blending not in CONTROLLER_STATUS_BLENDING_VALUES:
+            m |= _CS_BLENDING_BIT
+        out.counter = b1 & CONTROLLER_STATUS_COUNTER_MASK
         out.state = state
         out.active_fault = fault
         out.overrun_count = overruns
         out.blending = blending
-        out.weight_set = b5 >> 4
-        out.jitter_p99_s = jitter * 1e-06
+        out.weight_set = ((b5 >> CONTROLLER_STATUS_WEIGHT_SET_SHIFT)
+                          & CONTROLLER_STATUS_WEIGHT_SET_MASK)
+        out.jitter_p99_s = jitter * CONTROLLER_STATUS_JITTER_P99_SCALE
         out.range_mask = m
         return _OUT_OF_RANGE if m else _OK
 

@@ -1,0 +1,56 @@
+"""rig/wire/dbc_constants.py is generated from rig/wire/rig.dbc and checked in: the DBC
+is the one place a protocol number is written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cantools
+
+from rig.wire import dbc_constants as constants
+from rig.wire.generate import DBC_PATH, OUT_PATH, attr_name, generate, main
+from rig.wire.protocol import CODECS, Blending, FaultCode, LifecycleState
+
+
+def test_regenerating_gives_no_difference() -> None:
+    assert OUT_PATH.read_text(encoding="utf-8") == generate()
+    assert main(["--check"]) == 0
+
+
+def test_a_changed_dbc_changes_the_generated_module(tmp_path: Path) -> None:
+    dbc = tmp_path / "rig.dbc"
+    dbc.write_text(DBC_PATH.read_text(encoding="utf-8").replace(
+        "SG_ Rattlespace : 16|16@1- (5e-06,0)", "SG_ Rattlespace : 16|16@1- (1e-05,0)"),
+        encoding="utf-8")
+    text = generate(dbc)
+    assert "SENSOR_DATA_RATTLESPACE_SCALE: Final = 1e-05" in text
+    assert text != OUT_PATH.read_text(encoding="utf-8")
+
+
+def test_enumerations_are_the_dbc_value_tables() -> None:
+    db: Any = cantools.database.load_file(str(DBC_PATH))
+    for enum, (msg, sig) in ((LifecycleState, ("ValveCommand", "Lifecycle")),
+                             (FaultCode, ("FaultReport", "FaultCode")),
+                             (Blending, ("ControllerStatus", "Blending"))):
+        choices = db.get_message_by_name(msg).get_signal_by_name(sig).choices
+        assert {int(v): str(n) for v, n in choices.items()} == {m.value: m.name for m in enum}
+    # every other signal with a VAL_ table uses one of these tables
+    for msg_name, sig_name, enum in (("FaultReport", "FaultState", LifecycleState),
+                                     ("ControllerStatus", "State", LifecycleState),
+                                     ("ControllerStatus", "ActiveFault", FaultCode)):
+        choices = db.get_message_by_name(msg_name).get_signal_by_name(sig_name).choices
+        assert {int(v) for v in choices} == {int(m) for m in enum}
+
+
+def test_codecs_take_every_number_from_the_dbc() -> None:
+    db: Any = cantools.database.load_file(str(DBC_PATH))
+    for frame_id, codec in CODECS.items():
+        msg = db.get_message_by_frame_id(frame_id)
+        assert codec.NAME == msg.name and msg.length == constants.VALVE_COMMAND_LENGTH
+        signals = [s for s in msg.signals if not s.name.endswith(("_CRC", "_Counter"))]
+        assert [spec.attr for spec in codec.SIGNALS] == [attr_name(s) for s in signals]
+        for spec, sig in zip(codec.SIGNALS, signals, strict=True):
+            assert (spec.start_bit, spec.length, spec.signed, spec.scale, spec.minimum,
+                    spec.maximum) == (sig.start, sig.length, sig.is_signed, sig.scale,
+                                      sig.minimum, sig.maximum)
