@@ -39,6 +39,7 @@ __all__ = [
     "CanConfig",
     "ConfigError",
     "DesignConfig",
+    "EmulatorConfig",
     "ForceLoopConfig",
     "FuzzyConfig",
     "MovingBankConfig",
@@ -388,6 +389,38 @@ class SensorConfig:
 
 
 @dataclass(frozen=True)
+class EmulatorConfig:
+    """The emulated rig's true plant where it differs from the configuration the
+    controller is designed from (``rig demo``, ``rig hil``, ``rig sim``, ``rig montecarlo``;
+    the Monte Carlo draws on top of it).  All scales 1 and no offset: the configured rig."""
+
+    sprung_mass_scale: float = _f(1.0, lo=0.25, hi=4.0, doc="true M / vehicle.sprung_mass_kg")
+    unsprung_mass_scale: float = _f(1.0, lo=0.25, hi=4.0,
+                                    doc="true m / vehicle.unsprung_mass_kg")
+    spring_rate_scale: float = _f(1.0, lo=0.25, hi=4.0,
+                                  doc="true K / vehicle.suspension_stiffness_n_per_m")
+    damping_scale: float = _f(1.0, lo=0.25, hi=4.0,
+                              doc="true C / vehicle.suspension_damping_ns_per_m")
+    tire_stiffness_scale: float = _f(1.0, lo=0.25, hi=4.0,
+                                     doc="scale of the tire stiffness law (coefficient)")
+    ride_height_offset_m: float = _f(0.0, lo=-0.05, hi=0.05,
+                                     doc="static rattlespace about the bump stops' centre "
+                                         "[m] once the ride height is set by spring preload "
+                                         "(used when the true plant differs)")
+    lvdt_zero: str = _f("actual", choices=("actual", "nominal"),
+                        doc="where the LVDT reads 0: 'actual' = the true plant's static "
+                            "position (zeroed at rest, as on a rig), 'nominal' = M g / K of "
+                            "the configured rig (a mis-zeroed sensor when they differ)")
+
+    @property
+    def is_nominal(self) -> bool:
+        """True when the emulated plant is the configured one."""
+        return (self.sprung_mass_scale == self.unsprung_mass_scale == self.spring_rate_scale
+                == self.damping_scale == self.tire_stiffness_scale == 1.0
+                and self.ride_height_offset_m == 0.0)
+
+
+@dataclass(frozen=True)
 class SafetyConfig:
     arm_warmup_s: float = _f(0.05, lo=0.0, hi=60.0,
                              doc="good sensor ticks the estimator needs before arming")
@@ -483,6 +516,7 @@ class RigConfig:
     can: CanConfig = field(default_factory=CanConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
+    emulator: EmulatorConfig = field(default_factory=EmulatorConfig)
 
     @property
     def sample_time_s(self) -> float:

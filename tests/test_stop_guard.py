@@ -67,9 +67,8 @@ def test_guard_keeps_a_soft_spring_plant_off_the_stops() -> None:
     runs = {}
     for width in (0.0, 0.02):
         cfg = base.replace(design={"stop_guard_m": width})
-        runs[width] = simulate(cfg, road, "lqg", 1, params=prm, seed=3,
-                               lvdt_zero="actual").metrics
-    passive = simulate(base, road, "passive", params=prm, seed=3, lvdt_zero="actual").metrics
+        runs[width] = simulate(cfg, road, "lqg", 1, params=prm, seed=3).metrics
+    passive = simulate(base, road, "passive", params=prm, seed=3).metrics
     assert passive["bump_stop_time_s"] == 0.0
     off, on = runs[0.0], runs[0.02]
     assert off["bump_stop_slam"] == 1.0 and off["bump_stop_time_s"] > 1.0

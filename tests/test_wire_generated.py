@@ -47,7 +47,7 @@ def test_codecs_take_every_number_from_the_dbc() -> None:
     db: Any = cantools.database.load_file(str(DBC_PATH))
     for frame_id, codec in CODECS.items():
         msg = db.get_message_by_frame_id(frame_id)
-        assert codec.NAME == msg.name and msg.length == constants.VALVE_COMMAND_LENGTH
+        assert msg.name == codec.NAME and msg.length == constants.VALVE_COMMAND_LENGTH
         signals = [s for s in msg.signals if not s.name.endswith(("_CRC", "_Counter"))]
         assert [spec.attr for spec in codec.SIGNALS] == [attr_name(s) for s in signals]
         for spec, sig in zip(codec.SIGNALS, signals, strict=True):

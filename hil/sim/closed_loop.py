@@ -203,14 +203,14 @@ class ZeroForceController:
 def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: int = 1, *,
              delay_ticks: int = 0, seed: int | None = None, params: PlantParams | None = None,
              design: Design | None = None, settle_s: float = 0.0,
-             latch_on_sensor_status: bool = True, lvdt_zero: str = "nominal") -> SimResult:
+             latch_on_sensor_status: bool = True) -> SimResult:
     """Closed-loop run of ``controller`` (one of :data:`CONTROLLERS`) over ``road``
     (sampled at the controller rate): :func:`run_closed_loop` with a :class:`BankController`,
     :class:`ZeroForceController` or :class:`hil.sim.skyhook.SkyhookController`.
 
-    ``params`` perturbs the plant (the controller keeps its nominal design); ``design``
-    defaults to ``design_bank(cfg)`` (memoised, bank modes only); ``lvdt_zero`` see
-    :class:`RigPlant`.  Raises ValueError on bad arguments.
+    ``params`` perturbs the plant (default: the emulated rig of ``cfg.emulator``; the
+    controller keeps its design from the configuration); ``design`` defaults to
+    ``design_bank(cfg)`` (memoised, bank modes only).  Raises ValueError on bad arguments.
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}: use one of "
@@ -226,8 +226,7 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
         design = design if design is not None else cached_design(cfg)
         ctrl = BankController(design, cfg, controller, weight_set, road)
     res = run_closed_loop(cfg, road, ctrl, delay_ticks=delay_ticks, seed=seed, params=params,
-                          settle_s=settle_s, lvdt_zero=lvdt_zero,
-                          latch_on_sensor_status=latch_on_sensor_status)
+                          settle_s=settle_s, latch_on_sensor_status=latch_on_sensor_status)
     res.weight_set = weight_set
     return res
 
@@ -235,7 +234,7 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
 def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | None, *,
                     delay_ticks: int = 0, delay_point: str = "spool", seed: int | None = None,
                     params: PlantParams | None = None, settle_s: float = 0.0,
-                    lvdt_zero: str = "nominal", latch_on_sensor_status: bool = True,
+                    latch_on_sensor_status: bool = True,
                     record_weights: bool = False) -> SimResult:
     """Closed-loop run of ``controller`` (None = passive, bypass open) over ``road``
     (sampled at ``cfg.sample_time_s``); ``controller.reset()`` is called first.
@@ -260,7 +259,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
         raise ValueError(f"road sampled at {road.dt_s} s but the controller runs at {dt} s")
     n = road.n_ticks
     substeps = max(1, math.ceil(dt / MAX_INNER_STEP_S - 1e-9))
-    plant = RigPlant(cfg, params, substeps=substeps, lvdt_zero=lvdt_zero)
+    plant = RigPlant(cfg, params, substeps=substeps)
     sensors = SensorSuite(cfg.sensors, cfg.noise, seed, dt_s=dt)
     pi: Any = None
     ctrl_step: Any = None

@@ -70,7 +70,8 @@ def draw_params(cfg: RigConfig, runs: int, spread: float | dict[str, float] = 0.
                 seed: int = 0, ride_height_std_m: float | None = RIDE_HEIGHT_STD_M
                 ) -> list[PlantParams]:
     """``runs`` plant perturbations: each of M, m, K, C, Kt (scale), Ct (scale) is
-    nominal x N(1, spread) (``spread`` may be per parameter: keys M, m, K, C, Kt, Ct),
+    the emulated rig's (``cfg.emulator``: the configured values times its scales)
+    x N(1, spread) (``spread`` may be per parameter: keys M, m, K, C, Kt, Ct),
     and the ride height (static rattlespace about the stops' centre, set by spring
     preload) is N(0, ``ride_height_std_m``) [m]; None keeps each plant at its own
     M g / K (no preload adjustment).  The ride heights come from their own random stream,
@@ -99,20 +100,24 @@ def draw_params(cfg: RigConfig, runs: int, spread: float | dict[str, float] = 0.
     if ride_height_std_m is not None:       # own stream: run i's draw does not depend on runs
         rng_rh = np.random.default_rng([seed, 1])
         offsets = [float(x) for x in ride_height_std_m * rng_rh.standard_normal(runs)]
-    v = cfg.vehicle
-    return [PlantParams(sprung_mass_kg=v.sprung_mass_kg * f[0],
-                        unsprung_mass_kg=v.unsprung_mass_kg * f[1],
-                        suspension_stiffness_n_per_m=v.suspension_stiffness_n_per_m * f[2],
-                        suspension_damping_ns_per_m=v.suspension_damping_ns_per_m * f[3],
-                        tire_stiffness_scale=float(f[4]), tire_damping_scale=float(f[5]),
-                        ride_height_offset_m=off)
+    v, e = cfg.vehicle, cfg.emulator
+    base = (v.sprung_mass_kg * e.sprung_mass_scale, v.unsprung_mass_kg * e.unsprung_mass_scale,
+            v.suspension_stiffness_n_per_m * e.spring_rate_scale,
+            v.suspension_damping_ns_per_m * e.damping_scale, e.tire_stiffness_scale)
+    if not e.is_nominal:                # drawn about the emulated rig's ride height
+        offsets = [None if off is None else e.ride_height_offset_m + off for off in offsets]
+    return [PlantParams(sprung_mass_kg=base[0] * f[0], unsprung_mass_kg=base[1] * f[1],
+                        suspension_stiffness_n_per_m=base[2] * f[2],
+                        suspension_damping_ns_per_m=base[3] * f[3],
+                        tire_stiffness_scale=base[4] * float(f[4]),
+                        tire_damping_scale=float(f[5]), ride_height_offset_m=off)
             for f, off in zip(factors, offsets, strict=True)]
 
 
 def _one_run(args: tuple[Any, ...]) -> tuple[int, dict[str, float], FloatArray]:
-    i, cfg, road, controller, weight_set, params, design, seed, lvdt_zero = args
+    i, cfg, road, controller, weight_set, params, design, seed = args
     res = simulate(cfg, road, controller, weight_set, params=params, design=design,
-                   seed=seed, lvdt_zero=lvdt_zero)
+                   seed=seed)
     return i, res.metrics, res.traces["rattlespace_m"][::TRACE_DECIMATION].copy()
 
 
@@ -134,21 +139,23 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
                    weight_set: int = 1, spread: float | dict[str, float] = 0.05,
                    seed: int = 0, workers: int | None = None, progress: bool = True,
                    out_dir: str | Path | None = None,
-                   lvdt_zero: str = "actual",
                    ride_height_std_m: float | None = RIDE_HEIGHT_STD_M) -> MonteCarloResult:
     """Run ``runs`` perturbed plants in parallel; write ``montecarlo.png`` (and
     ``montecarlo.json``) into ``out_dir`` if given.
 
-    ``lvdt_zero="actual"``: each perturbed rig's LVDT is zeroed at its own static
-    position (calibrated at rest, like the thesis's deviation-coordinate models);
-    ``"nominal"`` keeps the nominal zero, so the controller also sees the static offset
-    M g / K - M_nom g / K_nom (about 9 mm for +5 % M) -- or, with the ride height set by
-    preload (``ride_height_std_m``, see the module docstring), the setting error.
+    The plants are drawn around the emulated rig of ``cfg.emulator`` (its scales and
+    ride-height offset; the controller is designed from the configuration).  Where each
+    rig's LVDT reads 0 is ``cfg.emulator.lvdt_zero``: ``"actual"`` (default) zeroes it at
+    the rig's own static position (calibrated at rest, like the thesis's
+    deviation-coordinate models); ``"nominal"`` keeps the configured zero, so the
+    controller also sees the static offset M g / K - M_nom g / K_nom (about 9 mm for +5 %
+    M) -- or, with the ride height set by preload (``ride_height_std_m``, see the module
+    docstring), the setting error.
     """
     params = draw_params(cfg, runs, spread, seed, ride_height_std_m)
     design = cached_design(cfg) if controller in BANK_CONTROLLERS else None
     workers = max(1, min(workers or os.cpu_count() or 1, runs))
-    tasks = [(i, cfg, road, controller, weight_set, p, design, seed + 1000 + i, lvdt_zero)
+    tasks = [(i, cfg, road, controller, weight_set, p, design, seed + 1000 + i)
              for i, p in enumerate(params)]
     results: list[tuple[int, dict[str, float], FloatArray] | None] = [None] * runs
     bar: Any = None

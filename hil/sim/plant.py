@@ -41,7 +41,8 @@ from numpy.typing import NDArray
 from controller.config import RigConfig
 from hil.sim.hydraulics import hydraulic_power_w, load_pressure_rate
 
-__all__ = ["N_STATES", "PlantParams", "RigPlant", "advance_kernel", "derivatives"]
+__all__ = ["N_STATES", "PlantParams", "RigPlant", "advance_kernel", "derivatives",
+           "emulated_params"]
 
 FloatArray = NDArray[np.float64]
 
@@ -69,6 +70,23 @@ class PlantParams:
     #: static rattlespace minus the bump stops' centre [m] (compression positive) after a
     #: technician set the ride height by spring preload; None = no preload adjustment
     ride_height_offset_m: float | None = None
+
+
+def emulated_params(cfg: RigConfig) -> PlantParams | None:
+    """The true plant of the emulated rig from ``cfg.emulator`` (None: the configured
+    rig itself, so that runs on the nominal plant stay bit-identical)."""
+    e = cfg.emulator
+    if e.is_nominal:
+        return None
+    v = cfg.vehicle
+    return PlantParams(sprung_mass_kg=v.sprung_mass_kg * e.sprung_mass_scale,
+                       unsprung_mass_kg=v.unsprung_mass_kg * e.unsprung_mass_scale,
+                       suspension_stiffness_n_per_m=(v.suspension_stiffness_n_per_m
+                                                     * e.spring_rate_scale),
+                       suspension_damping_ns_per_m=(v.suspension_damping_ns_per_m
+                                                    * e.damping_scale),
+                       tire_stiffness_scale=e.tire_stiffness_scale,
+                       ride_height_offset_m=e.ride_height_offset_m)
 
 
 @njit(cache=True)
@@ -212,19 +230,20 @@ class RigPlant:
     """The emulated rig's quarter car + actuator.  Never raises on bad numbers: a
     non-finite state sets :attr:`nonfinite` (and stays so until :meth:`reset`).
 
-    ``params`` overrides M, m, K, C and scales the tire stiffness and damping laws.
-    ``lvdt_zero`` is where the LVDT reads 0: ``"nominal"`` (M g / K of the configured
-    nominal rig, the DBC contract) or ``"actual"`` (this plant's own static rattlespace,
-    as a rig calibrated at rest reads; differs only when ``params`` perturbs M or K).
+    ``params`` overrides M, m, K, C and scales the tire stiffness and damping laws;
+    None = the emulated rig of ``cfg.emulator`` (:func:`emulated_params`).  Where the
+    LVDT reads 0 is ``cfg.emulator.lvdt_zero``: ``"actual"`` (this plant's own static
+    rattlespace, as a rig zeroed at rest reads) or ``"nominal"`` (M g / K of the
+    configured rig); they differ only when the plant's M, K or preload differ.
     """
 
     def __init__(self, cfg: RigConfig, params: PlantParams | None = None,
-                 substeps: int = 20, lvdt_zero: str = "nominal") -> None:
+                 substeps: int = 20) -> None:
         if substeps < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
-        if lvdt_zero not in ("nominal", "actual"):
-            raise ValueError(f"lvdt_zero {lvdt_zero!r}: allowed 'nominal', 'actual'")
         self.cfg = cfg
+        if params is None:
+            params = emulated_params(cfg)
         self.params = params or PlantParams()
         self.p = _param_vector(cfg, self.params)
         for name, value in zip(("M", "m", "K", "tire_stiffness_scale"),
@@ -241,8 +260,14 @@ class RigPlant:
         self.nonfinite = False
         self.reset()
         eq = self.equilibrium()
-        self.static_rattlespace_m = (float(self.p[P_R0]) if lvdt_zero == "nominal"
-                                     else float(eq[0] - eq[1]))    # the LVDT zero
+        # the LVDT zero; where M, K and the preload are the configured ones, both choices
+        # are the configured M g / K (taken as configured, to the last bit)
+        moved = params is not None and (params.sprung_mass_kg is not None
+                                        or params.suspension_stiffness_n_per_m is not None
+                                        or params.ride_height_offset_m is not None)
+        self.static_rattlespace_m = (float(eq[0] - eq[1])
+                                     if cfg.emulator.lvdt_zero == "actual" and moved
+                                     else float(self.p[P_R0]))
 
     # ------------------------------------------------------------------ state
     def equilibrium(self) -> FloatArray:

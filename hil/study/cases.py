@@ -62,7 +62,6 @@ class Case:
     weights: tuple[float, float, float, float] | None = None   # custom [rho1..rho4]
     skyhook: SkyhookGains | None = None
     settle_s: float = 0.0
-    lvdt_zero: str = "nominal"
     trace: bool = False
 
     def __post_init__(self) -> None:
@@ -76,12 +75,12 @@ class Case:
     def ref_key(self) -> tuple[Any, ...]:
         """Cases with equal keys share one passive reference run."""
         return (self.road, self.speed_mps, self.duration_s, self.road_seed, self.rate_hz,
-                self.param_tag, self.settle_s, self.lvdt_zero)
+                self.param_tag, self.settle_s)
 
     def passive(self) -> Case:
         return Case(self.group, "passive", 1, self.road, self.speed_mps, self.duration_s,
                     self.road_seed, self.sensor_seed, 0.0, "spool", self.rate_hz, self.params,
-                    self.param_tag, None, None, self.settle_s, self.lvdt_zero, self.trace)
+                    self.param_tag, None, None, self.settle_s, self.trace)
 
     @property
     def label(self) -> str:
@@ -171,7 +170,7 @@ def run_case(case: Case, cfg: RigConfig) -> dict[str, Any]:
     delay_ticks = round(case.delay_ms * 1e-3 / dt)
     res = run_closed_loop(ccfg, road, ctrl, delay_ticks=delay_ticks, seed=case.sensor_seed,
                           params=case.params, settle_s=case.settle_s,
-                          lvdt_zero=case.lvdt_zero, record_weights=case.trace,
+                          record_weights=case.trace,
                           delay_point=case.delay_point)
     row = _row_fields(case)
     row.update({k: float(v) for k, v in res.metrics.items()

@@ -99,21 +99,21 @@ def _one(args: tuple[RigConfig, Run]) -> dict[str, float]:
     cfg = _config(base, run)
     road = make_road("rough-course", THESIS_SPEED_MPS, run.duration_s, cfg.sample_time_s,
                      run.seed)
-    params, sim_seed, lvdt_zero = None, run.seed, "nominal"
+    params, sim_seed = None, run.seed
     if run.mc is not None:
         spread, i, n, rh = run.mc
         params = draw_params(cfg, n, spread, run.seed, rh)[i]
-        sim_seed, lvdt_zero = run.seed + 1000 + i, "actual"
+        sim_seed = run.seed + 1000 + i
     if run.controller == "skyhook" or (run.record and run.controller != "passive"):
         ctrl: Any = (SkyhookController(cfg, run.skyhook or DEFAULT_GAINS)
                      if run.controller == "skyhook"
                      else BankController(cached_design(cfg), cfg, run.controller,
                                          run.weight_set, road))
         res = run_closed_loop(cfg, road, ctrl, seed=sim_seed, params=params,
-                              lvdt_zero=lvdt_zero, record_weights=run.record)
+                              record_weights=run.record)
     else:
         res = simulate(cfg, road, run.controller, run.weight_set, seed=sim_seed,
-                       params=params, lvdt_zero=lvdt_zero)
+                       params=params)
     m = {k: float(v) for k, v in res.metrics.items()}
     if run.record and "q" in res.traces:
         m["old_rule_latched"] = float(old_divergence_rule(res.traces["q"]))

@@ -128,7 +128,7 @@ def other_cases(p: StudyPlan, cfg: RigConfig, skyhook: SkyhookGains) -> list[Cas
         group = f"mc{round(100 * spread)}"
         for i, prm in enumerate(draw_params(cfg, p.mc_runs, spread, seed=11)):
             base = replace(thesis, group=group, params=prm, param_tag=f"{group}-{i}",
-                           lvdt_zero="actual", sensor_seed=1000 + i)
+                           sensor_seed=1000 + i)
             cases.append(base)
             for c, ws in mc_ctrl:
                 cases.append(replace(base, controller=c, weight_set=ws,

@@ -43,9 +43,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="processes (default: all cores)")
     p.add_argument("--out", default=None, metavar="DIR", type=argtypes.output_dir,
                    help="write montecarlo.png and montecarlo.json here (replaced)")
-    p.add_argument("--lvdt-zero", choices=("actual", "nominal"), default="actual",
-                   help="LVDT zero of each perturbed rig: its own static position "
-                        "(calibrated at rest, default) or the nominal one")
     p.add_argument("--ride-height-std", default=RIDE_HEIGHT_STD_M, metavar="M",
                    type=argtypes.real(0.0, MAX_RIDE_HEIGHT_STD_M, "m"),
                    help="std of the ride-height setting error [m]: each plant's static "
@@ -66,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         res = run_montecarlo(cfg, road, args.runs, controller=args.controller,
                              weight_set=args.weights, spread=args.spread, seed=args.seed,
                              workers=args.workers, progress=not args.no_progress,
-                             out_dir=args.out, lvdt_zero=args.lvdt_zero,
+                             out_dir=args.out,
                              ride_height_std_m=(None if args.own_ride_height
                                                 else args.ride_height_std))
     except (RoadError, ValueError) as exc:

@@ -1,0 +1,78 @@
+"""``[emulator]``: the emulated rig's true plant may differ from the configuration the
+controller is designed from; sim, Monte Carlo and the CAN node all run that plant."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from controller.config import ConfigError, default_config
+from hil.sim.closed_loop import simulate
+from hil.sim.montecarlo import draw_params
+from hil.sim.plant import P_C, P_K, P_KT, P_M, P_m, PlantParams, RigPlant, emulated_params
+from hil.sim.roads import make_road
+
+CFG = default_config()
+SCALES = {"sprung_mass_scale": 1.12, "spring_rate_scale": 0.92, "damping_scale": 1.10,
+          "tire_stiffness_scale": 0.90, "unsprung_mass_scale": 1.05}
+OTHER = CFG.replace(emulator=SCALES)
+
+
+def test_defaults_are_the_configured_rig_bit_for_bit() -> None:
+    assert CFG.emulator.is_nominal and emulated_params(CFG) is None
+    np.testing.assert_array_equal(RigPlant(CFG).p, RigPlant(CFG, PlantParams()).p)
+    assert RigPlant(CFG).static_rattlespace_m == RigPlant(CFG, PlantParams()).static_rattlespace_m
+    # Monte Carlo draws with explicit unit scales are the same draws
+    unit = CFG.replace(emulator={k: 1.0 for k in SCALES})
+    assert draw_params(CFG, 5, 0.1, seed=3) == draw_params(unit, 5, 0.1, seed=3)
+
+
+def test_scaled_emulator_is_the_true_plant() -> None:
+    v = CFG.vehicle
+    p = RigPlant(OTHER).p          # what the CAN node and the simulator build by default
+    assert p[P_M] == pytest.approx(1.12 * v.sprung_mass_kg)
+    assert p[P_m] == pytest.approx(1.05 * v.unsprung_mass_kg)
+    assert p[P_K] == pytest.approx(0.92 * v.suspension_stiffness_n_per_m)
+    assert p[P_C] == pytest.approx(1.10 * v.suspension_damping_ns_per_m)
+    assert p[P_KT] == pytest.approx(0.90 * RigPlant(CFG).p[P_KT])
+    # the ride height is set by preload: the static rattlespace stays at the stops' centre
+    plant = RigPlant(OTHER)
+    eq = plant.equilibrium()
+    assert eq[0] - eq[1] == pytest.approx(RigPlant(CFG).static_rattlespace_m, abs=1e-12)
+
+
+def test_a_softer_heavier_body_rings_slower_as_sqrt_k_over_m() -> None:
+    """Passive response to the same bump: the body's ringing frequency scales with
+    sqrt(K / M) to within the tire's share of the effective stiffness."""
+    road = make_road("bump", 11.176, 4.0, CFG.sample_time_s, 1)
+    freqs = []
+    for cfg in (CFG, CFG.replace(emulator={"sprung_mass_scale": 1.5,
+                                          "spring_rate_scale": 0.7})):
+        acc = simulate(cfg, road, "passive", seed=1).traces["accel_mps2"]
+        tail = acc[int(1.5 / CFG.sample_time_s):]
+        crossings = np.flatnonzero(np.diff(np.signbit(tail - tail.mean())))
+        period = 2 * np.median(np.diff(crossings)) * CFG.sample_time_s
+        freqs.append(1.0 / period)
+    expected = math.sqrt(0.7 / 1.5)
+    assert freqs[1] / freqs[0] == pytest.approx(expected, rel=0.15)
+
+
+def test_monte_carlo_draws_around_the_emulated_rig() -> None:
+    v = CFG.vehicle
+    cfg = OTHER.replace(emulator={"ride_height_offset_m": 0.004})
+    exact = draw_params(cfg, 3, 0.0, seed=1, ride_height_std_m=0.0)
+    assert all(p.sprung_mass_kg == pytest.approx(1.12 * v.sprung_mass_kg) for p in exact)
+    assert all(p.tire_stiffness_scale == pytest.approx(0.90) for p in exact)
+    assert all(p.ride_height_offset_m == pytest.approx(0.004) for p in exact)
+    spread = draw_params(cfg, 400, 0.05, seed=2)
+    mean_m = np.mean([p.sprung_mass_kg for p in spread])
+    assert mean_m == pytest.approx(1.12 * v.sprung_mass_kg, rel=0.01)
+
+
+def test_bad_emulator_values_name_the_key() -> None:
+    with pytest.raises(ConfigError, match="emulator.sprung_mass_scale"):
+        CFG.replace(emulator={"sprung_mass_scale": 0.0})
+    with pytest.raises(ConfigError, match="emulator.lvdt_zero"):
+        CFG.replace(emulator={"lvdt_zero": "somewhere"})
