@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import random
 import threading
-import time
 from collections import deque
 from dataclasses import asdict, dataclass
 
@@ -38,6 +37,7 @@ from hil.sim.plant import RigPlant
 from hil.sim.roads import Road
 from hil.sim.sensors import SensorSuite
 from rig.bus.core import classify_bus_exception, classify_error_frame, make_tx_message
+from rig.rt.pacing import Pacer
 from rig.wire.protocol import (
     CONTROLLER_STATUS,
     CONTROLLER_STATUS_ID,
@@ -61,6 +61,8 @@ from rig.wire.protocol import (
 __all__ = ["NodeRecord", "NodeStats", "RigNode"]
 
 DEFAULT_WATCHDOG_S = 0.005
+#: a tick that starts later than this after its deadline counts in NodeStats.late_ticks
+LATE_TICK_NS = 200_000
 DEFAULT_STATUS_RATE_HZ = 100.0
 _NO_WINDOWS: list[FaultWindow] = []  # never mutated
 _NO_KINDS: frozenset[FaultKind] = frozenset()
@@ -375,10 +377,11 @@ class RigNode:
             start_ns: int | None = None) -> NodeStats:
         """Tick until ``stop_event`` is set or ``duration_s`` of rig time has passed.
 
-        Real time: tick k starts at t0 + k dt (absolute deadlines, ``time.sleep`` until
-        each); a tick that starts late is counted, and falling more than ``max_lag_s``
-        behind resets the schedule (counted in ``resyncs``) instead of bursting through
-        the missed ticks.  Default: half the drive watchdog window, since a burst passes
+        Real time: tick k starts at t0 + k dt (absolute deadlines,
+        :class:`rig.rt.pacing.Pacer`, the control loop's rule); a tick that starts late is
+        counted, and falling more than ``max_lag_s`` behind skips the missed deadlines
+        (counted in ``resyncs``; the schedule stays on its grid) instead of bursting
+        through them.  Default: half the drive watchdog window, since a burst passes
         rig time without any command being able to arrive and would trip the watchdog.
         ``start_ns`` (``time.monotonic_ns`` clock) sets t0, e.g. half a period after the
         controller's deadlines when both share a process (``rig demo``): the two threads
@@ -387,26 +390,18 @@ class RigNode:
         period_ns = round(self.dt_s * 1e9)
         if max_lag_s is None:
             max_lag_s = (self._wd_ticks // 2) * self.dt_s
-        max_lag_ns = round(max_lag_s * 1e9)
         end_tick = None if duration_s is None else self.tick_count + round(duration_s / self.dt_s)
         stats = self.stats
-        deadline = time.monotonic_ns() if start_ns is None else int(start_ns)
+        pacer = Pacer(period_ns, start_ns=start_ns, max_lag_ns=round(max_lag_s * 1e9))
         while not stop_event.is_set():
             if end_tick is not None and self.tick_count >= end_tick:
                 break
             if realtime:
-                now = time.monotonic_ns()
-                wait = deadline - now
-                if wait > 0:
-                    time.sleep(wait * 1e-9)
-                    now = time.monotonic_ns()
-                late = now - deadline
-                if late > 200_000:
+                late = pacer.wait() - pacer.deadline
+                if late > LATE_TICK_NS:
                     stats.late_ticks += 1
                     stats.max_lateness_s = max(stats.max_lateness_s, late * 1e-9)
-                if late > max_lag_ns:
-                    stats.resyncs += 1
-                    deadline = now
             self.tick()
-            deadline += period_ns
+            if realtime and pacer.advance():
+                stats.resyncs += 1
         return stats

@@ -72,7 +72,7 @@ def test_monte_carlo_draws_around_the_emulated_rig() -> None:
 
 
 def test_bad_emulator_values_name_the_key() -> None:
-    with pytest.raises(ConfigError, match="emulator.sprung_mass_scale"):
+    with pytest.raises(ConfigError, match=r"emulator\.sprung_mass_scale"):
         CFG.replace(emulator={"sprung_mass_scale": 0.0})
-    with pytest.raises(ConfigError, match="emulator.lvdt_zero"):
+    with pytest.raises(ConfigError, match=r"emulator\.lvdt_zero"):
         CFG.replace(emulator={"lvdt_zero": "somewhere"})

@@ -45,6 +45,7 @@ from controller.config import RigConfig
 from controller.runtime.kernels import StepFlag
 from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
 from rig.recording.codec import TickLayout
+from rig.rt.pacing import Pacer
 from rig.rt.sdnotify import SdNotifier
 from rig.service.lifecycle import CommandResult, Lifecycle, Transition
 from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
@@ -711,34 +712,27 @@ class ControlLoop:
         """Tick at the configured rate until ``stop`` is set, ``max_ticks`` ticks were
         done or ``duration_s`` of wall time has passed (skipped deadlines included).
 
-        ``on_tick`` (if given) runs after each tick in the loop thread: keep it cheap."""
+        ``on_tick`` (if given) runs after each tick in the loop thread: keep it cheap.
+        Pacing: :class:`rig.rt.pacing.Pacer` (absolute deadlines, missed ones skipped
+        once a whole period is lost), the same rule as the emulated rig's."""
         clock = self.clock_ns
         period = self.period_ns
-        spin = self.spin_ns
-        sleep = time.sleep
+        pacer = Pacer(period, start_ns=clock() + period, spin_ns=self.spin_ns, clock=clock)
         timing = self.timing
-        deadline = clock() + period
         end = None if max_ticks is None else self.tick_count + max_ticks
-        end_ns = None if duration_s is None else deadline + round(duration_s * 1e9) - period
+        end_ns = (None if duration_s is None
+                  else pacer.deadline + round(duration_s * 1e9) - period)
         while not stop.is_set():
-            remaining = deadline - clock()
-            if remaining > spin:
-                sleep((remaining - spin) * 1e-9)
-            now = clock()
-            while now < deadline:
-                now = clock()
-            self.tick(now, now - deadline)
+            now = pacer.wait()
+            self.tick(now, now - pacer.deadline)
             if on_tick is not None:
                 on_tick(self)
-            deadline += period
-            behind = clock() - deadline
-            if behind > period:              # badly late: skip the missed deadlines
-                missed = behind // period
-                deadline += missed * period
+            missed = pacer.advance()
+            if missed:
                 timing.add_skipped(missed)
             if end is not None and self.tick_count >= end:
                 break
-            if end_ns is not None and deadline > end_ns:
+            if end_ns is not None and pacer.deadline > end_ns:
                 break
 
     def shutdown(self, reason: str = "shutdown") -> None:
