@@ -47,14 +47,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import RigConfig
 
 __all__ = ["FLOW_FEEDFORWARD_FIELDS", "SERVO_MODEL_SIZE", "FlowFeedforward", "ServoModel",
            "flow_feedforward", "servo_model"]
 
-FloatArray = NDArray[np.float64]
 
 #: entries of the artifact's ``servo_model`` row after the five of the spool model
 FLOW_FEEDFORWARD_FIELDS = ("gain_s_per_m", "rate_filter_coeff", "stall_force_n",

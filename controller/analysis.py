@@ -38,9 +38,9 @@ from typing import Literal
 import control
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
 
 from controller.actuator import flow_feedforward
+from controller.arrays import FloatArray
 from controller.config import RigConfig
 from controller.design import ModelDesign, design_models, measurement_noise_cov
 from controller.human_filter import HumanFilter, discretize_zoh, human_filter
@@ -59,7 +59,6 @@ __all__ = [
     "rig_closed_loop",
 ]
 
-FloatArray = NDArray[np.float64]
 LoopKind = Literal["passive", "lq", "lqg"]
 
 #: Performance outputs, in row order of ClosedLoop.Co.

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.actuator import SERVO_MODEL_SIZE
+from controller.arrays import FloatArray
 from controller.config import (
     MAX_COMPUTE_DELAY_TICKS,
     RigConfig,
@@ -47,7 +48,6 @@ __all__ = [
 #: a known filter input) are new.
 ARTIFACT_VERSION = 3
 
-FloatArray = NDArray[np.float64]
 
 
 class DesignMismatch(ValueError):  # noqa: N818 (name fixed by docs/architecture.md)

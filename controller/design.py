@@ -18,9 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from controller.actuator import servo_model
+from controller.arrays import FloatArray
 from controller.artifact import Design, build_metadata
 from controller.config import RigConfig
 from controller.fuzzy import firing_weight_curve
@@ -40,7 +40,6 @@ from controller.road_noise import noise_table_entries
 __all__ = ["FUZZY_GRID_POINTS", "ModelDesign", "bump_stop_input", "design_bank",
            "design_models", "measurement_noise_cov"]
 
-FloatArray = NDArray[np.float64]
 
 #: Points of the tabulated firing-weight curve over the universe of q.
 FUZZY_GRID_POINTS = 2001

@@ -23,8 +23,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import FuzzyConfig
 
 __all__ = [
@@ -36,7 +36,6 @@ __all__ = [
     "triangle_membership",
 ]
 
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -17,13 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import DesignConfig
 
 __all__ = ["HumanFilter", "discretize_zoh", "human_filter"]
 
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -53,8 +53,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import RigConfig
 from controller.human_filter import discretize_zoh
 from controller.plant import GRAVITY_INPUT, LinearModel
@@ -72,7 +72,6 @@ __all__ = [
     "steady_state_kalman",
 ]
 
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

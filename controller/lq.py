@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-from numpy.typing import NDArray
 
 from controller.actuator import ServoModel
+from controller.arrays import FloatArray
 from controller.human_filter import HumanFilter, discretize_zoh
 from controller.plant import LinearModel
 
@@ -48,7 +48,6 @@ __all__ = [
     "lq_problem",
 ]
 
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -42,9 +42,9 @@ from typing import Literal
 
 import control
 import numpy as np
-from numpy.typing import NDArray
 
 from controller.actuator import FlowFeedforward, ServoModel, flow_feedforward, servo_model
+from controller.arrays import FloatArray
 from controller.config import ForceLoopConfig, RigConfig
 from controller.design import ModelDesign, design_models, measurement_noise_cov
 from controller.human_filter import HumanFilter, discretize_zoh, human_filter
@@ -71,7 +71,6 @@ __all__ = [
     "runtime_controller_ss",
 ]
 
-FloatArray = NDArray[np.float64]
 Actuator = Literal["ideal", "hydraulic"]
 
 #: plant outputs: sensors, then performance (filtered accel, rattlespace, tire deflection)

@@ -21,8 +21,9 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy import signal
+
+from controller.arrays import FloatArray
 
 __all__ = [
     "WK_TABLE",
@@ -32,7 +33,6 @@ __all__ = [
     "wk_tf",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: ISO 2631-1 Table 3, Wk weighting factors (x 1000 in the standard) at centre frequencies.
 WK_TABLE: dict[float, float] = {

@@ -29,8 +29,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import RigConfig, TireConfig, VehicleConfig
 
 __all__ = [
@@ -45,7 +45,6 @@ __all__ = [
     "tire_secant_stiffness_n_per_m",
 ]
 
-FloatArray = NDArray[np.float64]
 
 #: Column multiplying g in x' = A x + B2 u + B1 w' + G g.
 GRAVITY_INPUT: FloatArray = np.array([0.0, 0.0, -1.0, -1.0])

@@ -255,14 +255,20 @@ class OutputFile(str):
     __slots__ = ()
 
 
+def _checked_path(text: str, what: str, problem: Callable[[str], str | None]) -> str:
+    """``text`` if it is a non-empty path without a ``problem``, else an argparse error."""
+    if not text:
+        _fail(f"an empty {what}")
+    why = problem(text)
+    if why:
+        _fail(f"{text}: {why}")
+    return text
+
+
 def output_file(text: str) -> OutputFile:
     """A file to write: not a directory, in an existing directory."""
-    if not text:
-        _fail("an empty file name")
-    problem = new_file_problem(text, force=True)
-    if problem:
-        _fail(f"{text}: {problem}")
-    return OutputFile(text)
+    return OutputFile(_checked_path(text, "file name",
+                                    lambda t: new_file_problem(t, force=True)))
 
 
 def overwrite_problem(args: argparse.Namespace) -> str | None:
@@ -278,22 +284,12 @@ def overwrite_problem(args: argparse.Namespace) -> str | None:
 
 def output_dir(text: str) -> str:
     """A directory to write into (created if missing; its files are rewritten)."""
-    if not text:
-        _fail("an empty directory name")
-    problem = output_dir_problem(text)
-    if problem:
-        _fail(f"{text}: {problem}")
-    return text
+    return _checked_path(text, "directory name", output_dir_problem)
 
 
 def recording_target(text: str) -> str:
     """A new ``.mcap`` path or a directory for a new recording (never overwritten)."""
-    if not text:
-        _fail("an empty path")
-    problem = recording_target_problem(text)
-    if problem:
-        _fail(f"{text}: {problem}")
-    return text
+    return _checked_path(text, "path", recording_target_problem)
 
 
 def input_file(text: str) -> str:

@@ -65,6 +65,35 @@ def _config_path(command: str, argv: list[str]) -> str | None:
     return known.config
 
 
+#: exceptions a command lets through and the one line each becomes: qualified class name ->
+#: (text before the message, text after it, exit status).  Keyed by name so that the
+#: commands' heavy modules are imported only by the command that runs; the most derived
+#: class of an exception that has an entry wins.
+REFUSALS: dict[str, tuple[str, str, int]] = {
+    "rig.rt.stop_signals.StopRequested": (
+        "", " before the control loop started; nothing recorded", 0),
+    "controller.config.ConfigError": ("", "", 2),
+    "controller.artifact.DesignMismatch": ("design artifact: ", "", 2),
+    "hil.sim.roads.RoadError": ("", "", 2),
+    "hil.rig_process.RigProcessError": ("emulated rig: ", "", 2),
+    "rig.recording.recorder.RecorderStartError": ("", "", 2),
+    "rig.replay.scan.RecordingError": ("", "", 2),
+}
+
+
+def refusal(exc: BaseException) -> tuple[str, int] | None:
+    """The one line (without the ``rig COMMAND:`` prefix) and exit status for ``exc``, or
+    None when it is not a refusal (a bug: the traceback is wanted)."""
+    for cls in type(exc).__mro__:
+        entry = REFUSALS.get(f"{cls.__module__}.{cls.__qualname__}")
+        if entry is not None:
+            before, after, code = entry
+            return f"{before}{exc}{after}", code
+    if isinstance(exc, OSError):
+        return _os_error(exc), 2
+    return None
+
+
 def _os_error(exc: OSError) -> str:
     if exc.filename is not None and exc.strerror:
         return f"{exc.filename}: {exc.strerror}"
@@ -109,14 +138,14 @@ def _main(command: str | None, argv: list[str], stop: StopSignals | None) -> int
     args.stop_signals = stop
     try:
         return int(args._module.run(args) or 0)
-    except ConfigError as exc:
-        print(f"rig {args.command}: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"rig {args.command}: {_os_error(exc)}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:
+        said = refusal(exc)
+        if said is None:
+            raise
+        print(f"rig {args.command}: {said[0]}", file=sys.stderr)
+        return said[1]
 
 
 if __name__ == "__main__":

@@ -270,6 +270,13 @@ def runtimes(smooth_design: Design) -> dict[Blending, BankRuntime]:
     return {b: BankRuntime(smooth_design, blending=b) for b in Blending}
 
 
+def _fresh(runtimes: dict[Blending, BankRuntime], mode: Blending) -> BankRuntime:
+    """The module's runtime of ``mode``, reset (hypothesis reuses it across examples)."""
+    rt = runtimes[mode]
+    rt.reset()
+    return rt
+
+
 #: a 31 mm rebound step: the moving bank lifts off, and lands again on tick 20 -- the set
 #: that came back (the sentinel had p = 0 while airborne) once summed to p = 2/3
 LIFT_OFF_AND_LAND = [(-0.03125, 0.0, 0.0)] + [(0.0, 0.0, 0.0)] * 25
@@ -281,8 +288,7 @@ LIFT_OFF_AND_LAND = [(-0.03125, 0.0, 0.0)] + [(0.0, 0.0, 0.0)] * 25
 def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRuntime],
                                               seq: list[tuple[float, float, float]],
                                               mode: Blending) -> None:
-    rt = runtimes[mode]
-    rt.reset()
+    rt = _fresh(runtimes, mode)
     for r, a, f in seq:
         running = rt.active.copy()
         out = rt.step(r, a, f)
@@ -332,8 +338,7 @@ def test_moving_set_after_touch_down_has_a_probability_distribution(
 def test_any_finite_input_gives_finite_output(runtimes: dict[Blending, BankRuntime],
                                               seq: list[tuple[float, float, float]],
                                               mode: Blending) -> None:
-    rt = runtimes[mode]
-    rt.reset()
+    rt = _fresh(runtimes, mode)
     for r, a, f in seq:
         out = rt.step(r, a, f)
         assert math.isfinite(out)

@@ -33,20 +33,15 @@ from rig.bus.core import open_bus
 from rig.service.loop import ControlLoop
 from rig.service.timing import TimingStats, histogram_percentile_us
 from rig.wire.protocol import (
-    CONTROLLER_STATUS,
-    CONTROLLER_STATUS_ID,
-    FAULT_REPORT,
-    FAULT_REPORT_ID,
     RIG_STATUS,
     SENSOR_DATA,
-    VALVE_COMMAND,
-    VALVE_COMMAND_ID,
     ControllerStatus,
     FaultCode,
     FaultReport,
     LifecycleState,
     ValveCommand,
 )
+from tests.support.frames import drain_controller_frames
 
 PERIOD_NS = 1_000_000
 
@@ -127,21 +122,8 @@ class RigSide:
 
     def read(self) -> tuple[list[ValveCommand], list[FaultReport]]:
         """Frames the controller sent since the last read (valve commands, fault reports)."""
-        valves: list[ValveCommand] = []
-        faults: list[FaultReport] = []
-        while (msg := self.bus.recv(0.0)) is not None:
-            if msg.arbitration_id == VALVE_COMMAND_ID:
-                v = ValveCommand()
-                assert VALVE_COMMAND.decode(msg.data, v).name == "OK"
-                valves.append(v)
-            elif msg.arbitration_id == FAULT_REPORT_ID:
-                f = FaultReport()
-                assert FAULT_REPORT.decode(msg.data, f).name == "OK"
-                faults.append(f)
-            elif msg.arbitration_id == CONTROLLER_STATUS_ID:
-                s = ControllerStatus()
-                assert CONTROLLER_STATUS.decode(msg.data, s).name == "OK"
-                self.status.append(s)
+        valves, faults, status = drain_controller_frames(self.bus)
+        self.status.extend(status)
         self.valve.extend(valves)
         self.faults.extend(faults)
         return valves, faults

@@ -25,15 +25,13 @@ from rig.bus.core import make_tx_message, open_bus, set_receive_buffer
 from rig.wire.protocol import (
     RIG_RX_IDS,
     RIG_STATUS,
-    RIG_STATUS_ID,
     SENSOR_DATA,
-    SENSOR_DATA_ID,
     VALVE_COMMAND,
-    VALVE_COMMAND_ID,
     DecodeStatus,
     RigStatus,
     SensorData,
 )
+from tests.support.processes import killed_on_exit, sigterm_and_wait
 
 CFG: RigConfig = default_config()
 
@@ -58,7 +56,7 @@ class Harness:
     cmd_counter: int = 0
 
     def __post_init__(self) -> None:
-        self._msg = make_tx_message(VALVE_COMMAND_ID)
+        self._msg = make_tx_message(VALVE_COMMAND.frame_id)
 
     def send_command(self, enable: int = 1, spool: float = 0.0, counter: int | None = None,
                      corrupt: bool = False) -> None:
@@ -85,19 +83,19 @@ class Harness:
     def drain(self, tick: int) -> None:
         while (msg := self.ctl.recv(timeout=0.0)) is not None:
             r = Rx(tick, msg.arbitration_id, bytes(msg.data))
-            if msg.arbitration_id == SENSOR_DATA_ID:
+            if msg.arbitration_id == SENSOR_DATA.frame_id:
                 r.sensor = SensorData()
                 r.status = SENSOR_DATA.decode(msg.data, r.sensor)
-            elif msg.arbitration_id == RIG_STATUS_ID:
+            elif msg.arbitration_id == RIG_STATUS.frame_id:
                 r.rig = RigStatus()
                 r.status = RIG_STATUS.decode(msg.data, r.rig)
             self.rx.append(r)
 
     def sensor_frames(self) -> list[Rx]:
-        return [r for r in self.rx if r.frame_id == SENSOR_DATA_ID]
+        return [r for r in self.rx if r.frame_id == SENSOR_DATA.frame_id]
 
     def status_frames(self) -> list[Rx]:
-        return [r for r in self.rx if r.frame_id == RIG_STATUS_ID]
+        return [r for r in self.rx if r.frame_id == RIG_STATUS.frame_id]
 
 
 @contextmanager
@@ -259,21 +257,21 @@ def test_open_bus_role_filters_and_drain_latest() -> None:
     ctl = open_bus(cfg, role="controller", channel=channel)
     rig = open_bus(cfg, role="rig", channel=channel, interface="virtual")
     try:
-        msg = make_tx_message(VALVE_COMMAND_ID)
+        msg = make_tx_message(VALVE_COMMAND.frame_id)
         VALVE_COMMAND.encode(msg.data, 1, 1, 1, 0.5, 0.0, 0)
         assert safe_send(ctl, msg) == 0
-        sd = make_tx_message(SENSOR_DATA_ID)
+        sd = make_tx_message(SENSOR_DATA.frame_id)
         for c in range(3):
             SENSOR_DATA.encode(sd.data, c, 0, 0.001 * c, 0.0, 0.0)
             assert safe_send(rig, sd) == 0
         latest: dict[int, can.Message] = {}
         n, fault = drain_latest(ctl, latest)
-        assert (n, fault) == (3, 0) and set(latest) == {SENSOR_DATA_ID}
+        assert (n, fault) == (3, 0) and set(latest) == {SENSOR_DATA.frame_id}
         out = SensorData()
-        assert SENSOR_DATA.decode(latest[SENSOR_DATA_ID].data, out) is DecodeStatus.OK
+        assert SENSOR_DATA.decode(latest[SENSOR_DATA.frame_id].data, out) is DecodeStatus.OK
         assert out.counter == 2  # the latest one
         n, _ = drain_latest(rig, latest)
-        assert n == 1 and VALVE_COMMAND_ID in latest  # the rig sees the command only
+        assert n == 1 and VALVE_COMMAND.frame_id in latest  # the rig sees the command only
         assert drain_latest(rig, latest)[0] == 0  # nothing left, did not block
         # software ID filter: a foreign frame ahead of a wanted one does not end the drain
         foreign = can.Message(arbitration_id=0x555, is_extended_id=False, data=b"\0")
@@ -281,7 +279,7 @@ def test_open_bus_role_filters_and_drain_latest() -> None:
         ctl.send(msg)
         latest.clear()
         assert drain_latest(rig, latest, ids=RIG_RX_IDS) == (1, 0)
-        assert set(latest) == {VALVE_COMMAND_ID}
+        assert set(latest) == {VALVE_COMMAND.frame_id}
     finally:
         ctl.shutdown()
         rig.shutdown()
@@ -352,7 +350,6 @@ def test_rig_hil_cli_bad_arguments(argv: list[str], capsys: pytest.CaptureFixtur
 
 
 def test_rig_hil_process_stops_on_sigterm() -> None:
-    import signal
     import subprocess
     import sys
     import time
@@ -360,14 +357,9 @@ def test_rig_hil_process_stops_on_sigterm() -> None:
     proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "hil", "--interface", "virtual",
                              "--channel", f"t-{uuid.uuid4().hex}", "--road", "bump"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+    with killed_on_exit(proc):
         time.sleep(2.5)
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        out, err = sigterm_and_wait(proc, 20)
     assert proc.returncode == 0, err
     assert out.startswith("rig hil: ") and "ticks=" in out
 

@@ -270,23 +270,24 @@ def test_rotation_by_size_keeps_every_item(tmp_path: Path) -> None:
     assert len(read_run(path, follow_segments=False).frames) < len(run.frames)
 
 
-def test_rotation_by_time(tmp_path: Path) -> None:
+def _rotated_run(tmp_path: Path) -> tuple[Path, list[Path]]:
+    """3.5 s of loop time at 10 Hz recorded in 1 s segments: the path and the segments."""
     path = tmp_path / "t.mcap"
     with recorder(path, rotate_seconds=1.0) as rec:
-        for k in range(35):               # 3.4 s of loop time at 10 Hz
+        for k in range(35):
             rec.can_frame(k * 100_000_000, k, 0x100, b"\x00" * 8, True)
-    segs = segment_paths(path)
+    return path, segment_paths(path)
+
+
+def test_rotation_by_time(tmp_path: Path) -> None:
+    path, segs = _rotated_run(tmp_path)
     assert len(segs) == 4
     per_seg = [len(read_run(p, follow_segments=False).frames) for p in segs]
     assert per_seg == [10, 10, 10, 5]
 
 
 def test_segments_carry_run_identity_and_read_run_checks_it(tmp_path: Path) -> None:
-    path = tmp_path / "t.mcap"
-    with recorder(path, rotate_seconds=1.0) as rec:
-        for k in range(35):               # 3.4 s of loop time at 10 Hz
-            rec.can_frame(k * 100_000_000, k, 0x100, b"\x00" * 8, True)
-    segs = segment_paths(path)
+    path, segs = _rotated_run(tmp_path)
     run = read_run(path)
     assert run.complete and run.segments == segs and len(run.frames) == 35
     run_id = run.metadata["rig"]["run_id"]

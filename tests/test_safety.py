@@ -35,15 +35,12 @@ from rig.service.safety import (
     FaultMonitor,
 )
 from rig.wire.protocol import (
-    FAULT_REPORT,
-    FAULT_REPORT_ID,
-    VALVE_COMMAND,
-    VALVE_COMMAND_ID,
     FaultCode,
     FaultReport,
     LifecycleState,
     ValveCommand,
 )
+from tests.support.frames import drain_controller_frames
 from tests.test_loop import LoopHarness, make_harness
 
 CFG = default_config()
@@ -519,17 +516,7 @@ class HilPair:
                 self.sent[j] = self._read()
 
     def _read(self) -> tuple[list[ValveCommand], list[FaultReport]]:
-        valves: list[ValveCommand] = []
-        faults: list[FaultReport] = []
-        while (msg := self.spy.recv(0.0)) is not None:
-            if msg.arbitration_id == VALVE_COMMAND_ID:
-                v = ValveCommand()
-                VALVE_COMMAND.decode(msg.data, v)
-                valves.append(v)
-            elif msg.arbitration_id == FAULT_REPORT_ID:
-                f = FaultReport()
-                FAULT_REPORT.decode(msg.data, f)
-                faults.append(f)
+        valves, faults, _status = drain_controller_frames(self.spy, strict=False)
         return valves, faults
 
     def close(self) -> None:

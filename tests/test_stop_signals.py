@@ -23,6 +23,7 @@ from controller.config import config_to_toml, default_config
 from rig.cli import main
 from rig.recording.recorder import read_run
 from rig.rt.stop_signals import StopRequested, StopSignals
+from tests.support.processes import killed_on_exit, sigterm_and_wait
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = default_config()
@@ -215,14 +216,9 @@ def test_rig_demo_sigterm_during_the_loop(tmp_path: Path) -> None:
     proc = _start(["demo", "--duration", "60", "--no-telemetry", "--no-realtime", "--json",
                    "--config", str(_patient_config(tmp_path)), "--rig-watchdog-ms", "10000",
                    "--record", str(record)], tmp_path)
-    try:
+    with killed_on_exit(proc):
         lines = _wait_running(proc, 150)
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        out, err = sigterm_and_wait(proc, 60)
     err = "".join(lines) + err
     assert proc.returncode == 0, err
     assert "rig demo: stopped by SIGTERM after" in err and "Traceback" not in err
@@ -245,15 +241,10 @@ def test_rig_run_sigterm_at_an_arbitrary_moment(delay_s: float, tmp_path: Path) 
     record = tmp_path / "run.mcap"
     proc = _start(["run", "--interface", "virtual", "--channel", f"t-{uuid.uuid4().hex}",
                    "--no-telemetry", "--no-realtime", "--record", str(record)], tmp_path)
-    try:
+    with killed_on_exit(proc):
         _wait_handler(proc)
         time.sleep(delay_s)
-        proc.send_signal(signal.SIGTERM)
-        _out, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        _out, err = sigterm_and_wait(proc, 120)
     assert proc.returncode == 0, err
     assert "rig run: stopped by SIGTERM" in err and "Traceback" not in err
     _assert_complete_or_none(record)

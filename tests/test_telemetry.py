@@ -362,11 +362,9 @@ def tls_client(port: int, certs: Path, cn: str | None) -> zenoh.Session:
     return zenoh.open(c)
 
 
-@pytest.mark.skipif(subprocess.run(["which", "openssl"], capture_output=True).returncode != 0,
-                    reason="openssl not installed (needed to make test certificates)")
-def test_tls_and_access_control_from_deploy_config(tmp_path: Path, port: int) -> None:
-    """deploy/zenoh/rig-tls-acl.json5 as shipped (paths and interface adapted): mTLS keeps
-    certificate-less clients out, viewers get telemetry, only operators can command."""
+def acl_publisher(tmp_path: Path, port: int) -> tuple[TelemetryPublisher, list[str]]:
+    """The rig's publisher with deploy/zenoh/rig-tls-acl.json5 as shipped (certificates
+    made in ``tmp_path``, interface ``lo``); returns it and the commands it handled."""
     subprocess.run(["bash", "-c", CERTS], cwd=tmp_path, check=True, capture_output=True)
     text = (ROOT / "deploy/zenoh/rig-tls-acl.json5").read_text()
     assert '"eth1"' in text and "/etc/rig/zenoh" in text
@@ -380,7 +378,15 @@ def test_tls_and_access_control_from_deploy_config(tmp_path: Path, port: int) ->
 
     cfg = replace(tcfg(port, commands_enabled=True), endpoints=[f"tls/127.0.0.1:{port}"],
                   zenoh_config_file=str(conf))
-    tp = TelemetryPublisher(cfg, lambda: {"lifecycle": "INACTIVE"}, handler)
+    return TelemetryPublisher(cfg, lambda: {"lifecycle": "INACTIVE"}, handler), seen
+
+
+@pytest.mark.skipif(subprocess.run(["which", "openssl"], capture_output=True).returncode != 0,
+                    reason="openssl not installed (needed to make test certificates)")
+def test_tls_and_access_control_from_deploy_config(tmp_path: Path, port: int) -> None:
+    """deploy/zenoh/rig-tls-acl.json5 as shipped (paths and interface adapted): mTLS keeps
+    certificate-less clients out, viewers get telemetry, only operators can command."""
+    tp, seen = acl_publisher(tmp_path, port)
     try:
         assert tp.wait_connected(10), tp.error
         results = {}
@@ -857,19 +863,7 @@ def test_acl_viewers_can_only_read(tmp_path: Path, port: int) -> None:
     (spoofing state for other viewers or the rig), nor answer status queries, nor
     command; it still reads.  Viewer and operator connect as Zenoh clients, so
     everything between them goes through the rig's session and its access control."""
-    subprocess.run(["bash", "-c", CERTS], cwd=tmp_path, check=True, capture_output=True)
-    text = (ROOT / "deploy/zenoh/rig-tls-acl.json5").read_text()
-    conf = tmp_path / "rig.json5"
-    conf.write_text(text.replace("/etc/rig/zenoh", str(tmp_path)).replace('"eth1"', '"lo"'))
-    seen: list[str] = []
-
-    def handler(name: str, args: dict[str, Any]) -> str:
-        seen.append(name)
-        return "queued"
-
-    cfg = replace(tcfg(port, commands_enabled=True), endpoints=[f"tls/127.0.0.1:{port}"],
-                  zenoh_config_file=str(conf))
-    tp = TelemetryPublisher(cfg, lambda: {"lifecycle": "INACTIVE"}, handler)
+    tp, seen = acl_publisher(tmp_path, port)
     assert tp.wait_connected(10), tp.error
     assert tp._session is not None
     inside: list[tuple[str, bytes]] = []        # what reaches the rig's own session

@@ -52,8 +52,8 @@ from typing import Any
 
 import numba as nb
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.artifact import Design
 from controller.config import RigConfig, default_config, parse_config
 from controller.monitor import monitor_settings
@@ -239,7 +239,6 @@ from controller.runtime.moving_bank import (
 
 __all__ = ["BankRuntime", "Blending", "StepFlag", "config_of", "default_single_model"]
 
-FloatArray = NDArray[np.float64]
 
 _FUZZY = int(Blending.FUZZY)
 _BAYES = int(Blending.BAYES)
@@ -253,13 +252,14 @@ _DEGRADED = int(StepFlag.DEGRADED)
 
 def _drop_stale_kernel_cache() -> None:
     """numba's on-disk cache checks only the defining file of a function; ``bank_step``
-    compiles in code from kernels.py, moving_bank.py and bayes.py too.  Remove this
+    compiles in code (and offsets) from kernels.py, layout.py, moving_bank.py and bayes.py.  Remove this
     module's cached kernels when any of those sources changed since they were cached."""
     here = Path(__file__).resolve().parent
     cache_dir = here / "__pycache__"
     try:
         blob = b"".join((here / f).read_bytes()
-                        for f in ("bank.py", "kernels.py", "moving_bank.py", "bayes.py"))
+                        for f in ("bank.py", "kernels.py", "layout.py", "moving_bank.py",
+                                  "bayes.py"))
         digest = hashlib.sha256(blob).hexdigest()
         stamp = cache_dir / "bank_kernels.sha256"
         if stamp.exists() and stamp.read_text() == digest:

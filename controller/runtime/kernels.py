@@ -4,17 +4,11 @@ The per-tick step is one numba call.  A numba call pays ~40 ns per array argumen
 the runtime packs its data into six buffers instead of ~30 named arrays:
 
 ``mat`` (J, 4, MAT_COLS) float, per model, for the *selected* noise entry and weight set:
-    [:, :, 0:4] filter_A, [4:6] filter_By, [6] filter_Bu, [7] filter_b,
-    [8:10] kalman_gain L, [10:12] C_meas transposed, [12] state part of the LQ gain,
-    [13] x̄_j (equilibrium; for the airborne model the nominal static state, used to
-    reset it -- its LQ gain is zero), [14:16] of rows 0 and 1: the gain of the
-    rattlespace (row 0) and acceleration (row 1) measurement-bias states on the residual.
-``vec`` (J, VEC_COLS) float: [0:2] D_meas, [2:6] F^-1 row major, [6] log|F|,
-    [7:9] human-filter part of the LQ gain, [9] airborne (1.0/0.0),
-    [10] log-likelihood constant -(m/2) log 2π - ½ log|F|, [11:14 + MAX_DELAY] the
-    actuator part of the gain: spool estimate, measured force, state w of the flow
-    feedforward's rate filter, pending spool commands.
-``st`` (J, ST_COLS) float, per-model state (the public (J,) views point into it).
+    filter matrices, Kalman gain, measurement matrix, LQ gain, equilibrium and bias-state
+    gains (slots ``M_*`` below).
+``vec`` (J, VEC_COLS) float, per model: measurement feed-through, innovation covariance
+    inverse and log-determinant, gain parts and the log-likelihood constant (``V_*``).
+``st`` (J, ST_COLS) float, per-model state (``S_*``; the public (J,) views point into it).
 ``active`` (J,) bool: the filters that run this tick.
 ``fv`` float: scalar parameters, then scalar state (incl. the moving bank's tire-contact
     test, F_LOFF..F_LC, the bump-stop input F_BS_*, the estimator monitor F_MON_*, the
@@ -41,6 +35,7 @@ import numba as nb
 import numpy as np
 
 from controller.config import MAX_COMPUTE_DELAY_TICKS
+from controller.runtime.layout import BufferLayout
 from rig.wire.protocol import Blending
 
 __all__ = ["Blending", "StepFlag"]
@@ -64,129 +59,174 @@ MEAS_DIM = 2            # m, measurement dimension [rattlespace_abs, accel]
 Q_MAX = 1.0e12          # likelihood quotients are clamped here (keeps smoothing finite)
 QS_INIT = float(MEAS_DIM)   # smoothed q starts at E[q] of a matched filter
 
-# --- mat columns
-M_A, M_BY, M_BU, M_B, M_L, M_CT, M_KX, M_XBAR = 0, 4, 6, 7, 8, 10, 12, 13
-M_LB = 14           # (2) rows 0 / 1: bias-state gains (rattlespace / acceleration bias)
-MAT_COLS = 16
-# --- vec columns
-V_D, V_FINV, V_LOGDET, V_KF, V_AIR, V_LLC, V_KA = 0, 2, 6, 7, 9, 10, 11
-MAX_DELAY = MAX_COMPUTE_DELAY_TICKS   # pending spool commands kept (design.compute_delay_ticks)
-VEC_COLS = V_KA + 3 + MAX_DELAY
+MAX_DELAY = MAX_COMPUTE_DELAY_TICKS  # pending spool commands kept (design.compute_delay_ticks)
+
+# The packed buffers, slot by slot (controller/runtime/layout.py assigns the offsets in
+# declaration order; tests/test_buffer_layout.py checks every constant below is a slot).
+# --- mat columns (per model, 4 rows)
+MAT = BufferLayout("mat")
+M_A = MAT.slot(4)  # filter_A
+M_BY = MAT.slot(2)  # filter_By
+M_BU = MAT.slot()  # filter_Bu
+M_B = MAT.slot()  # filter_b
+M_L = MAT.slot(2)  # Kalman gain L
+M_CT = MAT.slot(2)  # C_meas transposed
+M_KX = MAT.slot()  # state part of the LQ gain
+M_XBAR = MAT.slot()  # equilibrium x̄_j (airborne model: the nominal static state)
+M_LB = MAT.slot(2)  # rows 0 / 1: bias-state gains (rattlespace / acceleration bias)
+MAT_COLS = MAT.size
+# --- vec columns (per model)
+VEC = BufferLayout("vec")
+V_D = VEC.slot(2)  # D_meas
+V_FINV = VEC.slot(4)  # F^-1, row major
+V_LOGDET = VEC.slot()  # log|F|
+V_KF = VEC.slot(2)  # human-filter part of the LQ gain
+V_AIR = VEC.slot()  # 1.0 for an airborne model, else 0.0
+V_LLC = VEC.slot()  # log-likelihood constant -(m/2) log 2π - ½ log|F|
+V_KA = VEC.slot(3 + MAX_DELAY)  # actuator part of the gain (spool, force, w, pending)
+VEC_COLS = VEC.size
 # --- st columns
-S_XPRIOR, S_XPOST, S_Q, S_W, S_P, S_U = 0, 4, 8, 9, 10, 11
-S_QS, S_F, S_CONTRIB, S_BAD = 12, 13, 14, 15
-S_BR, S_BA = 16, 17     # measurement-bias estimates: rattlespace [m], acceleration [m/s^2]
-S_QW = 18               # windowed q (exponential window fuzzy.window_s): fuzzy statistic
-ST_COLS = 19
+ST = BufferLayout("st")
+S_XPRIOR = ST.slot(4)  # prior state estimate
+S_XPOST = ST.slot(4)  # posterior state estimate
+S_Q = ST.slot()
+S_W = ST.slot()
+S_P = ST.slot()
+S_U = ST.slot()
+S_QS = ST.slot()
+S_F = ST.slot()
+S_CONTRIB = ST.slot()
+S_BAD = ST.slot()
+S_BR = ST.slot()  # measurement-bias estimate: rattlespace [m]
+S_BA = ST.slot()  # measurement-bias estimate: acceleration [m/s^2]
+S_QW = ST.slot()  # windowed q (exponential window fuzzy.window_s): fuzzy statistic
+ST_COLS = ST.size
 
 # --- fv: scalar parameters
-F_YOFF = 0          # (2) y_offset
-F_HAD = 2           # (4) human filter Ad, row major
-F_HBD = 6           # (2) human filter Bd
-F_STATIC = 8        # static rattlespace M g / K [m]
-F_ALPHA = 9         # smoothing factor of q (1 - exp(-dt / tau))
-F_PFLOOR = 10       # Bayesian probability floor
-F_TFLOOR = 12       # lowest residual threshold (chi-square quantile)
-F_QUANT = 14        # threshold quantile
-F_FORGET = 15       # 1 / (1 - 1/N) growth of the history increment (exponential window)
-F_RECENTRE = 16     # re-centre when qs[best] < ratio * qs[centre]
-F_HLO = 17          # histogram lower edge, log10 q
-F_HWIDTH = 18       # histogram bin width, decades
+FV = BufferLayout("fv")
+F_YOFF = FV.slot(2)  # y_offset
+F_HAD = FV.slot(4)  # human filter Ad, row major
+F_HBD = FV.slot(2)  # human filter Bd
+F_STATIC = FV.slot()  # static rattlespace M g / K [m]
+F_ALPHA = FV.slot()  # smoothing factor of q (1 - exp(-dt / tau))
+F_PFLOOR = FV.slot()  # Bayesian probability floor
+F_TFLOOR = FV.slot()  # lowest residual threshold (chi-square quantile)
+F_QUANT = FV.slot()  # threshold quantile
+F_FORGET = FV.slot()  # 1 / (1 - 1/N) growth of the history increment (exponential window)
+F_RECENTRE = FV.slot()  # re-centre when qs[best] < ratio * qs[centre]
+F_HLO = FV.slot()  # histogram lower edge, log10 q
+F_HWIDTH = FV.slot()  # histogram bin width, decades
 # --- fv: scalar state
-F_XF = 20           # (2) human-filter states
-F_XHAT = 22         # (4) blended posterior (absolute) state estimate
-F_XHATM = 26        # (4) blended next prior
-F_XINIT = 30        # (4) nominal static state (reset fallback)
-F_THRESH = 34       # learnt residual threshold
-F_SIGNAL = 35       # smoothed min q of the on-ground set (moving bank)
-F_HINC = 36         # current history increment
-F_HTOT = 37         # total history weight
-F_OUT = 38          # last force reference [N]
-F_SCR = 40          # (16) scratch
-F_XDEV = 56         # (4) blended posterior deviation from the models' equilibria
-F_XDEVM = 60        # (4) blended next-prior deviation (bumpless starts)
+F_XF = FV.slot(2)  # human-filter states
+F_XHAT = FV.slot(4)  # blended posterior (absolute) state estimate
+F_XHATM = FV.slot(4)  # blended next prior
+F_XINIT = FV.slot(4)  # nominal static state (reset fallback)
+F_THRESH = FV.slot()  # learnt residual threshold
+F_SIGNAL = FV.slot()  # smoothed min q of the on-ground set (moving bank)
+F_HINC = FV.slot()  # current history increment
+F_HTOT = FV.slot()  # total history weight
+F_OUT = FV.slot()  # last force reference [N]
+F_SCR = FV.slot(16)  # scratch
+F_XDEV = FV.slot(4)  # blended posterior deviation from the models' equilibria
+F_XDEVM = FV.slot(4)  # blended next-prior deviation (bumpless starts)
 # --- fv: spool model of the force path (controller/actuator.py)
-F_SDECAY = 64       # e^{-T/tau}
-F_SKP = 65          # PI proportional gain [1/N]
-F_SFLIM = 66        # force reference limit [N]
-F_SOLIM = 67        # spool command limit
-F_XV = 68           # spool position estimate
-F_PEND = 69         # (MAX_DELAY) spool commands not yet at the valve, newest first
+F_SDECAY = FV.slot()  # e^{-T/tau}
+F_SKP = FV.slot()  # PI proportional gain [1/N]
+F_SFLIM = FV.slot()  # force reference limit [N]
+F_SOLIM = FV.slot()  # spool command limit
+F_XV = FV.slot()  # spool position estimate
+F_PEND = FV.slot(MAX_DELAY)  # spool commands not yet at the valve, newest first
 # --- fv: flow feedforward of the force loop (controller/actuator.py FlowFeedforward)
-F_FFC = 73          # c, spool per m/s of extension rate at zero load (0 = off)
-F_FFA = 74          # a, coefficient of the low-pass on the differentiated LVDT
-F_FFB = 75          # b = a / T [1/s]
-F_FFSTALL = 76      # stall force A Ps [N]
-F_FFFLOOR = 77      # floor of the relative valve pressure drop
-F_FFW = 78          # w, state of the rate filter [m/s]; NaN = no reading since reset
+F_FFC = FV.slot()  # c, spool per m/s of extension rate at zero load (0 = off)
+F_FFA = FV.slot()  # a, coefficient of the low-pass on the differentiated LVDT
+F_FFB = FV.slot()  # b = a / T [1/s]
+F_FFSTALL = FV.slot()  # stall force A Ps [N]
+F_FFFLOOR = FV.slot()  # floor of the relative valve pressure drop
+F_FFW = FV.slot()  # w, state of the rate filter [m/s]; NaN = no reading since reset
 # --- fv: tire-contact test of the moving bank (controller/runtime/moving_bank.py)
-F_LOFF = 80         # lift-off CUSUM reference: estimated tire load / static load
-F_LON = 81          # touch-down CUSUM reference (F_LOFF / hysteresis ratio)
-F_LH = 82           # decision threshold of both CUSUMs [load fraction x ticks]
-F_LOAD = 83         # estimated tire load / static load (controller/runtime/moving_bank.py)
-F_GOFF = 84         # lift-off CUSUM statistic
-F_GON = 85          # touch-down CUSUM statistic
-F_LINVG = 86        # 1 / g
-F_LC = 87           # m / ((M + m) g (Δ T)^2): weight of the rattlespace second difference
+F_LOFF = FV.slot()  # lift-off CUSUM reference: estimated tire load / static load
+F_LON = FV.slot()  # touch-down CUSUM reference (F_LOFF / hysteresis ratio)
+F_LH = FV.slot()  # decision threshold of both CUSUMs [load fraction x ticks]
+F_LOAD = FV.slot()  # estimated tire load / static load (controller/runtime/moving_bank.py)
+F_GOFF = FV.slot()  # lift-off CUSUM statistic
+F_GON = FV.slot()  # touch-down CUSUM statistic
+F_LINVG = FV.slot()  # 1 / g
+F_LC = FV.slot()  # m / ((M + m) g (Δ T)^2): weight of the rattlespace second difference
 # --- fv: bump stops as a known filter input (LVDT frame)
-F_BS_K = 88         # stop stiffness [N/m] (0: no stop input)
-F_BS_LO = 89        # LVDT reading where the rebound (extension) stop engages [m]
-F_BS_HI = 90        # LVDT reading where the compression stop engages [m]
-F_BIAS = 91         # (2) blended bias estimates (bumpless starts)
-F_QW_ALPHA = 93     # smoothing factor of the fuzzy statistic (1 - exp(-dt / window))
+F_BS_K = FV.slot()  # stop stiffness [N/m] (0: no stop input)
+F_BS_LO = FV.slot()  # LVDT reading where the rebound (extension) stop engages [m]
+F_BS_HI = FV.slot()  # LVDT reading where the compression stop engages [m]
+F_BIAS = FV.slot(2)  # blended bias estimates (bumpless starts)
+F_QW_ALPHA = FV.slot()  # smoothing factor of the fuzzy statistic (1 - exp(-dt / window))
 # --- fv: estimator monitor (docs/design.md §9)
-F_MON_THR = 94      # degrade when the window sum of min q exceeds this
-F_MON_REARM = 95    # re-arm when it stays below this for I_MON_RECOVER ticks
-F_MON_SUM = 96      # window sum of min q (state)
-F_AUTH = 97         # force authority in [0, 1] (state)
-F_AUTH_STEP = 98    # authority change per tick (1 / ramp ticks)
-F_UNUSE_R = 99      # unusable: every model's |rattlespace innovation| above this [m]
-F_UNUSE_A = 100     # ... or every model's |acceleration innovation| above this [m/s^2]
-F_STOP = 101        # bump-stop force of the last tick [N] (read-out)
-F_AMEAN = 102       # running mean of the accelerometer reading (its bias) [m/s^2] (state)
-F_AMEAN_ALPHA = 103  # weight of the running mean, 1 - exp(-dt / accel_mean_window_s) (0 off)
-F_GUARD_W = 104     # end-stop guard: zone width in front of each stop [m] (0: off)
-F_GUARD_S = 105     # end-stop guard: factor applied to the force of the last tick (read-out)
-FV_HEAD = 106       # the fuzzy table starts here
+F_MON_THR = FV.slot()  # degrade when the window sum of min q exceeds this
+F_MON_REARM = FV.slot()  # re-arm when it stays below this for I_MON_RECOVER ticks
+F_MON_SUM = FV.slot()  # window sum of min q (state)
+F_AUTH = FV.slot()  # force authority in [0, 1] (state)
+F_AUTH_STEP = FV.slot()  # authority change per tick (1 / ramp ticks)
+F_UNUSE_R = FV.slot()  # unusable: every model's |rattlespace innovation| above this [m]
+F_UNUSE_A = FV.slot()  # ... or every model's |acceleration innovation| above this [m/s^2]
+F_STOP = FV.slot()  # bump-stop force of the last tick [N] (read-out)
+F_AMEAN = FV.slot()  # running mean of the accelerometer reading (its bias) [m/s^2] (state)
+F_AMEAN_ALPHA = FV.slot()  # weight of the running mean, 1 - exp(-dt / accel_mean_window_s) (0 off)
+F_GUARD_W = FV.slot()  # end-stop guard: zone width in front of each stop [m] (0: off)
+F_GUARD_S = FV.slot()  # end-stop guard: factor applied to the force of the last tick (read-out)
+FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
-I_J, I_G, I_BLEND, I_SINGLE, I_AIR, I_NG, I_K, I_DWELL, I_PROBE = range(9)
-I_MON_MAXBAD = 9    # ticks of unusable estimate that set DIVERGED (the monitor window)
-I_FALLBACK, I_QGRID, I_WCURVE, I_HIST, I_NB, I_MINLEARN, I_RECOMP, I_NPROBE = range(10, 18)
-I_DELAY = 18        # D, compute delay of the design [ticks]
-I_LD = 19           # Δ, difference step of the tire-load estimate [ticks]
+IV = BufferLayout("iv")
+I_J = IV.slot()
+I_G = IV.slot()
+I_BLEND = IV.slot()
+I_SINGLE = IV.slot()
+I_AIR = IV.slot()
+I_NG = IV.slot()
+I_K = IV.slot()
+I_DWELL = IV.slot()
+I_PROBE = IV.slot()
+I_MON_MAXBAD = IV.slot()  # ticks of unusable estimate that set DIVERGED (the monitor window)
+I_FALLBACK = IV.slot()
+I_QGRID = IV.slot()
+I_WCURVE = IV.slot()
+I_HIST = IV.slot()
+I_NB = IV.slot()
+I_MINLEARN = IV.slot()
+I_RECOMP = IV.slot()
+I_NPROBE = IV.slot()
+I_DELAY = IV.slot()  # D, compute delay of the design [ticks]
+I_LD = IV.slot()  # Δ, difference step of the tire-load estimate [ticks]
 # --- iv: state
-I_MODE = 20         # 0 on ground, 1 airborne (moving bank)
-I_CENTRE = 21       # centre of the moving subset
-I_SENTINEL = 22     # on-ground filter kept running (zero weight) while airborne
-I_SINCE_SWITCH = 23
-I_SINCE_RECENTRE = 24
-I_PROBE_PTR = 25
-I_PROBE_CNT = 26
-I_FLAGS = 28
-I_NUPD = 29         # filter updates in the last tick
-I_NSWITCH = 30      # set switches since reset
-I_NLEARN = 31       # history samples learnt
-I_NRECENTRE = 32    # re-centres since reset
-I_TICK = 33
-I_NACT = 34         # number of running filters
-I_NLIFT_LOAD = 35   # lift-offs declared by the tire-load CUSUM since reset
-I_LPTR = 36         # next write position in the tire-load rings
-I_LCNT = 37         # samples in the tire-load rings (saturates at 2Δ+1)
+I_MODE = IV.slot()  # 0 on ground, 1 airborne (moving bank)
+I_CENTRE = IV.slot()  # centre of the moving subset
+I_SENTINEL = IV.slot()  # on-ground filter kept running (zero weight) while airborne
+I_SINCE_SWITCH = IV.slot()
+I_SINCE_RECENTRE = IV.slot()
+I_PROBE_PTR = IV.slot()
+I_PROBE_CNT = IV.slot()
+I_FLAGS = IV.slot()
+I_NUPD = IV.slot()  # filter updates in the last tick
+I_NSWITCH = IV.slot()  # set switches since reset
+I_NLEARN = IV.slot()  # history samples learnt
+I_NRECENTRE = IV.slot()  # re-centres since reset
+I_TICK = IV.slot()
+I_NACT = IV.slot()  # number of running filters
+I_NLIFT_LOAD = IV.slot()  # lift-offs declared by the tire-load CUSUM since reset
+I_LPTR = IV.slot()  # next write position in the tire-load rings
+I_LCNT = IV.slot()  # samples in the tire-load rings (saturates at 2Δ+1)
 # --- iv: fuzzy statistic and estimator monitor
-I_FSTAT = 38        # fuzzy input: FSTAT_RAW (per-tick q, App. A) or FSTAT_RELATIVE
-I_MON_N = 39        # monitor window length N [ticks] (0: monitor off)
-I_MON_RING = 40     # offset of the monitor's window ring in fv
-I_MON_RECOVER = 41  # ticks below the re-arm level needed to re-arm
-I_MON_PTR = 42      # next write position in the window ring (state)
-I_MON_CNT = 43      # samples in the window (saturates at N) (state)
-I_MON_DEG = 44      # 1 while degraded (state)
-I_MON_OK = 45       # consecutive ticks below the re-arm level (state)
-I_MON_BAD = 46      # consecutive ticks with an unusable estimate (state)
-I_MON_NDEG = 47     # degradations since reset (state)
-I_MON_DEGTICKS = 48  # ticks spent degraded since reset (state)
-IV_ACT = 56         # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
-IV_HEAD = 56        # iv has IV_HEAD + J entries
+I_FSTAT = IV.slot()  # fuzzy input: FSTAT_RAW (per-tick q, App. A) or FSTAT_RELATIVE
+I_MON_N = IV.slot()  # monitor window length N [ticks] (0: monitor off)
+I_MON_RING = IV.slot()  # offset of the monitor's window ring in fv
+I_MON_RECOVER = IV.slot()  # ticks below the re-arm level needed to re-arm
+I_MON_PTR = IV.slot()  # next write position in the window ring (state)
+I_MON_CNT = IV.slot()  # samples in the window (saturates at N) (state)
+I_MON_DEG = IV.slot()  # 1 while degraded (state)
+I_MON_OK = IV.slot()  # consecutive ticks below the re-arm level (state)
+I_MON_BAD = IV.slot()  # consecutive ticks with an unusable estimate (state)
+I_MON_NDEG = IV.slot()  # degradations since reset (state)
+I_MON_DEGTICKS = IV.slot()  # ticks spent degraded since reset (state)
+IV_ACT = IV.size  # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
+IV_HEAD = IV.size  # iv has IV_HEAD + J entries
 
 MODE_GROUND = 0
 MODE_AIR = 1

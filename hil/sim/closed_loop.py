@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import RigConfig, config_hash
 from controller.metrics import compute_metrics
 from controller.modes import BANK_MODES, CONTROLLER_MODES
@@ -58,7 +58,6 @@ __all__ = ["BANK_CONTROLLERS", "CONTROLLERS", "DELAY_POINTS", "BankController",
            "LoopController", "SimResult", "ZeroForceController", "cached_design",
            "run_closed_loop", "simulate"]
 
-FloatArray = NDArray[np.float64]
 
 #: the bank modes :func:`simulate` runs (they need a design)
 BANK_CONTROLLERS = tuple(BANK_MODES)

@@ -27,9 +27,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
 
 from controller.actuator import FlowFeedforward
+from controller.arrays import FloatArray
 from controller.artifact import Design
 from controller.config import RigConfig
 from controller.stop_guard import stop_guard_scale
@@ -38,7 +38,6 @@ from hil.sim.sensors import SensorReading
 
 __all__ = ["FullStateLQ"]
 
-FloatArray = NDArray[np.float64]
 
 
 class FullStateLQ:

@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import RigConfig
 from hil.sim.closed_loop import BANK_CONTROLLERS, cached_design, simulate
 from hil.sim.plant import PlantParams
@@ -37,7 +37,6 @@ from hil.sim.roads import Road
 __all__ = ["MAX_RIDE_HEIGHT_STD_M", "RIDE_HEIGHT_STD_M", "MonteCarloResult", "draw_params",
            "plot_runs", "run_montecarlo", "summarise"]
 
-FloatArray = NDArray[np.float64]
 
 #: a drawn factor is kept at least this fraction of nominal (a 5 % spread never gets here)
 MIN_FACTOR = 0.2

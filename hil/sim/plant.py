@@ -36,15 +36,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import RigConfig
 from hil.sim.hydraulics import hydraulic_power_w, load_pressure_rate
 
 __all__ = ["N_STATES", "PlantParams", "RigPlant", "advance_kernel", "derivatives",
            "emulated_params"]
 
-FloatArray = NDArray[np.float64]
 
 N_STATES = 7
 # parameter vector layout (float64 array handed to the kernels)

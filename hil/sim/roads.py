@@ -43,7 +43,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
+
+from controller.arrays import FloatArray
 
 __all__ = [
     "ISO_CLASSES",
@@ -63,7 +64,6 @@ __all__ = [
     "make_road",
 ]
 
-FloatArray = NDArray[np.float64]
 
 ISO_N0 = 0.1     # cycle/m
 ISO_N1 = 0.011   # cycle/m, lower band edge

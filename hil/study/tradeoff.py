@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
 from controller.analysis import closed_loop, output_mean_squares
+from controller.arrays import FloatArray
 from controller.config import RigConfig
 from controller.design import design_models, measurement_noise_cov
 from controller.human_filter import human_filter
@@ -30,7 +30,6 @@ from controller.road_noise import road_velocity_intensity
 
 __all__ = ["TradeoffGrid", "tradeoff_grid"]
 
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -217,11 +217,11 @@ def _table(passive: dict[str, float], active: dict[str, float]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hil.harness import RigHarness, RigProcessError, RigProcessOptions
+    from hil.harness import RigHarness, RigProcessOptions
     from hil.node import DEFAULT_WATCHDOG_S
-    from hil.sim.roads import RoadError, make_road
+    from hil.sim.roads import make_road
     from rig.rt.realtime import RealtimeRequest
-    from rig.rt.stop_signals import StopRequested, StopSignals
+    from rig.rt.stop_signals import StopSignals
     from rig.service.runner import ServiceOptions
     from rig.wire.protocol import LifecycleState
 
@@ -232,39 +232,28 @@ def run(args: argparse.Namespace) -> int:
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
     arm_tick = n_ticks // 2
-    try:    # the rig process makes the road again; a bad one is refused here in one line
-        make_road(args.road, args.speed, args.duration + 1.0, cfg.sample_time_s,
-                  seed=cfg.sensors.seed if args.seed is None else args.seed)
-    except RoadError as exc:
-        print(f"rig demo: {exc}", file=sys.stderr)
-        return 2
+    # the rig process makes the road again; a bad one is refused here, before it starts
+    make_road(args.road, args.speed, args.duration + 1.0, cfg.sample_time_s,
+              seed=cfg.sensors.seed if args.seed is None else args.seed)
     watchdog_s = (DEFAULT_WATCHDOG_S if args.rig_watchdog_ms is None
                   else args.rig_watchdog_ms * 1e-3)
     realtime = None if args.no_realtime else RealtimeRequest()
     if not args.quiet:
         print("rig demo: designing the bank ...", file=sys.stderr)
-    try:
-        harness = RigHarness(
-            cfg, ServiceOptions(
-                duration_s=None, record=args.record,
-                recording=False if args.no_record else None,
-                telemetry=False if args.no_telemetry else None, controller=args.controller,
-                weights=args.weights, realtime=realtime,
-                timing_ring=2 * n_ticks + 10_000),
-            RigProcessOptions(road=args.road, speed_mps=args.speed,
-                              road_s=args.duration + 1.0, seed=args.seed,
-                              watchdog_s=watchdog_s, trace_ticks=n_ticks + 2000,
-                              realtime=realtime),
-            metadata={"source": "rig demo", "road": args.road, "speed_mps": args.speed,
-                      "arm_tick": arm_tick},
-            stop=stop, rig_start_ticks=WARM_TICKS)
-    except StopRequested as exc:
-        print(f"rig demo: {exc} before the control loop started; nothing recorded",
-              file=sys.stderr)
-        return 0
-    except RigProcessError as exc:
-        print(f"rig demo: emulated rig: {exc}", file=sys.stderr)
-        return 2
+    harness = RigHarness(
+        cfg, ServiceOptions(
+            duration_s=None, record=args.record,
+            recording=False if args.no_record else None,
+            telemetry=False if args.no_telemetry else None, controller=args.controller,
+            weights=args.weights, realtime=realtime,
+            timing_ring=2 * n_ticks + 10_000),
+        RigProcessOptions(road=args.road, speed_mps=args.speed,
+                          road_s=args.duration + 1.0, seed=args.seed,
+                          watchdog_s=watchdog_s, trace_ticks=n_ticks + 2000,
+                          realtime=realtime),
+        metadata={"source": "rig demo", "road": args.road, "speed_mps": args.speed,
+                  "arm_tick": arm_tick},
+        stop=stop, rig_start_ticks=WARM_TICKS)
     service, trace = harness.service, harness.trace
     faults: list[dict[str, Any]] = []
     state = {"rearms": 0, "armed_at": -1}
@@ -300,9 +289,6 @@ def run(args: argparse.Namespace) -> int:
     progress.start()
     try:
         result = harness.run(on_tick=on_tick)
-    except RigProcessError as exc:
-        print(f"rig demo: emulated rig: {exc}", file=sys.stderr)
-        return 2
     finally:
         progress.stop()
         harness.close()

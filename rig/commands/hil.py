@@ -19,7 +19,7 @@ import can
 from controller.config import load_config
 from hil.faults import FaultSchedule
 from hil.node import DEFAULT_WATCHDOG_S, RigNode
-from hil.sim.roads import RoadError, make_road
+from hil.sim.roads import make_road
 from rig import argtypes
 from rig.bus.core import open_bus
 
@@ -60,11 +60,7 @@ def run(args: argparse.Namespace) -> int:
     speed = cfg.noise.nominal_speed_mps if args.speed is None else args.speed
     road_s = MAX_ROAD_S if args.duration is None else min(args.duration, MAX_ROAD_S)
     seed = cfg.sensors.seed if args.seed is None else args.seed
-    try:
-        road = make_road(args.road, speed, road_s, cfg.sample_time_s, seed)
-    except RoadError as exc:
-        print(f"rig hil: {exc}", file=sys.stderr)
-        return 2
+    road = make_road(args.road, speed, road_s, cfg.sample_time_s, seed)
     faults = FaultSchedule.load(args.faults) if args.faults else FaultSchedule()
     if args.seed is not None:
         faults = FaultSchedule(faults.windows, seed=args.seed)

@@ -51,10 +51,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from controller.artifact import DesignMismatch
-    from rig.recording.recorder import RecorderStartError
     from rig.rt.realtime import RealtimeRequest
-    from rig.rt.stop_signals import StopRequested, StopSignals
+    from rig.rt.stop_signals import StopSignals
     from rig.service.runner import Service, ServiceOptions
 
     stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
@@ -71,16 +69,6 @@ def run(args: argparse.Namespace) -> int:
         weights=args.weights, realtime=rt)
     try:
         service = Service(cfg, opts, stop=stop)
-    except StopRequested as exc:
-        print(f"rig run: {exc} before the control loop started; nothing recorded",
-              file=sys.stderr)
-        return 0
-    except DesignMismatch as exc:
-        print(f"rig run: design artifact: {exc}", file=sys.stderr)
-        return 2
-    except RecorderStartError as exc:
-        print(f"rig run: {exc}", file=sys.stderr)
-        return 2
     except OSError as exc:
         if exc.filename is not None and args.design is not None \
                 and Path(exc.filename) == Path(args.design):

@@ -15,7 +15,7 @@ import numpy as np
 
 from controller.config import load_config
 from hil.sim.closed_loop import CONTROLLERS, SimResult, simulate
-from hil.sim.roads import ROAD_NAMES, RoadError, make_road
+from hil.sim.roads import ROAD_NAMES, make_road
 from rig import argtypes, strict_json
 
 #: longest loop delay simulated (a second at 1 kHz)
@@ -77,11 +77,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.rate is not None:
         cfg = cfg.replace(design={"sample_rate_hz": args.rate})
-    try:
-        road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
-    except RoadError as exc:
-        print(f"rig sim: {exc}", file=sys.stderr)
-        return 2
+    road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
     names = list(CONTROLLERS) if args.controller == "all" else [args.controller]
     try:
         results = [simulate(cfg, road, c, args.weights, delay_ticks=args.delay,

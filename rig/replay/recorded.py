@@ -372,11 +372,16 @@ def design_from_bytes(data: bytes) -> Design:
         return load_design(fh.name)
 
 
-def recorded_config(run: RecordedRun) -> RigConfig:
-    raw = run.scan.attachments.get(CONFIG_ATTACHMENT)
+def _attachment(run: RecordedRun, name: str, option: str) -> bytes:
+    """The recording's attachment ``name``; its absence names the option that replaces it."""
+    raw = run.scan.attachments.get(name)
     if raw is None:
-        raise RecordingError(f"{run.path}: no '{CONFIG_ATTACHMENT}' attachment; "
-                             "pass --config")
+        raise RecordingError(f"{run.path}: no '{name}' attachment; pass {option}")
+    return raw
+
+
+def recorded_config(run: RecordedRun) -> RigConfig:
+    raw = _attachment(run, CONFIG_ATTACHMENT, "--config")
     try:
         return parse_config(tomllib.loads(raw.decode()))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
@@ -385,10 +390,7 @@ def recorded_config(run: RecordedRun) -> RigConfig:
 
 
 def recorded_design(run: RecordedRun) -> Design:
-    raw = run.scan.attachments.get(DESIGN_ATTACHMENT)
-    if raw is None:
-        raise RecordingError(f"{run.path}: no '{DESIGN_ATTACHMENT}' attachment; "
-                             "pass --design")
+    raw = _attachment(run, DESIGN_ATTACHMENT, "--design")
     try:
         return design_from_bytes(raw)
     except DesignMismatch as exc:   # e.g. recorded with an older artifact version

@@ -20,14 +20,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.metrics import filter_signal, wk_tf
 from rig.report.series import Phase, RunSeries
 
 __all__ = ["SUMMARY_ROWS", "SummaryRow", "phase_metrics", "run_metrics"]
 
-FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)

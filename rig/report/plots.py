@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from rig.report.events import EventRow
 from rig.report.series import LIFECYCLE_NAMES, Phase, RunSeries
 from rig.report.tracking import NO_FIRE_REACH_S, ForceTracking
@@ -28,7 +28,6 @@ __all__ = ["DPI", "MAX_PLOT_POINTS", "MODEL_COLOURS", "PHASE_ALPHA", "PHASE_COLO
            "PHASE_TEXT", "WIDTH_IN", "Figure", "PlotInput", "envelope", "model_colour",
            "phase_handles", "render_all", "shade_phases", "window_stats"]
 
-FloatArray = NDArray[np.float64]
 #: longest series drawn point by point; longer ones are drawn as a min/max envelope
 MAX_PLOT_POINTS = 20_000
 DPI = 96

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.arrays import FloatArray
 from controller.config import ConfigError, RigConfig, default_config, parse_config
 from controller.runtime.kernels import StepFlag
 from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
@@ -32,7 +33,6 @@ from rig.wire.protocol import LifecycleState
 __all__ = ["LIFECYCLE_NAMES", "SIGNAL_FIELDS", "TIMING_FIELDS", "Phase", "RunSeries", "Segment",
            "load_series"]
 
-FloatArray = NDArray[np.float64]
 
 #: ``/rig/signals`` fields read as numbers
 SIGNAL_FIELDS = ("rattlespace_m", "sprung_accel_mps2", "force_meas_n", "force_ref_n",

@@ -30,15 +30,14 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy import signal
 
 from controller.actuator import servo_model
+from controller.arrays import FloatArray
 from rig.report.series import Phase, RunSeries
 
 __all__ = ["MIN_ACTIVE_S", "NO_FIRE_REACH_S", "ForceTracking", "force_tracking"]
 
-FloatArray = NDArray[np.float64]
 #: the longest active stretch must last this long for the analysis [s]
 MIN_ACTIVE_S = 0.5
 #: a tick this close to a no-rule-fired tick counts as "near" one [s]

@@ -24,9 +24,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import NDArray
 
 from controller.actuator import FlowFeedforward
+from controller.arrays import FloatArray
 from controller.artifact import Design
 from controller.config import RigConfig
 from controller.monitor import monitor_settings
@@ -46,7 +46,6 @@ from controller.stop_guard import stop_guard_scale
 
 __all__ = ["ReferenceBank"]
 
-FloatArray = NDArray[np.float64]
 
 
 class ReferenceBank:
