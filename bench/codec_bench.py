@@ -9,14 +9,13 @@ prints the table.
 
 from __future__ import annotations
 
-import statistics
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import cantools
 
+from bench.timing import median_call_ns
 from rig.wire.protocol import CODECS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,16 +37,6 @@ SAMPLE = {
                          "OverrunCount": 3, "Blending": 0, "WeightSet": 1,
                          "JitterP99": 0.000123},
 }
-
-
-def _median_ns(fn: Any, n: int, batches: int) -> float:
-    times = []
-    for _ in range(batches):
-        t0 = time.perf_counter_ns()
-        for _ in range(n):
-            fn()
-        times.append((time.perf_counter_ns() - t0) / n)
-    return statistics.median(times)
 
 
 def run(quick: bool = False) -> list[dict[str, Any]]:
@@ -82,8 +71,8 @@ def run(quick: bool = False) -> list[dict[str, Any]]:
             m.decode(x, decode_choices=False)
 
         for op, ours, ref in (("encode", ours_enc, ref_enc), ("decode", ours_dec, ref_dec)):
-            t_ours = _median_ns(ours, n, batches)
-            t_ref = _median_ns(ref, max(n // 10, 30), batches)
+            t_ours = median_call_ns(ours, n, batches)
+            t_ref = median_call_ns(ref, max(n // 10, 30), batches)
             rows.append({"frame": codec.name, "op": op, "ours_us": t_ours / 1e3,
                          "cantools_us": t_ref / 1e3, "speedup": t_ref / t_ours})
     return rows

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import statistics
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
+from bench.timing import median_call_ns
 from controller.config import default_config
 from hil.sim.closed_loop import CONTROLLERS, cached_design, simulate
 from hil.sim.plant import RigPlant
@@ -28,13 +28,7 @@ GOAL_RT = 20.0
 
 
 def _tick_us(fn: Any, n: int, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            fn()
-        times.append((time.perf_counter() - t0) / n * 1e6)
-    return statistics.median(times)
+    return median_call_ns(fn, n, repeats) * 1e-3
 
 
 def run(quick: bool = False) -> list[dict[str, Any]]:

@@ -56,6 +56,7 @@ from numpy.typing import NDArray
 from controller.config import RigConfig, config_to_toml
 from hil.node import DEFAULT_WATCHDOG_S, RigNode
 from rig.rt.realtime import RealtimeRequest
+from rig.strict_json import json_lines
 
 __all__ = ["TRACE_FIELDS", "RigProcess", "RigProcessError", "RigProcessOptions", "RigTrace",
            "main"]
@@ -207,11 +208,7 @@ class RigProcess:
         self._stdin.flush()
 
     def _read_status(self, out: IO[bytes]) -> None:
-        for raw in out:
-            try:
-                st = json.loads(raw)
-            except ValueError:
-                continue
+        for st in json_lines(out):
             ev = st.get("event")
             if ev == "built":
                 self._built.set()

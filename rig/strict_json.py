@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 
-__all__ = ["dumps", "jsonable"]
+__all__ = ["dumps", "json_lines", "jsonable"]
 
 
 def jsonable(obj: Any) -> Any:
@@ -43,3 +43,15 @@ def jsonable(obj: Any) -> Any:
 def dumps(obj: Any, *, indent: int | None = 2) -> str:
     """Strict JSON text of ``obj`` (see the module docstring)."""
     return json.dumps(jsonable(obj), indent=indent, allow_nan=False)
+
+
+def json_lines(lines: Iterable[bytes | str]) -> Iterator[dict[str, Any]]:
+    """The JSON objects among ``lines`` (a child process's status stream): lines that are
+    not a JSON object (a stray print, a partial line at exit) are skipped."""
+    for line in lines:
+        try:
+            obj = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(obj, dict):
+            yield obj

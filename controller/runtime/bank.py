@@ -223,6 +223,7 @@ from controller.runtime.kernels import (
     servo_update,
     stop_guard,
 )
+from controller.runtime.layout import SlotValue
 from controller.runtime.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
@@ -252,8 +253,9 @@ _DEGRADED = int(StepFlag.DEGRADED)
 
 def _drop_stale_kernel_cache() -> None:
     """numba's on-disk cache checks only the defining file of a function; ``bank_step``
-    compiles in code (and offsets) from kernels.py, layout.py, moving_bank.py and bayes.py.  Remove this
-    module's cached kernels when any of those sources changed since they were cached."""
+    compiles in code (and offsets) from kernels.py, layout.py, moving_bank.py and
+    bayes.py.  Remove this module's cached kernels when any of those sources changed
+    since they were cached."""
     here = Path(__file__).resolve().parent
     cache_dir = here / "__pycache__"
     try:
@@ -969,36 +971,29 @@ class BankRuntime:
     def flags(self) -> StepFlag:
         return StepFlag(int(self._iv[I_FLAGS]))
 
-    @property
-    def filter_updates(self) -> int:
-        """Kalman filter updates done in the last tick (the work done)."""
-        return int(self._iv[I_NUPD])
+    filter_updates = SlotValue(
+        "_iv", I_NUPD, int,
+        "Kalman filter updates done in the last tick (the work done).")
 
     @property
     def airborne_mode(self) -> bool:
         """Moving bank: the airborne set is running."""
         return bool(self._iv[I_MODE] == MODE_AIR)
 
-    @property
-    def centre(self) -> int:
-        return int(self._iv[I_CENTRE])
+    centre = SlotValue("_iv", I_CENTRE, int, "Moving bank: centre of the running subset.")
 
-    @property
-    def residual_threshold(self) -> float:
-        """The learnt switching threshold T on the smoothed likelihood quotient."""
-        return float(self._fv[F_THRESH])
+    residual_threshold = SlotValue(
+        "_fv", F_THRESH, float,
+        "The learnt switching threshold T on the smoothed likelihood quotient.")
 
-    @property
-    def switching_signal(self) -> float:
-        """Moving bank: the smoothed min q of the on-ground set (the sentinel's when
-        airborne)."""
-        return float(self._fv[F_SIGNAL])
+    switching_signal = SlotValue(
+        "_fv", F_SIGNAL, float,
+        "Moving bank: the smoothed min q of the on-ground set (the sentinel's when airborne).")
 
-    @property
-    def tire_load_estimate(self) -> float:
-        """Moving bank: the estimated tire load as a fraction of the static load (M + m) g
-        (model-free, :func:`controller.runtime.moving_bank.tire_load_update`; lags Δ ticks)."""
-        return float(self._fv[F_LOAD])
+    tire_load_estimate = SlotValue(
+        "_fv", F_LOAD, float,
+        "Moving bank: the estimated tire load as a fraction of the static load (M + m) g "
+        "(model-free, controller.runtime.moving_bank.tire_load_update; lags Δ ticks).")
 
     @property
     def contact_cusums(self) -> tuple[float, float]:
@@ -1006,20 +1001,17 @@ class BankRuntime:
         a switch needs one to reach ``contact_cusum_threshold``."""
         return float(self._fv[F_GOFF]), float(self._fv[F_GON])
 
-    @property
-    def contact_cusum_threshold(self) -> float:
-        return float(self._fv[F_LH])
+    contact_cusum_threshold = SlotValue("_fv", F_LH, float,
+                                        "Decision threshold of the contact CUSUMs.")
 
-    @property
-    def authority(self) -> float:
-        """Force authority in [0, 1]: 1 armed, ramping to 0 while the monitor has the bank
-        degraded (:mod:`controller.monitor`)."""
-        return float(self._fv[F_AUTH])
+    authority = SlotValue(
+        "_fv", F_AUTH, float,
+        "Force authority in [0, 1]: 1 armed, ramping to 0 while the monitor has the bank "
+        "degraded (controller.monitor).")
 
-    @property
-    def degraded(self) -> bool:
-        """The estimator monitor has the bank on its conservative law (DEGRADED)."""
-        return bool(self._iv[I_MON_DEG])
+    degraded = SlotValue(
+        "_iv", I_MON_DEG, bool,
+        "The estimator monitor has the bank on its conservative law (DEGRADED).")
 
     @property
     def monitor_statistic(self) -> float:
@@ -1030,16 +1022,14 @@ class BankRuntime:
             return 0.0
         return float(self._fv[F_MON_SUM]) / n
 
-    @property
-    def bump_stop_force(self) -> float:
-        """The bump-stop force of the last tick, from the LVDT reading [N]."""
-        return float(self._fv[F_STOP])
+    bump_stop_force = SlotValue(
+        "_fv", F_STOP, float,
+        "The bump-stop force of the last tick, from the LVDT reading [N].")
 
-    @property
-    def stop_guard(self) -> float:
-        """The end-stop guard's factor on the force of the last tick (1: not acting;
-        controller/stop_guard.py)."""
-        return float(self._fv[F_GUARD_S])
+    stop_guard = SlotValue(
+        "_fv", F_GUARD_S, float,
+        "The end-stop guard's factor on the force of the last tick (1: not acting; "
+        "controller/stop_guard.py).")
 
     @property
     def bias_estimate(self) -> tuple[float, float]:

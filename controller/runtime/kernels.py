@@ -290,13 +290,16 @@ def activate(j: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.
     st[j, S_BA] = fv[F_BIAS + 1]
     st[j, S_QS] = qs0
     st[j, S_QW] = qs0
+    _clear_outputs(st, j)
     st[j, S_P] = p0
-    st[j, S_Q] = 0.0
-    st[j, S_W] = 0.0
-    st[j, S_U] = 0.0
-    st[j, S_F] = 0.0
-    st[j, S_BAD] = 0.0
-    st[j, S_CONTRIB] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _clear_outputs(st: np.ndarray, j: int) -> None:
+    """Zero model j's per-tick outputs: q, firing weight, probability, control,
+    force, contribution flag and bad-estimate count."""
+    for c in (S_Q, S_W, S_P, S_U, S_F, S_CONTRIB, S_BAD):
+        st[j, c] = 0.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -341,13 +344,7 @@ def deactivate(j: int, st: np.ndarray, active: np.ndarray, iv: np.ndarray) -> No
             iv[IV_ACT + i] = iv[IV_ACT + i + 1]
         iv[I_NACT] = n - 1
     active[j] = False
-    st[j, S_Q] = 0.0
-    st[j, S_W] = 0.0
-    st[j, S_P] = 0.0
-    st[j, S_U] = 0.0
-    st[j, S_F] = 0.0
-    st[j, S_CONTRIB] = 0.0
-    st[j, S_BAD] = 0.0
+    _clear_outputs(st, j)
 
 
 @nb.njit(cache=True, nogil=True)

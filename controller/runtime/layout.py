@@ -8,9 +8,14 @@ constants of :mod:`controller.runtime.kernels` (numba freezes them into the comp
 
 from __future__ import annotations
 
+import operator
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar, overload
 
-__all__ = ["BufferLayout", "Slot"]
+__all__ = ["BufferLayout", "Slot", "SlotValue"]
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -45,3 +50,27 @@ class BufferLayout:
         s = Slot(self.size, size)
         self.slots.append(s)
         return s.offset
+
+
+class SlotValue(Generic[T]):
+    """A read-only attribute that reads one entry of a buffer its owner holds: a
+    declarative property for the read-outs of packed state (``kind`` converts the NumPy
+    scalar, e.g. ``float`` or ``bool``)."""
+
+    def __init__(self, buffer_attr: str, offset: int, kind: Callable[[Any], T],
+                 doc: str | None = None) -> None:
+        self._get_buffer = operator.attrgetter(buffer_attr)
+        self.offset = offset
+        self.kind = kind
+        self.__doc__ = doc
+
+    @overload
+    def __get__(self, obj: None, objtype: type | None = None) -> SlotValue[T]: ...
+
+    @overload
+    def __get__(self, obj: object, objtype: type | None = None) -> T: ...
+
+    def __get__(self, obj: object | None, objtype: type | None = None) -> SlotValue[T] | T:
+        if obj is None:
+            return self
+        return self.kind(self._get_buffer(obj)[self.offset])

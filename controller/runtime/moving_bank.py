@@ -84,69 +84,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from controller.runtime.kernels import (
-    F_BIAS,
-    F_FORGET,
-    F_GOFF,
-    F_GON,
-    F_HINC,
-    F_HLO,
-    F_HTOT,
-    F_HWIDTH,
-    F_LC,
-    F_LH,
-    F_LINVG,
-    F_LOAD,
-    F_LOFF,
-    F_LON,
-    F_QUANT,
-    F_RECENTRE,
-    F_SIGNAL,
-    F_TFLOOR,
-    F_THRESH,
-    F_XDEV,
-    F_XDEVM,
-    I_AIR,
-    I_CENTRE,
-    I_DWELL,
-    I_HIST,
-    I_K,
-    I_LCNT,
-    I_LD,
-    I_LPTR,
-    I_MINLEARN,
-    I_MODE,
-    I_NACT,
-    I_NB,
-    I_NG,
-    I_NLEARN,
-    I_NLIFT_LOAD,
-    I_NPROBE,
-    I_NRECENTRE,
-    I_NSWITCH,
-    I_PROBE,
-    I_PROBE_CNT,
-    I_PROBE_PTR,
-    I_RECOMP,
-    I_SENTINEL,
-    I_SINCE_RECENTRE,
-    I_SINCE_SWITCH,
-    IV_ACT,
-    M_XBAR,
-    MODE_AIR,
-    MODE_GROUND,
-    S_BA,
-    S_BR,
-    S_P,
-    S_QS,
-    S_W,
-    S_XPOST,
-    S_XPRIOR,
-    V_AIR,
-    activate,
-    deactivate,
-    normalise_probabilities,
-)
+from controller.runtime import kernels as kern
+from controller.runtime.kernels import activate, deactivate, normalise_probabilities
 
 __all__ = [
     "HIST_BINS",
@@ -203,37 +142,37 @@ def neighbour_table(grid_index: NDArray[np.int64], airborne: NDArray[np.bool_]
 @nb.njit(cache=True, nogil=True)
 def history_add(fv: np.ndarray, iv: np.ndarray, s: float) -> None:
     """Add one sample of the switching signal to the exponentially forgotten histogram."""
-    off = iv[I_HIST]
-    nb_ = iv[I_NB]
-    inc = fv[F_HINC] * fv[F_FORGET]
+    off = iv[kern.I_HIST]
+    nb_ = iv[kern.I_NB]
+    inc = fv[kern.F_HINC] * fv[kern.F_FORGET]
     if inc > 1e100:                    # rescale everything (rare): keeps the numbers finite
         scale = 1.0 / inc
         for b in range(nb_):
             fv[off + b] *= scale
-        fv[F_HTOT] *= scale
+        fv[kern.F_HTOT] *= scale
         inc = 1.0
-    fv[F_HINC] = inc
-    b = int((math.log10(s) - fv[F_HLO]) / fv[F_HWIDTH]) if s > 0.0 else 0
+    fv[kern.F_HINC] = inc
+    b = int((math.log10(s) - fv[kern.F_HLO]) / fv[kern.F_HWIDTH]) if s > 0.0 else 0
     b = min(max(b, 0), nb_ - 1)
     fv[off + b] += inc
-    fv[F_HTOT] += inc
-    iv[I_NLEARN] += 1
+    fv[kern.F_HTOT] += inc
+    iv[kern.I_NLEARN] += 1
 
 
 @nb.njit(cache=True, nogil=True)
 def history_quantile(fv: np.ndarray, iv: np.ndarray, quantile: float) -> float:
     """The ``quantile`` of the learnt history (log-linear inside the bin)."""
-    off = iv[I_HIST]
-    nb_ = iv[I_NB]
-    target = quantile * fv[F_HTOT]
+    off = iv[kern.I_HIST]
+    nb_ = iv[kern.I_NB]
+    target = quantile * fv[kern.F_HTOT]
     cum = 0.0
     for b in range(nb_):
         c = fv[off + b]
         if c > 0.0 and cum + c >= target:
             frac = (target - cum) / c
-            return 10.0 ** (fv[F_HLO] + (b + frac) * fv[F_HWIDTH])
+            return 10.0 ** (fv[kern.F_HLO] + (b + frac) * fv[kern.F_HWIDTH])
         cum += c
-    return 10.0 ** (fv[F_HLO] + nb_ * fv[F_HWIDTH])
+    return 10.0 ** (fv[kern.F_HLO] + nb_ * fv[kern.F_HWIDTH])
 
 
 # ---------------------------------------------------------------------------- subset moves
@@ -245,15 +184,15 @@ def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
     """Active set := the k nearest grid models of ``centre`` (no airborne model); the
     models that stay keep their probability, newcomers start at 1/k, then the
     probabilities are rescaled to sum 1 over the new set."""
-    k = iv[I_K]
-    ng = iv[I_NG]
+    k = iv[kern.I_K]
+    ng = iv[kern.I_NG]
     J = st.shape[0]
-    qs0 = st[centre, S_QS]
+    qs0 = st[centre, kern.S_QS]
     p0 = 1.0 / k
     for j in range(J):                     # switch off what is not in the new subset
         if active[j]:
             keep = False
-            if vec[j, V_AIR] == 0.0:
+            if vec[j, kern.V_AIR] == 0.0:
                 for i in range(min(k, ng)):
                     if nbr[centre, i] == j:
                         keep = True
@@ -264,31 +203,31 @@ def _move_to(centre: int, st: np.ndarray, active: np.ndarray, fv: np.ndarray,
         if not active[j]:
             activate(j, st, active, fv, iv, mat, qs0, p0)
     normalise_probabilities(st, iv)
-    iv[I_CENTRE] = centre
-    iv[I_SINCE_RECENTRE] = 0
-    iv[I_PROBE_PTR] = 0
-    iv[I_PROBE_CNT] = 0
+    iv[kern.I_CENTRE] = centre
+    iv[kern.I_SINCE_RECENTRE] = 0
+    iv[kern.I_PROBE_PTR] = 0
+    iv[kern.I_PROBE_CNT] = 0
 
 
 @nb.njit(cache=True, nogil=True)
 def enter_moving(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
                  nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray, centre: int) -> None:
     """Start the moving bank on the ground, centred on ``centre``."""
-    iv[I_MODE] = MODE_GROUND
-    iv[I_SENTINEL] = -1
-    iv[I_SINCE_SWITCH] = 0
-    fv[F_GOFF] = 0.0
-    fv[F_GON] = 0.0
-    fv[F_LOAD] = 1.0
-    iv[I_LCNT] = 0                 # the rings were not fed outside the moving mode
-    iv[I_LPTR] = 0
+    iv[kern.I_MODE] = kern.MODE_GROUND
+    iv[kern.I_SENTINEL] = -1
+    iv[kern.I_SINCE_SWITCH] = 0
+    fv[kern.F_GOFF] = 0.0
+    fv[kern.F_GON] = 0.0
+    fv[kern.F_LOAD] = 1.0
+    iv[kern.I_LCNT] = 0                 # the rings were not fed outside the moving mode
+    iv[kern.I_LPTR] = 0
     _move_to(centre, st, active, fv, iv, nbr, vec, mat)
 
 
 @nb.njit(cache=True, nogil=True)
 def tire_load_update(fv: np.ndarray, iv: np.ndarray, rattlespace_m: float,
                      accel_mps2: float) -> float:
-    """Feed one sample to the tire-load estimate and return it (also in ``fv[F_LOAD]``).
+    """Feed one sample to the tire-load estimate and return it (also in ``fv[kern.F_LOAD]``).
 
     Momentum balance of the two masses, model-free: the tire force is
     f_t = M (zs'' + g) + m (zu'' + g) = (M + m)(a + g) + m r'' with r = zu - zs the
@@ -300,24 +239,24 @@ def tire_load_update(fv: np.ndarray, iv: np.ndarray, rattlespace_m: float,
 
     1.0 (no evidence) until 2Δ + 1 samples are in.  Allocation-free: two rings of 2Δ + 1
     samples in ``fv`` after the residual histogram."""
-    d = iv[I_LD]
+    d = iv[kern.I_LD]
     n = 2 * d + 1
-    off = iv[I_HIST] + iv[I_NB]         # r ring, then a ring, after the histogram
-    p = iv[I_LPTR]
+    off = iv[kern.I_HIST] + iv[kern.I_NB]         # r ring, then a ring, after the histogram
+    p = iv[kern.I_LPTR]
     fv[off + p] = rattlespace_m
     fv[off + n + p] = accel_mps2
-    cnt = iv[I_LCNT]
+    cnt = iv[kern.I_LCNT]
     if cnt < n:
         cnt += 1
-        iv[I_LCNT] = cnt
+        iv[kern.I_LCNT] = cnt
     load = 1.0
     if cnt >= n:
         i1 = (p - d) % n
         i2 = (p + 1) % n                 # == p - 2Δ (mod n)
-        load = 1.0 + fv[off + n + i1] * fv[F_LINVG] \
-            + fv[F_LC] * (rattlespace_m - 2.0 * fv[off + i1] + fv[off + i2])
-    iv[I_LPTR] = (p + 1) % n
-    fv[F_LOAD] = load
+        load = 1.0 + fv[off + n + i1] * fv[kern.F_LINVG] \
+            + fv[kern.F_LC] * (rattlespace_m - 2.0 * fv[off + i1] + fv[off + i2])
+    iv[kern.I_LPTR] = (p + 1) % n
+    fv[kern.F_LOAD] = load
     return load
 
 
@@ -327,92 +266,94 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
     """After a tick: learn the threshold, run the tire-contact CUSUMs, switch sets,
     re-centre or probe (for next tick)."""
     J = st.shape[0]
-    dwell = iv[I_DWELL]
-    iv[I_SINCE_SWITCH] += 1
-    iv[I_SINCE_RECENTRE] += 1
-    air = iv[I_AIR]
-    if iv[I_MODE] == MODE_GROUND:
+    dwell = iv[kern.I_DWELL]
+    iv[kern.I_SINCE_SWITCH] += 1
+    iv[kern.I_SINCE_RECENTRE] += 1
+    air = iv[kern.I_AIR]
+    if iv[kern.I_MODE] == kern.MODE_GROUND:
         best = -1
         s = np.inf
-        for a in range(iv[I_NACT]):
-            j = iv[IV_ACT + a]
-            if vec[j, V_AIR] == 0.0 and st[j, S_QS] < s:
-                s = st[j, S_QS]
+        for a in range(iv[kern.I_NACT]):
+            j = iv[kern.IV_ACT + a]
+            if vec[j, kern.V_AIR] == 0.0 and st[j, kern.S_QS] < s:
+                s = st[j, kern.S_QS]
                 best = j
-        fv[F_SIGNAL] = s
-        centre = iv[I_CENTRE]
-        load = fv[F_LOAD]
-        g = fv[F_GOFF] + (fv[F_LOFF] - load)
-        fv[F_GOFF] = g if g > 0.0 else 0.0          # also 0 for a NaN load
-        settled = iv[I_SINCE_SWITCH] >= dwell
+        fv[kern.F_SIGNAL] = s
+        centre = iv[kern.I_CENTRE]
+        load = fv[kern.F_LOAD]
+        g = fv[kern.F_GOFF] + (fv[kern.F_LOFF] - load)
+        fv[kern.F_GOFF] = g if g > 0.0 else 0.0          # also 0 for a NaN load
+        settled = iv[kern.I_SINCE_SWITCH] >= dwell
         if settled:
             history_add(fv, iv, s)
-            if iv[I_NLEARN] >= iv[I_MINLEARN] and iv[I_NLEARN] % iv[I_RECOMP] == 0:
-                fv[F_THRESH] = max(history_quantile(fv, iv, fv[F_QUANT]), fv[F_TFLOOR])
-        by_load = fv[F_GOFF] >= fv[F_LH]
-        by_residual = s > fv[F_THRESH] and fv[F_GOFF] >= 0.5 * fv[F_LH]
+            n_learnt = iv[kern.I_NLEARN]
+            if n_learnt >= iv[kern.I_MINLEARN] and n_learnt % iv[kern.I_RECOMP] == 0:
+                fv[kern.F_THRESH] = max(history_quantile(fv, iv, fv[kern.F_QUANT]),
+                                        fv[kern.F_TFLOOR])
+        by_load = fv[kern.F_GOFF] >= fv[kern.F_LH]
+        by_residual = s > fv[kern.F_THRESH] and fv[kern.F_GOFF] >= 0.5 * fv[kern.F_LH]
         if air >= 0 and settled and (by_load or by_residual):
             # lift-off: the airborne set takes over; the centre stays as zero-weight sentinel
             for j in range(J):
                 if active[j] and j != centre:
                     deactivate(j, st, active, iv)
-            activate(air, st, active, fv, iv, mat, st[centre, S_QS], 1.0)
-            st[centre, S_P] = 0.0
-            st[centre, S_W] = 0.0
-            iv[I_SENTINEL] = centre
-            iv[I_MODE] = MODE_AIR
-            iv[I_SINCE_SWITCH] = 0
-            iv[I_NSWITCH] += 1
+            activate(air, st, active, fv, iv, mat, st[centre, kern.S_QS], 1.0)
+            st[centre, kern.S_P] = 0.0
+            st[centre, kern.S_W] = 0.0
+            iv[kern.I_SENTINEL] = centre
+            iv[kern.I_MODE] = kern.MODE_AIR
+            iv[kern.I_SINCE_SWITCH] = 0
+            iv[kern.I_NSWITCH] += 1
             if by_load:
-                iv[I_NLIFT_LOAD] += 1
-            fv[F_GON] = 0.0
+                iv[kern.I_NLIFT_LOAD] += 1
+            fv[kern.F_GON] = 0.0
             return
-        if best >= 0 and best != centre and iv[I_SINCE_RECENTRE] >= dwell \
-                and st[best, S_QS] < fv[F_RECENTRE] * st[centre, S_QS]:
+        if best >= 0 and best != centre and iv[kern.I_SINCE_RECENTRE] >= dwell \
+                and st[best, kern.S_QS] < fv[kern.F_RECENTRE] * st[centre, kern.S_QS]:
             _move_to(best, st, active, fv, iv, nbr, vec, mat)
-            iv[I_NRECENTRE] += 1
+            iv[kern.I_NRECENTRE] += 1
             return
-        nprobe = iv[I_NPROBE]
-        if nprobe > 0 and iv[I_K] >= 2:
-            iv[I_PROBE_CNT] += 1
-            if iv[I_PROBE_CNT] >= iv[I_PROBE]:
-                iv[I_PROBE_CNT] = 0
-                k = iv[I_K]
+        nprobe = iv[kern.I_NPROBE]
+        if nprobe > 0 and iv[kern.I_K] >= 2:
+            iv[kern.I_PROBE_CNT] += 1
+            if iv[kern.I_PROBE_CNT] >= iv[kern.I_PROBE]:
+                iv[kern.I_PROBE_CNT] = 0
+                k = iv[kern.I_K]
                 for _ in range(nprobe):           # next candidate that is not running
-                    cand = nbr[centre, k + iv[I_PROBE_PTR] % nprobe]
-                    iv[I_PROBE_PTR] += 1
+                    cand = nbr[centre, k + iv[kern.I_PROBE_PTR] % nprobe]
+                    iv[kern.I_PROBE_PTR] += 1
                     if not active[cand]:
                         worst = -1
                         wq = -1.0
                         for j in range(J):
-                            if active[j] and j != centre and st[j, S_QS] > wq:
-                                wq = st[j, S_QS]
+                            if active[j] and j != centre and st[j, kern.S_QS] > wq:
+                                wq = st[j, kern.S_QS]
                                 worst = j
                         if worst >= 0:
                             deactivate(worst, st, active, iv)
-                            activate(cand, st, active, fv, iv, mat, st[centre, S_QS], 1.0 / k)
+                            activate(cand, st, active, fv, iv, mat, st[centre, kern.S_QS], 1.0 / k)
                             normalise_probabilities(st, iv)
                         break
     else:
-        sentinel = iv[I_SENTINEL]
-        fv[F_SIGNAL] = st[sentinel, S_QS]
-        g = fv[F_GON] + (fv[F_LOAD] - fv[F_LON])
-        fv[F_GON] = g if g > 0.0 else 0.0
-        if iv[I_SINCE_SWITCH] >= dwell and fv[F_GON] >= fv[F_LH]:
+        sentinel = iv[kern.I_SENTINEL]
+        fv[kern.F_SIGNAL] = st[sentinel, kern.S_QS]
+        g = fv[kern.F_GON] + (fv[kern.F_LOAD] - fv[kern.F_LON])
+        fv[kern.F_GON] = g if g > 0.0 else 0.0
+        if iv[kern.I_SINCE_SWITCH] >= dwell and fv[kern.F_GON] >= fv[kern.F_LH]:
             # touch-down: back to the on-ground subset around the sentinel
             deactivate(air, st, active, iv)
-            iv[I_MODE] = MODE_GROUND
-            iv[I_SENTINEL] = -1
-            iv[I_SINCE_SWITCH] = 0
-            iv[I_NSWITCH] += 1
-            fv[F_GOFF] = 0.0
+            iv[kern.I_MODE] = kern.MODE_GROUND
+            iv[kern.I_SENTINEL] = -1
+            iv[kern.I_SINCE_SWITCH] = 0
+            iv[kern.I_NSWITCH] += 1
+            fv[kern.F_GOFF] = 0.0
             # the new on-ground filters start from the sentinel's (on-ground) estimate
             for i in range(4):
-                fv[F_XDEV + i] = st[sentinel, S_XPOST + i] - mat[sentinel, i, M_XBAR]
-                fv[F_XDEVM + i] = st[sentinel, S_XPRIOR + i] - mat[sentinel, i, M_XBAR]
-            fv[F_BIAS] = st[sentinel, S_BR]
-            fv[F_BIAS + 1] = st[sentinel, S_BA]
+                fv[kern.F_XDEV + i] = st[sentinel, kern.S_XPOST + i] - mat[sentinel, i, kern.M_XBAR]
+                fv[kern.F_XDEVM + i] = st[sentinel, kern.S_XPRIOR + i] - mat[sentinel, i, kern.M_XBAR]
+            fv[kern.F_BIAS] = st[sentinel, kern.S_BR]
+            fv[kern.F_BIAS + 1] = st[sentinel, kern.S_BA]
             # the sentinel (kept out of the blending while airborne, p = 0) rejoins the
             # on-ground set like a newcomer: the set restarts from uniform probabilities
-            st[sentinel, S_P] = 1.0 / iv[I_K]
+            st[sentinel, kern.S_P] = 1.0 / iv[kern.I_K]
             _move_to(sentinel, st, active, fv, iv, nbr, vec, mat)

@@ -39,6 +39,7 @@ from numba import njit
 
 from controller.arrays import FloatArray
 from controller.config import RigConfig
+from controller.runtime.layout import SlotValue
 from hil.sim.hydraulics import hydraulic_power_w, load_pressure_rate
 
 __all__ = ["N_STATES", "PlantParams", "RigPlant", "advance_kernel", "derivatives",
@@ -337,39 +338,23 @@ class RigPlant:
     def actuator_force_n(self) -> float:
         return float(self.p[P_A] * self.state[5])
 
-    @property
-    def tire_force_n(self) -> float:
-        return float(self.diag[D_TIRE_FORCE])
-
-    @property
-    def sprung_accel_mps2(self) -> float:
-        """zs'' [m/s^2] at the end of the last tick (0 at rest; gravity removed)."""
-        return float(self.diag[D_ACCEL])
+    tire_force_n = SlotValue("diag", D_TIRE_FORCE, float, "tire force [N] (0 off the ground)")
+    sprung_accel_mps2 = SlotValue(
+        "diag", D_ACCEL, float,
+        "zs'' [m/s^2] at the end of the last tick (0 at rest; gravity removed)")
 
     @property
     def off_ground(self) -> bool:
         return bool(self.state[1] <= 0.0)
 
-    @property
-    def off_ground_time_last_tick_s(self) -> float:
-        return float(self.diag[D_OFF_GROUND_S])
-
-    @property
-    def bump_stop_time_last_tick_s(self) -> float:
-        return float(self.diag[D_BUMP_S])
-
-    @property
-    def hydraulic_power_w(self) -> float:
-        """Mean valve hydraulic power P x Q over the last tick [W]."""
-        return float(self.diag[D_POWER])
-
-    @property
-    def spool(self) -> float:
-        return float(self.state[4])
-
-    @property
-    def load_pressure_pa(self) -> float:
-        return float(self.state[5])
+    off_ground_time_last_tick_s = SlotValue("diag", D_OFF_GROUND_S, float,
+                                            "time off the ground in the last tick [s]")
+    bump_stop_time_last_tick_s = SlotValue("diag", D_BUMP_S, float,
+                                           "time on a bump stop in the last tick [s]")
+    hydraulic_power_w = SlotValue("diag", D_POWER, float,
+                                  "mean valve hydraulic power P x Q over the last tick [W]")
+    spool = SlotValue("state", 4, float, "spool position, normalised to [-1, 1]")
+    load_pressure_pa = SlotValue("state", 5, float, "actuator load pressure [Pa]")
 
     @property
     def supply_pressure_pa(self) -> float:

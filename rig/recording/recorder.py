@@ -82,6 +82,7 @@ from rig.recording.writer import (
     METADATA_NAME,
     PARTS_KEY,
 )
+from rig.strict_json import json_lines
 
 __all__ = [
     "CONFIG_ATTACHMENT",
@@ -246,11 +247,7 @@ class RunRecorder:
     def _read_status(self) -> None:
         out = self._proc.stdout
         assert out is not None
-        for line in out:
-            try:
-                st = json.loads(line)
-            except ValueError:
-                continue
+        for st in json_lines(out):
             ev = st.get("event")
             with self._lock:
                 if ev == "error":

@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from controller.config import RigConfig, config_to_toml, default_config
 from tests.socketcan.capture import Decoded, decode_all
 from tests.socketcan.support import (
@@ -217,6 +219,12 @@ class Scenario:
     operator: Operator
     state: TelemetryState
     notes: dict[str, Any] = field(default_factory=dict)
+
+
+def e2e_marks(timeout_s: int) -> list[pytest.MarkDecorator]:
+    """The marks of an end-to-end module: slow, its timeout, skipped without the service."""
+    return [pytest.mark.slow, pytest.mark.timeout(timeout_s),
+            pytest.mark.skipif(bool(service_ready()), reason=service_ready())]
 
 
 def service_ready() -> str:

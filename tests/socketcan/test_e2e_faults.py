@@ -46,13 +46,12 @@ from tests.socketcan.harness import (
     Scenario,
     ScenarioResult,
     e2e_config,
+    e2e_marks,
     run_scenario,
-    service_ready,
 )
 from tests.socketcan.support import CHANNEL, Children, record
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(900),
-              pytest.mark.skipif(bool(service_ready()), reason=service_ready())]
+pytestmark = e2e_marks(900)
 
 SLOT_S = 4.0        # rig time between the rig's scheduled fault windows
 FIRST_S = 8.0       # rig time of the first one (the service arms within a few s)

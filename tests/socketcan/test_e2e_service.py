@@ -25,13 +25,12 @@ from tests.socketcan.harness import (
     SPEED_MPS,
     ScenarioResult,
     e2e_config,
+    e2e_marks,
     run_scenario,
-    service_ready,
 )
 from tests.socketcan.support import CHANNEL, Children, counter_gaps, record
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600),
-              pytest.mark.skipif(bool(service_ready()), reason=service_ready())]
+pytestmark = e2e_marks(600)
 
 SERVICE_S = 20.0   # service loop time (the rig starts after it, then it arms when healthy)
 SETTLE_S = 2.0     # after arming, before the comparison window

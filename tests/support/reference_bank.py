@@ -31,17 +31,9 @@ from controller.artifact import Design
 from controller.config import RigConfig
 from controller.monitor import monitor_settings
 from controller.road_noise import nearest_noise_entry
+from controller.runtime import moving_bank
 from controller.runtime.bayes import bayes_update_numpy
 from controller.runtime.kernels import MEAS_DIM, Q_MAX, QS_INIT, Blending, StepFlag
-from controller.runtime.moving_bank import (
-    HIST_BINS,
-    HIST_HI_LOG10,
-    HIST_LO_LOG10,
-    HIST_RECOMPUTE_TICKS,
-    MAX_PROBE_CANDIDATES,
-    RECENTRE_RATIO,
-    chi2_threshold_floor,
-)
 from controller.stop_guard import stop_guard_scale
 
 __all__ = ["ReferenceBank"]
@@ -83,7 +75,7 @@ class ReferenceBank:
         self.mon = monitor_settings(c, dt, MEAS_DIM)
         self.stop_k, self.stop_lo, self.stop_hi = (float(v) for v in d.bump_stop)
         self.guard_width = c.design.stop_guard_m
-        self.t_floor = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
+        self.t_floor = moving_bank.chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
         self.load_off = mb.liftoff_load_fraction               # lift-off reference
         self.load_on = mb.liftoff_load_fraction / mb.hysteresis_ratio   # touch-down reference
         self.cusum_h = mb.liftoff_load_fraction * max(1, round(mb.liftoff_detection_time_s / dt))
@@ -97,8 +89,8 @@ class ReferenceBank:
         self.min_learn = max(1, int(n_window // 4))
         self.dwell = max(1, round(mb.dwell_time_s / dt))
         self.probe_ticks = max(1, round(c.moving_bank.probe_period_s / dt))
-        self.nprobe = max(0, min(len(self.ground) - self.k, MAX_PROBE_CANDIDATES))
-        self.width = (HIST_HI_LOG10 - HIST_LO_LOG10) / HIST_BINS
+        self.nprobe = max(0, min(len(self.ground) - self.k, moving_bank.MAX_PROBE_CANDIDATES))
+        self.width = (moving_bank.HIST_HI_LOG10 - moving_bank.HIST_LO_LOG10) / moving_bank.HIST_BINS
         self.order = self._neighbours()
         self.s = nearest_noise_entry(d.noise_speeds_mps, d.noise_roughness_gd,
                                      c.noise.nominal_speed_mps, c.noise.nominal_roughness_gd)
@@ -151,7 +143,7 @@ class ReferenceBank:
         self.xdev = np.zeros(4)
         self.xdevm = np.zeros(4)
         self.thresh = self.t_floor
-        self.hist = np.zeros(HIST_BINS)
+        self.hist = np.zeros(moving_bank.HIST_BINS)
         self.nlearn = 0
         self.load = 1.0
         self.g_off = self.g_on = 0.0
@@ -424,10 +416,10 @@ class ReferenceBank:
         before = cum - self.hist
         ok = np.flatnonzero((self.hist > 0) & (cum >= target))
         if ok.size == 0:
-            return float(10.0 ** HIST_HI_LOG10)
+            return float(10.0 ** moving_bank.HIST_HI_LOG10)
         b = int(ok[0])
         frac = (target - before[b]) / self.hist[b]
-        return float(10.0 ** (HIST_LO_LOG10 + (b + frac) * self.width))
+        return float(10.0 ** (moving_bank.HIST_LO_LOG10 + (b + frac) * self.width))
 
     def _tire_load_update(self, rattlespace_m: float, accel_mps2: float) -> None:
         """Tire force of tick k - Δ from the two masses' momentum balance,
@@ -457,11 +449,11 @@ class ReferenceBank:
             self.g_off = g if g > 0.0 else 0.0
             settled = self.since_switch >= self.dwell
             if settled:
-                b = int((math.log10(sig) - HIST_LO_LOG10) / self.width) if sig > 0 else 0
+                b = int((math.log10(sig) - moving_bank.HIST_LO_LOG10) / self.width) if sig > 0 else 0
                 self.hist *= self.lam
-                self.hist[min(max(b, 0), HIST_BINS - 1)] += 1.0
+                self.hist[min(max(b, 0), moving_bank.HIST_BINS - 1)] += 1.0
                 self.nlearn += 1
-                if self.nlearn >= self.min_learn and self.nlearn % HIST_RECOMPUTE_TICKS == 0:
+                if self.nlearn >= self.min_learn and self.nlearn % moving_bank.HIST_RECOMPUTE_TICKS == 0:
                     self.thresh = max(self._quantile(), self.t_floor)
             by_load = self.g_off >= self.cusum_h
             by_residual = sig > self.thresh and self.g_off >= 0.5 * self.cusum_h
@@ -479,7 +471,7 @@ class ReferenceBank:
                 self.g_on = 0.0
                 return
             if best != self.centre and self.since_recentre >= self.dwell \
-                    and self.qs[best] < RECENTRE_RATIO * self.qs[self.centre]:
+                    and self.qs[best] < moving_bank.RECENTRE_RATIO * self.qs[self.centre]:
                 self._move_to(best)
                 return
             if self.nprobe > 0 and self.k >= 2:
