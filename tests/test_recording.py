@@ -280,7 +280,7 @@ def _rotated_run(tmp_path: Path) -> tuple[Path, list[Path]]:
 
 
 def test_rotation_by_time(tmp_path: Path) -> None:
-    path, segs = _rotated_run(tmp_path)
+    _path, segs = _rotated_run(tmp_path)
     assert len(segs) == 4
     per_seg = [len(read_run(p, follow_segments=False).frames) for p in segs]
     assert per_seg == [10, 10, 10, 5]

@@ -349,8 +349,9 @@ def supervise(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray
             fv[kern.F_GOFF] = 0.0
             # the new on-ground filters start from the sentinel's (on-ground) estimate
             for i in range(4):
-                fv[kern.F_XDEV + i] = st[sentinel, kern.S_XPOST + i] - mat[sentinel, i, kern.M_XBAR]
-                fv[kern.F_XDEVM + i] = st[sentinel, kern.S_XPRIOR + i] - mat[sentinel, i, kern.M_XBAR]
+                xbar = mat[sentinel, i, kern.M_XBAR]
+                fv[kern.F_XDEV + i] = st[sentinel, kern.S_XPOST + i] - xbar
+                fv[kern.F_XDEVM + i] = st[sentinel, kern.S_XPRIOR + i] - xbar
             fv[kern.F_BIAS] = st[sentinel, kern.S_BR]
             fv[kern.F_BIAS + 1] = st[sentinel, kern.S_BA]
             # the sentinel (kept out of the blending while airborne, p = 0) rejoins the

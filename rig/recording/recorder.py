@@ -71,8 +71,8 @@ from rig.recording.schema import RECORDING_FORMAT_VERSION
 from rig.recording.segments import (
     SEGMENT_END_NAME,
     SegmentChain,
-    SegmentEnd,
     SegmentHead,
+    next_segment,
     segment_path,
     tail_problem,
 )
@@ -601,14 +601,7 @@ def read_run(path: str | Path, *, follow_segments: bool = True) -> RunData:
         index = seg.index
         if seg.refused:
             run.segments.pop()
-        if not seg.ok or chain is None or not chain.run_id:
-            break
-        p, problem = chain.next_path(p, SegmentEnd.parse(seg.end))
-        if problem:
-            run.complete = False
-            run.stopped_at = problem
-    if chain is not None:
-        run.notes.extend(chain.notes)
+        p = next_segment(chain, p, seg.ok, seg.end, run)
     _strip_t_ns(run)
     return run
 

@@ -22,15 +22,17 @@ import zlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final
+from typing import Final, Protocol
 
 __all__ = [
     "MCAP_MAGIC",
     "SEGMENT_END_NAME",
+    "ReadOutcome",
     "SegmentChain",
     "SegmentEnd",
     "SegmentHead",
     "base_of_segment",
+    "next_segment",
     "segment_path",
     "tail_problem",
 ]
@@ -303,3 +305,28 @@ def tail_problem(read: Callable[[int, int], bytes], size: int,
             return (f"summary section or Footer damaged (CRC mismatch over bytes "
                     f"{first}-{footer_at + _FOOTER.size - 4})")
     return ""
+
+
+class ReadOutcome(Protocol):
+    """What a reader of a run reports besides the data (both MCAP readers' results)."""
+
+    complete: bool
+    stopped_at: str | None
+    notes: list[str]
+
+
+def next_segment(chain: SegmentChain | None, path: Path, whole: bool,
+                 end: Mapping[str, str] | None, outcome: ReadOutcome) -> Path | None:
+    """The file to read after segment ``path`` (None: the run ends here).  A segment not
+    read ``whole``, or no ``chain`` to follow, ends the run; a missing successor is
+    recorded in ``outcome`` (incomplete, ``stopped_at``), and at the end of the run the
+    chain's notes are added to it."""
+    nxt: Path | None = None
+    if whole and chain is not None and chain.run_id:
+        nxt, problem = chain.next_path(path, SegmentEnd.parse(end))
+        if problem:
+            outcome.complete = False
+            outcome.stopped_at = problem
+    if nxt is None and chain is not None:
+        outcome.notes.extend(chain.notes)
+    return nxt

@@ -35,8 +35,8 @@ from rig.recording.segments import (
     MCAP_MAGIC,
     SEGMENT_END_NAME,
     SegmentChain,
-    SegmentEnd,
     SegmentHead,
+    next_segment,
     tail_problem,
 )
 
@@ -446,12 +446,5 @@ def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
             res.segments.pop()
         if len(res.segments) == 1 and p == path:
             check_is_recording(res, p)
-        if not seg.footer or chain is None or not chain.run_id:
-            break
-        p, problem = chain.next_path(p, SegmentEnd.parse(seg.end))
-        if problem:
-            res.complete = False
-            res.stopped_at = problem
-    if chain is not None:
-        res.notes.extend(chain.notes)
+        p = next_segment(chain, p, seg.footer, seg.end, res)
     return res

@@ -449,11 +449,13 @@ class ReferenceBank:
             self.g_off = g if g > 0.0 else 0.0
             settled = self.since_switch >= self.dwell
             if settled:
-                b = int((math.log10(sig) - moving_bank.HIST_LO_LOG10) / self.width) if sig > 0 else 0
+                lo = moving_bank.HIST_LO_LOG10
+                b = int((math.log10(sig) - lo) / self.width) if sig > 0 else 0
                 self.hist *= self.lam
                 self.hist[min(max(b, 0), moving_bank.HIST_BINS - 1)] += 1.0
                 self.nlearn += 1
-                if self.nlearn >= self.min_learn and self.nlearn % moving_bank.HIST_RECOMPUTE_TICKS == 0:
+                if (self.nlearn >= self.min_learn
+                        and self.nlearn % moving_bank.HIST_RECOMPUTE_TICKS == 0):
                     self.thresh = max(self._quantile(), self.t_floor)
             by_load = self.g_off >= self.cusum_h
             by_residual = sig > self.thresh and self.g_off >= 0.5 * self.cusum_h
