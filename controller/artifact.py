@@ -49,7 +49,6 @@ __all__ = [
 ARTIFACT_VERSION = 3
 
 
-
 class DesignMismatch(ValueError):  # noqa: N818 (name fixed by docs/architecture.md)
     """The artifact does not fit: wrong version, wrong configuration, missing or bad field."""
 

@@ -37,7 +37,6 @@ __all__ = [
 ]
 
 
-
 @dataclass(frozen=True)
 class FuzzyResult:
     weight: float          # centre of area in [0, 1]; 0.0 when nothing fired

@@ -24,7 +24,6 @@ from controller.config import DesignConfig
 __all__ = ["HumanFilter", "discretize_zoh", "human_filter"]
 
 
-
 @dataclass(frozen=True)
 class HumanFilter:
     """Continuous F(s) (Af, Bf, Cf) and its ZOH discretisation (Ad, Bd, Cd) at ``dt_s``."""

@@ -73,7 +73,6 @@ __all__ = [
 ]
 
 
-
 @dataclass(frozen=True)
 class FilterModel:
     """Continuous model the filter of model j is built on (regularised if airborne)."""

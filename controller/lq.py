@@ -49,10 +49,12 @@ __all__ = [
 ]
 
 
-
 @dataclass(frozen=True)
 class AugmentedPlant:
-    """Continuous augmented plant z' = A z + B u + B1 w' and cost z'Qc z + Rc u^2."""
+    """Continuous augmented plant z' = A z + B u + B1 w' and cost z'Qc z + Rc u^2.
+
+    z = [x (4), xf (2)]: the quarter-car state (SI) followed by the human-body filter's
+    states; u is the actuator force [N], w' the road velocity [m/s]."""
 
     A: FloatArray   # (6, 6)
     B: FloatArray   # (6,)

@@ -1026,10 +1026,8 @@ class BankRuntime:
         "_fv", F_STOP, float,
         "The bump-stop force of the last tick, from the LVDT reading [N].")
 
-    stop_guard = SlotValue(
-        "_fv", F_GUARD_S, float,
-        "The end-stop guard's factor on the force of the last tick (1: not acting; "
-        "controller/stop_guard.py).")
+    #: the end-stop guard's factor on the force of the last tick (1: not acting)
+    stop_guard = SlotValue("_fv", F_GUARD_S, float, "End-stop guard factor (stop_guard.py).")
 
     @property
     def bias_estimate(self) -> tuple[float, float]:

@@ -238,7 +238,6 @@ FSTAT_RAW = 0
 FSTAT_RELATIVE = 1
 
 
-
 @nb.njit(cache=True, nogil=True)
 def firing_weight(q: float, fv: np.ndarray, off_grid: int, off_curve: int, G: int) -> float:
     """Tabulated firing weight at q (linear interpolation, clamped to the universe);

@@ -109,7 +109,6 @@ HIST_RECOMPUTE_TICKS = 16   # the quantile is re-read from the histogram this of
 MAX_PROBE_CANDIDATES = 8
 
 
-
 def chi2_threshold_floor(quantile: float, meas_dim: int = 2) -> float:
     """The q a matched filter exceeds with probability 1 - quantile (chi-square, m = 2 dof;
     for other m this is the exponential-tail approximation m/2 * -2 ln(1 - quantile))."""

@@ -39,7 +39,6 @@ from hil.sim.sensors import SensorReading
 __all__ = ["FullStateLQ"]
 
 
-
 class FullStateLQ:
     """LQ state feedback on the true state (study interface: reset / step / fault)."""
 

@@ -31,7 +31,6 @@ from controller.road_noise import road_velocity_intensity
 __all__ = ["TradeoffGrid", "tradeoff_grid"]
 
 
-
 @dataclass(frozen=True)
 class TradeoffGrid:
     """Ratios to passive, arrays of shape (len(rho1), len(rho2)); NaN = no stabilising

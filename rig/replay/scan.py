@@ -142,12 +142,8 @@ class _Segment:
     def __init__(self, path: Path, result: ScanResult, handlers: Mapping[str, Handler],
                  first: bool, after_chunk: Callable[[], None] | None = None,
                  chain: SegmentChain | None = None) -> None:
-        self.after_chunk = after_chunk
-        self.path = path
-        self.res = result
-        self.handlers = handlers
-        self.first = first
-        self.chain = chain
+        self.path, self.res, self.handlers, self.chain = path, result, handlers, chain
+        self.first, self.after_chunk = first, after_chunk
         self.by_channel: dict[int, Handler | None] = {}
         self.footer = False
         # a later segment of a run: nothing of it is used before its identity is checked

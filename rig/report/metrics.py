@@ -28,7 +28,6 @@ from rig.report.series import Phase, RunSeries
 __all__ = ["SUMMARY_ROWS", "SummaryRow", "phase_metrics", "run_metrics"]
 
 
-
 @dataclass(frozen=True)
 class SummaryRow:
     """One line of the passive-vs-active table."""

@@ -39,7 +39,6 @@ from controller.stop_guard import stop_guard_scale
 __all__ = ["ReferenceBank"]
 
 
-
 class ReferenceBank:
     """Same constructor and ``step`` contract as :class:`controller.runtime.bank.BankRuntime`."""
 
