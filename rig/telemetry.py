@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import queue
 import re
 import threading
@@ -26,22 +25,14 @@ from typing import Any
 import zenoh
 
 from controller.config import TelemetryConfig
+from rig.operator import OPERATOR_COMMANDS, brief, validate_command
 from rig.recording.schema import encode_json
 
-__all__ = ["COMMANDS", "MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "SESSION_ATTEMPTS",
-           "TelemetryPublisher", "validate_command", "zenoh_config"]
+__all__ = ["MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "SESSION_ATTEMPTS", "TelemetryPublisher",
+           "zenoh_config"]
 
 log = logging.getLogger(__name__)
 
-#: command -> {argument: accepted types}; no other arguments are accepted.
-COMMANDS: dict[str, dict[str, tuple[type, ...]]] = {
-    "arm": {},
-    "disarm": {},
-    "reset": {},
-    "weight_set": {"weight_set": (int,)},
-    "blending": {"blending": (str, int)},
-    "road": {"speed_mps": (int, float), "roughness_gd": (int, float)},
-}
 _PERIODIC_S = 1.0  # lifecycle / fault are re-published at least this often
 _RETRY_MAX_S = 30.0  # longest pause between two attempts to open the session
 #: attempts to open the session (pauses 1, 2, 4, 8 s: about 15 s) before giving up
@@ -50,14 +41,7 @@ SESSION_ATTEMPTS = 5
 MAX_ARGUMENT_BYTES = 1024
 #: error texts in command replies are cut to this length (never echo large input)
 MAX_ERROR_CHARS = 200
-_NAME_CHARS = 40      # an unknown command name is shown cut to this length
 _RUST_SOURCE = re.compile(r" at /\S+\.rs:\d+\.?")
-
-
-def _brief(value: object, limit: int = _NAME_CHARS) -> str:
-    """repr(value), cut to ``limit`` characters (error texts never echo large input)."""
-    text = repr(value)
-    return text if len(text) <= limit else f"{text[:limit - 3]}..."
 
 
 def _cap(text: str, limit: int = MAX_ERROR_CHARS) -> str:
@@ -99,35 +83,9 @@ def zenoh_config(cfg: TelemetryConfig) -> zenoh.Config:
         try:
             conf.insert_json5(key, json.dumps(value))
         except Exception as exc:   # zenoh.ZError: e.g. an endpoint it cannot parse
-            raise ValueError(f"zenoh {key} = {_brief(value, 120)}: {_zenoh_error(exc)}"
+            raise ValueError(f"zenoh {key} = {brief(value, 120)}: {_zenoh_error(exc)}"
                              ) from exc
     return conf
-
-
-def validate_command(name: str, args: object) -> dict[str, Any]:
-    """Check a command name and its argument object; ValueError names what is wrong."""
-    if name not in COMMANDS:
-        raise ValueError(f"unknown command {_brief(name)}: allowed {', '.join(COMMANDS)}")
-    if not isinstance(args, dict):
-        raise ValueError(f"command {name!r}: arguments must be a JSON object, "
-                         f"got {_brief(args)}")
-    spec = COMMANDS[name]
-    extra = set(args) - set(spec)
-    if extra:
-        shown = ", ".join(_brief(k) for k in sorted(extra)[:3])
-        more = f" and {len(extra) - 3} more" if len(extra) > 3 else ""
-        raise ValueError(f"command {name!r}: unknown argument(s) {shown}{more}; "
-                         f"allowed {sorted(spec) or 'none'}")
-    for key, types in spec.items():
-        if key not in args:
-            raise ValueError(f"command {name!r}: missing argument {key!r}")
-        v = args[key]
-        if isinstance(v, bool) or not isinstance(v, types):
-            raise ValueError(f"command {name!r}: {key}={_brief(v)} must be "
-                             f"{' or '.join(t.__name__ for t in types)}")
-        if isinstance(v, float) and not math.isfinite(v):
-            raise ValueError(f"command {name!r}: {key}={v!r} must be finite")
-    return args
 
 
 class TelemetryPublisher:
@@ -376,7 +334,7 @@ class TelemetryPublisher:
         input."""
         with self._lock:
             self.commands_received += 1
-        shown = name if name in COMMANDS else _brief(name)
+        shown = name if name in OPERATOR_COMMANDS else brief(name)
         try:
             if len(payload) > MAX_ARGUMENT_BYTES:
                 raise ValueError(f"command {shown}: arguments of {len(payload)} bytes, "
@@ -409,7 +367,7 @@ class TelemetryPublisher:
         if name is None:
             return
         _, reply = self._handle(name, sample.payload.to_bytes())
-        leaf = name if name in COMMANDS else "invalid"
+        leaf = name if name in OPERATOR_COMMANDS else "invalid"
         if self._session is not None:
             self._session.put(self._key(f"ack/{leaf}"), json.dumps(reply),
                               encoding=zenoh.Encoding.APPLICATION_JSON)

@@ -21,7 +21,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from controller.config import TelemetryConfig, default_config
-from rig.telemetry import COMMANDS, TelemetryPublisher, validate_command, zenoh_config
+from rig.operator import OPERATOR_COMMANDS as COMMANDS
+from rig.operator import validate_command
+from rig.telemetry import TelemetryPublisher, zenoh_config
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)

@@ -44,6 +44,7 @@ import numpy as np
 from controller.config import RigConfig
 from controller.runtime.kernels import StepFlag
 from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
+from rig.operator import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout
 from rig.rt.pacing import Pacer
 from rig.rt.sdnotify import SdNotifier
@@ -65,7 +66,7 @@ from rig.wire.protocol import (
     SensorData,
 )
 
-__all__ = ["COMMANDS", "ControlLoop", "Recorder", "Runtime", "Telemetry",
+__all__ = ["ControlLoop", "Recorder", "Runtime", "Telemetry",
            "tick_record_layout"]
 
 log = logging.getLogger(__name__)
@@ -79,7 +80,6 @@ _FAULT = LifecycleState.FAULT
 _STOPPING = LifecycleState.STOPPING
 
 #: operator commands understood by :meth:`ControlLoop.request` (argument in brackets)
-COMMANDS = ("arm", "disarm", "reset", "blending", "weight_set", "road")
 
 
 class Runtime(Protocol):
@@ -237,6 +237,12 @@ class ControlLoop:
         self._sd = SensorData()
         self._rs = RigStatus()
         self._requests: collections.deque[_Request] = collections.deque(maxlen=64)
+        #: one handler per operator command (rig.operator owns the table)
+        self._handlers: dict[str, Callable[[Any], CommandResult]] = {
+            "arm": self._arm, "disarm": self._disarm, "reset": self._reset,
+            "blending": self._set_blending, "weight_set": self._set_weight_set,
+            "road": self._set_road}
+        assert self._handlers.keys() == OPERATOR_COMMANDS.keys(), "rig.operator changed"
         self._watchdog_period_ns = notifier.watchdog_period_ns if notifier else 0
         self.transitions: collections.deque[Transition] = collections.deque(maxlen=256)
         self.reset_state()
@@ -284,9 +290,10 @@ class ControlLoop:
 
         ``timeout_s=None`` applies it at once in the calling thread (use only when the
         loop is not running, e.g. tick-stepped tests or before :meth:`run`)."""
-        if name not in COMMANDS:
+        if name not in OPERATOR_COMMANDS:
             return CommandResult(False, self.lifecycle.state,
-                                 f"unknown command {name!r}; one of {', '.join(COMMANDS)}")
+                                 f"unknown command {name!r}; one of "
+                                 f"{', '.join(OPERATOR_COMMANDS)}")
         req = _Request(name, argument)
         if timeout_s is None:
             self._apply(req)
@@ -302,32 +309,10 @@ class ControlLoop:
         lc, tick, t = self.lifecycle, self.tick_count, self.t_ns
         name, arg = req.name, req.argument
         try:
-            if name == "arm":
-                problem = self.health_problem()
-                res = lc.arm(tick, t, not problem, problem)
-                if res.accepted:
-                    self.pi.reset()
-            elif name == "disarm":
-                res = lc.disarm(tick, t)
-            elif name == "reset":
-                res = lc.reset(tick, t, self.monitor.reset_blocker(),
-                               self.monitor.rig_problem())
-                if res.accepted:
-                    self._reset_estimation()
-            elif lc.state is _ACTIVE:
+            if OPERATOR_COMMANDS[name].needs_inactive and lc.state is _ACTIVE:
                 res = CommandResult(False, lc.state, f"{name}: disarm first")
-            elif name == "blending":
-                self.rt.set_blending(int(arg))
-                self.blending = int(arg)
-                res = CommandResult(True, lc.state, f"blending {self.blending}")
-            elif name == "weight_set":
-                self.rt.set_weight_set(int(arg))
-                self.weight_set = int(arg)
-                res = CommandResult(True, lc.state, f"weight set {self.weight_set}")
-            else:  # road
-                speed, rough = arg
-                self.rt.set_road(float(speed), float(rough))
-                res = CommandResult(True, lc.state, f"road {speed} m/s, Gd {rough}")
+            else:
+                res = self._handlers[name](arg)
         except Exception as exc:  # bad argument: refuse, never disturb the loop
             res = CommandResult(False, lc.state, f"{name}: {exc}")
         req.result = res
@@ -335,6 +320,38 @@ class ControlLoop:
         log.info("command %s(%s): %s", name, "" if arg is None else arg, res.message)
         self._record_event(t, tick, "command",
                            {"command": name, "argument": arg, **res.as_dict()})
+
+    def _arm(self, _arg: None) -> CommandResult:
+        problem = self.health_problem()
+        res = self.lifecycle.arm(self.tick_count, self.t_ns, not problem, problem)
+        if res.accepted:
+            self.pi.reset()
+        return res
+
+    def _disarm(self, _arg: None) -> CommandResult:
+        return self.lifecycle.disarm(self.tick_count, self.t_ns)
+
+    def _reset(self, _arg: None) -> CommandResult:
+        res = self.lifecycle.reset(self.tick_count, self.t_ns, self.monitor.reset_blocker(),
+                                   self.monitor.rig_problem())
+        if res.accepted:
+            self._reset_estimation()
+        return res
+
+    def _set_blending(self, blending: int) -> CommandResult:
+        self.rt.set_blending(int(blending))
+        self.blending = int(blending)
+        return CommandResult(True, self.lifecycle.state, f"blending {self.blending}")
+
+    def _set_weight_set(self, weight_set: int) -> CommandResult:
+        self.rt.set_weight_set(int(weight_set))
+        self.weight_set = int(weight_set)
+        return CommandResult(True, self.lifecycle.state, f"weight set {self.weight_set}")
+
+    def _set_road(self, road: tuple[float, float]) -> CommandResult:
+        speed, rough = road
+        self.rt.set_road(float(speed), float(rough))
+        return CommandResult(True, self.lifecycle.state, f"road {speed} m/s, Gd {rough}")
 
     def health_problem(self) -> str:
         """'' when arming is allowed, else the reason."""

@@ -35,6 +35,7 @@ import can
 
 from controller.config import RigConfig, config_hash, config_to_toml
 from controller.modes import blending_of
+from rig.operator import loop_argument
 from rig.rt.realtime import (
     RealtimeReport,
     RealtimeRequest,
@@ -249,14 +250,8 @@ class Service:
     def command_handler(self, name: str, args: dict[str, Any]) -> str:
         """Telemetry command (validated by ``rig.telemetry.validate_command``) -> the
         loop (waits up to ``command_timeout_s``); ValueError when refused."""
-        arg: Any = None
-        if name == "weight_set":
-            arg = int(args["weight_set"])
-        elif name == "blending":
-            arg = int(blending_of(args["blending"]))
-        elif name == "road":
-            arg = (float(args["speed_mps"]), float(args["roughness_gd"]))
-        res = self.loop.request(name, arg, timeout_s=self.command_timeout_s)
+        res = self.loop.request(name, loop_argument(name, args),
+                                timeout_s=self.command_timeout_s)
         if not res.accepted:
             raise ValueError(res.message)
         return res.message
