@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import operator
 import threading
 import time
 from collections.abc import Callable
@@ -66,7 +67,7 @@ from rig.wire.protocol import (
     SensorData,
 )
 
-__all__ = ["ControlLoop", "Recorder", "Runtime", "Telemetry",
+__all__ = ["TICK_RECORD_FIELDS", "ControlLoop", "Recorder", "Runtime", "Telemetry",
            "tick_record_layout"]
 
 log = logging.getLogger(__name__)
@@ -136,49 +137,62 @@ def _bus_exception(where: str, exc: BaseException) -> dict[str, Any]:
             "errno": errno}
 
 
-def tick_record_layout(rt: Runtime) -> TickLayout:
-    """The loop's tick record: keys, kinds and array shapes (docs/recording.md).
+#: The loop's tick record in record order (docs/recording.md): (key, kind, where the
+#: loop holds the value as an attribute path).  Kind "array" takes dtype and shape from
+#: the runtime's array; "enum" names come from the wire enums.  :func:`tick_record_layout`
+#: and :meth:`ControlLoop._record` both read this one table.
+TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("tick", "int", "tick_count"),
+    ("rattlespace_m", "float", "rattlespace_m"),
+    ("sprung_accel_mps2", "float", "accel_mps2"),
+    ("force_meas_n", "float", "force_meas_n"),
+    ("force_ref_n", "float", "force_ref_n"),
+    ("spool_cmd", "float", "spool_cmd"),
+    ("valve_enable", "int", "enable"),
+    ("lifecycle", "enum", "lifecycle.state"),
+    ("fault", "enum", "lifecycle.fault_code"),
+    ("sensor_counter", "int", "sensor_counter"),
+    ("sensor_age_ticks", "int", "monitor.sensor_age_ticks"),
+    ("wake_late_s", "ns_as_s", "lateness_ns"),
+    ("compute_s", "ns_as_s", "step_ns"),
+    ("period_s", "ns_as_s", "wake_interval_ns"),
+    ("overrun", "bool", "overrun"),
+    ("overrun_streak", "int", "timing.overrun_streak"),
+    ("overruns_total", "int", "timing.overruns"),
+    ("dropped_recording", "int", "recording_dropped"),
+    ("dropped_telemetry", "int", "telemetry_dropped"),
+    ("q", "array", "rt.q"),
+    ("firing_weight", "array", "rt.firing_weight"),
+    ("probability", "array", "rt.probability"),
+    ("u_model", "array", "rt.u_model"),
+    ("active", "array", "rt.active"),
+    ("flags", "int", "bank_flags"),
+    ("blending", "int", "blending"),
+    ("weight_set", "int", "weight_set"),
+    ("x_post", "array", "rt.x_post"),
+    ("xf", "array", "rt.xf"),
+)
 
-    :meth:`ControlLoop._record` packs the scalars and the arrays in this order."""
-    lifecycle_names = tuple(s.name for s in LifecycleState)
+
+def _enum_names(key: str) -> tuple[str | None, ...]:
+    if key == "lifecycle":
+        return tuple(s.name for s in LifecycleState)
     top = max(FaultCode)
-    fault_names = (None, *(FaultCode(v).name if v in FaultCode._value2member_map_
-                           else f"UNKNOWN_{v}" for v in range(1, top + 1)))
+    return (None, *(FaultCode(v).name if v in FaultCode._value2member_map_
+                    else f"UNKNOWN_{v}" for v in range(1, top + 1)))
 
-    def arr(key: str, a: np.ndarray) -> tuple[str, str, tuple[int, ...]]:
-        return (key, a.dtype.str, tuple(a.shape))   # the packer copies the native bytes
 
-    return TickLayout((
-        ("tick", "int", None),
-        ("rattlespace_m", "float", None),
-        ("sprung_accel_mps2", "float", None),
-        ("force_meas_n", "float", None),
-        ("force_ref_n", "float", None),
-        ("spool_cmd", "float", None),
-        ("valve_enable", "int", None),
-        ("lifecycle", "enum", lifecycle_names),
-        ("fault", "enum", fault_names),
-        ("sensor_counter", "int", None),
-        ("sensor_age_ticks", "int", None),
-        ("wake_late_s", "ns_as_s", None),
-        ("compute_s", "ns_as_s", None),
-        ("period_s", "ns_as_s", None),
-        ("overrun", "bool", None),
-        ("overrun_streak", "int", None),
-        ("overruns_total", "int", None),
-        ("dropped_recording", "int", None),
-        ("dropped_telemetry", "int", None),
-        arr("q", rt.q),
-        arr("firing_weight", rt.firing_weight),
-        arr("probability", rt.probability),
-        arr("u_model", rt.u_model),
-        arr("active", rt.active),
-        ("flags", "int", None),
-        ("blending", "int", None),
-        ("weight_set", "int", None),
-        arr("x_post", rt.x_post),
-        arr("xf", rt.xf),
-    ))
+def tick_record_layout(rt: Runtime) -> TickLayout:
+    """The loop's tick record (:data:`TICK_RECORD_FIELDS`): keys, kinds and array shapes
+    of ``rt``'s arrays (the packer copies their native bytes)."""
+    fields: list[tuple[str, str, Any]] = []
+    for key, kind, source in TICK_RECORD_FIELDS:
+        if kind == "array":
+            a = np.asarray(operator.attrgetter(source.removeprefix("rt."))(rt))
+            fields.append((key, a.dtype.str, tuple(a.shape)))
+        else:
+            fields.append((key, kind, _enum_names(key) if kind == "enum" else None))
+    return TickLayout(tuple(fields))
 
 
 class _Request:
@@ -224,6 +238,10 @@ class ControlLoop:
 
         if recorder is not None:
             recorder.set_tick_layout(tick_record_layout(runtime))
+        self._record_scalars = operator.attrgetter(
+            *(src for _k, kind, src in TICK_RECORD_FIELDS if kind != "array"))
+        self._record_arrays = operator.attrgetter(
+            *(src for _k, kind, src in TICK_RECORD_FIELDS if kind == "array"))
         self.lifecycle = Lifecycle()
         self.lifecycle.add_listener(self._on_transition)
         self.monitor = FaultMonitor(cfg)
@@ -261,8 +279,7 @@ class ControlLoop:
         self.sensor_counter = 0
         self.force_ref_n = 0.0          # the bank's force reference (recorded in every state)
         self.cmd_force_ref_n = 0.0      # ForceReference sent (0 unless ACTIVE)
-        self.spool_cmd = 0.0
-        self.enable = 0
+        self.enable, self.spool_cmd = 0, 0.0   # the safe command until the first tick
         self.bank_flags = 0
         self.degradations = 0           # times the bank's monitor degraded (not faults)
         self.good_ticks = 0          # consecutive ticks with a good SensorData since reset
@@ -281,6 +298,10 @@ class ControlLoop:
         self.step_ns = 0
         self.lateness_p99_us = 0.0      # whole-run p99 lateness, refreshed per heartbeat
         self._last_wake_ns = -1
+        self.wake_interval_ns = -1      # since the previous tick's wake-up (-1: first tick)
+        self.overrun = False            # this tick woke later than the overrun threshold
+        self.recording_dropped = 0
+        self.telemetry_dropped = 0
         self._last_ping_ns = -(1 << 62)
 
     # ------------------------------------------------------------------ commands
@@ -429,20 +450,13 @@ class ControlLoop:
             spool = 0.0
             if mon.code is not _NONE:
                 self._latch(mon.code, mon.detail, now_ns)
-            if lc.state is _ACTIVE:
+            if lc.valve_enabled:
                 spool = self.pi.step(force_ref, self.force_meas_n, self.rattlespace_m)
                 mon.output(spool)
                 if mon.code is not _NONE:
                     self._latch(mon.code, mon.detail, now_ns)
             self.force_ref_n = force_ref
-            if lc.state is _ACTIVE:
-                self.enable = 1
-                self.spool_cmd = spool
-                self.cmd_force_ref_n = force_ref
-            else:
-                self.enable = 0
-                self.spool_cmd = 0.0
-                self.cmd_force_ref_n = 0.0
+            self._set_valve_command(spool, force_ref)
             self._send_valve(now_ns, tick)
         except Exception as exc:
             self._on_exception(exc, now_ns, tick)
@@ -488,13 +502,21 @@ class ControlLoop:
             self._latch(FaultCode.EXCEPTION, 0, now_ns, self.last_exception)
         else:
             log.exception("exception while stopping")
-        self.enable = 0
-        self.spool_cmd = 0.0
-        self.cmd_force_ref_n = 0.0
+        self._set_valve_command(0.0, 0.0)
         try:
             self._send_valve(now_ns, tick)
         except Exception:
             log.exception("could not send the safe valve command")
+
+    def _set_valve_command(self, spool: float, force_ref_n: float) -> None:
+        """This tick's valve command: ``spool`` and ``force_ref_n`` with the valve enabled
+        when the lifecycle enables it (ACTIVE), else the safe command -- valve disabled,
+        spool centred, no force reference -- whatever was asked (the one place the safe
+        output is written)."""
+        if self.lifecycle.valve_enabled:
+            self.enable, self.spool_cmd, self.cmd_force_ref_n = 1, spool, force_ref_n
+        else:
+            self.enable, self.spool_cmd, self.cmd_force_ref_n = 0, 0.0, 0.0
 
     def _receive(self, now_ns: int, tick: int) -> None:
         bus = self.bus
@@ -631,25 +653,16 @@ class ControlLoop:
 
     # ------------------------------------------------------------------ outputs
     def _record(self, now_ns: int, tick: int) -> None:
-        """One tick record per tick, packed (fields: :func:`tick_record_layout`)."""
-        rt = self.rt
-        timing = self.timing
-        lc = self.lifecycle
+        """One tick record per tick, packed (fields: :data:`TICK_RECORD_FIELDS`)."""
         wake_prev = self._last_wake_ns
         self._last_wake_ns = now_ns
         rec = self.recorder
         assert rec is not None
-        tel = self.telemetry
-        lateness = self.lateness_ns
-        rec.tick_values(now_ns, (
-            tick, self.rattlespace_m, self.accel_mps2, self.force_meas_n, self.force_ref_n,
-            self.spool_cmd, self.enable, lc.state, lc.fault_code, self.sensor_counter,
-            self.monitor.sensor_age_ticks, lateness, self.step_ns,
-            now_ns - wake_prev if wake_prev >= 0 else -1,
-            lateness > timing.overrun_threshold_ns, timing.overrun_streak, timing.overruns,
-            rec.dropped, tel.dropped if tel is not None else 0,
-            self.bank_flags, self.blending, self.weight_set,
-        ), (rt.q, rt.firing_weight, rt.probability, rt.u_model, rt.active, rt.x_post, rt.xf))
+        self.wake_interval_ns = now_ns - wake_prev if wake_prev >= 0 else -1
+        self.overrun = self.lateness_ns > self.timing.overrun_threshold_ns
+        self.recording_dropped = rec.dropped
+        self.telemetry_dropped = self.telemetry.dropped if self.telemetry is not None else 0
+        rec.tick_values(now_ns, self._record_scalars(self), self._record_arrays(self))
 
     def snapshot(self) -> dict[str, Any]:
         """Telemetry snapshot (``cfg.telemetry.rate_hz`` and at every transition).
@@ -757,9 +770,7 @@ class ControlLoop:
         now = self.clock_ns()
         lc = self.lifecycle
         lc.stop(self.tick_count, now, reason)
-        self.enable = 0
-        self.spool_cmd = 0.0
-        self.cmd_force_ref_n = 0.0
+        self._set_valve_command(0.0, 0.0)
         try:
             self._send_valve(now, self.tick_count)
             msg = self._fault_msg
