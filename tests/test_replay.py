@@ -655,7 +655,7 @@ def test_a_recorded_bus_exception_is_rebuilt_alike(exc: Exception) -> None:
     and fault classification."""
     from rig.bus.core import classify_bus_exception, errno_of
     from rig.replay.bus_faults import bus_fault_of
-    from rig.service.loop import _bus_exception
+    from rig.service.hardware import bus_exception_note as _bus_exception
 
     fault = bus_fault_of({"tick": 3, "kind": "note", "detail": json.loads(json.dumps(
         _bus_exception("recv", exc)))})

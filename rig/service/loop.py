@@ -7,6 +7,13 @@ sleep to ``deadline - spin``, then spin; deadlines advance by exactly one period
 drift accumulates; when the loop is more than one period late the missed deadlines are
 skipped and counted).
 
+The parts, ros2_control-style: the hardware interface
+:class:`rig.service.hardware.RigIO` reads the rig's frames and writes the controller's
+(``read`` / ``write_*``); the update is the runtime bank's step and the PI force loop
+(the :class:`Runtime` and :class:`ForceLoop` seams); :class:`ControlLoop` is the
+manager: lifecycle, fault monitor, operator commands (:mod:`rig.operator`), pacing and
+the outputs (recording, telemetry).
+
 Per tick, in this order (latency from sensor frame to valve command kept short):
 
 1. apply at most one pending operator command (arm / disarm / reset / blending ...);
@@ -44,27 +51,18 @@ import numpy as np
 
 from controller.config import RigConfig
 from controller.runtime.kernels import StepFlag
-from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
 from rig.operator import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout
 from rig.rt.pacing import Pacer
 from rig.rt.sdnotify import SdNotifier
+from rig.service.hardware import RigIO
 from rig.service.lifecycle import CommandResult, Lifecycle, Transition
-from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
+from rig.service.safety import DETAIL_SEND, FaultMonitor
 from rig.service.timing import TimingStats
 from rig.wire.protocol import (
-    CONTROLLER_STATUS,
-    FAULT_REPORT,
-    RIG_STATUS,
-    RIG_STATUS_ID,
-    SENSOR_DATA,
-    SENSOR_DATA_ID,
-    VALVE_COMMAND,
     DecodeStatus,
     FaultCode,
     LifecycleState,
-    RigStatus,
-    SensorData,
 )
 
 __all__ = ["TICK_RECORD_FIELDS", "ControlLoop", "Recorder", "Runtime", "Telemetry",
@@ -130,28 +128,21 @@ class Telemetry(Protocol):
     def offer(self, snapshot: Any) -> bool: ...
 
 
-def _bus_exception(where: str, exc: BaseException) -> dict[str, Any]:
-    """The ``note`` event detail of a failed recv / send (replay raises it again)."""
-    errno = errno_of(exc)
-    return {"bus_exception": where, "type": type(exc).__name__, "error": str(exc),
-            "errno": errno}
-
-
 #: The loop's tick record in record order (docs/recording.md): (key, kind, where the
 #: loop holds the value as an attribute path).  Kind "array" takes dtype and shape from
 #: the runtime's array; "enum" names come from the wire enums.  :func:`tick_record_layout`
 #: and :meth:`ControlLoop._record` both read this one table.
 TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("tick", "int", "tick_count"),
-    ("rattlespace_m", "float", "rattlespace_m"),
-    ("sprung_accel_mps2", "float", "accel_mps2"),
-    ("force_meas_n", "float", "force_meas_n"),
+    ("rattlespace_m", "float", "io.rattlespace_m"),
+    ("sprung_accel_mps2", "float", "io.accel_mps2"),
+    ("force_meas_n", "float", "io.force_meas_n"),
     ("force_ref_n", "float", "force_ref_n"),
     ("spool_cmd", "float", "spool_cmd"),
     ("valve_enable", "int", "enable"),
     ("lifecycle", "enum", "lifecycle.state"),
     ("fault", "enum", "lifecycle.fault_code"),
-    ("sensor_counter", "int", "sensor_counter"),
+    ("sensor_counter", "int", "io.sensor_counter"),
     ("sensor_age_ticks", "int", "monitor.sensor_age_ticks"),
     ("wake_late_s", "ns_as_s", "lateness_ns"),
     ("compute_s", "ns_as_s", "step_ns"),
@@ -218,10 +209,9 @@ class ControlLoop:
                  spin_ns: int = 60_000, warmup_ticks: int | None = None,
                  timing_ring: int = 1 << 16) -> None:
         self.cfg = cfg
-        self.bus = bus
         self.rt = runtime
         self.pi = force_loop
-        self.recorder = recorder
+        self._recorder = recorder
         self.telemetry = telemetry
         self.notifier = notifier
         self.clock_ns = clock_ns
@@ -248,12 +238,10 @@ class ControlLoop:
         self.timing = TimingStats(self.period_ns,
                                   round(cfg.safety.overrun_threshold_s * 1e9),
                                   ring_size=timing_ring)
-        # preallocated frames
-        self._valve_msg = make_tx_message(VALVE_COMMAND.frame_id)
-        self._fault_msg = make_tx_message(FAULT_REPORT.frame_id)
-        self._status_msg = make_tx_message(CONTROLLER_STATUS.frame_id)
-        self._sd = SensorData()
-        self._rs = RigStatus()
+        #: hardware interface: frames in (read) and out (write)
+        self.io = RigIO(bus, self.monitor, recorder,
+                        lambda t, k, detail: self._record_event(t, k, "note", detail),
+                        self._on_output_error)
         self._requests: collections.deque[_Request] = collections.deque(maxlen=64)
         #: one handler per operator command (rig.operator owns the table)
         self._handlers: dict[str, Callable[[Any], CommandResult]] = {
@@ -265,35 +253,49 @@ class ControlLoop:
         self.transitions: collections.deque[Transition] = collections.deque(maxlen=256)
         self.reset_state()
 
+    @property
+    def recorder(self) -> Recorder | None:
+        """The run's recorder (None: not recording); the hardware interface records the
+        frames it reads and writes into the same one."""
+        return self._recorder
+
+    @recorder.setter
+    def recorder(self, recorder: Recorder | None) -> None:
+        self._recorder = recorder
+        self.io.recorder = recorder
+
+    # the hardware interface's read-outs, for status, telemetry and the operator's view
+    bus = property(operator.attrgetter("io.bus"), doc="the CAN bus")
+    rattlespace_m = property(operator.attrgetter("io.rattlespace_m"),
+                             doc="last good LVDT rattlespace [m]")
+    force_meas_n = property(operator.attrgetter("io.force_meas_n"),
+                            doc="last good load-cell force [N]")
+    accel_mps2 = property(operator.attrgetter("io.accel_mps2"),
+                          doc="last good sprung-mass acceleration [m/s^2]")
+    sensor_counter = property(operator.attrgetter("io.sensor_counter"),
+                              doc="rolling counter of the last good SensorData")
+    rig_supply_ok = property(operator.attrgetter("io.rig_supply_ok"),
+                             doc="the rig's last RigStatus reported hydraulic supply")
+    rx_frames = property(operator.attrgetter("io.rx_frames"), doc="frames received")
+    tx_frames = property(operator.attrgetter("io.tx_frames"), doc="frames sent")
+    tx_errors = property(operator.attrgetter("io.tx_errors"), doc="sends that failed")
+
     # ------------------------------------------------------------------ state
     def reset_state(self) -> None:
         """Counters and held values to their start-up values (not the lifecycle)."""
         self.tick_count = 0
         self.t_ns = 0
-        self._tx_valve = 0
-        self._tx_fault = 0
-        self._tx_status = 0
-        self.rattlespace_m = 0.0
-        self.force_meas_n = 0.0
-        self.accel_mps2 = 0.0
-        self.sensor_counter = 0
+        self.io.reset()
         self.force_ref_n = 0.0          # the bank's force reference (recorded in every state)
         self.cmd_force_ref_n = 0.0      # ForceReference sent (0 unless ACTIVE)
         self.enable, self.spool_cmd = 0, 0.0   # the safe command until the first tick
         self.bank_flags = 0
         self.degradations = 0           # times the bank's monitor degraded (not faults)
         self.good_ticks = 0          # consecutive ticks with a good SensorData since reset
-        self.rx_frames = 0
-        self.tx_frames = 0
-        self.tx_errors = 0
         self.exceptions = 0
         self.last_exception = ""
         self.output_errors = 0          # recording / telemetry hand-offs that raised
         self.last_output_error = ""
-        self.rig_bypass_open = 1
-        self.rig_watchdog_tripped = 0
-        self.rig_supply_ok = 1
-        self.rig_status_seen = False
         self.lateness_ns = 0
         self.step_ns = 0
         self.lateness_p99_us = 0.0      # whole-run p99 lateness, refreshed per heartbeat
@@ -427,7 +429,8 @@ class ControlLoop:
             self._apply(self._requests.popleft())
         mon.begin_tick()
         try:
-            self._receive(now_ns, tick)
+            io = self.io
+            io.read(now_ns, tick)
             mon.end_receive()
             if mon.fresh:
                 self.good_ticks += 1
@@ -435,7 +438,7 @@ class ControlLoop:
                 self.good_ticks = 0
             if mon.sensor_seen:
                 rt = self.rt
-                force_ref = rt.step(self.rattlespace_m, self.accel_mps2, self.force_meas_n)
+                force_ref = rt.step(io.rattlespace_m, io.accel_mps2, io.force_meas_n)
                 flags = int(rt.flags)
                 if (flags ^ self.bank_flags) & _DEGRADED:
                     self._on_degraded_change(flags, now_ns, tick)
@@ -451,7 +454,7 @@ class ControlLoop:
             if mon.code is not _NONE:
                 self._latch(mon.code, mon.detail, now_ns)
             if lc.valve_enabled:
-                spool = self.pi.step(force_ref, self.force_meas_n, self.rattlespace_m)
+                spool = self.pi.step(force_ref, io.force_meas_n, io.rattlespace_m)
                 mon.output(spool)
                 if mon.code is not _NONE:
                     self._latch(mon.code, mon.detail, now_ns)
@@ -518,56 +521,6 @@ class ControlLoop:
         else:
             self.enable, self.spool_cmd, self.cmd_force_ref_n = 0, 0.0, 0.0
 
-    def _receive(self, now_ns: int, tick: int) -> None:
-        bus = self.bus
-        mon = self.monitor
-        rec = self.recorder
-        sd, rs = self._sd, self._rs
-        while True:
-            try:
-                msg = bus.recv(0.0)
-            except (can.CanError, OSError) as exc:
-                mon.bus_error(classify_bus_exception(exc), DETAIL_RECV)
-                self._record_event(now_ns, tick, "note", _bus_exception("recv", exc))
-                return
-            if msg is None:
-                return
-            self.rx_frames += 1
-            if rec is not None:
-                try:
-                    rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, True,
-                                  msg.is_error_frame, msg.is_extended_id)
-                except Exception as exc:
-                    self._on_output_error(exc)
-            if msg.is_error_frame:
-                code = classify_error_frame(msg)
-                if code is not _NONE:
-                    mon.bus_error(code, msg.arbitration_id & 0xFF)
-                continue
-            fid = msg.arbitration_id
-            if fid == SENSOR_DATA_ID and not msg.is_extended_id:
-                st = SENSOR_DATA.decode(msg.data, sd)
-                if st is _OK:
-                    if mon.sensor_frame(True, sd.counter, sd.sensor_status, sd.rattlespace_m,
-                                        sd.load_cell_force_n, sd.sprung_accel_mps2):
-                        self.rattlespace_m = sd.rattlespace_m
-                        self.force_meas_n = sd.load_cell_force_n
-                        self.accel_mps2 = sd.sprung_accel_mps2
-                        self.sensor_counter = sd.counter
-                else:
-                    mon.sensor_frame(False, 0, 0, 0.0, 0.0, 0.0)
-            elif fid == RIG_STATUS_ID and not msg.is_extended_id:
-                st = RIG_STATUS.decode(msg.data, rs)
-                if st is _OK or st is _OUT_OF_RANGE:
-                    self.rig_status_seen = True
-                    self.rig_bypass_open = rs.bypass_open
-                    self.rig_watchdog_tripped = rs.watchdog_tripped
-                    self.rig_supply_ok = rs.supply_ok
-                    mon.rig_status(True, rs.counter, bool(rs.watchdog_tripped),
-                                   bool(rs.supply_ok))
-                else:
-                    mon.rig_status(False, 0, False, True)
-
     def _on_degraded_change(self, flags: int, now_ns: int, tick: int) -> None:
         """The bank's estimator monitor degraded or re-armed (not a fault): count, log at
         most every 1000th, and record a note."""
@@ -601,53 +554,25 @@ class ControlLoop:
                 f"F={self.force_meas_n:.6g} N a={self.accel_mps2:.6g} m/s2, "
                 f"age {self.monitor.sensor_age_ticks} ticks, flags {self.bank_flags}")
 
-    def _send(self, msg: can.Message, now_ns: int, tick: int) -> bool:
-        try:
-            self.bus.send(msg, 0.0)
-        except (can.CanError, OSError) as exc:
-            self.tx_errors += 1
-            self.monitor.bus_error(classify_bus_exception(exc), DETAIL_SEND)
-            self._record_event(now_ns, tick, "note", {
-                **_bus_exception("send", exc), "arbitration_id": msg.arbitration_id})
-            return False
-        self.tx_frames += 1
-        rec = self.recorder
-        if rec is not None:
-            try:
-                rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, False)
-            except Exception as exc:
-                self._on_output_error(exc)
-        return True
-
     def _send_valve(self, now_ns: int, tick: int) -> None:
-        msg = self._valve_msg
-        VALVE_COMMAND.encode(msg.data, self._tx_valve, self.enable, int(self.lifecycle.state),
-                             self.spool_cmd, self.cmd_force_ref_n, self.sensor_counter)
-        self._tx_valve += 1
-        if not self._send(msg, now_ns, tick) and self.enable:
+        if not self.io.write_valve(now_ns, tick, self.enable, int(self.lifecycle.state),
+                                   self.spool_cmd, self.cmd_force_ref_n) and self.enable:
             # the command did not go out: the fault latches now, the next tick is safe
             self._latch(self.monitor.code or FaultCode.BUS_ERROR, DETAIL_SEND, now_ns)
 
     def _send_fault_report(self, now_ns: int, tick: int) -> None:
         lc = self.lifecycle
-        msg = self._fault_msg
-        FAULT_REPORT.encode(msg.data, self._tx_fault, int(lc.state), int(lc.fault_code),
-                            max(lc.fault_tick, 0), lc.fault_detail)
-        self._tx_fault += 1
-        self._send(msg, now_ns, tick)
+        self.io.write_fault_report(now_ns, tick, int(lc.state), int(lc.fault_code),
+                                   lc.fault_tick, lc.fault_detail)
 
     def _heartbeat(self, now_ns: int, tick: int) -> None:
         lc = self.lifecycle
-        msg = self._status_msg
-        p99_s = self.lateness_p99_us * 1e-6
         active_fault = lc.fault_code
         if active_fault is _NONE and self.bank_flags & _DEGRADED:
             active_fault = FaultCode.ESTIMATOR_DEGRADED
-        CONTROLLER_STATUS.encode(msg.data, self._tx_status, int(lc.state), int(active_fault),
-                                 self.timing.overruns & 0xFFFF, self.blending & 0xF,
-                                 self.weight_set & 0xF, min(p99_s, 0.065535))
-        self._tx_status += 1
-        self._send(msg, now_ns, tick)
+        self.io.write_status(now_ns, tick, int(lc.state), int(active_fault),
+                             self.timing.overruns, self.blending, self.weight_set,
+                             self.lateness_p99_us * 1e-6)
         if lc.state is _FAULT:
             self._send_fault_report(now_ns, tick)
 
@@ -773,11 +698,8 @@ class ControlLoop:
         self._set_valve_command(0.0, 0.0)
         try:
             self._send_valve(now, self.tick_count)
-            msg = self._fault_msg
-            FAULT_REPORT.encode(msg.data, self._tx_fault, int(_STOPPING),
-                                int(FaultCode.SHUTDOWN), self.tick_count & 0xFFFFFFFF, 0)
-            self._tx_fault += 1
-            self._send(msg, now, self.tick_count)
+            self.io.write_fault_report(now, self.tick_count, int(_STOPPING),
+                                       int(FaultCode.SHUTDOWN), self.tick_count, 0)
             self.lateness_p99_us = self.timing.lateness_p99_us()
             self._heartbeat(now, self.tick_count)
         except Exception:

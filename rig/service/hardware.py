@@ -1,0 +1,185 @@
+"""The controller's hardware interface (ros2_control's read / write): the CAN frames of the
+rig in, the valve command, fault report and heartbeat out.
+
+:meth:`RigIO.read` drains the bus and hands every SensorData / RigStatus to the fault
+monitor's checks (CRC, rolling counter, ranges, status bits); the last good values are
+held in attributes for the update.  The ``write_*`` methods encode into preallocated
+messages and send without blocking.  Receive and send errors are bus faults for the
+monitor and ``note`` events for the recording; nothing here raises for a bad frame and
+nothing allocates per frame in steady state.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import can
+
+from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
+from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
+from rig.wire.protocol import (
+    CONTROLLER_STATUS,
+    FAULT_REPORT,
+    RIG_STATUS,
+    RIG_STATUS_ID,
+    SENSOR_DATA,
+    SENSOR_DATA_ID,
+    VALVE_COMMAND,
+    DecodeStatus,
+    FaultCode,
+    RigStatus,
+    SensorData,
+)
+
+__all__ = ["FrameRecorder", "RigIO", "bus_exception_note"]
+
+_OK = DecodeStatus.OK
+_OUT_OF_RANGE = DecodeStatus.OUT_OF_RANGE
+_NONE = FaultCode.NONE
+
+#: ``recorder.can_frame(t_ns, tick, id, data, is_rx, is_error_frame, is_extended_id)``
+FrameRecorder = Any
+#: ``note(t_ns, tick, detail)``: a ``note`` event for the recording
+Note = Callable[[int, int, dict[str, Any]], None]
+
+
+def bus_exception_note(where: str, exc: BaseException) -> dict[str, Any]:
+    """The ``note`` event detail of a failed recv / send (replay raises it again)."""
+    return {"bus_exception": where, "type": type(exc).__name__, "error": str(exc),
+            "errno": errno_of(exc)}
+
+
+class RigIO:
+    """Frames in and out on one bus for the control loop."""
+
+    def __init__(self, bus: can.BusABC, monitor: FaultMonitor, recorder: FrameRecorder | None,
+                 note: Note, on_output_error: Callable[[Exception], None]) -> None:
+        self.bus = bus
+        self.monitor = monitor
+        self.recorder = recorder
+        self._note = note
+        self._on_output_error = on_output_error
+        self._valve_msg = make_tx_message(VALVE_COMMAND.frame_id)
+        self._fault_msg = make_tx_message(FAULT_REPORT.frame_id)
+        self._status_msg = make_tx_message(CONTROLLER_STATUS.frame_id)
+        self._sd = SensorData()
+        self._rs = RigStatus()
+        self.reset()
+
+    def reset(self) -> None:
+        """Counters and held values to their start-up values."""
+        self._tx_valve = 0
+        self._tx_fault = 0
+        self._tx_status = 0
+        self.rattlespace_m = 0.0
+        self.force_meas_n = 0.0
+        self.accel_mps2 = 0.0
+        self.sensor_counter = 0
+        self.rig_bypass_open = 1
+        self.rig_watchdog_tripped = 0
+        self.rig_supply_ok = 1
+        self.rig_status_seen = False
+        self.rx_frames = 0
+        self.tx_frames = 0
+        self.tx_errors = 0
+
+    # ------------------------------------------------------------------ read
+    def read(self, now_ns: int, tick: int) -> None:
+        """Drain the bus: decode and check every frame waiting (never blocks)."""
+        bus = self.bus
+        mon = self.monitor
+        rec = self.recorder
+        sd, rs = self._sd, self._rs
+        while True:
+            try:
+                msg = bus.recv(0.0)
+            except (can.CanError, OSError) as exc:
+                mon.bus_error(classify_bus_exception(exc), DETAIL_RECV)
+                self._note(now_ns, tick, bus_exception_note("recv", exc))
+                return
+            if msg is None:
+                return
+            self.rx_frames += 1
+            if rec is not None:
+                try:
+                    rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, True,
+                                  msg.is_error_frame, msg.is_extended_id)
+                except Exception as exc:
+                    self._on_output_error(exc)
+            if msg.is_error_frame:
+                code = classify_error_frame(msg)
+                if code is not _NONE:
+                    mon.bus_error(code, msg.arbitration_id & 0xFF)
+                continue
+            fid = msg.arbitration_id
+            if fid == SENSOR_DATA_ID and not msg.is_extended_id:
+                st = SENSOR_DATA.decode(msg.data, sd)
+                if st is _OK:
+                    if mon.sensor_frame(True, sd.counter, sd.sensor_status, sd.rattlespace_m,
+                                        sd.load_cell_force_n, sd.sprung_accel_mps2):
+                        self.rattlespace_m = sd.rattlespace_m
+                        self.force_meas_n = sd.load_cell_force_n
+                        self.accel_mps2 = sd.sprung_accel_mps2
+                        self.sensor_counter = sd.counter
+                else:
+                    mon.sensor_frame(False, 0, 0, 0.0, 0.0, 0.0)
+            elif fid == RIG_STATUS_ID and not msg.is_extended_id:
+                st = RIG_STATUS.decode(msg.data, rs)
+                if st is _OK or st is _OUT_OF_RANGE:
+                    self.rig_status_seen = True
+                    self.rig_bypass_open = rs.bypass_open
+                    self.rig_watchdog_tripped = rs.watchdog_tripped
+                    self.rig_supply_ok = rs.supply_ok
+                    mon.rig_status(True, rs.counter, bool(rs.watchdog_tripped),
+                                   bool(rs.supply_ok))
+                else:
+                    mon.rig_status(False, 0, False, True)
+
+    # ------------------------------------------------------------------ write
+    def _send(self, msg: can.Message, now_ns: int, tick: int) -> bool:
+        try:
+            self.bus.send(msg, 0.0)
+        except (can.CanError, OSError) as exc:
+            self.tx_errors += 1
+            self.monitor.bus_error(classify_bus_exception(exc), DETAIL_SEND)
+            self._note(now_ns, tick, {**bus_exception_note("send", exc),
+                                      "arbitration_id": msg.arbitration_id})
+            return False
+        self.tx_frames += 1
+        rec = self.recorder
+        if rec is not None:
+            try:
+                rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, False)
+            except Exception as exc:
+                self._on_output_error(exc)
+        return True
+
+    def write_valve(self, now_ns: int, tick: int, enable: int, lifecycle: int, spool: float,
+                    force_ref_n: float) -> bool:
+        """ValveCommand (echoing the last good SensorData counter); False: not sent."""
+        msg = self._valve_msg
+        VALVE_COMMAND.encode(msg.data, self._tx_valve, enable, lifecycle, spool, force_ref_n,
+                             self.sensor_counter)
+        self._tx_valve += 1
+        return self._send(msg, now_ns, tick)
+
+    def write_fault_report(self, now_ns: int, tick: int, lifecycle: int, code: int,
+                           fault_tick: int, detail: int) -> bool:
+        """FaultReport (``fault_tick`` taken modulo 2**32 by the codec)."""
+        msg = self._fault_msg
+        FAULT_REPORT.encode(msg.data, self._tx_fault, lifecycle, code, max(fault_tick, 0),
+                            detail)
+        self._tx_fault += 1
+        return self._send(msg, now_ns, tick)
+
+    def write_status(self, now_ns: int, tick: int, lifecycle: int, active_fault: int,
+                     overruns: int, blending: int, weight_set: int,
+                     jitter_p99_s: float) -> bool:
+        """ControllerStatus heartbeat."""
+        msg = self._status_msg
+        CONTROLLER_STATUS.encode(msg.data, self._tx_status, lifecycle, active_fault,
+                                 overruns & 0xFFFF, blending & 0xF, weight_set & 0xF,
+                                 min(jitter_p99_s, 0.065535))
+        self._tx_status += 1
+        return self._send(msg, now_ns, tick)
