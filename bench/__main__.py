@@ -21,6 +21,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from rig.rt.kernel_cache import drop_stale_kernel_cache
+
 BENCH_DIR = Path(__file__).resolve().parent
 ROOT = BENCH_DIR.parent
 
@@ -69,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer samples (smoke run)")
     ap.add_argument("--json", metavar="FILE", help="also write all rows as JSON")
     args = ap.parse_args(argv)
+    drop_stale_kernel_cache()
     found = discover()
     known = {name for name, _ in found}
     unknown = [n for n in args.names if n not in known]

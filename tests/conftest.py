@@ -8,12 +8,17 @@ import pytest
 
 from controller.artifact import Design, save_design
 from controller.config import default_config
-from hil.sim.closed_loop import cached_design
+from rig.rt.kernel_cache import drop_stale_kernel_cache
+
+# before any test module imports the runtime bank (numba's on-disk cache of its kernels)
+drop_stale_kernel_cache()
 
 
 @pytest.fixture(scope="session")
 def default_design() -> Design:
     """The bank designed from the built-in defaults (cached per process)."""
+    from hil.sim.closed_loop import cached_design  # imports the bank: after the check
+
     return cached_design(default_config())
 
 

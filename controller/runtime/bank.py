@@ -44,10 +44,8 @@ fault for the loop); DEGRADED is not a fault.  q is clamped to ``Q_MAX``.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import tomllib
-from pathlib import Path
 from typing import Any
 
 import numba as nb
@@ -251,30 +249,6 @@ _NO_RULE_FIRED = int(StepFlag.NO_RULE_FIRED)
 _DIVERGED = int(StepFlag.DIVERGED)
 _DEGRADED = int(StepFlag.DEGRADED)
 
-def _drop_stale_kernel_cache() -> None:
-    """numba's on-disk cache checks only the defining file of a function; ``bank_step``
-    compiles in code (and offsets) from kernels.py, layout.py, moving_bank.py and
-    bayes.py.  Remove this module's cached kernels when any of those sources changed
-    since they were cached."""
-    here = Path(__file__).resolve().parent
-    cache_dir = here / "__pycache__"
-    try:
-        blob = b"".join((here / f).read_bytes()
-                        for f in ("bank.py", "kernels.py", "layout.py", "moving_bank.py",
-                                  "bayes.py"))
-        digest = hashlib.sha256(blob).hexdigest()
-        stamp = cache_dir / "bank_kernels.sha256"
-        if stamp.exists() and stamp.read_text() == digest:
-            return
-        for f in cache_dir.glob("bank.*.nb[ic]"):
-            f.unlink(missing_ok=True)
-        cache_dir.mkdir(exist_ok=True)
-        stamp.write_text(digest)
-    except OSError:                       # read-only install: numba falls back as usual
-        pass
-
-
-_drop_stale_kernel_cache()
 
 _SIG_STEP = nb.float64(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
                        nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1],
