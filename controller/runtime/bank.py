@@ -46,15 +46,17 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import dataclass
 from typing import Any
 
 import numba as nb
 import numpy as np
+from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
 from controller.artifact import Design
 from controller.config import RigConfig, default_config, parse_config
-from controller.monitor import monitor_settings
+from controller.monitor import MonitorSettings, monitor_settings
 from controller.plant import static_tire_deflection_m
 from controller.road_noise import nearest_noise_entry
 from controller.runtime.bayes import bayes_update, log_likelihood_constant
@@ -731,6 +733,117 @@ def _pack(design: Design) -> tuple[FloatArray, FloatArray]:
     return mat, vec
 
 
+@dataclass(frozen=True)
+class _Tables:
+    """Where the variable-length tables start in ``fv`` (after the scalar slots)."""
+
+    grid: int           # fuzzy q grid (G entries), then the weight curve (G)
+    curve: int
+    hist: int           # residual history (HIST_BINS), then the tire-load rings
+    monitor_ring: int   # the estimator monitor's window ring
+    size: int           # entries of fv
+    load_step: int      # Δ of the tire-load estimate [ticks]
+
+
+def _table_offsets(design: Design, cfg: RigConfig, mon: MonitorSettings) -> _Tables:
+    dt = float(design.dt_s)
+    G = int(design.fuzzy_q_grid.shape[0])
+    load_step = max(1, round(cfg.moving_bank.load_estimate_window_s / dt))
+    grid = FV_HEAD
+    hist = grid + 2 * G
+    ring = hist + HIST_BINS + 2 * (2 * load_step + 1)
+    return _Tables(grid, grid + G, hist, ring, ring + mon.window_ticks, load_step)
+
+
+def _history_ticks(cfg: RigConfig, dt: float) -> float:
+    """N of the exponential window of the residual history [ticks]."""
+    return max(2.0, cfg.moving_bank.history_window_s / dt)
+
+
+def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _Tables,
+                      x_init: FloatArray) -> FloatArray:
+    """``fv``: the scalar parameters (slots ``F_*``) and the tables, state zeroed."""
+    dt = float(design.dt_s)
+    mb = cfg.moving_bank
+    fv = np.zeros(t.size)
+    fv[F_YOFF:F_YOFF + 2] = design.y_offset
+    fv[F_HAD:F_HAD + 4] = np.asarray(design.human_filter_Ad).reshape(4)
+    fv[F_HBD:F_HBD + 2] = design.human_filter_Bd
+    fv[F_STATIC] = design.static_rattlespace_m
+    fv[F_SDECAY], fv[F_SKP], fv[F_SFLIM], fv[F_SOLIM] = design.servo_model[:4]
+    fv[F_FFC], fv[F_FFA], fv[F_FFSTALL], fv[F_FFFLOOR] = design.servo_model[5:9]
+    fv[F_FFB] = fv[F_FFA] / dt
+    tau = mb.smoothing_time_s
+    fv[F_ALPHA] = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
+    fv[F_PFLOOR] = cfg.bayes.probability_floor
+    fv[F_BS_K], fv[F_BS_LO], fv[F_BS_HI] = design.bump_stop
+    fv[F_GUARD_W] = cfg.design.stop_guard_m
+    aw = cfg.design.accel_mean_window_s
+    fv[F_AMEAN_ALPHA] = 1.0 - math.exp(-dt / aw) if aw > 0.0 else 0.0
+    fw = cfg.fuzzy.window_s
+    fv[F_QW_ALPHA] = 1.0 - math.exp(-dt / fw) if fw > 0.0 else 1.0
+    fv[F_MON_THR] = mon.degrade_sum
+    fv[F_MON_REARM] = mon.rearm_sum
+    fv[F_AUTH_STEP] = mon.authority_step
+    fv[F_UNUSE_R] = 1.0 / mon.rattlespace_bound_m
+    fv[F_UNUSE_A] = 1.0 / mon.accel_bound_mps2
+    fv[F_TFLOOR] = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
+    fv[F_LOFF] = mb.liftoff_load_fraction
+    fv[F_LON] = mb.liftoff_load_fraction / mb.hysteresis_ratio
+    fv[F_LH] = mb.liftoff_load_fraction * max(1, round(mb.liftoff_detection_time_s / dt))
+    veh = cfg.vehicle
+    if veh.gravity_mps2 > 0.0:          # else no static load: the estimate stays 1
+        fv[F_LINVG] = 1.0 / veh.gravity_mps2
+        fv[F_LC] = veh.unsprung_mass_kg / (
+            (veh.sprung_mass_kg + veh.unsprung_mass_kg) * veh.gravity_mps2
+            * (t.load_step * dt) ** 2)
+    fv[F_QUANT] = mb.threshold_quantile
+    fv[F_FORGET] = 1.0 / (1.0 - 1.0 / _history_ticks(cfg, dt))
+    fv[F_RECENTRE] = RECENTRE_RATIO
+    fv[F_HLO] = HIST_LO_LOG10
+    fv[F_HWIDTH] = (HIST_HI_LOG10 - HIST_LO_LOG10) / HIST_BINS
+    fv[F_XINIT:F_XINIT + 4] = x_init
+    fv[t.grid:t.curve] = design.fuzzy_q_grid
+    fv[t.curve:t.hist] = design.fuzzy_weight_curve
+    return fv
+
+
+def _int_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _Tables,
+                    single_model: int, k: int) -> NDArray[np.int64]:
+    """``iv``: the integer parameters (slots ``I_*``), state zeroed."""
+    dt = float(design.dt_s)
+    mb = cfg.moving_bank
+    J = design.n_models
+    air = np.flatnonzero(design.airborne)
+    n_ground = J - int(air.size)
+    iv = np.zeros(IV_HEAD + J, dtype=np.int64)
+    iv[I_J] = J
+    iv[I_G] = t.curve - t.grid
+    iv[I_SINGLE] = single_model
+    iv[I_AIR] = int(air[0]) if air.size else -1
+    iv[I_NG] = n_ground
+    iv[I_K] = k
+    iv[I_DWELL] = max(1, round(mb.dwell_time_s / dt))
+    iv[I_PROBE] = max(1, round(mb.probe_period_s / dt))
+    iv[I_FSTAT] = FSTAT_RELATIVE if cfg.fuzzy.statistic == "relative" else FSTAT_RAW
+    iv[I_MON_N] = mon.window_ticks
+    iv[I_MON_RING] = t.monitor_ring
+    iv[I_MON_RECOVER] = mon.rearm_ticks
+    iv[I_MON_MAXBAD] = mon.window_ticks
+    iv[I_FALLBACK] = (FALLBACK_BEST if cfg.fuzzy.no_fire_fallback == "best_model"
+                      else FALLBACK_PASSIVE)
+    iv[I_QGRID] = t.grid
+    iv[I_WCURVE] = t.curve
+    iv[I_HIST] = t.hist
+    iv[I_NB] = HIST_BINS
+    iv[I_MINLEARN] = max(1, int(_history_ticks(cfg, dt) // 4))
+    iv[I_RECOMP] = HIST_RECOMPUTE_TICKS
+    iv[I_NPROBE] = max(0, min(n_ground - k, MAX_PROBE_CANDIDATES))
+    iv[I_DELAY] = design.compute_delay_ticks
+    iv[I_LD] = t.load_step
+    return iv
+
+
 class BankRuntime:
     """The controller bank at run time (API in docs/architecture.md "Runtime step").
 
@@ -769,91 +882,18 @@ class BankRuntime:
                              f"index in [0, {J})")
         self.single_model = int(single_model)
         self._all_mat, self._all_vec = _pack(design)
-        ground = np.flatnonzero(~design.airborne)
-        air = np.flatnonzero(design.airborne)
         self._nbr = neighbour_table(design.grid_index, design.airborne)
-        n_ground = int(ground.shape[0])
-        mb = cfg_.moving_bank
-        k = min(int(mb.active_models), n_ground)
-
+        n_ground = int(np.count_nonzero(~design.airborne))
+        k = min(int(cfg_.moving_bank.active_models), n_ground)
         x_init = np.asarray(design.equilibrium[self.single_model], dtype=float)
-        G = int(design.fuzzy_q_grid.shape[0])
-        off_grid = FV_HEAD
-        off_curve = off_grid + G
-        off_hist = off_curve + G
-        load_step = max(1, round(mb.load_estimate_window_s / dt))   # Δ [ticks]
         mon = monitor_settings(cfg_, dt, MEAS_DIM)
-        off_mon = off_hist + HIST_BINS + 2 * (2 * load_step + 1)
-        fv = np.zeros(off_mon + mon.window_ticks)
-        fv[F_YOFF:F_YOFF + 2] = design.y_offset
-        fv[F_HAD:F_HAD + 4] = np.asarray(design.human_filter_Ad).reshape(4)
-        fv[F_HBD:F_HBD + 2] = design.human_filter_Bd
-        fv[F_STATIC] = design.static_rattlespace_m
-        n_delay = design.compute_delay_ticks
-        if n_delay > MAX_DELAY:
-            raise ValueError(f"design compute delay {n_delay} ticks: the runtime supports "
-                             f"at most {MAX_DELAY}")
-        fv[F_SDECAY], fv[F_SKP], fv[F_SFLIM], fv[F_SOLIM] = design.servo_model[:4]
-        fv[F_FFC], fv[F_FFA], fv[F_FFSTALL], fv[F_FFFLOOR] = design.servo_model[5:9]
-        fv[F_FFB] = fv[F_FFA] / dt
-        tau = mb.smoothing_time_s
-        fv[F_ALPHA] = 1.0 - math.exp(-dt / tau) if tau > 0.0 else 1.0
-        fv[F_PFLOOR] = prob_floor
-        fv[F_BS_K], fv[F_BS_LO], fv[F_BS_HI] = design.bump_stop
-        fv[F_GUARD_W] = cfg_.design.stop_guard_m
-        aw = cfg_.design.accel_mean_window_s
-        fv[F_AMEAN_ALPHA] = 1.0 - math.exp(-dt / aw) if aw > 0.0 else 0.0
-        fw = cfg_.fuzzy.window_s
-        fv[F_QW_ALPHA] = 1.0 - math.exp(-dt / fw) if fw > 0.0 else 1.0
-        fv[F_MON_THR] = mon.degrade_sum
-        fv[F_MON_REARM] = mon.rearm_sum
-        fv[F_AUTH_STEP] = mon.authority_step
-        fv[F_UNUSE_R] = 1.0 / mon.rattlespace_bound_m
-        fv[F_UNUSE_A] = 1.0 / mon.accel_bound_mps2
         self.monitor = mon
-        fv[F_TFLOOR] = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
-        fv[F_LOFF] = mb.liftoff_load_fraction
-        fv[F_LON] = mb.liftoff_load_fraction / mb.hysteresis_ratio
-        fv[F_LH] = mb.liftoff_load_fraction * max(1, round(mb.liftoff_detection_time_s / dt))
-        veh = cfg_.vehicle
-        if veh.gravity_mps2 > 0.0:          # else no static load: the estimate stays 1
-            fv[F_LINVG] = 1.0 / veh.gravity_mps2
-            fv[F_LC] = veh.unsprung_mass_kg / (
-                (veh.sprung_mass_kg + veh.unsprung_mass_kg) * veh.gravity_mps2
-                * (load_step * dt) ** 2)
-        fv[F_QUANT] = mb.threshold_quantile
-        n_window = max(2.0, mb.history_window_s / dt)
-        fv[F_FORGET] = 1.0 / (1.0 - 1.0 / n_window)
-        fv[F_RECENTRE] = RECENTRE_RATIO
-        fv[F_HLO] = HIST_LO_LOG10
-        fv[F_HWIDTH] = (HIST_HI_LOG10 - HIST_LO_LOG10) / HIST_BINS
-        fv[F_XINIT:F_XINIT + 4] = x_init
-        fv[off_grid:off_grid + G] = design.fuzzy_q_grid
-        fv[off_curve:off_curve + G] = design.fuzzy_weight_curve
-        iv = np.zeros(IV_HEAD + J, dtype=np.int64)
-        iv[I_J] = J
-        iv[I_G] = G
-        iv[I_SINGLE] = self.single_model
-        iv[I_AIR] = int(air[0]) if air.size else -1
-        iv[I_NG] = n_ground
-        iv[I_K] = k
-        iv[I_DWELL] = max(1, round(mb.dwell_time_s / dt))
-        iv[I_PROBE] = max(1, round(cfg_.moving_bank.probe_period_s / dt))
-        iv[I_FSTAT] = FSTAT_RELATIVE if cfg_.fuzzy.statistic == "relative" else FSTAT_RAW
-        iv[I_MON_N] = mon.window_ticks
-        iv[I_MON_RING] = off_mon
-        iv[I_MON_RECOVER] = mon.rearm_ticks
-        iv[I_MON_MAXBAD] = mon.window_ticks
-        iv[I_FALLBACK] = FALLBACK_BEST if fallback == "best_model" else FALLBACK_PASSIVE
-        iv[I_QGRID] = off_grid
-        iv[I_WCURVE] = off_curve
-        iv[I_HIST] = off_hist
-        iv[I_NB] = HIST_BINS
-        iv[I_MINLEARN] = max(1, int(n_window // 4))
-        iv[I_RECOMP] = HIST_RECOMPUTE_TICKS
-        iv[I_NPROBE] = max(0, min(n_ground - k, MAX_PROBE_CANDIDATES))
-        iv[I_DELAY] = n_delay
-        iv[I_LD] = load_step
+        if design.compute_delay_ticks > MAX_DELAY:
+            raise ValueError(f"design compute delay {design.compute_delay_ticks} ticks: the "
+                             f"runtime supports at most {MAX_DELAY}")
+        layout = _table_offsets(design, cfg_, mon)
+        fv = _float_parameters(design, cfg_, mon, layout, x_init)
+        iv = _int_parameters(design, cfg_, mon, layout, self.single_model, k)
         self.no_fire_fallback = fallback
         self.prob_floor = float(prob_floor)
         self.active_models_k = k
@@ -873,6 +913,12 @@ class BankRuntime:
         self.set_road(cfg_.noise.nominal_speed_mps, cfg_.noise.nominal_roughness_gd)
         self.set_weight_set(weight_set)
 
+        self._bind_views()
+        self._warm_up()
+        self.reset()
+
+    def _bind_views(self) -> None:
+        """The public read-outs: views into the packed state, updated in place by step."""
         st = self._st
         self.q = st[:, S_Q]
         self.firing_weight = st[:, S_W]
@@ -883,10 +929,8 @@ class BankRuntime:
         self.active = self._active
         self.x_post = st[:, S_XPOST:S_XPOST + 4]
         self.x_prior = st[:, S_XPRIOR:S_XPRIOR + 4]
-        self.xf = fv[F_XF:F_XF + 2]
-        self.x_blend = fv[F_XHAT:F_XHAT + 4]
-        self._warm_up()
-        self.reset()
+        self.xf = self._fv[F_XF:F_XF + 2]
+        self.x_blend = self._fv[F_XHAT:F_XHAT + 4]
 
     # ------------------------------------------------------------------ control
     def _warm_up(self) -> None:
