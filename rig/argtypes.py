@@ -74,6 +74,15 @@ class OneLineParser(argparse.ArgumentParser):
         one_line = " ".join(message.split())
         self.exit(2, f"{self.prog}: {one_line} (see `{self.prog} --help`)\n")
 
+    def _get_values(self, action: argparse.Action, arg_strings: list[str]) -> Any:
+        # Python 3.11's argparse drops a lone '--' even when it is the value of
+        # ``--opt=--``, leaving ``[]`` unconverted: convert and check it like any value
+        if action.nargs is None and arg_strings == ["--"]:
+            value = self._get_value(action, "--")
+            self._check_value(action, value)
+            return value
+        return super()._get_values(action, arg_strings)
+
 
 def _fail(message: str) -> NoReturn:
     raise argparse.ArgumentTypeError(message)
