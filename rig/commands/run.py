@@ -51,6 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rig.recording.recorder import RecorderStartError
     from rig.rt.realtime import RealtimeRequest
     from rig.rt.stop_signals import StopSignals
     from rig.service.runner import Service, ServiceOptions
@@ -69,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
         weights=args.weights, realtime=rt)
     try:
         service = Service(cfg, opts, stop=stop)
+    except RecorderStartError:
+        raise                       # a recording problem, said as such (rig.cli.REFUSALS)
     except OSError as exc:
         if exc.filename is not None and args.design is not None \
                 and Path(exc.filename) == Path(args.design):
