@@ -213,6 +213,7 @@ def plot_pareto(trials: list[dict[str, Any]], baseline: dict[str, Any],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     keys = ("absorbed_power_ratio", "rattlespace_rms_ratio", "tire_load_rms_ratio")
+    names = ("absorbed power", "rattlespace RMS", "dynamic tire load RMS")
     ok = [t for t in trials if all(math.isfinite(t.get(k, math.nan)) for k in keys)]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), dpi=110)
     if ok:
@@ -234,9 +235,9 @@ def plot_pareto(trials: list[dict[str, Any]], baseline: dict[str, Any],
             if best is not None:
                 ax.plot([best[keys[0]]], [best[keys[yi]]], "kx", ms=12, mew=2, zorder=6,
                         label="best")
-            fig.colorbar(sc, ax=ax, label=keys[ci].replace("_", " "))
+            fig.colorbar(sc, ax=ax, label=f"{names[ci]} / passive")
             ax.set_xlabel("absorbed power / passive")
-            ax.set_ylabel(keys[yi].replace("_", " ") + " / passive")
+            ax.set_ylabel(f"{names[yi]} / passive")
             ax.grid(True, alpha=0.3)
         axes[0].legend(fontsize=7)
     fig.suptitle(title, fontsize=9)
