@@ -7,7 +7,8 @@
   bit-identical (every metric but the wall-clock real-time factor, every trace);
 * ``throughput``: the same Monte Carlo on 1 and 2 Dask workers and on the 2-process local
   pool after a warm-up batch (numba and the design already loaded on every worker):
-  runs per second and the 2 / 1 worker ratio;
+  runs per second (the best of 3 repeats: the machine may be shared) and the 2 / 1
+  worker ratio;
 * ``overhead``: a batch of near-empty tasks (``operator.add``) through each executor:
   wall time per task, the cost the seam adds to every run.
 
@@ -75,7 +76,7 @@ def _overhead(ex: BatchExecutor, n: int) -> float:
 
 
 def run(quick: bool = False) -> list[dict[str, Any]]:
-    runs, duration, n_empty = (8, 2.0, 100) if quick else (40, 10.0, 1000)
+    runs, duration, n_empty, repeats = (8, 2.0, 100, 1) if quick else (40, 10.0, 1000, 3)
     rows: list[dict[str, Any]] = []
     results: dict[str, MonteCarloResult] = {}
     walls: dict[str, float] = {}
@@ -84,11 +85,22 @@ def run(quick: bool = False) -> list[dict[str, Any]]:
                         ("dask, 2 workers", lambda: _dask(2))):
         with make() as ex:
             _mc(ex, ex.workers * 2, duration, seed=99)           # warm-up: numba, design
-            walls[label], results[label] = _mc(ex, runs, duration, seed=1)
-            per_task = _overhead(ex, n_empty)
+            tries = [_mc(ex, runs, duration, seed=1) for _ in range(repeats)]
+            walls[label] = min(w for w, _ in tries)              # least disturbed (shared
+            results[label] = tries[0][1]                         # machine)
+            assert all(_same(results[label], r) for _, r in tries[1:])
+            per_task = min(_overhead(ex, n_empty) for _ in range(repeats))
         rows.append({"executor": label, "runs": runs, "run_s": duration,
                      "wall_s": walls[label], "runs_per_s": runs / walls[label],
                      "empty_task_ms": 1e3 * per_task})
+    with LocalExecutor(1) as ex:                     # CPU time of one run, this process
+        _mc(ex, 2, duration, seed=99)
+        c0 = time.process_time()
+        _mc(ex, runs // 4, duration, seed=1)
+        cpu = (time.process_time() - c0) / (runs // 4)
+    rows.append({"executor": "in-process, CPU seconds per run", "runs": runs // 4,
+                 "run_s": duration, "wall_s": math.nan, "runs_per_s": 1.0 / cpu,
+                 "empty_task_ms": math.nan, "cpu_s_per_run": cpu})
     one, two = walls["dask, 1 worker"], walls["dask, 2 workers"]
     rows.append({"executor": "dask 2 / 1 worker speed-up", "runs": runs, "run_s": duration,
                  "wall_s": math.nan, "runs_per_s": one / two, "empty_task_ms": math.nan})
@@ -103,9 +115,9 @@ def run(quick: bool = False) -> list[dict[str, Any]]:
 def notes(rows: list[dict[str, Any]]) -> list[str]:
     by = {r["executor"]: r for r in rows}
     one = by["dask, 1 worker"]
-    t_run = one["wall_s"] / one["runs"]
+    t_run = by["in-process, CPU seconds per run"]["cpu_s_per_run"]
     t_task = by["dask, 2 workers"]["empty_task_ms"] * 1e-3
-    out = [f"one {one['run_s']:g} s run takes {t_run:.3f} s on one worker; a batch of empty "
+    out = [f"one {one['run_s']:g} s run takes {t_run:.3f} s of CPU; a batch of empty "
            f"tasks goes through Dask at {1e3 * t_task:.2f} ms per task (the ceiling: "
            f"{1 / t_task:.0f} tasks/s through one scheduler and client)"]
     for n_cores in (8, 64, 512):

@@ -22,8 +22,9 @@ A task that raises is reported with its case (not lost, not fatal to the others)
 * :class:`LocalExecutor` (the default): ``concurrent.futures.ProcessPoolExecutor`` with
   ``jobs`` processes kept for the executor's life (so a worker's memoised designs are
   reused across batches); ``jobs == 1`` runs in this process.
-* :class:`DaskExecutor` (``--cluster ADDR``): ``distributed.Client.submit(...,
-  retries=2, pure=False)`` and ``as_completed``.  ``tcp://HOST:PORT`` joins a running
+* :class:`DaskExecutor` (``--cluster ADDR``): ``distributed.Client.map(...,
+  retries=2, pure=False)`` (``submit`` of every task in one message) and
+  ``as_completed``.  ``tcp://HOST:PORT`` joins a running
   scheduler (``dask scheduler`` / ``dask worker``, dask-kubernetes, dask-jobqueue,
   ``SSHCluster``; docs/scale-out.md); ``local:N`` starts a ``LocalCluster`` of N worker
   processes on 127.0.0.1 (dashboard off) and closes it afterwards.  A worker lost
@@ -304,9 +305,9 @@ class DaskExecutor(_ContextMixin):
         # sent once and held by the scheduler as a task (not scattered data), so a worker
         # lost with its copy has it recomputed; each worker fetches it once, not per task
         shared_f = self.client.submit(_identity, shared, pure=False, retries=RETRIES)
-        futs = [self.client.submit(fn, shared_f, items[i], retries=RETRIES, pure=False,
-                                   priority=len(idx) - n)      # submission order first
-                for n, i in enumerate(idx)]
+        # one message for the whole batch; tasks start in ``order`` (submission order)
+        futs = self.client.map(fn, [shared_f] * len(idx), [items[i] for i in idx],
+                               retries=RETRIES, pure=False)
         where = {f.key: i for f, i in zip(futs, idx, strict=True)}
         bar = _bar(progress, len(items), desc)
         try:
