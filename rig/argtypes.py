@@ -38,9 +38,11 @@ __all__ = [
     "OneLineParser",
     "OutputFile",
     "active_config",
+    "add_cluster_option",
     "add_controller_option",
     "add_weights_option",
     "bind_config",
+    "cluster",
     "config_int",
     "config_real",
     "cpu",
@@ -222,6 +224,25 @@ def add_controller_option(parser: argparse.ArgumentParser, modes: Sequence[str],
 
 
 # ---------------------------------------------------------------------------- other values
+
+def cluster(text: str) -> Any:
+    """A Dask cluster address (:func:`hil.batch.parse_cluster_address`):
+    ``tcp://HOST:PORT`` of a running scheduler or ``local:N``."""
+    from hil.batch import ClusterAddressError, parse_cluster_address
+
+    try:
+        return parse_cluster_address(text)
+    except ClusterAddressError as exc:
+        _fail(str(exc))
+
+
+def add_cluster_option(parser: argparse.ArgumentParser) -> None:
+    """``--cluster ADDR`` as every batch command (study, montecarlo, tune) spells it."""
+    parser.add_argument("--cluster", type=cluster, default=None, metavar="ADDR",
+                        help="run the batch on Dask: tcp://HOST:PORT of a running "
+                             "scheduler, or local:N for N worker processes on 127.0.0.1 "
+                             "(default: a local process pool; docs/scale-out.md)")
+
 
 def road(text: str) -> str:
     """A road name of :func:`hil.sim.roads.make_road`; a ``csv:`` file is read and checked."""

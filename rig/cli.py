@@ -36,6 +36,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "run": ("run", "run the real-time controller service on a CAN bus"),
     "demo": ("demo", "service against the emulated rig (own process) in real time"),
     "study": ("study", "control performance study: tables and figures"),
+    "tune": ("tune", "search the LQ weights over Monte Carlo plants and roads (optuna)"),
     "replay": ("replay", "replay a recorded run (MCAP or candump log) through the loop"),
     "report": ("report", "HTML report with plots of a recorded run"),
 }

@@ -35,6 +35,7 @@ full-state LQ) through the same loop.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -56,6 +57,7 @@ if TYPE_CHECKING:
 
 __all__ = ["BANK_CONTROLLERS", "CONTROLLERS", "DELAY_POINTS", "BankController",
            "LoopController", "SimResult", "ZeroForceController", "cached_design",
+           "config_from_text",
            "run_closed_loop", "simulate"]
 
 
@@ -100,6 +102,14 @@ class SimResult:
 
 
 _DESIGNS: dict[str, Design] = {}
+
+
+@functools.lru_cache(maxsize=8)
+def config_from_text(toml_text: str) -> RigConfig:
+    """The configuration of ``config_to_toml`` text, memoised in this process: what a
+    batch of runs (``hil.batch``) sends to its workers instead of an artifact."""
+    from controller.config import parse_config, parse_toml
+    return parse_config(parse_toml(toml_text, "<batch configuration>"))
 
 
 def cached_design(cfg: RigConfig) -> Design:

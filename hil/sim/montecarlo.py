@@ -9,8 +9,11 @@ static position is the stops' centre plus a setting error drawn as its own param
 N(0, ``ride_height_std_m``) (default :data:`RIDE_HEIGHT_STD_M` = 2 mm: the technician
 sets it to within a few millimetres; ``PlantParams.ride_height_offset_m``).
 
-Runs execute in parallel (``concurrent.futures.ProcessPoolExecutor``, one process per
-core by default) with a tqdm progress bar.  Each run is a :func:`hil.sim.closed_loop.simulate` call;
+Runs execute through the batch seam (:mod:`hil.batch`: a local process pool, one
+process per core by default, or a Dask cluster) with a tqdm progress bar; what crosses to
+a worker is the configuration as TOML text and the road profile (once per batch) and per
+run the plant parameters and seed.  A run that raises is listed with its plant, road
+and seed in ``failed_runs``.  Each run is a :func:`hil.sim.closed_loop.simulate` call;
 the summary gives mean / std / min / max of every metric and lists the unstable runs
 (non-finite state, bump-stop slamming) and the runs with a latched fault.  ``plot_runs``
 draws the rattlespace traces of all runs (like the thesis's Fig. 4.1) with matplotlib's
@@ -21,7 +24,6 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,13 +31,19 @@ from typing import Any
 import numpy as np
 
 from controller.arrays import FloatArray
-from controller.config import RigConfig
-from hil.sim.closed_loop import BANK_CONTROLLERS, cached_design, simulate
+from controller.config import RigConfig, config_to_toml
+from hil.batch import BatchExecutor, LocalExecutor
+from hil.sim.closed_loop import (
+    CONTROLLERS,
+    config_from_text,
+    simulate,
+)
 from hil.sim.plant import PlantParams
 from hil.sim.roads import Road
 
-__all__ = ["MAX_RIDE_HEIGHT_STD_M", "RIDE_HEIGHT_STD_M", "MonteCarloResult", "draw_params",
-           "plot_runs", "run_montecarlo", "summarise"]
+__all__ = ["MAX_RIDE_HEIGHT_STD_M", "RIDE_HEIGHT_STD_M", "MonteCarloResult", "RunSpec",
+           "draw_params", "plot_runs", "run_case_label", "run_montecarlo", "run_task",
+           "summarise"]
 
 
 #: a drawn factor is kept at least this fraction of nominal (a 5 % spread never gets here)
@@ -58,6 +66,8 @@ class MonteCarloResult:
     traces: list[FloatArray] = field(default_factory=list)   # decimated rattlespace [m]
     trace_dt_s: float = 0.0
     png: str | None = None
+    #: runs that raised: {"run", "case", "error"} (their metrics are not in ``runs``)
+    failed_runs: list[dict[str, Any]] = field(default_factory=list)
 
 
 #: largest relative standard deviation of a parameter (a 3-sigma draw at 0.5 is already
@@ -113,11 +123,32 @@ def draw_params(cfg: RigConfig, runs: int, spread: float | dict[str, float] = 0.
             for f, off in zip(factors, offsets, strict=True)]
 
 
-def _one_run(args: tuple[Any, ...]) -> tuple[int, dict[str, float], FloatArray]:
-    i, cfg, road, controller, weight_set, params, design, seed = args
-    res = simulate(cfg, road, controller, weight_set, params=params, design=design,
-                   seed=seed)
-    return i, res.metrics, res.traces["rattlespace_m"][::TRACE_DECIMATION].copy()
+@dataclass(frozen=True)
+class RunSpec:
+    """One Monte Carlo run as it crosses to a worker: plant and sensor seed."""
+
+    index: int
+    params: PlantParams
+    seed: int
+
+
+def run_task(shared: tuple[str, Road, str, int], spec: RunSpec
+             ) -> tuple[dict[str, float], FloatArray]:
+    """A worker's run: ``shared`` = (configuration TOML, road, controller, weight set);
+    the bank is designed on the worker (memoised per configuration)."""
+    config_toml, road, controller, weight_set = shared
+    cfg = config_from_text(config_toml)
+    res = simulate(cfg, road, controller, weight_set, params=spec.params, seed=spec.seed)
+    return res.metrics, res.traces["rattlespace_m"][::TRACE_DECIMATION].copy()
+
+
+def run_case_label(spec: RunSpec, road: Road) -> str:
+    """What a run is, for a failure report: plant, road and seed."""
+    p = spec.params
+    return (f"run {spec.index}: M={p.sprung_mass_kg:.4g} kg m={p.unsprung_mass_kg:.4g} kg "
+            f"K={p.suspension_stiffness_n_per_m:.5g} N/m C={p.suspension_damping_ns_per_m:.4g} "
+            f"Ns/m Kt x{p.tire_stiffness_scale:.4g} Ct x{p.tire_damping_scale:.4g}, road "
+            f"{road.name} at {road.speed_mps:g} m/s, sensor seed {spec.seed}")
 
 
 def summarise(metrics: list[dict[str, float]]) -> dict[str, dict[str, float]]:
@@ -138,8 +169,10 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
                    weight_set: int = 1, spread: float | dict[str, float] = 0.05,
                    seed: int = 0, workers: int | None = None, progress: bool = True,
                    out_dir: str | Path | None = None,
-                   ride_height_std_m: float | None = RIDE_HEIGHT_STD_M) -> MonteCarloResult:
-    """Run ``runs`` perturbed plants in parallel; write ``montecarlo.png`` (and
+                   ride_height_std_m: float | None = RIDE_HEIGHT_STD_M,
+                   executor: BatchExecutor | None = None) -> MonteCarloResult:
+    """Run ``runs`` perturbed plants in parallel (on ``executor``, default a local pool
+    of ``workers`` processes); write ``montecarlo.png`` (and
     ``montecarlo.json``) into ``out_dir`` if given.
 
     The plants are drawn around the emulated rig of ``cfg.emulator`` (its scales and
@@ -151,40 +184,34 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
     M) -- or, with the ride height set by preload (``ride_height_std_m``, see the module
     docstring), the setting error.
     """
+    if controller not in CONTROLLERS:
+        raise ValueError(f"unknown controller {controller!r}: use one of "
+                         f"{', '.join(CONTROLLERS)}")
+    if not 1 <= weight_set <= len(cfg.design.weight_sets):
+        raise ValueError(f"weight set {weight_set} not in 1..{len(cfg.design.weight_sets)}")
     params = draw_params(cfg, runs, spread, seed, ride_height_std_m)
-    design = cached_design(cfg) if controller in BANK_CONTROLLERS else None
-    workers = max(1, min(workers or os.cpu_count() or 1, runs))
-    tasks = [(i, cfg, road, controller, weight_set, p, design, seed + 1000 + i)
-             for i, p in enumerate(params)]
-    results: list[tuple[int, dict[str, float], FloatArray] | None] = [None] * runs
-    bar: Any = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=runs, desc=f"monte carlo {controller}", unit="run")
-    if workers == 1:
-        for t in tasks:
-            results[t[0]] = _one_run(t)
-            if bar is not None:
-                bar.update(1)
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = [pool.submit(_one_run, t) for t in tasks]
-            for fut in as_completed(futures):
-                i, m, tr = fut.result()
-                results[i] = (i, m, tr)
-                if bar is not None:
-                    bar.update(1)
-    if bar is not None:
-        bar.close()
-    done = [r for r in results if r is not None]
-    metrics = [r[1] for r in done]
+    specs = [RunSpec(i, p, seed + 1000 + i) for i, p in enumerate(params)]
+    own = executor is None
+    ex: BatchExecutor = (LocalExecutor(min(workers or os.cpu_count() or 1, runs))
+                         if executor is None else executor)
+    try:
+        batch = ex.run(run_task, (config_to_toml(cfg), road, controller, weight_set), specs,
+                       [run_case_label(s, road) for s in specs],
+                       desc=f"monte carlo {controller}", progress=progress)
+    finally:
+        if own:
+            ex.close()
+    done = [(i, r[0], r[1]) for i, r in enumerate(batch.results) if r is not None]
+    metrics = [m for _, m, _ in done]
     run_rows = [{"run": i, **{k: v for k, v in asdict(params[i]).items()}, **m}
                 for i, m, _ in done]
     result = MonteCarloResult(
-        runs=run_rows, summary=summarise(metrics),
+        runs=run_rows, summary=summarise(metrics) if metrics else {},
         unstable_runs=[i for i, m, _ in done if m["unstable"]],
         faulted_runs=[i for i, m, _ in done if m["n_faults"]],
-        traces=[tr for _, _, tr in done], trace_dt_s=road.dt_s * TRACE_DECIMATION)
+        traces=[tr for _, _, tr in done], trace_dt_s=road.dt_s * TRACE_DECIMATION,
+        failed_runs=[{"run": f.index, "case": f.case, "error": f.error}
+                     for f in batch.failures])
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -194,7 +221,8 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
         from rig.strict_json import dumps
         (out / "montecarlo.json").write_text(dumps(
             {"summary": result.summary, "unstable_runs": result.unstable_runs,
-             "faulted_runs": result.faulted_runs, "runs": result.runs}, indent=1))
+             "faulted_runs": result.faulted_runs, "failed_runs": result.failed_runs,
+             "runs": result.runs}, indent=1))
     return result
 
 

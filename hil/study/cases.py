@@ -28,14 +28,20 @@ import controller.runtime.force_loop  # noqa: F401
 from controller.config import RigConfig
 from controller.metrics import filter_signal, human_filter_tf
 from controller.modes import BANK_MODES
-from hil.sim.closed_loop import BankController, LoopController, cached_design, run_closed_loop
+from hil.sim.closed_loop import (
+    BankController,
+    LoopController,
+    cached_design,
+    config_from_text,
+    run_closed_loop,
+)
 from hil.sim.fullstate import FullStateLQ
 from hil.sim.plant import PlantParams
 from hil.sim.roads import Road, make_road
 from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 
 __all__ = ["CONTROLLERS", "ROAD_BASE_RATE_HZ", "TRACE_DECIMATION", "Case", "case_config",
-           "lq_cost", "make_controller", "run_case", "study_road"]
+           "lq_cost", "make_controller", "run_case", "run_case_task", "study_road"]
 
 #: the study's controllers: the reference laws worth comparing, the bank modes of
 #: controller.modes, and the full-state LQ (the simulator's true-state reference)
@@ -81,6 +87,14 @@ class Case:
         return Case(self.group, "passive", 1, self.road, self.speed_mps, self.duration_s,
                     self.road_seed, self.sensor_seed, 0.0, "spool", self.rate_hz, self.params,
                     self.param_tag, None, None, self.settle_s, self.trace)
+
+    def describe(self) -> str:
+        """What the case runs, for a failure report (plant, road, seeds)."""
+        return (f"{self.group} {self.label}, road {self.road} at {self.speed_mps:g} m/s for "
+                f"{self.duration_s:g} s, road seed {self.road_seed}, sensor seed "
+                f"{self.sensor_seed}, plant {self.param_tag}"
+                + (f", delay {self.delay_ms:g} ms" if self.delay_ms else "")
+                + (f", rate {self.rate_hz:g} Hz" if self.rate_hz else ""))
 
     @property
     def label(self) -> str:
@@ -188,3 +202,9 @@ def run_case(case: Case, cfg: RigConfig) -> dict[str, Any]:
         row["traces"] = {k: np.asarray(v[::d]).copy() for k, v in full.items()}
         row["traces"]["dt_s"] = np.array(dt * d)
     return row
+
+
+def run_case_task(config_toml: str, case: Case) -> dict[str, Any]:
+    """:func:`run_case` as a batch task (``hil.batch``): the configuration arrives as
+    TOML text, the worker designs the bank itself."""
+    return run_case(case, config_from_text(config_toml))

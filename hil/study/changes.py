@@ -28,15 +28,21 @@ import math
 import os
 import sys
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from controller.config import RigConfig, default_config, load_config
-from hil.sim.closed_loop import BankController, cached_design, run_closed_loop, simulate
+from controller.config import RigConfig, config_to_toml, default_config, load_config
+from hil.batch import BatchExecutor, LocalExecutor
+from hil.sim.closed_loop import (
+    BankController,
+    cached_design,
+    config_from_text,
+    run_closed_loop,
+    simulate,
+)
 from hil.sim.montecarlo import RIDE_HEIGHT_STD_M, draw_params
 from hil.sim.roads import make_road
 from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
@@ -94,9 +100,8 @@ def old_divergence_rule(q: np.ndarray) -> bool:
     return False
 
 
-def _one(args: tuple[RigConfig, Run]) -> dict[str, float]:
-    base, run = args
-    cfg = _config(base, run)
+def _one(config_toml: str, run: Run) -> dict[str, float]:
+    cfg = _config(config_from_text(config_toml), run)
     road = make_road("rough-course", THESIS_SPEED_MPS, run.duration_s, cfg.sample_time_s,
                      run.seed)
     params, sim_seed = None, run.seed
@@ -289,7 +294,8 @@ CHANGES: list[Change] = [
 
 
 def measure(cfg: RigConfig, changes: Sequence[Change] = tuple(CHANGES), *,
-            quick: bool = False, jobs: int | None = None) -> list[tuple[str, str, str, str]]:
+            quick: bool = False, jobs: int | None = None,
+            executor: BatchExecutor | None = None) -> list[tuple[str, str, str, str]]:
     """(change, measured on, with it, without it) per change."""
     plan: list[tuple[int, int, Run]] = []
     for ci, ch in enumerate(changes):
@@ -300,12 +306,14 @@ def measure(cfg: RigConfig, changes: Sequence[Change] = tuple(CHANGES), *,
                                   **ch.undo}))
             plan.append((ci, 0, off))
     jobs = max(1, min(jobs or os.cpu_count() or 1, len(plan)))
-    args = [(cfg, r) for _, _, r in plan]
-    if jobs == 1:
-        metrics = [_one(a) for a in args]
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            metrics = list(pool.map(_one, args, chunksize=1))
+    ex = executor if executor is not None else LocalExecutor(jobs)
+    try:
+        metrics = ex.run(_one, config_to_toml(cfg), [r for _, _, r in plan],
+                         [f"{changes[c].name} ({'with' if v else 'without'}): {r}"
+                          for c, v, r in plan], desc="changes").values()
+    finally:
+        if executor is None:
+            ex.close()
     out = []
     for ci, ch in enumerate(changes):
         cells = []

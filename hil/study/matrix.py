@@ -22,15 +22,15 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from typing import Any
 
-from controller.config import RigConfig
+from controller.config import RigConfig, config_to_toml
+from hil.batch import BatchExecutor, LocalExecutor
 from hil.sim.montecarlo import draw_params
 from hil.sim.plant import PlantParams
 from hil.sim.skyhook import DEFAULT_GAINS, TUNING_GRID, SkyhookGains
-from hil.study.cases import Case, run_case
+from hil.study.cases import Case, run_case_task
 
 __all__ = ["RATIO_METRICS", "StudyPlan", "add_ratios", "bank_labels", "main_cases",
            "plan", "run_cases"]
@@ -165,32 +165,23 @@ def other_cases(p: StudyPlan, cfg: RigConfig, skyhook: SkyhookGains) -> list[Cas
 
 
 def run_cases(cases: Sequence[Case], cfg: RigConfig, jobs: int | None = None,
-              progress: bool = True, desc: str = "study") -> list[dict[str, Any]]:
-    """Run every case (in parallel over ``jobs`` processes), rows in case order."""
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(cases)))
-    rows: list[dict[str, Any] | None] = [None] * len(cases)
-    bar: Any = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(cases), desc=desc, unit="run")
+              progress: bool = True, desc: str = "study",
+              executor: BatchExecutor | None = None) -> list[dict[str, Any]]:
+    """Run every case on ``executor`` (default: a local pool of ``jobs`` processes), rows
+    in case order; :class:`hil.batch.BatchError` naming the failed cases if any raised."""
     # longest first balances the pool
     order = sorted(range(len(cases)),
                    key=lambda i: -cases[i].duration_s * (cases[i].rate_hz or 1000.0))
-    if jobs == 1:
-        for i in order:
-            rows[i] = run_case(cases[i], cfg)
-            if bar is not None:
-                bar.update(1)
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futs = {pool.submit(run_case, cases[i], cfg): i for i in order}
-            for fut in as_completed(futs):
-                rows[futs[fut]] = fut.result()
-                if bar is not None:
-                    bar.update(1)
-    if bar is not None:
-        bar.close()
-    return [r for r in rows if r is not None]
+    ex = executor if executor is not None else LocalExecutor(
+        max(1, min(jobs or os.cpu_count() or 1, len(cases))))
+    try:
+        res = ex.run(run_case_task, config_to_toml(cfg), list(cases),
+                     [c.describe() for c in cases], desc=desc, progress=progress,
+                     order=order)
+    finally:
+        if executor is None:
+            ex.close()
+    return res.values()
 
 
 def add_ratios(rows: list[dict[str, Any]], cases: Sequence[Case]) -> None:

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from controller.config import RigConfig, config_hash
+from hil.batch import BatchExecutor, LocalExecutor
 from hil.sim.closed_loop import cached_design
 from hil.sim.skyhook import SkyhookGains, select_gains
 from hil.study.matrix import add_ratios, main_cases, other_cases, plan, run_cases, tune_cases
@@ -35,20 +36,26 @@ class StudyResult:
 
 
 def run_study(cfg: RigConfig, out_dir: str | Path, *, quick: bool = False,
-              jobs: int | None = None, progress: bool = True) -> StudyResult:
+              jobs: int | None = None, progress: bool = True,
+              executor: BatchExecutor | None = None) -> StudyResult:
     """Run the study and write ``results.md``, ``results.csv``, ``claims.json`` and the
-    PNG figures into ``out_dir`` (created)."""
+    PNG figures into ``out_dir`` (created).  The runs go to ``executor`` (default: a
+    local pool of ``jobs`` processes); :class:`hil.batch.BatchError` names failed runs."""
+    if executor is None:
+        with LocalExecutor(jobs) as ex:
+            return run_study(cfg, out_dir, quick=quick, jobs=jobs, progress=progress,
+                             executor=ex)
     t0 = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     p = plan(quick)
     tcases = tune_cases(p)
-    trows = run_cases(tcases, cfg, jobs, progress, "skyhook search")
+    trows = run_cases(tcases, cfg, jobs, progress, "skyhook search", executor)
     add_ratios(trows, tcases)
     sky = select_gains([r for r, c in zip(trows, tcases, strict=True)
                         if c.controller == "skyhook"])
     cases = main_cases(p, sky) + other_cases(p, cfg, sky)
-    rows = run_cases(cases, cfg, jobs, progress, "study matrix")
+    rows = run_cases(cases, cfg, jobs, progress, "study matrix", executor)
     add_ratios(rows, cases)
     rows = trows + rows
     rho2 = sorted(set(SURFACE_RHO2[::4] if quick else SURFACE_RHO2) | set(p.rho2_checks))
@@ -59,7 +66,7 @@ def run_study(cfg: RigConfig, out_dir: str | Path, *, quick: bool = False,
               [str(n) for n in design.model_names])
     files = write_figures(rows, out, grid, firing, cfg.design.weight_sets)
     wall = time.perf_counter() - t0
-    n_jobs = max(1, jobs or __import__("os").cpu_count() or 1)
+    n_jobs = max(1, executor.workers)
     md = tables_markdown(rows, grid, sky, p.describe(), wall, n_jobs, cfg)
     (out / "results.md").write_text(md + "\n", encoding="utf-8")
     write_csv(rows, out / "results.csv")

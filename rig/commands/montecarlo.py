@@ -1,6 +1,7 @@
 """``rig montecarlo``: robustness runs with M, m, K, Kt, C, Ct drawn around nominal.
 
     rig montecarlo --runs 8 --spread 0.05 --road rough-course --controller fuzzy --out mc/
+    rig montecarlo --runs 1000 --cluster tcp://scheduler:8786     (docs/scale-out.md)
 """
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ import argparse
 import sys
 
 from controller.config import load_config
+from hil.batch import ClusterError, make_executor
 from hil.sim.closed_loop import CONTROLLERS
 from hil.sim.montecarlo import MAX_RIDE_HEIGHT_STD_M, MAX_SPREAD, RIDE_HEIGHT_STD_M, run_montecarlo
 from hil.sim.roads import ROAD_NAMES, RoadError, make_road
@@ -40,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     argtypes.add_weights_option(p, 1)
     p.add_argument("--seed", type=argtypes.seed, default=1)
     p.add_argument("--workers", type=argtypes.integer(1, MAX_WORKERS), default=None,
-                   help="processes (default: all cores)")
+                   help="local processes (default: all cores; not with --cluster)")
+    argtypes.add_cluster_option(p)
     p.add_argument("--out", default=None, metavar="DIR", type=argtypes.output_dir,
                    help="write montecarlo.png and montecarlo.json here (replaced)")
     p.add_argument("--ride-height-std", default=RIDE_HEIGHT_STD_M, metavar="M",
@@ -58,21 +61,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
+    if args.cluster is not None and args.workers is not None:
+        print("rig montecarlo: --workers sets local processes; with --cluster the cluster's "
+              "workers run the batch (give one of them)", file=sys.stderr)
+        return 2
     try:
         road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
-        res = run_montecarlo(cfg, road, args.runs, controller=args.controller,
-                             weight_set=args.weights, spread=args.spread, seed=args.seed,
-                             workers=args.workers, progress=not args.no_progress,
-                             out_dir=args.out,
-                             ride_height_std_m=(None if args.own_ride_height
-                                                else args.ride_height_std))
-    except (RoadError, ValueError) as exc:
+        with make_executor(args.cluster, args.workers) as ex:
+            res = run_montecarlo(cfg, road, args.runs, controller=args.controller,
+                                 weight_set=args.weights, spread=args.spread, seed=args.seed,
+                                 workers=args.workers, progress=not args.no_progress,
+                                 out_dir=args.out,
+                                 ride_height_std_m=(None if args.own_ride_height
+                                                    else args.ride_height_std),
+                                 executor=ex)
+    except (RoadError, ValueError, ClusterError) as exc:
         print(f"rig montecarlo: {exc}", file=sys.stderr)
         return 2
+    for f in res.failed_runs:
+        print(f"rig montecarlo: {f['case']} failed: {f['error']}", file=sys.stderr)
     if args.json:
         print(strict_json.dumps({"summary": res.summary, "unstable_runs": res.unstable_runs,
-                                 "faulted_runs": res.faulted_runs, "png": res.png}, indent=1))
-    else:
+                                 "faulted_runs": res.faulted_runs,
+                                 "failed_runs": res.failed_runs, "png": res.png}, indent=1))
+    elif res.summary:
         print(f"{args.runs} runs, {args.controller} (weights {args.weights}), {road.name} at "
               f"{road.speed_mps:g} m/s, spread {args.spread:g}")
         print(f"{'metric':<26} {'mean':>11} {'std':>11} {'min':>11} {'max':>11}")
@@ -84,4 +96,4 @@ def run(args: argparse.Namespace) -> int:
               f"faulted runs: {res.faulted_runs or 'none'}")
         if res.png:
             print(f"figure: {res.png}")
-    return 1 if res.unstable_runs else 0
+    return 1 if res.unstable_runs or res.failed_runs else 0

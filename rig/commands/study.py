@@ -1,11 +1,12 @@
 """``rig study``: control performance study -> results.md, results.csv, claims.json, PNGs.
 
-    rig study [--config F] [--out DIR] [--quick] [--jobs N] [--no-progress]
+    rig study [--config F] [--out DIR] [--quick] [--jobs N | --cluster ADDR] [--no-progress]
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 from controller.config import load_config
 from rig import argtypes
@@ -20,15 +21,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true",
                    help="reduced matrix: short runs, 2 Monte Carlo runs (for tests)")
     p.add_argument("--jobs", type=argtypes.integer(1, MAX_JOBS), default=None,
-                   help="worker processes (default: all cores)")
+                   help="local worker processes (default: all cores; not with --cluster)")
+    argtypes.add_cluster_option(p)
     p.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
+    if args.cluster is not None and args.jobs is not None:
+        print("rig study: --jobs sets local processes; with --cluster the cluster's workers "
+              "run the study (give one of them)", file=sys.stderr)
+        return 2
+    from hil.batch import BatchError, ClusterError, make_executor
     from hil.study.run import run_study
-    res = run_study(cfg, args.out, quick=args.quick, jobs=args.jobs,
-                    progress=not args.no_progress)
+    try:
+        with make_executor(args.cluster, args.jobs) as ex:
+            res = run_study(cfg, args.out, quick=args.quick, jobs=args.jobs,
+                            progress=not args.no_progress, executor=ex)
+    except ClusterError as exc:
+        print(f"rig study: {exc}", file=sys.stderr)
+        return 2
+    except BatchError as exc:
+        for failure in exc.failures:
+            print(f"rig study: {failure}", file=sys.stderr)
+        print(f"rig study: {len(exc.failures)} runs failed; nothing written",
+              file=sys.stderr)
+        return 1
     print(f"{len(res.rows)} runs in {res.wall_s:.0f} s; skyhook gains {res.skyhook}")
     for claim, measured, ok in res.claims:
         print(f"[{'holds' if ok else 'FAILS'}] {claim}: {measured}")
