@@ -153,12 +153,18 @@ class FoxgloveView:
         self.published += 1
 
     def _publish_tick(self, item: bytes) -> None:
+        channels = self._channels
+        if not any(ch.has_sinks() for ch in channels.values()):
+            return          # nobody subscribed: no decoding, no JSON (the thread idles)
         t_ns, record = self._decoder.decode(item)
         wall = max(t_ns + self._offset, 0)
         for topic, msg in split_record(t_ns, record):
-            self._log(topic, encode_json(msg), wall)
+            if channels[topic].has_sinks():
+                self._log(topic, encode_json(msg), wall)
         if self._next_scene_ns is None or t_ns >= self._next_scene_ns:
             self._next_scene_ns = t_ns + SCENE_PERIOD_NS
+            if not (channels[TOPIC_TF].has_sinks() or channels[TOPIC_SCENE].has_sinks()):
+                return
             tf, scene = scene_messages(wall, record.get("rattlespace_m"),
                                        record.get("force_meas_n"),
                                        str(record.get("lifecycle", "")))

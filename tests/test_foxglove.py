@@ -315,3 +315,46 @@ def test_layout_uses_the_recording_channel_names() -> None:
         return leaves(node["first"]) | leaves(node["second"])
 
     assert leaves(layout["layout"]) == set(panels)       # every panel is placed
+
+
+def test_a_stalled_publisher_drops_and_counts_without_blocking_the_loop(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The publisher thread hangs (as if the SDK or a client held it): the loop's hand-off
+    still returns at once, the queue keeps at most queue_size items and the rest are
+    dropped and counted."""
+    import threading
+
+    import numpy as np
+
+    from controller.runtime.bank import BankRuntime
+    from hil.sim.closed_loop import cached_design
+    from rig.foxglove_server import FoxgloveView
+    from rig.service.loop import tick_record_layout
+
+    cfg = default_config().replace(foxglove={"enabled": True, "port": 0, "queue_size": 8})
+    rt = BankRuntime(cached_design(cfg), cfg=cfg)
+    release = threading.Event()
+    monkeypatch.setattr(FoxgloveView, "_publish_tick",
+                        lambda self, item: release.wait(30))
+    view = FoxgloveView(cfg.foxglove, tick_record_layout(rt))
+    try:
+        assert view.state == "serving" and view.port > 0
+        layout = tick_record_layout(rt)
+        n_scalars = len(layout.scalar_fields)
+        scalars = [0] * n_scalars
+        arrays = [rt.q, rt.firing_weight, rt.probability, rt.u_model, rt.active,
+                  rt.x_post, rt.xf]
+        worst = 0
+        for k in range(200):
+            t0 = time.perf_counter_ns()
+            view.offer_tick(k, [k, *scalars[1:]], arrays)
+            worst = max(worst, time.perf_counter_ns() - t0)
+        assert view.offer_event(0, 0, "note", "x") is False    # full: dropped too
+        # one item is held by the hung thread, queue_size wait, the rest were dropped
+        assert view.dropped == 200 + 1 - 8 - 1
+        assert worst < 5_000_000                                # never waited (5 ms)
+        assert np.isfinite(worst)
+    finally:
+        release.set()
+        view.close()
+    assert view.state == "stopped"
