@@ -10,7 +10,11 @@ that is not counted):
 2. ``rec`` / ``tel``: the MCAP recording (writer process) or the Zenoh telemetry
    (loopback) on;
 3. ``rec+tel``: both on;
-4. ``sleeper``: no loop and no rig, a bare SCHED_FIFO thread with the loop's real-time
+4. ``fox``: the live Foxglove view (rig/foxglove_server.py) serving, no client;
+   ``fox+client``: with a client (``bench.foxglove_client``, its own process) subscribed
+   to every channel and reading; ``fox+stalled``: with a client that subscribed and
+   never reads again; ``rec+tel+fox+client``: everything on;
+5. ``sleeper``: no loop and no rig, a bare SCHED_FIFO thread with the loop's real-time
    set-up that only sleeps to the same absolute 1 ms deadlines: the floor the machine
    gives any real-time task, measured in the same rounds.
 
@@ -46,9 +50,15 @@ import numpy as np
 
 WARM_S = 0.5
 SEGMENT_S = 10.0
-#: case -> (recording, telemetry)
-CASES = {"bare": (False, False), "rec": (True, False), "tel": (False, True),
-         "rec+tel": (True, True)}
+#: case -> (recording, telemetry, foxglove view, its client: "" none, "read", "stalled")
+CASES = {"bare": (False, False, False, ""), "rec": (True, False, False, ""),
+         "tel": (False, True, False, ""), "rec+tel": (True, True, False, ""),
+         "fox": (False, False, True, ""), "fox+client": (False, False, True, "read"),
+         "fox+stalled": (False, False, True, "stalled"),
+         "rec+tel+fox+client": (True, True, True, "read")}
+#: foxglove case -> the case it is compared with (the same without the view)
+FOX_BASE = {"fox": "bare", "fox+client": "bare", "fox+stalled": "bare",
+            "rec+tel+fox+client": "rec+tel"}
 SLEEPER = "sleeper"     # the bare SCHED_FIFO sleeper (no loop, no rig)
 LATE_US = 500.0         # a period woken later than this counts as late
 
@@ -74,11 +84,31 @@ def _harness(cfg: Any, design_path: str, road_s: float, rig_cpus: tuple[int, ...
         rig_start_ticks=100)
 
 
+def _start_client(port: int, mode: str) -> Any:
+    """``bench.foxglove_client`` in its own process, subscribed when this returns."""
+    import subprocess
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bench.foxglove_client", str(port),
+         *(["--stalled"] if mode == "stalled" else [])],
+        stdout=subprocess.PIPE, text=True)
+    line = proc.stdout.readline() if proc.stdout is not None else ""
+    if not line.startswith("subscribed"):
+        proc.kill()
+        proc.wait()
+        raise RuntimeError(f"foxglove bench client did not subscribe: {line!r}")
+    return proc
+
+
 def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtime: bool,
              design_path: str, switch_interval_s: float = 0.0001,
-             cpus: tuple[int, ...] = ()) -> dict[str, Any]:
+             cpus: tuple[int, ...] = (), foxglove: bool = False,
+             client: str = "") -> dict[str, Any]:
     from rig.rt.realtime import RealtimeRequest
     from rig.wire.protocol import LifecycleState
+
+    if foxglove:
+        cfg = cfg.replace(foxglove={"enabled": True, "host": "127.0.0.1", "port": 0})
 
     rate = cfg.design.sample_rate_hz
     tmp = tempfile.TemporaryDirectory()
@@ -118,7 +148,17 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
     svc.loop.lifecycle.add_listener(
         lambda tr: faults.append(tr.fault_code.name) if tr.state is LifecycleState.FAULT
         else None)
-    res = h.run(on_tick=on_tick)
+    client_proc = _start_client(svc.foxglove.port, client) if client else None
+    try:
+        res = h.run(on_tick=on_tick)
+    finally:
+        client_messages = 0
+        if client_proc is not None:
+            client_proc.terminate()              # our own child, by its PID
+            out, _ = client_proc.communicate(timeout=30)
+            for line in out.splitlines():
+                if line.startswith("messages "):
+                    client_messages = int(line.split()[1])
     lat, step = svc.loop.timing.recent()
     rig = res.rig_stats
     out: dict[str, Any] = {
@@ -132,6 +172,8 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
         "rig_error": res.rig_error,
         "dropped_recording": svc.recorder.dropped if svc.recorder else 0,
         "dropped_telemetry": svc.telemetry.dropped if svc.telemetry else 0,
+        "foxglove": svc.foxglove_status(),
+        "client_messages": client_messages,
         "realtime": svc.realtime_report.as_dict() if realtime else None,
         "rig_realtime": res.rig_realtime,
     }
@@ -216,6 +258,9 @@ def _summarise(segments: list[dict[str, Any]]) -> dict[str, Any]:
         "rig_errors": [s["rig_error"] for s in segments if s["rig_error"]],
         "dropped_recording": sum(s["dropped_recording"] for s in segments),
         "dropped_telemetry": sum(s["dropped_telemetry"] for s in segments),
+        "fox_published": sum(s["foxglove"].get("published", 0) for s in segments),
+        "fox_dropped": sum(s["foxglove"].get("dropped", 0) for s in segments),
+        "client_messages": sum(s["client_messages"] for s in segments),
         "segment_step_p99_us": [_pct(s["_step_us"], 99) for s in segments],
         "realtime": segments[0]["realtime"],
         "rig_realtime": segments[0]["rig_realtime"],
@@ -355,9 +400,10 @@ def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
                     segments[name].append(run_sleeper(seconds / rounds, realtime,
                                                       switch_interval_s, cpus))
                     continue
+                rec, tel, fox, client = CASES[name]
                 segments[name].append(run_case(
-                    cfg, seconds / rounds, CASES[name][0], CASES[name][1], realtime,
-                    design_path, switch_interval_s, cpus=cpus))
+                    cfg, seconds / rounds, rec, tel, realtime, design_path,
+                    switch_interval_s, cpus=cpus, foxglove=fox, client=client))
         cases = {name: _summarise(segs) for name, segs in segments.items()}
         tick = tick_hot_and_cold(cfg, design_path)
     micro = {"socketpair_bus": bus_cost("socketpair"), "virtual_bus": bus_cost("virtual"),
@@ -372,7 +418,20 @@ def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
             "p99_lateness_ratio": (full["lateness_p99_us"] / bare["lateness_p99_us"]
                                    if bare["lateness_p99_us"] > 0 else math.nan),
             "p99_step_ratio": full["step_p99_us"] / bare["step_p99_us"],
+            "foxglove_vs_off": {
+                name: {"base": base,
+                       "lateness_p99_ratio": _ratio(cases[name]["lateness_p99_us"],
+                                                    cases[base]["lateness_p99_us"]),
+                       "step_p99_ratio": _ratio(cases[name]["step_p99_us"],
+                                                cases[base]["step_p99_us"]),
+                       "periods_late_pct": cases[name]["periods_late_pct"],
+                       "base_periods_late_pct": cases[base]["periods_late_pct"]}
+                for name, base in FOX_BASE.items() if name in cases and base in cases},
             "cpus": os.cpu_count(), "load": os.getloadavg(), "pinned_cpu": cpu}
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b > 0 else math.nan
 
 
 _ROWS = [("lateness p50 [us]", "lateness_p50_us", "{:.1f}"),
@@ -418,6 +477,13 @@ def format_report(res: dict[str, Any]) -> str:
                f"step p99 {full['step_p99_us']:.1f} vs {bare['step_p99_us']:.1f} us "
                f"(x{res['p99_step_ratio']:.2f}; median of the {res['rounds']} rounds' "
                f"ratios x{res['p99_step_ratio_median_of_rounds']:.2f}); goal: at most x1.10")
+    for name, r in res.get("foxglove_vs_off", {}).items():
+        c = cases[name]
+        out.append(f"{name} vs {r['base']}: lateness p99 x{r['lateness_p99_ratio']:.2f}, "
+                   f"step p99 x{r['step_p99_ratio']:.2f}, periods late "
+                   f"{r['periods_late_pct']:.3f} vs {r['base_periods_late_pct']:.3f} %; "
+                   f"view published {c['fox_published']:.0f}, dropped "
+                   f"{c['fox_dropped']:.0f}, client received {c['client_messages']:.0f}")
     sleeper = cases.get(SLEEPER)
     for name, c in cases.items():
         if name == SLEEPER:

@@ -41,6 +41,7 @@ __all__ = [
     "DesignConfig",
     "EmulatorConfig",
     "ForceLoopConfig",
+    "FoxgloveConfig",
     "FuzzyConfig",
     "MovingBankConfig",
     "NoiseConfig",
@@ -55,6 +56,7 @@ __all__ = [
     "config_to_dict",
     "config_to_toml",
     "default_config",
+    "host_problem",
     "load_config",
     "parse_config",
     "parse_toml",
@@ -487,6 +489,26 @@ class TelemetryConfig:
 
 
 @dataclass(frozen=True)
+class FoxgloveConfig:
+    """Live Foxglove WebSocket view (rig/foxglove_server.py, docs/foxglove.md)."""
+
+    enabled: bool = _f(False, doc="serve the live view (rig run/demo --foxglove HOST:PORT "
+                       "turns it on)")
+    host: str = _f("127.0.0.1", doc="IP address the WebSocket server binds (127.0.0.1: this "
+                   "computer only, reach it through an SSH tunnel; 0.0.0.0: every interface)")
+    port: int = _f(8765, lo=0, hi=65535, doc="TCP port (0: any free port)")
+    rate_hz: float = _f(100.0, lo=1.0, hi=1000.0,
+                        doc="tick records published per second (every n-th tick; at most "
+                            "design.sample_rate_hz)")
+    queue_size: int = _f(256, lo=1, hi=100_000,
+                         doc="tick records and events waiting for the publisher thread; a "
+                             "full queue drops and counts")
+    client_backlog: int = _f(1024, lo=16, hi=1_000_000,
+                             doc="messages buffered per client; a slow client loses the "
+                                 "oldest")
+
+
+@dataclass(frozen=True)
 class RecordingConfig:
     enabled: bool = _f(True)
     directory: str = _f("runs")
@@ -515,6 +537,7 @@ class RigConfig:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     can: CanConfig = field(default_factory=CanConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     emulator: EmulatorConfig = field(default_factory=EmulatorConfig)
 
@@ -692,6 +715,7 @@ def _cross_checks(cfg: RigConfig) -> None:
         raise ConfigError("noise.road_roughness_gd", cfg.noise.road_roughness_gd,
                           "increasing values")
     _telemetry_checks(cfg.telemetry)
+    _foxglove_checks(cfg)
 
 
 _HOST_NAME = r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
@@ -739,6 +763,25 @@ def _telemetry_checks(t: TelemetryConfig) -> None:
     if t.mode == "client" and t.listen:
         raise ConfigError("telemetry.listen", t.listen,
                           "false in client mode (a Zenoh client connects, it cannot listen)")
+
+
+def host_problem(host: str) -> str:
+    """'' for an IPv4 / IPv6 address a server can bind, else what is allowed."""
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return "an IPv4 or IPv6 address, e.g. 127.0.0.1 or 0.0.0.0"
+    return ""
+
+
+def _foxglove_checks(cfg: RigConfig) -> None:
+    fg = cfg.foxglove
+    problem = host_problem(fg.host)
+    if problem:
+        raise ConfigError("foxglove.host", fg.host, problem)
+    if fg.rate_hz > cfg.design.sample_rate_hz:
+        raise ConfigError("foxglove.rate_hz", fg.rate_hz,
+                          f"<= design.sample_rate_hz = {cfg.design.sample_rate_hz}")
 
 
 def parse_config(data: Mapping[str, Any]) -> RigConfig:

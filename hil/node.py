@@ -38,6 +38,7 @@ from hil.sim.roads import Road
 from hil.sim.sensors import SensorSuite
 from rig.bus.core import classify_bus_exception, classify_error_frame, make_tx_message
 from rig.rt.pacing import Pacer
+from rig.wire.dbc_constants import RIG_STATUS_CYCLE_TIME_MS
 from rig.wire.protocol import (
     CONTROLLER_STATUS,
     CONTROLLER_STATUS_ID,
@@ -63,7 +64,8 @@ __all__ = ["NodeRecord", "NodeStats", "RigNode"]
 DEFAULT_WATCHDOG_S = 0.005
 #: a tick that starts later than this after its deadline counts in NodeStats.late_ticks
 LATE_TICK_NS = 200_000
-DEFAULT_STATUS_RATE_HZ = 100.0
+#: RigStatus rate: the DBC's GenMsgCycleTime of RigStatus
+DEFAULT_STATUS_RATE_HZ = 1000.0 / RIG_STATUS_CYCLE_TIME_MS
 _NO_WINDOWS: list[FaultWindow] = []  # never mutated
 _NO_KINDS: frozenset[FaultKind] = frozenset()
 

@@ -28,7 +28,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from controller.config import RigConfig
+from controller.config import RigConfig, host_problem
 from controller.modes import BANK_MODES
 from rig.output_paths import new_file_problem, output_dir_problem, recording_target_problem
 
@@ -40,12 +40,14 @@ __all__ = [
     "active_config",
     "add_cluster_option",
     "add_controller_option",
+    "add_foxglove_option",
     "add_weights_option",
     "bind_config",
     "cluster",
     "config_int",
     "config_real",
     "cpu",
+    "foxglove_address",
     "input_file",
     "integer",
     "output_dir",
@@ -57,6 +59,7 @@ __all__ = [
     "rt_priority",
     "seed",
     "weight_set",
+    "with_foxglove",
 ]
 
 #: longest run of the commands that keep every tick in memory (sim, montecarlo per run,
@@ -320,6 +323,37 @@ def output_dir(text: str) -> str:
 def recording_target(text: str) -> str:
     """A new ``.mcap`` path or a directory for a new recording (never overwritten)."""
     return _checked_path(text, "path", recording_target_problem)
+
+
+def foxglove_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT``, ``[IPv6]:PORT`` or ``PORT`` (then 127.0.0.1) of the live Foxglove
+    view -> (host, port)."""
+    form = "HOST:PORT or PORT (HOST an IP address, default 127.0.0.1; PORT 0-65535)"
+    host, sep, port_s = text.strip().rpartition(":")
+    if not sep:
+        host = "127.0.0.1"
+    elif host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not port_s.isdigit() or not 0 <= int(port_s) <= 65535:
+        _fail(f"{text!r}: the port must be an integer 0-65535; allowed {form}")
+    if host_problem(host):
+        _fail(f"{text!r}: {host!r} is not an IP address; allowed {form}")
+    return host, int(port_s)
+
+
+def add_foxglove_option(parser: argparse.ArgumentParser) -> None:
+    """``--foxglove HOST:PORT``: serve the live Foxglove view (docs/foxglove.md)."""
+    parser.add_argument(
+        "--foxglove", type=foxglove_address, default=None, metavar="HOST:PORT",
+        help="serve the live Foxglove WebSocket view on HOST:PORT (PORT alone: "
+             "127.0.0.1:PORT; default: the [foxglove] section, off)")
+
+
+def with_foxglove(cfg: RigConfig, address: tuple[str, int] | None) -> RigConfig:
+    """``cfg`` with the view turned on at ``address`` (unchanged when None)."""
+    if address is None:
+        return cfg
+    return cfg.replace(foxglove={"enabled": True, "host": address[0], "port": address[1]})
 
 
 def input_file(text: str) -> str:

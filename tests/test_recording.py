@@ -25,7 +25,15 @@ from mcap.reader import make_reader
 
 from controller.config import RecordingConfig, config_hash, config_to_toml, default_config
 from rig.recording.recorder import CanFrameRecord, EventRecord, RunRecorder, read_run, segment_paths
-from rig.recording.schema import RECORDING_FORMAT_VERSION, SIGNAL_KEYS, TIMING_KEYS, TOPICS
+from rig.recording.schema import (
+    RECORDING_FORMAT_VERSION,
+    SIGNAL_KEYS,
+    TIMING_KEYS,
+    TOPIC_LOG,
+    TOPIC_SCENE,
+    TOPIC_TF,
+    TOPICS,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)
@@ -231,7 +239,7 @@ def test_schemas_messages_attachments_metadata(tmp_path: Path) -> None:
     versions = json.loads(meta.metadata["versions"])
     assert {"python", "numpy", "mcap", "eclipse-zenoh", "lqg-fuzzy-rig"} <= set(versions)
     run = read_run(path)
-    assert run.metadata["rig"]["format_version"] == str(RECORDING_FORMAT_VERSION) == "2"
+    assert run.metadata["rig"]["format_version"] == str(RECORDING_FORMAT_VERSION) == "3"
     assert run.events[-1].kind == "note"
     assert run.events[-1].detail == {"kind": "weird-kind", "detail": [1, 2]}
 
@@ -364,7 +372,10 @@ def pid_alive(pid: int) -> bool:
 def raw_complete_chunk_messages(path: Path) -> int:
     """Count messages inside the *complete* chunk records, parsing the MCAP byte layout
     directly (spec: opcode u8, length u64; Chunk = start u64, end u64, size u64, crc u32,
-    compression str, records bytes)."""
+    compression str, records bytes).  Only the channels ``read_run`` reads: the derived
+    views (/rig/log, /rig/scene, /tf) are not counted."""
+    derived = {TOPIC_LOG.encode(), TOPIC_SCENE.encode(), TOPIC_TF.encode()}
+    topics: dict[int, bytes] = {}
     data = path.read_bytes()
     assert data[:8] == b"\x89MCAP0\r\n"
     pos, n = 8, 0
@@ -386,7 +397,12 @@ def raw_complete_chunk_messages(path: Path) -> int:
             p = 0
             while p < len(recs):
                 rop, rl = struct.unpack_from("<BQ", recs, p)
-                n += rop == 0x05
+                if rop == 0x04:
+                    cid, _, tlen = struct.unpack_from("<HHI", recs, p + 9)
+                    topics[cid] = recs[p + 17:p + 17 + tlen]
+                elif rop == 0x05:
+                    (cid,) = struct.unpack_from("<H", recs, p + 9)
+                    n += topics.get(cid) not in derived
                 p += 9 + rl
         pos = end
     return n

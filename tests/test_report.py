@@ -22,7 +22,7 @@ from scipy import signal
 from bench.replay_bench import record_emulated_run
 from controller.actuator import servo_model
 from controller.artifact import save_design
-from controller.config import default_config
+from controller.config import RigConfig, default_config
 from controller.design import design_bank
 from controller.runtime.kernels import StepFlag
 from rig.cli import main as rig_main
@@ -242,7 +242,8 @@ def test_metrics_against_independent_computations(recording: Path) -> None:
 
 
 def _synthetic(ref: np.ndarray, meas: np.ndarray, rattlespace: np.ndarray,
-               flags: np.ndarray | None = None, dt: float = 1e-3) -> RunSeries:
+               flags: np.ndarray | None = None, dt: float = 1e-3,
+               cfg: RigConfig = CFG) -> RunSeries:
     """A RunSeries made of arrays, valve on throughout."""
     n = ref.size
     nan = np.full(n, np.nan)
@@ -255,21 +256,24 @@ def _synthetic(ref: np.ndarray, meas: np.ndarray, rattlespace: np.ndarray,
                      np.arange(n) * dt, 0, sig, ["ACTIVE"] * n, [None] * n,
                      {k: np.zeros((n, 0)) for k in ("q", "firing_weight", "probability",
                                                     "u_model")},
-                     timing, [], [], CFG, "",
+                     timing, [], [], cfg, "",
                      flags if flags is not None else np.zeros(n, np.int64))
 
 
 def test_tracking_error_along_the_rattlespace_rate_has_the_oil_column_slope() -> None:
-    """Error = -k_h/(kp kq) * d/dt rattlespace (a 2 Hz sine) + a 150 Hz tone: the analysis
-    finds the configuration's slope, explains ~all of the low band and splits the power."""
-    sm = servo_model(CFG)
+    """Without the flow feedforward: error = -k_h/(kp kq) * d/dt rattlespace (a 2 Hz
+    sine) + a 150 Hz tone: the analysis finds the configuration's slope, explains ~all of
+    the low band and splits the power."""
+    no_ff = CFG.replace(force_loop={"flow_feedforward_gain": 0.0})
+    sm = servo_model(no_ff)
     k = sm.hydraulic_stiffness_n_per_m / (sm.kp_per_n * sm.flow_gain_n_per_s)
     t = np.arange(8192) * 1e-3
     rs = 0.02 * np.sin(2 * np.pi * 2.0 * t)
     rate = 0.02 * 2 * np.pi * 2.0 * np.cos(2 * np.pi * 2.0 * t)
     tone = 300.0 * np.sin(2 * np.pi * 150.0 * t)
-    ft = force_tracking(_synthetic(-k * rate + tone, np.zeros_like(t), rs))
+    ft = force_tracking(_synthetic(-k * rate + tone, np.zeros_like(t), rs, cfg=no_ff))
     assert ft.ok
+    assert ft.residual_slope_ns_per_m == pytest.approx(k)
     assert ft.corner_hz == pytest.approx(sm.kp_per_n * sm.flow_gain_n_per_s / (2 * np.pi))
     assert ft.oil_column_ns_per_m == pytest.approx(k)
     assert ft.fitted_slope_ns_per_m == pytest.approx(k, rel=0.02)
@@ -281,8 +285,28 @@ def test_tracking_error_along_the_rattlespace_rate_has_the_oil_column_slope() ->
                                                     ft.error_rms_above_n), rel=0.02)
     # the check can fail: an error that does not follow the rate is not explained by it
     other = force_tracking(_synthetic(k * 0.1 * np.sin(2 * np.pi * 3.0 * t),
-                                      np.zeros_like(t), rs))
+                                      np.zeros_like(t), rs, cfg=no_ff))
     assert other.explained_below < 0.1
+    # with the feedforward (default g = 1) the configuration predicts no velocity slope
+    with_ff = force_tracking(_synthetic(-k * rate + tone, np.zeros_like(t), rs))
+    assert with_ff.residual_slope_ns_per_m == 0.0 and with_ff.explained_below < 0.05
+
+
+def test_tracking_lag_of_a_first_order_loop_is_predicted() -> None:
+    """The measured force = the reference through a first-order loop with the
+    configuration's corner (independent reference: scipy.signal.lfilter of the
+    discretised lag): the predicted lag error below the corner matches the measured."""
+    from scipy import signal as sps
+
+    fc = servo_model(CFG).kp_per_n * servo_model(CFG).flow_gain_n_per_s / (2 * np.pi)
+    dt = 1e-3
+    rng = np.random.default_rng(3)
+    ref = sps.sosfiltfilt(sps.butter(4, 15.0, fs=1 / dt, output="sos"),
+                          rng.normal(0.0, 3000.0, 16384))
+    b, a = sps.bilinear([1.0], [1 / (2 * np.pi * fc), 1.0], fs=1 / dt)
+    meas = sps.lfilter(b, a, ref)
+    ft = force_tracking(_synthetic(ref, meas, np.zeros_like(ref)))
+    assert ft.lag_error_rms_below_n == pytest.approx(ft.error_rms_below_n, rel=0.15)
 
 
 def test_tracking_splits_the_reference_near_no_rule_fired_ticks() -> None:

@@ -62,6 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     argtypes.add_controller_option(p, tuple(BANK_MODES), "fuzzy")
     argtypes.add_weights_option(p, None)
     p.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
+    argtypes.add_foxglove_option(p)
     p.add_argument("--no-realtime", action="store_true", help="skip the real-time set-up")
     p.add_argument("--max-rearms", type=argtypes.integer(0, MAX_REARMS), default=10,
                    metavar="N",
@@ -228,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr)
     stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
-    cfg = load_config(args.config)
+    cfg = argtypes.with_foxglove(load_config(args.config), args.foxglove)
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
     arm_tick = n_ticks // 2
@@ -255,6 +256,8 @@ def run(args: argparse.Namespace) -> int:
                   "arm_tick": arm_tick},
         stop=stop, rig_start_ticks=WARM_TICKS)
     service, trace = harness.service, harness.trace
+    if service.foxglove is not None and service.foxglove.state == "serving":
+        print(f"rig demo: Foxglove view on {service.foxglove.url}", file=sys.stderr)
     faults: list[dict[str, Any]] = []
     state = {"rearms": 0, "armed_at": -1}
 
@@ -324,6 +327,7 @@ def run(args: argparse.Namespace) -> int:
         "recording": str(service.recording_path) if service.recording_path else None,
         "recording_dropped": service.recorder.dropped if service.recorder else 0,
         "recording_error": service.recorder.error if service.recorder else None,
+        "foxglove": service.foxglove_status(),
         "rig": result.rig_stats,
         "rig_realtime": result.rig_realtime,
         "rig_error": result.rig_error,

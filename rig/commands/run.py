@@ -37,6 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(a recording is never overwritten)")
     p.add_argument("--no-record", action="store_true", help="do not record")
     p.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
+    argtypes.add_foxglove_option(p)
     argtypes.add_controller_option(p, tuple(BANK_MODES), "fuzzy")
     argtypes.add_weights_option(p, None)
     p.add_argument("--no-realtime", action="store_true",
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    cfg = load_config(args.config)
+    cfg = argtypes.with_foxglove(load_config(args.config), args.foxglove)
     rt = None if args.no_realtime else RealtimeRequest(
         fifo_priority=args.rt_priority, cpus=tuple(args.cpu or ()))
     opts = ServiceOptions(
@@ -84,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if service.recording_path is not None:
         print(f"rig run: recording to {service.recording_path}", file=sys.stderr)
+    if service.foxglove is not None and service.foxglove.state == "serving":
+        print(f"rig run: Foxglove view on {service.foxglove.url}", file=sys.stderr)
     code = service.run()
     if service.ticks_run == 0:
         print(f"rig run: stopped by {service.stop_signal or 'request'} before the control "
@@ -101,5 +104,6 @@ def run(args: argparse.Namespace) -> int:
         status["recording"] = str(service.recording_path) if service.recording_path else None
         status["realtime"] = service.realtime_report.as_dict()
         status["telemetry"] = service.status()["telemetry"]
+        status["foxglove"] = service.foxglove_status()
         print(strict_json.dumps(status))
     return code

@@ -67,7 +67,7 @@ from rig.recording.codec import (
     encode_layout,
     encode_pickled_tick,
 )
-from rig.recording.schema import RECORDING_FORMAT_VERSION
+from rig.recording.schema import PARTS_KEY, RECORDING_FORMAT_VERSION
 from rig.recording.segments import (
     SEGMENT_END_NAME,
     SegmentChain,
@@ -80,7 +80,6 @@ from rig.recording.writer import (
     CONFIG_ATTACHMENT,
     DESIGN_ATTACHMENT,
     METADATA_NAME,
-    PARTS_KEY,
 )
 from rig.strict_json import json_lines
 
@@ -181,6 +180,8 @@ class RunRecorder:
         self._ticks_in_batch = 0
         if clock_offset_ns is None:
             clock_offset_ns = time.time_ns() - time.monotonic_ns() if clock == "monotonic" else 0
+        #: wall minus loop clock [ns] (the MCAP log_time offset; the live view uses it too)
+        self.clock_offset_ns = int(clock_offset_ns)
         self._packer: TickPacker | None = None
         header = {
             "path": str(target), "rotate_bytes": cfg.rotate_bytes,

@@ -19,11 +19,18 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
+from enum import IntEnum
 from typing import Any, Final
+
+from rig.recording.scene import FRAME_TRANSFORM_SCHEMA, SCENE_UPDATE_SCHEMA
+from rig.wire.fault_descriptions import FAULT_DESCRIPTIONS
 
 __all__ = [
     "EVENT_KINDS",
+    "LOG_SCHEMA",
     "MESSAGE_ENCODING",
+    "PARTS_KEY",
     "RECORDING_FORMAT_VERSION",
     "SCHEMA_ENCODING",
     "SIGNAL_KEYS",
@@ -33,16 +40,24 @@ __all__ = [
     "TOPIC_CAN_TX",
     "TOPIC_EVENTS",
     "TOPIC_INTERNALS",
+    "TOPIC_LOG",
+    "TOPIC_SCENE",
     "TOPIC_SIGNALS",
+    "TOPIC_TF",
     "TOPIC_TIMING",
+    "LogLevel",
     "encode_json",
+    "log_message",
     "schema_bytes",
+    "split_record",
 ]
 
 #: Bumped when a channel, field meaning or attachment name changes incompatibly.
 #: 2: segment identity and end records (run id, index, sequence / tick ranges) and the
 #: data-section CRC (rig.recording.segments)
-RECORDING_FORMAT_VERSION: Final = 2
+#: 3: events also on ``/rig/log`` (foxglove.Log) and the quarter-car picture on
+#: ``/rig/scene`` (foxglove.SceneUpdate) and ``/tf`` (foxglove.FrameTransform)
+RECORDING_FORMAT_VERSION: Final = 3
 SCHEMA_ENCODING: Final = "jsonschema"
 MESSAGE_ENCODING: Final = "json"
 
@@ -52,6 +67,12 @@ TOPIC_SIGNALS: Final = "/rig/signals"
 TOPIC_INTERNALS: Final = "/controller/internals"
 TOPIC_TIMING: Final = "/rig/timing"
 TOPIC_EVENTS: Final = "/rig/events"
+TOPIC_LOG: Final = "/rig/log"
+TOPIC_SCENE: Final = "/rig/scene"
+TOPIC_TF: Final = "/tf"
+#: in /rig/signals: how many messages the tick record has (signals first)
+PARTS_KEY: Final = "record_parts"
+_RESERVED: Final = frozenset({"tick", "t_ns", PARTS_KEY})
 
 #: Decoded rig signals and the loop's outputs (documented in docs/recording.md).
 SIGNAL_KEYS: Final = frozenset({
@@ -168,6 +189,47 @@ EVENT_SCHEMA: Final = _obj(
     description="lifecycle transitions, applied commands, faults, notes",
 )
 
+_TIME: Final[dict[str, Any]] = {
+    "type": "object", "title": "time",
+    "properties": {"sec": {"type": "integer", "minimum": 0},
+                   "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999}},
+    "required": ["sec", "nsec"],
+}
+
+
+class LogLevel(IntEnum):
+    """foxglove.LogLevel (the well-known schema's numbers)."""
+
+    UNKNOWN = 0
+    DEBUG = 1
+    INFO = 2
+    WARNING = 3
+    ERROR = 4
+    FATAL = 5
+
+
+#: the well-known ``foxglove.Log`` message (JSON form; Foxglove's Log panel reads it by
+#: this schema name): the rig's events with a level, one line of text and the code
+LOG_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "foxglove.Log",
+    "description": "A log message: one lifecycle transition, fault, command or note",
+    "type": "object",
+    "properties": {
+        "timestamp": {**_TIME, "description": "wall time of the event"},
+        "level": {"title": "foxglove.LogLevel",
+                  "oneOf": [{"title": lv.name, "const": int(lv)} for lv in LogLevel]},
+        "message": {"type": "string"},
+        "name": {"type": "string", "description": "event kind: lifecycle, fault, command, "
+                 "note"},
+        "file": {"type": "string", "description": "code of the event (fault code, command, "
+                 "target state)"},
+        "line": {"type": "integer", "minimum": 0, "description": "loop tick"},
+    },
+    "required": ["timestamp", "level", "message", "name", "file", "line"],
+}
+
+
 #: topic -> schema
 TOPICS: Final[dict[str, dict[str, Any]]] = {
     TOPIC_CAN_RX: CAN_FRAME_SCHEMA,
@@ -176,7 +238,80 @@ TOPICS: Final[dict[str, dict[str, Any]]] = {
     TOPIC_INTERNALS: INTERNALS_SCHEMA,
     TOPIC_TIMING: TIMING_SCHEMA,
     TOPIC_EVENTS: EVENT_SCHEMA,
+    TOPIC_LOG: LOG_SCHEMA,
+    TOPIC_SCENE: SCENE_UPDATE_SCHEMA,
+    TOPIC_TF: FRAME_TRANSFORM_SCHEMA,
 }
+
+
+def split_record(t_ns: int, record: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """One flat tick record -> ``[(topic, message), ...]`` by key (:data:`SIGNAL_KEYS`,
+    :data:`TIMING_KEYS`, the rest internals); signals first, carrying
+    :data:`PARTS_KEY`; internals and timing only when they have fields.  The recording
+    writer and the live Foxglove view publish exactly these messages."""
+    tick = int(record["tick"])
+    sig: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
+    tim: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
+    intl: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
+    for k, v in record.items():
+        if k in SIGNAL_KEYS:
+            sig[k] = v
+        elif k in TIMING_KEYS:
+            tim[k] = v
+        elif k not in _RESERVED:
+            intl[k] = v
+    parts = [(TOPIC_SIGNALS, sig)]
+    parts += [(t, m) for t, m in ((TOPIC_INTERNALS, intl), (TOPIC_TIMING, tim))
+              if len(m) > 2]
+    sig[PARTS_KEY] = len(parts)   # lets a reader spot a record torn by a crash
+    return parts
+
+
+def _text(value: Any, limit: int = 300) -> str:
+    text = value if isinstance(value, str) else json.dumps(value, default=str)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def log_message(wall_ns: int, tick: int, kind: str, detail: Any) -> dict[str, Any]:
+    """The ``foxglove.Log`` message of one event (``kind``/``detail`` as on
+    ``/rig/events``).  Levels: a latched fault ERROR; a refused command, a bus exception
+    or a degraded estimator WARNING; everything else INFO."""
+    level = LogLevel.INFO
+    code = kind
+    d = detail if isinstance(detail, Mapping) else {}
+    if kind == "fault" or (kind == "lifecycle" and d.get("to") == "FAULT"):
+        level = LogLevel.ERROR
+        code = str(d.get("fault", "FAULT"))
+        plain = FAULT_DESCRIPTIONS.get(code, "")
+        message = f"FAULT {code}: {plain} ({d.get('reason', '')})" if plain \
+            else f"FAULT {code}: {d.get('reason', '')}"
+    elif kind == "lifecycle" and d:
+        code = str(d.get("to", ""))
+        message = f"{d.get('from')} -> {d.get('to')}: {d.get('reason', '')}"
+    elif kind == "command" and d:
+        code = str(d.get("command", "command"))
+        if not d.get("accepted", True):
+            level = LogLevel.WARNING
+        arg = d.get("argument")
+        message = (f"command {code}{'' if arg is None else f'({_text(arg, 60)})'} "
+                   f"{'accepted' if d.get('accepted') else 'refused'}: "
+                   f"{d.get('message', '')}")
+    elif kind == "note" and "bus_exception" in d:
+        level = LogLevel.WARNING
+        code = f"bus_{d['bus_exception']}"
+        message = f"CAN {d['bus_exception']} failed: {d.get('type', '')} {d.get('error', '')}"
+    elif kind == "note" and "estimator" in d:
+        degraded = d["estimator"] == "degraded"
+        level = LogLevel.WARNING if degraded else LogLevel.INFO
+        code = "ESTIMATOR_DEGRADED" if degraded else "estimator_rearmed"
+        message = (f"estimator {d['estimator']} ({d.get('degradations', 0)} so far)"
+                   + (f": {FAULT_DESCRIPTIONS['ESTIMATOR_DEGRADED']}" if degraded else ""))
+    else:
+        message = _text(detail)
+    sec, nsec = divmod(max(int(wall_ns), 0), 1_000_000_000)
+    return {"timestamp": {"sec": sec, "nsec": nsec}, "level": int(level),
+            "message": _text(message, 1000), "name": kind, "file": code,
+            "line": max(int(tick), 0)}
 
 
 def schema_bytes(schema: dict[str, Any]) -> bytes:

@@ -43,16 +43,17 @@ from rig.recording.codec import (
     iter_items,
     split_items,
 )
+from rig.recording.scene import SCENE_PERIOD_NS, scene_messages
 from rig.recording.schema import (
     EVENT_KINDS,
     MESSAGE_ENCODING,
     RECORDING_FORMAT_VERSION,
     SCHEMA_ENCODING,
-    SIGNAL_KEYS,
-    TIMING_KEYS,
     TOPICS,
     encode_json,
+    log_message,
     schema_bytes,
+    split_record,
 )
 from rig.recording.segments import SEGMENT_END_NAME, segment_path
 
@@ -61,8 +62,6 @@ __all__ = ["McapRunSink", "main", "segment_path"]
 CONFIG_ATTACHMENT = "config.toml"
 DESIGN_ATTACHMENT = "design.npz"
 METADATA_NAME = "rig"
-PARTS_KEY = "record_parts"  # in /rig/signals: how many messages the tick record has
-_RESERVED = frozenset({"tick", "t_ns", PARTS_KEY})
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
 
@@ -89,6 +88,7 @@ class McapRunSink:
         self._writer: Writer | None = None
         self._channels: dict[str, int] = {}
         self._seg_t0: int | None = None
+        self._next_scene_ns: int | None = None    # loop time of the next picture
         self._seq = 0
         self._seg_seq0 = 0                       # sequence of the segment's first item
         self._seg_ticks: list[int] = []          # [first, last] tick of the segment
@@ -219,24 +219,18 @@ class McapRunSink:
             w.add_message(ch, log_time, payload, log_time, seq)
         elif kind == "tick":
             record: Mapping[str, Any] = item[2]
-            tick = int(record["tick"])
-            sig: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
-            tim: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
-            intl: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
-            for k, v in record.items():
-                if k in SIGNAL_KEYS:
-                    sig[k] = v
-                elif k in TIMING_KEYS:
-                    tim[k] = v
-                elif k not in _RESERVED:
-                    intl[k] = v
-            parts = [(schema.TOPIC_SIGNALS, sig)]
-            parts += [(t, m) for t, m in ((schema.TOPIC_INTERNALS, intl),
-                                          (schema.TOPIC_TIMING, tim)) if len(m) > 2]
-            sig[PARTS_KEY] = len(parts)   # lets a reader spot a record torn by a crash
-            encoded = [(topic, encode_json(msg)) for topic, msg in parts]
+            encoded = [(topic, encode_json(msg)) for topic, msg in split_record(t_ns, record)]
             for topic, blob in encoded:
                 w.add_message(self._channels[topic], log_time, blob, log_time, seq)
+            if self._next_scene_ns is None or t_ns >= self._next_scene_ns:
+                self._next_scene_ns = t_ns + SCENE_PERIOD_NS
+                tf, scene = scene_messages(log_time, record.get("rattlespace_m"),
+                                           record.get("force_meas_n"),
+                                           str(record.get("lifecycle", "")))
+                w.add_message(self._channels[schema.TOPIC_TF], log_time, encode_json(tf),
+                              log_time, seq)
+                w.add_message(self._channels[schema.TOPIC_SCENE], log_time,
+                              encode_json(scene), log_time, seq)
         elif kind == "event":
             _, _, tick, kind_s, detail = item
             if kind_s not in EVENT_KINDS:
@@ -247,6 +241,9 @@ class McapRunSink:
             msg = {"tick": int(tick), "t_ns": t_ns, "kind": kind_s,
                    "detail": dict(detail) if isinstance(detail, Mapping) else detail}
             w.add_message(self._channels[schema.TOPIC_EVENTS], log_time, encode_json(msg),
+                          log_time, seq)
+            w.add_message(self._channels[schema.TOPIC_LOG], log_time,
+                          encode_json(log_message(log_time, int(tick), kind_s, msg["detail"])),
                           log_time, seq)
         else:
             raise ValueError(f"unknown item {kind!r}")

@@ -89,6 +89,8 @@ code, td.src {{ font-family: ui-monospace, monospace; }}
 .model {{ border-bottom: 3px solid var(--c); padding: 0 2px; }}
 figure {{ margin: 1.2em 0; }} img {{ max-width: 100%; }}
 figcaption {{ font-size: 90%; color: #333; max-width: 60em; }}
+.channels {{ font-size: 80%; color: #555; margin: 0 0 0.3em; }}
+h3 a {{ color: inherit; text-decoration: none; }}
 tr.ev-fault td {{ background: {_rgba(PHASE_COLOURS[Phase.FAULT], PHASE_ALPHA)}; }}
 {phase}
 """
@@ -168,8 +170,11 @@ def _events_table(rows: list[EventRow]) -> str:
 
 def _figure(f: Figure) -> str:
     stem = f.name.removesuffix(".png")
+    chans = " ".join(f'<code class="chan">{html.escape(p)}</code>' for p in f.paths)
     return (f'<figure id="fig-{stem}" data-paths="{html.escape(" ".join(f.paths))}">'
-            f"<h3>{html.escape(f.heading)}</h3>"
+            f'<h3><a href="#fig-{stem}">{html.escape(f.heading)}</a></h3>'
+            f'<p class="channels">Channels (the same names in the MCAP recording and the '
+            f"live Foxglove view, docs/foxglove.md): {chans}</p>"
             f'<img src="{f.name}" alt="{html.escape(f.heading)}">'
             f"<figcaption>{f.caption}</figcaption></figure>")
 

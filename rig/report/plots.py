@@ -303,7 +303,7 @@ def _force(d: PlotInput, out: Path) -> Figure:
         f"{_fmt(a['force_ref_applied_rms_n'], 4)} N RMS while active. Orange: the load "
         f"cell, {_fmt(a['force_meas_rms_n'], 4)} N RMS active, "
         f"{_fmt(p['force_meas_rms_n'], 3)} N passive. Purple: the tracking error, "
-        f"{_fmt(a['tracking_error_rms_n'], 4)} N RMS (why so large: next figure). "
+        f"{_fmt(a['tracking_error_rms_n'], 4)} N RMS (where it comes from: next figure). "
         f"Light grey: <code>force_ref_n</code> as recorded while the valve is off "
         f"({_fmt(p['force_ref_computed_rms_n'], 4)} N RMS). The bank computes it in every "
         f"state, but with the valve off the ValveCommand carries Enable = 0 and "
@@ -367,10 +367,13 @@ def _force_tracking(d: PlotInput, out: Path) -> Figure | None:
                 rasterized=True)
     lim = float(np.percentile(np.abs(x), 99.5)) if x.size else 1.0
     xs = np.array([-lim, lim])
-    ax2.plot(xs, -1e-3 * ft.oil_column_ns_per_m * xs, color="k", ls="--", lw=1.0,
-             label=f"−k_h/(kp·kq) = −{ft.oil_column_ns_per_m / 1e3:.2f} kN·s/m (config)")
+    ax2.plot(xs, -1e-3 * ft.oil_column_ns_per_m * xs, color="#888888", ls=":", lw=1.0,
+             label=f"no feedforward: −k_h/(kp·kq) = {_slope(ft.oil_column_ns_per_m)}")
+    ax2.plot(xs, -1e-3 * ft.residual_slope_ns_per_m * xs, color="k", ls="--", lw=1.0,
+             label=f"with feedforward g = {ft.feedforward_gain:g}: "
+                   f"{_slope(ft.residual_slope_ns_per_m)} (config)")
     ax2.plot(xs, -1e-3 * ft.fitted_slope_ns_per_m * xs, color=ERR_COLOUR, lw=1.0,
-             label=f"least squares: −{ft.fitted_slope_ns_per_m / 1e3:.2f} kN·s/m")
+             label=f"least squares: {_slope(ft.fitted_slope_ns_per_m)}")
     ax2.set_xlim(-lim, lim)
     ax2.set(xlabel="d/dt rattlespace_m [m/s] (low-passed)",
             ylabel=f"error below {ft.corner_hz:.0f} Hz [kN]")
@@ -379,10 +382,18 @@ def _force_tracking(d: PlotInput, out: Path) -> Figure | None:
     ax2.legend(fontsize=7, loc="upper right", frameon=False)
     _save(fig, out, "force_tracking.png")
     return Figure(
-        "force_tracking.png", "Why the tracking error is larger than the measured force",
+        "force_tracking.png", "Where the force-tracking error comes from",
         ("/rig/signals.force_ref_n", "/rig/signals.force_meas_n",
          "/rig/signals.rattlespace_m", "/controller/internals.flags"),
         _tracking_caption(ft))
+
+
+def _slope(ns_per_m: float) -> str:
+    """A slope d(error)/d(rate) of ``-ns_per_m`` as text with a true minus sign."""
+    v = -ns_per_m / 1e3
+    if not math.isfinite(v):
+        return "–"
+    return f"{'−' if v < 0 else ''}{abs(v):.2f} kN·s/m"
 
 
 def _tracking_caption(ft: ForceTracking) -> str:
@@ -394,14 +405,23 @@ def _tracking_caption(ft: ForceTracking) -> str:
               "The LQ gains were designed for an ideal force source "
               "(<code>design.actuator_model = \"ideal\"</code>), so this part is control "
               "authority lost to the actuator.")
+    explained = (f"it accounts for {100 * ft.explained_below:.0f} % of the error "
+                 f"variance below the corner" if ft.explained_below >= 0.05 else
+                 "it accounts for almost none of the error below the corner")
     low = (f"<li><b>Below the force loop's corner</b> (kp·kq/2π = {ft.corner_hz:.0f} Hz): "
-           f"{ft.error_rms_below_n:.0f} N RMS. The proportional path has to open the "
-           f"flow-control valve just to keep the oil column moving with the suspension: "
-           f"e ≈ (F′ + k_h·v)/(kp·kq), whose velocity part is −k_h/(kp·kq) = "
-           f"−{ft.oil_column_ns_per_m / 1e3:.2f} kN·s/m × d/dt rattlespace_m (recorded "
-           f"configuration, not fitted). It accounts for "
-           f"{100 * ft.explained_below:.0f} % of the error variance below the corner "
-           f"(least-squares slope −{ft.fitted_slope_ns_per_m / 1e3:.2f} kN·s/m, right). "
+           f"{ft.error_rms_below_n:.0f} N RMS. Two parts. <i>The oil column</i>: without "
+           f"help the proportional path would have to open the valve just to keep the oil "
+           f"moving with the suspension, an error of −k_h/(kp·kq) = "
+           f"{_slope(ft.oil_column_ns_per_m)} × d/dt rattlespace_m (dotted, right); the "
+           f"valve flow feedforward (<code>force_loop.flow_feedforward_gain</code> = "
+           f"{ft.feedforward_gain:g}) supplies that flow, leaving "
+           f"{_slope(ft.residual_slope_ns_per_m)} (dashed; recorded configuration, not "
+           f"fitted): {explained} (least squares {_slope(ft.fitted_slope_ns_per_m)}). "
+           f"<i>The loop's lag</i>: a first-order loop with this corner, following this "
+           f"reference, leaves {ft.lag_error_rms_below_n:.0f} N RMS of error below the "
+           f"corner (from the reference's spectrum, left; the measured force visibly lags "
+           f"the reference, top); what this simple model leaves out (the spool's own "
+           f"dynamics, the {ft.delay_ticks} tick(s) of compute delay) lags more. "
            f"{design}</li>")
     high = (f"<li><b>Above the corner</b>: {ft.error_rms_above_n:.0f} N RMS, the "
             f"reference's own content ({ft.ref_rms_above_n:.0f} N RMS there) that the "

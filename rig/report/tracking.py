@@ -13,7 +13,12 @@ proportional path x_v ~ kp e the tracking error e = F_ref - F is therefore
 largest where the suspension moves fast: the valve must keep the oil column up with the
 suspension's velocity.  Below the force-loop corner f_c = kp kq / 2 pi, the error's
 component along the rattlespace rate has the slope -k_h / (kp kq) [N s/m], a number of
-the recorded configuration (not fitted here).  Above f_c the error is the reference's own
+the recorded configuration (not fitted here), reduced to (1 - g) of it by the valve flow
+feedforward (``force_loop.flow_feedforward_gain`` = g, ``controller/actuator.py``), which
+supplies the oil column's flow itself.  What remains below f_c is mostly the loop's own
+lag: a first-order loop with corner f_c following the applied reference leaves
+|j f/f_c / (1 + j f/f_c)|^2 of its spectrum as error (computed from the recorded
+reference's spectrum, no fit).  Above f_c the error is the reference's own
 content that the loop does not follow.  With fuzzy blending much of that is the
 reference dropping to the fallback force (``fuzzy.no_fire_fallback``, 0 N for "passive")
 on single ticks where no fuzzy rule fired: the analysis splits the reference's content
@@ -51,7 +56,11 @@ class ForceTracking:
 
     active_s: float = 0.0
     corner_hz: float = math.nan                  # kp kq / 2 pi
-    oil_column_ns_per_m: float = math.nan        # k_h / (kp kq)
+    oil_column_ns_per_m: float = math.nan        # k_h / (kp kq), no feedforward
+    feedforward_gain: float = math.nan           # force_loop.flow_feedforward_gain
+    residual_slope_ns_per_m: float = math.nan    # (1 - g) k_h / (kp kq)
+    lag_error_rms_below_n: float = math.nan      # first-order loop's error below corner
+    delay_ticks: int = 0                         # design.compute_delay_ticks
     designed_for_actuator: bool = True           # design.actuator_model == "hydraulic"
     ref_rms_n: float = math.nan
     meas_rms_n: float = math.nan
@@ -61,7 +70,7 @@ class ForceTracking:
     ref_rms_above_n: float = math.nan            # reference content above corner_hz
     meas_rms_above_n: float = math.nan
     explained_below: float = math.nan            # share of low-passed error variance
-                                                 # explained by -k_h/(kp kq) * rate
+                                                 # explained by -residual slope * rate
     fitted_slope_ns_per_m: float = math.nan      # least-squares slope, for comparison
     no_fire_share: float = math.nan              # active ticks with NO_RULE_FIRED
     near_no_fire_share: float = math.nan         # active ticks near one (NO_FIRE_REACH_S)
@@ -112,6 +121,9 @@ def force_tracking(s: RunSeries) -> ForceTracking:
     ft.corner_hz = sm.kp_per_n * sm.flow_gain_n_per_s / (2 * math.pi)
     ft.oil_column_ns_per_m = sm.hydraulic_stiffness_n_per_m / (
         sm.kp_per_n * sm.flow_gain_n_per_s)
+    ft.feedforward_gain = cfg.force_loop.flow_feedforward_gain
+    ft.delay_ticks = int(cfg.design.compute_delay_ticks)
+    ft.residual_slope_ns_per_m = (1.0 - ft.feedforward_gain) * ft.oil_column_ns_per_m
     ft.designed_for_actuator = cfg.design.actuator_model == "hydraulic"
     active = s.phase == Phase.ACTIVE
     ft.active_s = float(active.sum() * s.dt_s)
@@ -134,6 +146,8 @@ def force_tracking(s: RunSeries) -> ForceTracking:
     ft.error_rms_above_n = _band_rms(f, p_err, fc, np.inf)
     ft.ref_rms_above_n = _band_rms(f, p_ref, fc, np.inf)
     ft.meas_rms_above_n = _band_rms(f, p_meas, fc, np.inf)
+    ratio = (f / ft.corner_hz) ** 2
+    ft.lag_error_rms_below_n = _band_rms(f, p_ref * ratio / (1.0 + ratio), 0.0, fc)
     # where the reference's content above the corner sits: near no-rule-fired ticks or not
     hp = signal.sosfiltfilt(signal.butter(4, fc, "highpass", fs=fs, output="sos"),
                             np.nan_to_num(ref))
@@ -155,7 +169,7 @@ def force_tracking(s: RunSeries) -> ForceTracking:
     ft.rate_mps, ft.error_low_n = x, y
     var = float(np.var(y))
     if var > 0.0:
-        ft.explained_below = 1.0 - float(np.var(y + ft.oil_column_ns_per_m * x)) / var
+        ft.explained_below = 1.0 - float(np.var(y + ft.residual_slope_ns_per_m * x)) / var
         xc = x - x.mean()
         denom = float(np.dot(xc, xc))
         ft.fitted_slope_ns_per_m = (-float(np.dot(xc, y - y.mean())) / denom

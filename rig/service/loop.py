@@ -26,8 +26,9 @@ Per tick, in this order (latency from sensor frame to valve command kept short):
 5. ACTIVE: PI force loop -> spool; otherwise the safe command (Enable=0, spool 0);
 6. send ValveCommand (with SensorCounterEcho); heartbeat ControllerStatus at
    ``cfg.safety.heartbeat_hz`` (FaultReport repeated with it while latched);
-7. systemd watchdog ping, telemetry snapshot (``cfg.telemetry.rate_hz``) and the
-   recording (non-blocking, bounded queues on their own threads).
+7. systemd watchdog ping, telemetry snapshot (``cfg.telemetry.rate_hz``), the
+   recording and the live Foxglove view (``cfg.foxglove.rate_hz``; non-blocking,
+   bounded queues on their own threads / process).
 
 An exception anywhere in 2-6 is caught: EXCEPTION fault, safe command.  A recording or
 telemetry hand-off that raises is counted (``output_errors``, in ``status()``) and
@@ -65,7 +66,7 @@ from rig.wire.protocol import (
     LifecycleState,
 )
 
-__all__ = ["TICK_RECORD_FIELDS", "ControlLoop", "Recorder", "Runtime", "Telemetry",
+__all__ = ["TICK_RECORD_FIELDS", "ControlLoop", "Recorder", "Runtime", "Telemetry", "Viewer",
            "tick_record_layout"]
 
 log = logging.getLogger(__name__)
@@ -198,6 +199,15 @@ class _Request:
         self.result: CommandResult | None = None
 
 
+class Viewer(Protocol):
+    """``rig.foxglove_server.FoxgloveView`` as the loop uses it (never blocks)."""
+
+    @property
+    def dropped(self) -> int: ...
+    def offer_tick(self, t_ns: int, scalars: Any, arrays: Any) -> bool: ...
+    def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool: ...
+
+
 class ControlLoop:
     """One controller service loop on one bus (see module docstring)."""
 
@@ -213,6 +223,9 @@ class ControlLoop:
         self.pi = force_loop
         self._recorder = recorder
         self.telemetry = telemetry
+        #: the live Foxglove view (set by the service), fed every ``viewer_every`` ticks
+        self.viewer: Viewer | None = None
+        self.viewer_every = max(1, round(cfg.design.sample_rate_hz / cfg.foxglove.rate_hz))
         self.notifier = notifier
         self.clock_ns = clock_ns
         self.period_ns = round(1e9 / cfg.design.sample_rate_hz)
@@ -406,10 +419,16 @@ class ControlLoop:
             self._on_output_error(exc)
 
     def _record_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> None:
-        """An event to the recording; a failing recorder never disturbs the loop."""
+        """An event to the recording and the live view; a failing output never disturbs
+        the loop."""
         if self.recorder is not None:
             try:
                 self.recorder.event(t_ns, tick, kind, detail)
+            except Exception as exc:
+                self._on_output_error(exc)
+        if self.viewer is not None:
+            try:
+                self.viewer.offer_event(t_ns, tick, kind, detail)
             except Exception as exc:
                 self._on_output_error(exc)
 
@@ -480,8 +499,13 @@ class ControlLoop:
             # out: a few numpy calls, tens of microseconds with cold caches
             self.lateness_p99_us = timing.lateness_p99_us()
         try:
+            viewer = self.viewer
+            view = viewer is not None and tick % self.viewer_every == 0
+            scalars, arrays = self._tick_record(now_ns)
             if self.recorder is not None:
-                self._record(now_ns, tick)
+                self.recorder.tick_values(now_ns, scalars, arrays)
+            if view:
+                viewer.offer_tick(now_ns, scalars, arrays)  # type: ignore[union-attr]
             if self.telemetry is not None and tick % self.telemetry_every == 0:
                 self.telemetry.offer(self.snapshot())
         except Exception as exc:    # the outputs never stop the control loop
@@ -577,17 +601,17 @@ class ControlLoop:
             self._send_fault_report(now_ns, tick)
 
     # ------------------------------------------------------------------ outputs
-    def _record(self, now_ns: int, tick: int) -> None:
-        """One tick record per tick, packed (fields: :data:`TICK_RECORD_FIELDS`)."""
+    def _tick_record(self, now_ns: int) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+        """This tick's record for the recorder and the live view: (scalars, arrays) in
+        :data:`TICK_RECORD_FIELDS` order."""
         wake_prev = self._last_wake_ns
         self._last_wake_ns = now_ns
-        rec = self.recorder
-        assert rec is not None
+        rec, tel = self.recorder, self.telemetry
         self.wake_interval_ns = now_ns - wake_prev if wake_prev >= 0 else -1
         self.overrun = self.lateness_ns > self.timing.overrun_threshold_ns
-        self.recording_dropped = rec.dropped
-        self.telemetry_dropped = self.telemetry.dropped if self.telemetry is not None else 0
-        rec.tick_values(now_ns, self._record_scalars(self), self._record_arrays(self))
+        self.recording_dropped = rec.dropped if rec is not None else 0
+        self.telemetry_dropped = tel.dropped if tel is not None else 0
+        return self._record_scalars(self), self._record_arrays(self)
 
     def snapshot(self) -> dict[str, Any]:
         """Telemetry snapshot (``cfg.telemetry.rate_hz`` and at every transition).
@@ -658,6 +682,7 @@ class ControlLoop:
             "timing": self.timing.summary(),
             "dropped_recording": self.recorder.dropped if self.recorder is not None else 0,
             "dropped_telemetry": self.telemetry.dropped if self.telemetry is not None else 0,
+            "dropped_foxglove": self.viewer.dropped if self.viewer is not None else 0,
         }
 
     # ------------------------------------------------------------------ pacing

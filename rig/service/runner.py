@@ -2,7 +2,9 @@
 
 ``Service(cfg, ServiceOptions(...))`` loads the design artifact (or designs the bank at
 start), opens the bus, the recording (MCAP, own thread) and the telemetry (Zenoh, own
-thread), and builds the :class:`rig.service.loop.ControlLoop`.  :meth:`Service.run`:
+thread), starts the live Foxglove view when ``cfg.foxglove.enabled`` (own thread; a port
+that cannot be served is one line in the log and ``status()["foxglove"]``), and builds
+the :class:`rig.service.loop.ControlLoop`.  :meth:`Service.run`:
 
 1. real-time set-up of the loop thread (best effort, reported: :mod:`rig.rt.realtime`);
 2. systemd ``READY=1`` (+ ``STATUS=``), the loop then pings ``WATCHDOG=1`` itself at half
@@ -104,6 +106,7 @@ class Service:
         self.notifier: Any = None
         self.recorder: Any = None
         self.telemetry: Any = None
+        self.foxglove: Any = None
         self.loop: Any = None
         self._closed = False
         #: called once the shutdown frames (safe valve command, SHUTDOWN report) are out
@@ -188,6 +191,18 @@ class Service:
                                                 self.command_handler,
                                                 on_state=self._telemetry_state)
             self.loop.telemetry = self.telemetry
+        if cfg.foxglove.enabled:
+            from rig.foxglove_server import FoxgloveView
+            from rig.service.loop import tick_record_layout
+
+            # a server that cannot start is reported (status, log) and left out
+            self.foxglove = FoxgloveView(
+                cfg.foxglove, tick_record_layout(self.runtime),
+                clock_offset_ns=getattr(self.recorder, "clock_offset_ns", None))
+            if self.foxglove.state == "serving":
+                self.loop.viewer = self.foxglove
+            else:
+                self.notifier.set_note("foxglove", self.foxglove.error)
         #: how long a telemetry command waits for the loop to apply it [s]
         self.command_timeout_s = 0.05
         self._arm_pending = opts.arm
@@ -201,6 +216,8 @@ class Service:
         steps: list[tuple[str, Callable[[], None]]] = []
         if self.telemetry is not None:
             steps.append(("telemetry", self.telemetry.close))
+        if self.foxglove is not None:
+            steps.append(("foxglove view", self.foxglove.close))
         if self.recorder is not None:
             steps.append(("recording", self._discard_recording))
         if self.bus is not None and self._own_bus:
@@ -237,7 +254,13 @@ class Service:
         s["recording"] = str(self.recording_path) if self.recording_path else None
         s["telemetry"] = {"state": "off"} if self.telemetry is None \
             else self.telemetry.status()
+        s["foxglove"] = self.foxglove_status()
         return s
+
+    def foxglove_status(self) -> dict[str, Any]:
+        """The live view: off, serving (with its URL), failed (with the one-line error)
+        or stopped."""
+        return {"state": "off"} if self.foxglove is None else self.foxglove.status()
 
     def _telemetry_state(self, state: str, error: str | None) -> None:
         """Telemetry thread: a failing session shows in systemd's STATUS= (and the log,
@@ -338,6 +361,8 @@ class Service:
                 log.exception("after-shutdown callback")
         if self.telemetry is not None:
             self.telemetry.close()
+        if self.foxglove is not None:
+            self.foxglove.close()
         if self.recorder is not None:
             self.recorder.close()
             if self.recorder.error:

@@ -18,6 +18,13 @@ from collections.abc import Iterable
 from enum import IntEnum
 from typing import Final
 
+from rig.wire.dbc_constants import (
+    E2E_COUNTER_MAX,
+    E2E_CRC_INIT,
+    E2E_CRC_POLYNOMIAL,
+    E2E_CRC_XOROUT,
+)
+
 __all__ = [
     "COUNTER_MODULO",
     "CRC8_CHECK_VALUE",
@@ -29,12 +36,13 @@ __all__ = [
     "protect",
 ]
 
-CRC8_POLY: Final = 0x1D
-CRC8_INIT: Final = 0xFF
-CRC8_XOROUT: Final = 0xFF
+#: the DBC's E2E attributes (E2ECrcPolynomial, E2ECrcInit, E2ECrcXorOut, E2ECounterMax)
+CRC8_POLY: Final = E2E_CRC_POLYNOMIAL
+CRC8_INIT: Final = E2E_CRC_INIT
+CRC8_XOROUT: Final = E2E_CRC_XOROUT
 #: CRC of b"123456789" (AUTOSAR SWS CRC Library, 8-bit SAE J1850 "check" value)
 CRC8_CHECK_VALUE: Final = 0x4B
-COUNTER_MODULO: Final = 16
+COUNTER_MODULO: Final = E2E_COUNTER_MAX + 1
 
 
 def _make_table() -> bytes:

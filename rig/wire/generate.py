@@ -4,7 +4,11 @@
     python -m rig.wire.generate --check    # exit 1 if the checked-in module is stale
 
 The DBC owns every number of the protocol: frame IDs and lengths, each signal's bit
-position, width, signedness, scale, range and unit, and the ``VAL_`` tables.  This
+position, width, signedness, scale, range and unit, the ``VAL_`` tables, and as
+attributes each frame's cycle time and send type (``GenMsgCycleTime`` [ms],
+``GenMsgSendType``) and the E2E protection (network: ``E2EProfile``, the CRC-8
+polynomial, init and final XOR, the counter's maximum; per frame: its CRC and counter
+signals).  This
 generator reads it with cantools (the reference DBC parser; a development dependency,
 not needed at run time) and writes them as plain constants, the enumerations as
 ``IntEnum`` classes and each frame's ``struct`` layout, so that the hand-optimised codec
@@ -112,6 +116,14 @@ def generate(dbc_path: Path = DBC_PATH) -> str:
                     "        from rig.wire.fault_descriptions import FAULT_DESCRIPTIONS",
                     "", "        return FAULT_DESCRIPTIONS[self.name]"]
         out += ["", ""]
+    net = {k: a.value for k, a in db.dbc.attributes.items()}
+    out.append("# E2E protection (network attributes): CRC-8 parameters, counter range")
+    out.append(f"E2E_PROFILE: Final = {net['E2EProfile']!r}")
+    out.append(f"E2E_CRC_POLYNOMIAL: Final = {int(net['E2ECrcPolynomial']):#04x}")
+    out.append(f"E2E_CRC_INIT: Final = {int(net['E2ECrcInit']):#04x}")
+    out.append(f"E2E_CRC_XOROUT: Final = {int(net['E2ECrcXorOut']):#04x}")
+    out.append(f"E2E_COUNTER_MAX: Final = {int(net['E2ECounterMax'])}")
+    out.append("")
     frames = []
     for msg in sorted(db.messages, key=lambda m: m.frame_id):
         prefix = snake(msg.name).upper()
@@ -122,6 +134,12 @@ def generate(dbc_path: Path = DBC_PATH) -> str:
         out.append(f"{prefix}_NAME: Final = {msg.name!r}")
         out.append(f"{prefix}_LENGTH: Final = {msg.length}")
         out.append(f"{prefix}_STRUCT: Final = {fmt!r}")
+        attrs = {k: a.value for k, a in msg.dbc.attributes.items()}
+        out.append(f"{prefix}_CYCLE_TIME_MS: Final = {int(msg.cycle_time or 0)}")
+        out.append(f"{prefix}_SEND_TYPE: Final = {msg.send_type!r}")
+        out.append(f"{prefix}_E2E_CRC_SIGNAL: Final = {attrs.get('E2ECrcSignal', '')!r}")
+        out.append(f"{prefix}_E2E_COUNTER_SIGNAL: Final = "
+                   f"{attrs.get('E2ECounterSignal', '')!r}")
         stems = []
         for group in groups:
             for sig in group:
