@@ -455,6 +455,12 @@ def test_a_stalled_rig_resyncs_instead_of_bursting_past_its_watchdog() -> None:
         stats = node.run(threading.Event(), realtime=True, duration_s=0.03)
         gaps_after_stall_ms = np.diff(starts[5:]) / 1e6
         assert stats.resyncs >= 1
-        # a burst would run the ~9 missed ticks back to back; a late tick on a busy
-        # machine may legitimately catch up one or two
-        assert int((gaps_after_stall_ms < 0.2).sum()) <= 2
+        # a burst would run the ~9 missed ticks back to back; on a busy machine a late
+        # tick may legitimately be followed at once by the next one, so the test is the
+        # longest run of back-to-back ticks, not their number
+        back_to_back = gaps_after_stall_ms < 0.2
+        longest = run = 0
+        for b in back_to_back:
+            run = run + 1 if b else 0
+            longest = max(longest, run)
+        assert longest <= 3, gaps_after_stall_ms
