@@ -135,7 +135,8 @@ def notes(rows: list[dict[str, Any]]) -> list[str]:
 
 
 if __name__ == "__main__":
-    rs = run()
+    import sys
+    rs = run(quick="--quick" in sys.argv[1:])
     for r in rs:
         print(r)
     for line in notes(rs):
