@@ -7,8 +7,8 @@
   bit-identical (every metric but the wall-clock real-time factor, every trace);
 * ``throughput``: the same Monte Carlo on 1 and 2 Dask workers and on the 2-process local
   pool after a warm-up batch (numba and the design already loaded on every worker):
-  runs per second (the best of 3 repeats: the machine may be shared) and the 2 / 1
-  worker ratio;
+  runs per second (the best of 3 repeats, interleaved between the executors so each
+  sees the same neighbours: the machine may be shared) and the 2 / 1 worker ratio;
 * ``overhead``: a batch of near-empty tasks (``operator.add``) through each executor:
   wall time per task, the cost the seam adds to every run.
 
@@ -80,19 +80,26 @@ def run(quick: bool = False) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     results: dict[str, MonteCarloResult] = {}
     walls: dict[str, float] = {}
-    for label, make in (("local pool, 2 processes", lambda: LocalExecutor(2)),
-                        ("dask, 1 worker", lambda: _dask(1)),
-                        ("dask, 2 workers", lambda: _dask(2))):
-        with make() as ex:
+    exs: dict[str, BatchExecutor] = {"local pool, 2 processes": LocalExecutor(2),
+                                     "dask, 1 worker": _dask(1), "dask, 2 workers": _dask(2)}
+    try:
+        for ex in exs.values():
             _mc(ex, ex.workers * 2, duration, seed=99)           # warm-up: numba, design
-            tries = [_mc(ex, runs, duration, seed=1) for _ in range(repeats)]
-            walls[label] = min(w for w, _ in tries)              # least disturbed (shared
-            results[label] = tries[0][1]                         # machine)
-            assert all(_same(results[label], r) for _, r in tries[1:])
+        tries: dict[str, list[tuple[float, MonteCarloResult]]] = {k: [] for k in exs}
+        for _ in range(repeats):         # interleaved: each executor sees the same load
+            for label, ex in exs.items():
+                tries[label].append(_mc(ex, runs, duration, seed=1))
+        for label, ex in exs.items():
+            walls[label] = min(w for w, _ in tries[label])      # least disturbed
+            results[label] = tries[label][0][1]
+            assert all(_same(results[label], r) for _, r in tries[label][1:])
             per_task = min(_overhead(ex, n_empty) for _ in range(repeats))
-        rows.append({"executor": label, "runs": runs, "run_s": duration,
-                     "wall_s": walls[label], "runs_per_s": runs / walls[label],
-                     "empty_task_ms": 1e3 * per_task})
+            rows.append({"executor": label, "runs": runs, "run_s": duration,
+                         "wall_s": walls[label], "runs_per_s": runs / walls[label],
+                         "empty_task_ms": 1e3 * per_task})
+    finally:
+        for ex in exs.values():
+            ex.close()
     with LocalExecutor(1) as ex:                     # CPU time of one run, this process
         _mc(ex, 2, duration, seed=99)
         c0 = time.process_time()
@@ -128,7 +135,8 @@ def notes(rows: list[dict[str, Any]]) -> list[str]:
 
 
 if __name__ == "__main__":
-    rs = run()
+    import sys
+    rs = run(quick="--quick" in sys.argv[1:])
     for r in rs:
         print(r)
     for line in notes(rs):

@@ -58,6 +58,10 @@ CONNECT_TIMEOUT_S = 10.0
 #: anyway, up to distributed's ``allowed-failures``)
 RETRIES = 2
 
+#: the scheduler's HTTP endpoints (health, metrics; the dashboard stays off) on a free
+#: port of 127.0.0.1, not on 8787
+LOCAL_HTTP = {"dashboard_address": "127.0.0.1:0"}
+
 _HOST = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9]([A-Za-z0-9.-]{0,251}[A-Za-z0-9])?)$")
 
 
@@ -280,6 +284,7 @@ class DaskExecutor(_ContextMixin):
                 self._cluster = LocalCluster(n_workers=address.workers, threads_per_worker=1,
                                              processes=True, host="127.0.0.1",
                                              dashboard_address=None,
+                                             scheduler_kwargs=LOCAL_HTTP,
                                              silence_logs=logging.ERROR)
                 self.client: Any = Client(self._cluster, timeout=f"{connect_timeout_s}s")
             else:

@@ -44,6 +44,7 @@ def scheduler() -> Iterator[str]:
     from distributed import LocalCluster
     cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                            host="127.0.0.1", dashboard_address=None,
+                           scheduler_kwargs=batch.LOCAL_HTTP,
                            silence_logs=logging.CRITICAL)
     try:
         assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
