@@ -32,7 +32,7 @@ import foxglove
 
 from controller.config import FoxgloveConfig
 from rig.recording.codec import TickDecoder, TickLayout, TickPacker
-from rig.recording.scene import SCENE_PERIOD_NS, scene_messages
+from rig.recording.scene import SCENE_PERIOD_NS, scene_json
 from rig.recording.schema import (
     EVENT_KINDS,
     MESSAGE_ENCODING,
@@ -165,11 +165,11 @@ class FoxgloveView:
             self._next_scene_ns = t_ns + SCENE_PERIOD_NS
             if not (channels[TOPIC_TF].has_sinks() or channels[TOPIC_SCENE].has_sinks()):
                 return
-            tf, scene = scene_messages(wall, record.get("rattlespace_m"),
-                                       record.get("force_meas_n"),
-                                       str(record.get("lifecycle", "")))
-            self._log(TOPIC_TF, encode_json(tf), wall)
-            self._log(TOPIC_SCENE, encode_json(scene), wall)
+            tf, scene = scene_json(wall, record.get("rattlespace_m"),
+                                   record.get("force_meas_n"),
+                                   str(record.get("lifecycle", "")))
+            self._log(TOPIC_TF, tf, wall)
+            self._log(TOPIC_SCENE, scene, wall)
 
     def _publish_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> None:
         wall = max(t_ns + self._offset, 0)

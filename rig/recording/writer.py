@@ -43,7 +43,7 @@ from rig.recording.codec import (
     iter_items,
     split_items,
 )
-from rig.recording.scene import SCENE_PERIOD_NS, scene_messages
+from rig.recording.scene import SCENE_PERIOD_NS, scene_json
 from rig.recording.schema import (
     EVENT_KINDS,
     MESSAGE_ENCODING,
@@ -224,13 +224,12 @@ class McapRunSink:
                 w.add_message(self._channels[topic], log_time, blob, log_time, seq)
             if self._next_scene_ns is None or t_ns >= self._next_scene_ns:
                 self._next_scene_ns = t_ns + SCENE_PERIOD_NS
-                tf, scene = scene_messages(log_time, record.get("rattlespace_m"),
-                                           record.get("force_meas_n"),
-                                           str(record.get("lifecycle", "")))
-                w.add_message(self._channels[schema.TOPIC_TF], log_time, encode_json(tf),
-                              log_time, seq)
-                w.add_message(self._channels[schema.TOPIC_SCENE], log_time,
-                              encode_json(scene), log_time, seq)
+                tf, scene = scene_json(log_time, record.get("rattlespace_m"),
+                                       record.get("force_meas_n"),
+                                       str(record.get("lifecycle", "")))
+                w.add_message(self._channels[schema.TOPIC_TF], log_time, tf, log_time, seq)
+                w.add_message(self._channels[schema.TOPIC_SCENE], log_time, scene, log_time,
+                              seq)
         elif kind == "event":
             _, _, tick, kind_s, detail = item
             if kind_s not in EVENT_KINDS:
