@@ -289,6 +289,12 @@ class DaskExecutor(_ContextMixin):
                 self.client: Any = Client(self._cluster, timeout=f"{connect_timeout_s}s")
             else:
                 self.client = Client(str(address), timeout=f"{connect_timeout_s}s")
+            try:                       # a scheduler without workers would hang the batch
+                self.client.wait_for_workers(1, timeout=connect_timeout_s)
+            except TimeoutError:
+                self.close()
+                raise ClusterError(f"the Dask scheduler at {address} has no workers "
+                                   f"(none joined within {connect_timeout_s:g} s)") from None
         except (OSError, TimeoutError, ValueError) as exc:
             if self._cluster is not None:
                 self._cluster.close()

@@ -179,3 +179,14 @@ def test_unreachable_scheduler_is_a_one_line_error() -> None:
 def test_workers_and_cluster_together_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["montecarlo", "--cluster", "local:1", "--workers", "2"]) == 2
     assert "give one of them" in capsys.readouterr().err
+
+
+def test_a_scheduler_without_workers_is_refused() -> None:
+    import logging
+
+    from distributed import LocalCluster
+    with LocalCluster(n_workers=0, processes=True, host="127.0.0.1",
+                      dashboard_address=None, scheduler_kwargs=batch.LOCAL_HTTP,
+                      silence_logs=logging.CRITICAL) as cluster, \
+            pytest.raises(ClusterError, match="has no workers"):
+        DaskExecutor(parse_cluster_address(cluster.scheduler_address), connect_timeout_s=1.0)
