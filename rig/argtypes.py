@@ -38,7 +38,7 @@ __all__ = [
     "OneLineParser",
     "OutputFile",
     "active_config",
-    "add_cluster_option",
+    "add_batch_options",
     "add_controller_option",
     "add_foxglove_option",
     "add_weights_option",
@@ -239,12 +239,23 @@ def cluster(text: str) -> Any:
         _fail(str(exc))
 
 
-def add_cluster_option(parser: argparse.ArgumentParser) -> None:
-    """``--cluster ADDR`` as every batch command (study, montecarlo, tune) spells it."""
-    parser.add_argument("--cluster", type=cluster, default=None, metavar="ADDR",
-                        help="run the batch on Dask: tcp://HOST:PORT of a running "
-                             "scheduler, or local:N for N worker processes on 127.0.0.1 "
-                             "(default: a local process pool; docs/scale-out.md)")
+#: most local worker processes a batch command takes
+MAX_JOBS = 1024
+
+
+def add_batch_options(parser: argparse.ArgumentParser) -> None:
+    """Where a batch command (study, montecarlo, tune) runs its closed-loop runs, spelt the
+    same everywhere: ``--jobs N`` local processes or ``--cluster ADDR`` (not both:
+    argparse refuses the pair in one line)."""
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--jobs", type=integer(1, MAX_JOBS), default=None, metavar="N",
+                       help="local worker processes (default: all cores; 1 = in-process)")
+    where.add_argument("--workers", dest="jobs", type=integer(1, MAX_JOBS),
+                       help=argparse.SUPPRESS)          # earlier spelling of --jobs
+    where.add_argument("--cluster", type=cluster, default=None, metavar="ADDR",
+                       help="run the batch on Dask: tcp://HOST:PORT of a running "
+                            "scheduler, or local:N for N worker processes on 127.0.0.1 "
+                            "(default: a local process pool; docs/scale-out.md)")
 
 
 def road(text: str) -> str:

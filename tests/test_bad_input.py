@@ -224,7 +224,7 @@ ARGUMENT_CASES: list[tuple[list[str], tuple[str, ...]]] = [
     (["montecarlo", "--runs", "0"], ("--runs", "[1, 10000]")),
     (["montecarlo", "--runs", "1e3"], ("--runs", "not an integer")),
     (["montecarlo", "--spread", "nan"], ("--spread", "[0, 0.5]")),
-    (["montecarlo", "--workers", "0"], ("--workers", "[1, 1024]")),
+    (["montecarlo", "--jobs", "0"], ("--jobs", "[1, 1024]")),
     (["montecarlo", "--ride-height-std", "-1"], ("--ride-height-std", "[0, 0.05] m")),
     (["study", "--jobs", "0"], ("--jobs", "[1, 1024]")),
     (["replay", "{ok_log}", "--arm-at", "nan"], ("--arm-at", "not a finite number")),

@@ -140,7 +140,7 @@ def test_montecarlo_failure_names_plant_road_and_seed(monkeypatch: pytest.Monkey
     assert f["case"].endswith("sensor seed 2002")
     assert main(["montecarlo", "--runs", "3", "--seed", "1001", "--road", "iso-B",
                  "--speed", "20", "--duration", "0.2", "--controller", "passive",
-                 "--workers", "1", "--no-progress"]) == 1
+                 "--jobs", "1", "--no-progress"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "run 1: M=" in err[0] and "plant state blew up" in err[0]
 
@@ -177,8 +177,8 @@ def test_unreachable_scheduler_is_a_one_line_error() -> None:
 
 
 def test_workers_and_cluster_together_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["montecarlo", "--cluster", "local:1", "--workers", "2"]) == 2
-    assert "give one of them" in capsys.readouterr().err
+    assert main(["montecarlo", "--cluster", "local:1", "--jobs", "2"]) == 2
+    assert "not allowed with argument" in capsys.readouterr().err
 
 
 def test_a_scheduler_without_workers_is_refused() -> None:

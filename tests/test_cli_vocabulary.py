@@ -74,3 +74,25 @@ def test_mode_names_and_wire_values_round_trip() -> None:
         blending_of("single")
     with pytest.raises(ValueError, match="allowed"):
         blending_of(len(Blending))
+
+
+BATCH_COMMANDS = ("study", "montecarlo", "tune")
+
+
+@pytest.mark.parametrize("command", BATCH_COMMANDS)
+def test_batch_commands_spell_jobs_and_cluster_alike(command: str) -> None:
+    assert _parse(command, "--jobs", "2").jobs == 2                # type: ignore[attr-defined]
+    assert _parse(command, "--workers", "3").jobs == 3             # type: ignore[attr-defined]
+    args = _parse(command, "--cluster", "local:2")
+    assert args.cluster is not None and args.jobs is None          # type: ignore[attr-defined]
+    text = _help(command)
+    assert "--jobs" in text and "--cluster" in text and "--workers" not in text
+
+
+@pytest.mark.parametrize("command", BATCH_COMMANDS)
+def test_jobs_and_cluster_together_are_refused(command: str,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        _parse(command, "--jobs", "2", "--cluster", "local:2")
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not allowed with" in err

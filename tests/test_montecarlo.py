@@ -116,7 +116,7 @@ def test_active_runs_and_unstable_detection() -> None:
 
 def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = main(["montecarlo", "--runs", "2", "--duration", "1", "--road", "bump",
-               "--controller", "passive", "--workers", "1", "--no-progress",
+               "--controller", "passive", "--jobs", "1", "--no-progress",
                "--out", str(tmp_path)])
     assert rc == 0
     out = capsys.readouterr().out
@@ -125,7 +125,7 @@ def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["montecarlo", "--runs", "2", "--road", "nowhere", "--no-progress"]) == 2
     for c in ("zero-force", "skyhook"):
         assert main(["montecarlo", "--runs", "2", "--duration", "1", "--road", "iso-B",
-                     "--controller", c, "--workers", "1", "--no-progress", "--json"]) == 0
+                     "--controller", c, "--jobs", "1", "--no-progress", "--json"]) == 0
         out = json.loads(capsys.readouterr().out)
         assert out["faulted_runs"] == [] and out["summary"]["force_rms_n"]["min"] > 0.0
 

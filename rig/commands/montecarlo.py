@@ -18,7 +18,6 @@ from rig import argtypes, strict_json
 
 #: most Monte Carlo runs and worker processes of one command
 MAX_RUNS = 10_000
-MAX_WORKERS = 1024
 
 SUMMARY_KEYS = ("absorbed_power", "accel_rms_mps2", "wk_rms_mps2", "rattlespace_rms_m",
                 "rattlespace_peak_m", "tire_load_rms_ratio", "time_off_ground_fraction",
@@ -41,9 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     argtypes.add_controller_option(p, CONTROLLERS, "fuzzy")
     argtypes.add_weights_option(p, 1)
     p.add_argument("--seed", type=argtypes.seed, default=1)
-    p.add_argument("--workers", type=argtypes.integer(1, MAX_WORKERS), default=None,
-                   help="local processes (default: all cores; not with --cluster)")
-    argtypes.add_cluster_option(p)
+    argtypes.add_batch_options(p)
     p.add_argument("--out", default=None, metavar="DIR", type=argtypes.output_dir,
                    help="write montecarlo.png and montecarlo.json here (replaced)")
     p.add_argument("--ride-height-std", default=RIDE_HEIGHT_STD_M, metavar="M",
@@ -61,16 +58,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
-    if args.cluster is not None and args.workers is not None:
-        print("rig montecarlo: --workers sets local processes; with --cluster the cluster's "
-              "workers run the batch (give one of them)", file=sys.stderr)
-        return 2
     try:
         road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
-        with make_executor(args.cluster, args.workers) as ex:
+        with make_executor(args.cluster, args.jobs) as ex:
             res = run_montecarlo(cfg, road, args.runs, controller=args.controller,
                                  weight_set=args.weights, spread=args.spread, seed=args.seed,
-                                 workers=args.workers, progress=not args.no_progress,
+                                 workers=args.jobs, progress=not args.no_progress,
                                  out_dir=args.out,
                                  ride_height_std_m=(None if args.own_ride_height
                                                     else args.ride_height_std),

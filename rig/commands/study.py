@@ -12,7 +12,6 @@ from controller.config import load_config
 from rig import argtypes
 
 #: most worker processes
-MAX_JOBS = 1024
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,18 +19,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="output directory; its study files are rewritten (default docs/study)")
     p.add_argument("--quick", action="store_true",
                    help="reduced matrix: short runs, 2 Monte Carlo runs (for tests)")
-    p.add_argument("--jobs", type=argtypes.integer(1, MAX_JOBS), default=None,
-                   help="local worker processes (default: all cores; not with --cluster)")
-    argtypes.add_cluster_option(p)
+    argtypes.add_batch_options(p)
     p.add_argument("--no-progress", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
-    if args.cluster is not None and args.jobs is not None:
-        print("rig study: --jobs sets local processes; with --cluster the cluster's workers "
-              "run the study (give one of them)", file=sys.stderr)
-        return 2
     from hil.batch import BatchError, ClusterError, make_executor
     from hil.study.run import run_study
     try:

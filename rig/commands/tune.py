@@ -60,9 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(default 1 = passive)")
     p.add_argument("--batch", type=argtypes.integer(1, MAX_BATCH), default=1,
                    help="trials evaluated together (keeps a cluster busy; default 1)")
-    p.add_argument("--jobs", type=argtypes.integer(1, MAX_BATCH), default=None,
-                   help="local worker processes (default: all cores; not with --cluster)")
-    argtypes.add_cluster_option(p)
+    argtypes.add_batch_options(p)
     p.add_argument("--out", default="tune", metavar="DIR", type=argtypes.output_dir,
                    help="tuned.toml, pareto.png, tune.json and the resumable journal "
                         "(default ./tune)")
@@ -81,10 +79,6 @@ def _line(name: str, r: dict[str, object]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
-    if args.cluster is not None and args.jobs is not None:
-        print("rig tune: --jobs sets local processes; with --cluster the cluster's workers "
-              "run the trials (give one of them)", file=sys.stderr)
-        return 2
     from hil.batch import ClusterError, make_executor
     from hil.sim.roads import RoadError
     from hil.tune import TuneError, TunePlan, run_tune
