@@ -514,12 +514,13 @@ def format_report(res: dict[str, Any]) -> str:
 
 NAME = "loop"
 TITLE = ("the 1 kHz service loop against the emulated rig process (bare, rec, tel, "
-         "rec+tel) and a bare SCHED_FIFO sleeper")
+         "rec+tel, fox+client) and a bare SCHED_FIFO sleeper")
 
 
 def run(quick: bool = False) -> list[dict[str, Any]]:
     """``python -m bench`` entry: one row per case (60 s each; 5 s with ``quick``)."""
-    res = measure(5.0 if quick else 60.0, [*CASES, SLEEPER])
+    res = measure(5.0 if quick else 60.0,
+                  ["bare", "rec", "tel", "rec+tel", "fox+client", SLEEPER])
     rows = [{"case": name, **{k: v for k, v in c.items() if not isinstance(v, dict | list)}}
             for name, c in res["cases"].items()]
     rows[0]["_report"] = format_report(res)
