@@ -231,7 +231,7 @@ def test_schemas_messages_attachments_metadata(tmp_path: Path) -> None:
     versions = json.loads(meta.metadata["versions"])
     assert {"python", "numpy", "mcap", "eclipse-zenoh", "lqg-fuzzy-rig"} <= set(versions)
     run = read_run(path)
-    assert run.metadata["rig"]["format_version"] == str(RECORDING_FORMAT_VERSION) == "2"
+    assert run.metadata["rig"]["format_version"] == str(RECORDING_FORMAT_VERSION) == "3"
     assert run.events[-1].kind == "note"
     assert run.events[-1].detail == {"kind": "weird-kind", "detail": [1, 2]}
 

@@ -202,7 +202,7 @@ class ControlLoop:
                  blending: int = 0, weight_set: int | None = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns,
                  spin_ns: int = 60_000, warmup_ticks: int | None = None,
-                 timing_ring: int = 1 << 16) -> None:
+                 timing_ring: int = 1 << 16, excitation: np.ndarray | None = None) -> None:
         self.cfg = cfg
         self.bus = bus
         self.rt = runtime
@@ -239,6 +239,14 @@ class ControlLoop:
         self._requests: collections.deque[_Request] = collections.deque(maxlen=64)
         self._watchdog_period_ns = notifier.watchdog_period_ns if notifier else 0
         self.transitions: collections.deque[Transition] = collections.deque(maxlen=256)
+        #: identification excitation (controller.excitation): force reference samples
+        #: played once from the first arm instead of the bank's output; state one of
+        #: none / pending / playing / ended / aborted (docs/identify.md)
+        self.excitation = (None if excitation is None
+                           else np.ascontiguousarray(excitation, dtype=np.float64))
+        self.excitation_state = "none" if excitation is None else "pending"
+        self.excitation_index = 0
+        self.excitation_travel_m = cfg.excitation.travel_limit_m
         self.reset_state()
 
     # ------------------------------------------------------------------ state
@@ -307,6 +315,12 @@ class ControlLoop:
                 res = lc.arm(tick, t, not problem, problem)
                 if res.accepted:
                     self.pi.reset()
+                    if self.excitation_state == "pending":
+                        self.excitation_state = "playing"
+                        self.excitation_index = 0
+                        self._record_event(t, tick, "excitation", {
+                            "phase": "start", "samples": int(self.excitation.shape[0]),
+                            "sample_rate_hz": self.cfg.design.sample_rate_hz})
             elif name == "disarm":
                 res = lc.disarm(tick, t)
             elif name == "reset":
@@ -355,6 +369,8 @@ class ControlLoop:
 
     def _on_transition(self, tr: Transition) -> None:
         self.transitions.append(tr)
+        if self.excitation_state == "playing" and tr.state is not _ACTIVE:
+            self._end_excitation(tr.t_ns, tr.tick, "aborted", tr.reason)
         self._record_event(tr.t_ns, tr.tick, "fault" if tr.state is _FAULT else "lifecycle",
                            tr.as_dict())
         try:
@@ -364,6 +380,30 @@ class ControlLoop:
                 self.notifier.status(f"{tr.state.name}: {tr.reason}")
         except Exception as exc:
             self._on_output_error(exc)
+
+    def _end_excitation(self, t_ns: int, tick: int, how: str, reason: str) -> None:
+        """The excitation stops (``how``: ended / aborted): marked in the recording."""
+        self.excitation_state = how
+        self._record_event(t_ns, tick, "excitation", {
+            "phase": "end" if how == "ended" else "aborted", "reason": reason,
+            "samples_played": self.excitation_index})
+
+    def _excite(self, now_ns: int, tick: int) -> float:
+        """The excitation's force reference of this ACTIVE tick; at its end (or beyond
+        the travel limit) the loop disarms (valve safe) and the segment is marked."""
+        exc = self.excitation
+        assert exc is not None
+        i = self.excitation_index
+        if abs(self.rattlespace_m) > self.excitation_travel_m:
+            self.lifecycle.disarm(tick, now_ns, "excitation: travel limit "
+                                  f"{self.excitation_travel_m} m exceeded")
+            return 0.0
+        if i >= exc.shape[0]:
+            self._end_excitation(now_ns, tick, "ended", "complete")
+            self.lifecycle.disarm(tick, now_ns, "excitation complete")
+            return 0.0
+        self.excitation_index = i + 1
+        return float(exc[i])
 
     def _record_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> None:
         """An event to the recording; a failing recorder never disturbs the loop."""
@@ -412,6 +452,8 @@ class ControlLoop:
             spool = 0.0
             if mon.code is not _NONE:
                 self._latch(mon.code, mon.detail, now_ns)
+            if lc.state is _ACTIVE and self.excitation_state == "playing":
+                force_ref = self._excite(now_ns, tick)
             if lc.state is _ACTIVE:
                 spool = self.pi.step(force_ref, self.force_meas_n, self.rattlespace_m)
                 mon.output(spool)
