@@ -65,7 +65,7 @@ from controller.config import RigConfig
 
 __all__ = ["ACTUATOR_LOWPASS_HZ", "EXPONENT_HALF_WIDTH", "HIGHPASS_HZ", "LOWPASS_HZ",
            "MIN_EXCITATION_S", "MIN_REST_S", "N_BLOCKS", "RELATIVE_HALF_WIDTH",
-           "Identification", "IdentificationRefused", "RunData", "fitted_config",
+           "Identification", "IdentificationRefusedError", "RunData", "fitted_config",
            "identify", "model_frequency_response"]
 
 FloatArray = NDArray[np.float64]
@@ -98,7 +98,7 @@ SATURATED_FRACTION = 0.005   # of the excitation's ticks
 MIN_TIRE_LOAD_FRACTION = 0.02
 
 
-class IdentificationRefused(ValueError):
+class IdentificationRefusedError(ValueError):
     """The run cannot be identified (one-line reason)."""
 
 
@@ -133,7 +133,7 @@ def _chain_sos(order_s: int, fc_hz: float, hp_hz: float, fs: float,
                lp_order: int = 4) -> NDArray[np.float64]:
     """sos of s^order_s x Butterworth low-pass x H(s) / s^2, H the 2nd-order Butterworth
     high-pass (so order_s = 2 is the band-pass, 0 integrates twice), by the bilinear map."""
-    z_lp, p_lp, k_lp = signal.butter(lp_order, 2 * math.pi * fc_hz, analog=True,
+    _, p_lp, k_lp = signal.butter(lp_order, 2 * math.pi * fc_hz, analog=True,
                                      output="zpk")
     w0 = 2 * math.pi * hp_hz
     p_hp = np.roots([1.0, math.sqrt(2.0) * w0, w0 * w0])
@@ -271,20 +271,20 @@ def _segments(data: RunData, cfg: RigConfig) -> tuple[NDArray[np.int64], NDArray
     dt = data.dt_s
     exc = np.flatnonzero(data.excite)
     if exc.size == 0:
-        raise IdentificationRefused("no excitation segment: record `rig run --excite` (or "
+        raise IdentificationRefusedError("no excitation segment: record `rig run --excite` (or "
                                     "`rig demo --excite`); this run has no 'excitation' "
                                     "start event with the valve driven")
     skip = round(1.0 / dt)          # the force loop and the filters settle
     exc = exc[exc >= exc[0] + skip]
     if exc.size * dt < MIN_EXCITATION_S:
-        raise IdentificationRefused(
+        raise IdentificationRefusedError(
             f"excitation too short: {data.excite.sum() * dt:.2f} s recorded, at least "
             f"{MIN_EXCITATION_S + 1.0:g} s needed (excitation.duration_s "
             f"{cfg.excitation.duration_s:g} s; was it aborted?)")
     rest = np.flatnonzero(data.rest)
     rest = rest[rest >= rest[0] + round(0.2 / dt)] if rest.size else rest
     if rest.size * dt < MIN_REST_S:
-        raise IdentificationRefused(
+        raise IdentificationRefusedError(
             f"rest too short: {rest.size * dt:.2f} s of passive rest before the excitation, "
             f"at least {MIN_REST_S + 0.2:g} s needed for the sensor offsets and noise")
     return exc, rest
@@ -300,12 +300,12 @@ def _check_saturation(data: RunData, cfg: RigConfig, exc: NDArray[np.int64]) -> 
     for name, x, lim in limits:
         frac = float(np.mean(x >= lim))
         if frac > SATURATED_FRACTION:
-            raise IdentificationRefused(
+            raise IdentificationRefusedError(
                 f"saturated: the {name} is at its limit ({lim:g}) for {100 * frac:.1f} % of "
                 "the excitation; lower excitation.chirp_amplitude_n / prbs_amplitude_n")
     if not (np.all(np.isfinite(data.rattlespace_m[exc])) and np.all(np.isfinite(
             data.accel_mps2[exc])) and np.all(np.isfinite(data.force_n[exc]))):
-        raise IdentificationRefused("the excitation has non-finite sensor readings")
+        raise IdentificationRefusedError("the excitation has non-finite sensor readings")
 
 
 # ---------------------------------------------------------------------------- mechanics
@@ -598,7 +598,7 @@ _KEYS = {"M": "vehicle.sprung_mass_kg", "m": "vehicle.unsprung_mass_kg",
 
 def identify(data: RunData, cfg: RigConfig, n_blocks: int = N_BLOCKS) -> Identification:
     """Identify the rig from one identification run (see the module docstring);
-    :class:`IdentificationRefused` names why a run cannot be used."""
+    :class:`IdentificationRefusedError` names why a run cannot be used."""
     dt = data.dt_s
     fs = 1.0 / dt
     exc, rest = _segments(data, cfg)
@@ -647,7 +647,7 @@ def identify(data: RunData, cfg: RigConfig, n_blocks: int = N_BLOCKS) -> Identif
     low = float(tire_load.min())
     if low < MIN_TIRE_LOAD_FRACTION * full["load"]:
         t_low = float(exc[int(np.argmin(tire_load))] * dt)
-        raise IdentificationRefused(
+        raise IdentificationRefusedError(
             f"wheel off the ground: the tire load fell to {low:.0f} N of the static "
             f"{full['load']:.0f} N at t = {t_low:.2f} s; lower excitation.chirp_amplitude_n")
 

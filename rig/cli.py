@@ -37,6 +37,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "study": ("study", "control performance study: tables and figures"),
     "replay": ("replay", "replay a recorded run (MCAP or candump log) through the loop"),
     "report": ("report", "HTML report with plots of a recorded run"),
+    "identify": ("identify", "identify the rig (masses, rates, tire, actuator) from an "
+                             "excitation run"),
 }
 
 

@@ -315,7 +315,7 @@ class ControlLoop:
                 res = lc.arm(tick, t, not problem, problem)
                 if res.accepted:
                     self.pi.reset()
-                    if self.excitation_state == "pending":
+                    if self.excitation is not None and self.excitation_state == "pending":
                         self.excitation_state = "playing"
                         self.excitation_index = 0
                         self._record_event(t, tick, "excitation", {
