@@ -96,6 +96,9 @@ HAC_LAG_S = 1.0
 RELATIVE_HALF_WIDTH = 0.25
 SATURATED_FRACTION = 0.005   # of the excitation's ticks
 MIN_TIRE_LOAD_FRACTION = 0.02
+#: ticks this close to a missed / held sensor sample are left out of the fit [s]
+GLITCH_GUARD_S = 0.1
+MAX_GLITCH_FRACTION = 0.5
 
 
 class IdentificationRefusedError(ValueError):
@@ -114,6 +117,9 @@ class RunData:
     spool_cmd: FloatArray
     excite: NDArray[np.bool_]     # excitation playing, valve driven
     rest: NDArray[np.bool_]       # passive rest before the excitation
+    #: False where the tick did not get the next sensor sample (a frame missed or held:
+    #: the series is not uniformly sampled there); None = all good
+    fresh: NDArray[np.bool_] | None = None
 
 
 @dataclass
@@ -269,7 +275,22 @@ def _corr_time_ticks(res: FloatArray) -> float:
 
 def _segments(data: RunData, cfg: RigConfig) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     dt = data.dt_s
-    exc = np.flatnonzero(data.excite)
+    excite, rest_mask = data.excite, data.rest
+    if data.fresh is not None and not np.all(data.fresh):
+        # a missed or held sensor sample disturbs the filtered signals for the filters'
+        # memory: those ticks are left out of the fit
+        bad = (~data.fresh).astype(np.float64)
+        guard = round(GLITCH_GUARD_S / dt)
+        near = np.convolve(bad, np.ones(2 * guard + 1), mode="same") > 0
+        if np.any(data.excite) and np.mean(near[data.excite]) > MAX_GLITCH_FRACTION:
+            raise IdentificationRefusedError(
+                f"too many sensor samples missed: {int(bad[data.excite].sum())} ticks of "
+                f"the excitation had no fresh SensorData, {100 * np.mean(near[data.excite]):.0f}"
+                f" % of it is within {GLITCH_GUARD_S} s of one (at most "
+                f"{100 * MAX_GLITCH_FRACTION:.0f} %); rerun with the real-time set-up")
+        excite = excite & ~near
+        rest_mask = rest_mask & ~near
+    exc = np.flatnonzero(excite)
     if exc.size == 0:
         raise IdentificationRefusedError("no excitation segment: record `rig run --excite` (or "
                                     "`rig demo --excite`); this run has no 'excitation' "
@@ -281,7 +302,7 @@ def _segments(data: RunData, cfg: RigConfig) -> tuple[NDArray[np.int64], NDArray
             f"excitation too short: {data.excite.sum() * dt:.2f} s recorded, at least "
             f"{MIN_EXCITATION_S + 1.0:g} s needed (excitation.duration_s "
             f"{cfg.excitation.duration_s:g} s; was it aborted?)")
-    rest = np.flatnonzero(data.rest)
+    rest = np.flatnonzero(rest_mask)
     rest = rest[rest >= rest[0] + round(0.2 / dt)] if rest.size else rest
     if rest.size * dt < MIN_REST_S:
         raise IdentificationRefusedError(
@@ -791,6 +812,8 @@ def identify(data: RunData, cfg: RigConfig, n_blocks: int = N_BLOCKS) -> Identif
                   f"jackknife over {len(blocks)} blocks, t({len(blocks) - 1}), widened x"
                   f"{widen:.3f} for residual correlation (time {tau_c * dt * 1e3:.1f} ms)",
         "excitation_s": exc.size * dt, "rest_s": rest.size * dt,
+        "missed_sensor_samples": (0 if data.fresh is None
+                                  else int(np.sum(~data.fresh & data.excite))),
         "body_residual_rms_n": rms_res, "body_force_rms_n": rms_f,
         "body_fit_r2": 1.0 - (rms_res / rms_f) ** 2 if rms_f > 0 else math.nan,
         "tire_stiffness_linear_n_per_m": full["kt"],

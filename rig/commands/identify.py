@@ -6,7 +6,8 @@ The recording is read with the run report's reader (:func:`rig.report.series.loa
 the LVDT, load cell and accelerometer readings, the spool command and force reference per
 tick, its configuration (``config.toml`` attachment) and the ``excitation`` events.  The
 excitation segment is the ticks from the ``start`` event to its ``end`` (or ``aborted``)
-with the valve driven; the rest is the passive, fault-free ticks before it.  The math is
+with the valve driven; the rest is the passive ticks before it (valve safe, INACTIVE or
+FAULT: the rig is still either way).  The math is
 :mod:`controller.identify`.
 
 Output: a table (estimate, 95 % interval, relative half width; what was not identified
@@ -65,22 +66,24 @@ def run_data(series: Any) -> Any:
     sig = series.signals
     enabled = sig["valve_enable"] > 0
     excite = (series.tick >= t0) & (series.tick < t1) & enabled
-    fault_free = np.array([lc in ("INACTIVE",) for lc in series.lifecycle], dtype=bool)
-    before = series.tick < t0
-    rest = before & ~enabled & fault_free
-    # the rest is the last uninterrupted passive stretch before the excitation
-    idx = np.flatnonzero(rest)
-    if idx.size:
-        gaps = np.flatnonzero(np.diff(idx) > 1)
-        first = idx[gaps[-1] + 1] if gaps.size else idx[0]
-        rest = rest & (np.arange(n) >= first)
+    # passive (valve safe: INACTIVE, or FAULT latched) with the road at rest
+    passive = np.array([lc in ("INACTIVE", "FAULT") for lc in series.lifecycle], dtype=bool)
+    rest = (series.tick < t0) & ~enabled & passive
 
     def col(name: str) -> np.ndarray:
         x = np.asarray(sig[name], dtype=np.float64)
         return np.where(np.isfinite(x), x, 0.0) if name == "spool_cmd" else x
 
+    # a tick got the next sample when the 4-bit counter advanced by one and the sample
+    # is new (age 0) and the loop did not skip a period
+    counter = np.nan_to_num(sig["sensor_counter"], nan=-1.0).astype(np.int64)
+    step = (np.diff(counter) % 16 == 1) & (np.diff(series.tick) == 1)
+    period = np.diff(series.t_s)
+    step &= np.abs(period - series.dt_s) < 0.5 * series.dt_s
+    fresh = np.r_[True, step] & (np.nan_to_num(sig["sensor_age_ticks"], nan=1.0) == 0)
     return RunData(series.dt_s, col("rattlespace_m"), col("sprung_accel_mps2"),
-                   col("force_meas_n"), col("force_ref_n"), col("spool_cmd"), excite, rest)
+                   col("force_meas_n"), col("force_ref_n"), col("spool_cmd"), excite, rest,
+                   fresh)
 
 
 def _fmt(v: float) -> str:
