@@ -1,4 +1,4 @@
-"""The identification's must-show figures (docs/identify.md): ``python -m hil.study.identify_check``.
+"""Must-show figures of the identification (docs/identify.md): `python -m hil.study.identify_check`.
 
 1. **Recovery and coverage.**  The emulated rig of ``[emulator]`` M x1.12, K x0.92,
    C x1.10, tire stiffness x0.90 (sensor noise as configured) runs the excitation of
