@@ -292,3 +292,53 @@ def test_report_renders_in_headless_chromium(identified: dict[str, Any],
     # measured and model curves are both drawn
     assert _pixels_near(img, MEASURED_COLOUR) > 2000
     assert _pixels_near(img, MODEL_COLOUR) > 1000
+
+
+# ---------------------------------------------------------------------------- services
+
+
+@pytest.mark.timeout(300)
+def test_unattended_excite_run_arms_after_rest_and_stops_after_it(design_path: Path,
+                                                                  tmp_path: Path) -> None:
+    """`rig run --excite` as the service runs it (here against the emulated rig in its
+    own process with the road 'flat', as `rig hil --excite`): rest, arm, excitation,
+    disarm, stop by itself."""
+    from hil.harness import RigHarness, RigProcessOptions
+    from rig.service.runner import ServiceOptions
+
+    cfg = IDENT_CFG.replace(excitation={"duration_s": 2.0, "rest_s": 0.5},
+                            safety={"stale_ticks": 1000, "overrun_streak": 100000,
+                                    "rig_status_stale_ticks": 100000})
+    record = tmp_path / "run.mcap"
+    opts = ServiceOptions(design_path=str(design_path), telemetry=False, realtime=None,
+                          install_signal_handlers=False, record=str(record), arm=True,
+                          excite=True)
+    rig_opts = RigProcessOptions(road="flat", road_s=10.0, watchdog_s=10.0, realtime=None,
+                                 trace_ticks=20_000)
+    h = RigHarness(cfg, opts, rig_opts, rig_start_ticks=20)
+    try:
+        res = h.run()
+    finally:
+        h.close()
+    assert h.service.exit_reason == "excitation ended"
+    assert res.ticks_run < 6000          # stopped by itself, 0.5 s after the excitation
+    s = load_series(record)
+    ex = [e for e in s.events if e["kind"] == "excitation"]
+    assert [e["detail"]["phase"] for e in ex] == ["start", "end"]
+    assert s.t_s[s.tick == ex[0]["tick"]][0] >= 0.5          # after the rest
+    # the rig's true body acceleration in the passive rest: still (the road is at rest;
+    # on the default rough course it is metres per second squared)
+    assert np.max(np.abs(res.trace["accel_mps2"][:400])) < 1e-6
+
+
+def test_demo_excite_needs_room_for_rest_and_excitation(capsys: pytest.CaptureFixture[str]
+                                                        ) -> None:
+    assert rig_main(["demo", "--excite", "--duration", "5", "--no-record"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--excite needs --duration >= 22.5 s" in err
+
+
+def test_hil_excite_holds_the_road_at_rest(capsys: pytest.CaptureFixture[str]) -> None:
+    assert rig_main(["hil", "--excite", "--interface", "virtual", "--channel",
+                     "test-identify-hil", "--duration", "0.05"]) == 0
+    assert "rig hil:" in capsys.readouterr().out
