@@ -75,6 +75,7 @@ _OUT_OF_RANGE = DecodeStatus.OUT_OF_RANGE
 _NONE = FaultCode.NONE
 _ACTIVE = LifecycleState.ACTIVE
 _DEGRADED = int(StepFlag.DEGRADED)
+_DIVERGED = int(StepFlag.DIVERGED)
 _FAULT = LifecycleState.FAULT
 _STOPPING = LifecycleState.STOPPING
 
@@ -442,7 +443,13 @@ class ControlLoop:
                 if (flags ^ self.bank_flags) & _DEGRADED:
                     self._on_degraded_change(flags, now_ns, tick)
                 self.bank_flags = flags
-                mon.estimator(flags, force_ref)
+                if self.excitation_state == "playing":
+                    # the bank is not in the loop while the excitation plays (and is
+                    # designed for the rig being identified): its divergence monitor
+                    # is no actuator fault; sensor, bus, timing faults still latch
+                    mon.estimator(flags & ~_DIVERGED, 0.0)
+                else:
+                    mon.estimator(flags, force_ref)
                 if flags & 3:               # estimator state unusable: restart it warm
                     rt.reset()
                     self.good_ticks = 0
