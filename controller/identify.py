@@ -808,9 +808,12 @@ def identify(data: RunData, cfg: RigConfig, n_blocks: int = N_BLOCKS) -> Identif
     rms_f = float(np.sqrt(np.mean(cols[exc, _F0] ** 2)))
     fit: dict[str, Any] = {
         "method": "equation-error least squares, bias-compensated, on filtered signals "
-                  f"(band {HIGHPASS_HZ}-{LOWPASS_HZ} Hz); 95 % intervals: delete-one-block "
-                  f"jackknife over {len(blocks)} blocks, t({len(blocks) - 1}), widened x"
-                  f"{widen:.3f} for residual correlation (time {tau_c * dt * 1e3:.1f} ms)",
+                  f"(body {HIGHPASS_HZ}-{LOWPASS_HZ} Hz, wheel {WHEEL_HIGHPASS_HZ}-"
+                  f"{WHEEL_LOWPASS_HZ} Hz); 95 % intervals: delete-one-block jackknife over "
+                  f"{len(blocks)} blocks, t({len(blocks) - 1}), widened x{widen:.3f} for "
+                  f"residual correlation (time {tau_c * dt * 1e3:.1f} ms), at least the HAC "
+                  f"error ({HAC_LAG_S:g} s window), plus the spread over a second pair of "
+                  f"bands",
         "excitation_s": exc.size * dt, "rest_s": rest.size * dt,
         "missed_sensor_samples": (0 if data.fresh is None
                                   else int(np.sum(~data.fresh & data.excite))),

@@ -133,7 +133,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'key':40} {'estimate':>12} {'95 % interval':>27} {'+/- %':>7}")
     for key, value in ident.estimates.items():
         lo, hi = ident.ci95[key]
-        rel = 100 * (hi - lo) / 2 / abs(value) if value else math.nan
+        rel = (100 * (hi - lo) / 2 / abs(value) if abs(value) > (hi - lo) / 2
+               else math.nan)       # an offset near 0: no relative width
         print(f"{key:40} {_fmt(value):>12} [{_fmt(lo):>12}, {_fmt(hi):>12}] "
               f"{'' if not math.isfinite(rel) else f'{rel:.2f}':>7}")
     for key, why in ident.not_identified.items():

@@ -98,7 +98,8 @@ def _table(ident: Any) -> str:
     rows = []
     for key, value in ident.estimates.items():
         lo, hi = ident.ci95[key]
-        rel = 100 * (hi - lo) / 2 / abs(value) if value else math.nan
+        rel = (100 * (hi - lo) / 2 / abs(value) if abs(value) > (hi - lo) / 2
+               else math.nan)       # an offset near 0: no relative width
         rows.append(f"<tr><td><code>{html.escape(key)}</code></td><td>{fmt_num(value, 6)}"
                     f"</td><td>[{fmt_num(lo, 6)}, {fmt_num(hi, 6)}]</td>"
                     f"<td>{fmt_num(rel, 3)}</td></tr>")
