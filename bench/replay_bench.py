@@ -60,8 +60,8 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
                         shutdown: bool = True, warmup_ticks: int = 20,
                         road_speed_mps: float | None = None,
                         wrap_bus: Callable[[can.BusABC], can.BusABC] | None = None,
-                        before_tick: Callable[[int, can.BusABC], None] | None = None
-                        ) -> Path:
+                        before_tick: Callable[[int, can.BusABC], None] | None = None,
+                        excite: bool = False) -> Path:
     """Record ``seconds`` of the loop against :class:`hil.node.RigNode` (virtual bus,
     tick-stepped, no sleeping) into ``path``.  Wake-up lateness and compute time are
     drawn (seeded) so that replay has to reproduce the timing-dependent frames too;
@@ -69,6 +69,8 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     operator commands (applied before that tick).  ``wrap_bus`` wraps the controller's
     bus (a test double that raises in recv / send); ``before_tick(k, rig_bus)`` runs
     after the rig's tick k, before the loop's (e.g. to inject error frames).
+    ``excite``: an identification run (the loop plays ``cfg.excitation`` from the arm;
+    pass ``road="flat"``).
     Returns ``path``."""
     cfg = cfg or default_config()
     if design_bytes is None:
@@ -101,8 +103,13 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
                       clock="stepped", clock_offset_ns=1_700_000_000_000_000_000,
                       blocking=True)
     loop_bus = ctl_bus if wrap_bus is None else wrap_bus(ctl_bus)
+    excitation = None
+    if excite:
+        from controller.excitation import excitation_force
+
+        excitation = excitation_force(cfg)
     loop = ControlLoop(cfg, loop_bus, rt, PIForceLoop.from_config(cfg), recorder=rec,
-                       clock_ns=clock, warmup_ticks=warmup_ticks)
+                       clock_ns=clock, warmup_ticks=warmup_ticks, excitation=excitation)
     rng = np.random.default_rng(seed)
     lateness = rng.integers(2_000, 90_000, size=n).tolist()
     compute = rng.integers(15_000, 60_000, size=n).tolist()

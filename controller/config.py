@@ -40,6 +40,7 @@ __all__ = [
     "ConfigError",
     "DesignConfig",
     "EmulatorConfig",
+    "ExcitationConfig",
     "ForceLoopConfig",
     "FoxgloveConfig",
     "FuzzyConfig",
@@ -423,6 +424,34 @@ class EmulatorConfig:
 
 
 @dataclass(frozen=True)
+class ExcitationConfig:
+    """Identification run (``rig run --excite``, ``rig demo --excite``; docs/identify.md):
+    with the road (shaker) at rest, the force reference is a logarithmic chirp plus a
+    PRBS (``controller/excitation.py``), played once from the arm; the rig rests passive
+    for ``rest_s`` first (sensor offsets and noise are measured there)."""
+
+    duration_s: float = _f(20.0, lo=2.0, hi=3600.0, doc="length of the excitation")
+    rest_s: float = _f(2.0, lo=0.5, hi=600.0,
+                       doc="passive rest before arming (offsets, noise levels)")
+    chirp_start_hz: float = _f(0.5, lo=0.01, hi=200.0, doc="log chirp start frequency")
+    chirp_stop_hz: float = _f(25.0, lo=0.1, hi=500.0, doc="log chirp stop frequency")
+    chirp_amplitude_n: float = _f(800.0, lo=0.0, hi=1e5,
+                                  doc="chirp force amplitude above chirp_corner_hz")
+    chirp_corner_hz: float = _f(3.0, lo=0.0, hi=500.0,
+                                doc="below this the chirp amplitude falls in proportion "
+                                    "to frequency (keeps the body mode's travel small)")
+    prbs_amplitude_n: float = _f(150.0, lo=0.0, hi=1e5,
+                                 doc="PRBS force amplitude (+/-), added to the chirp")
+    prbs_clock_hz: float = _f(50.0, lo=1.0, hi=1000.0,
+                              doc="PRBS bit rate (flat spectrum to ~0.45 x this)")
+    taper_s: float = _f(0.5, lo=0.0, hi=60.0, doc="cosine fade in / out")
+    travel_limit_m: float = _f(0.05, lo=0.001, hi=1.0,
+                               doc="LVDT reading beyond +/- this stops the excitation "
+                                   "(valve safe, run marked aborted)")
+    seed: int = _f(1, lo=0, hi=2**63 - 1, doc="PRBS seed")
+
+
+@dataclass(frozen=True)
 class SafetyConfig:
     arm_warmup_s: float = _f(0.05, lo=0.0, hi=60.0,
                              doc="good sensor ticks the estimator needs before arming")
@@ -540,6 +569,7 @@ class RigConfig:
     foxglove: FoxgloveConfig = field(default_factory=FoxgloveConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     emulator: EmulatorConfig = field(default_factory=EmulatorConfig)
+    excitation: ExcitationConfig = field(default_factory=ExcitationConfig)
 
     @property
     def sample_time_s(self) -> float:
@@ -714,8 +744,36 @@ def _cross_checks(cfg: RigConfig) -> None:
     if sorted(cfg.noise.road_roughness_gd) != cfg.noise.road_roughness_gd:
         raise ConfigError("noise.road_roughness_gd", cfg.noise.road_roughness_gd,
                           "increasing values")
+    _excitation_checks(cfg)
     _telemetry_checks(cfg.telemetry)
     _foxglove_checks(cfg)
+
+
+def _excitation_checks(cfg: RigConfig) -> None:
+    ex = cfg.excitation
+    if ex.chirp_stop_hz <= ex.chirp_start_hz:
+        raise ConfigError("excitation.chirp_stop_hz", ex.chirp_stop_hz,
+                          f"> excitation.chirp_start_hz = {ex.chirp_start_hz}")
+    nyquist = 0.5 * cfg.design.sample_rate_hz
+    if ex.chirp_stop_hz >= nyquist or ex.prbs_clock_hz > cfg.design.sample_rate_hz:
+        raise ConfigError("excitation.chirp_stop_hz", ex.chirp_stop_hz,
+                          f"< the Nyquist frequency {nyquist} Hz (and prbs_clock_hz <= "
+                          "design.sample_rate_hz)")
+    peak = ex.chirp_amplitude_n + ex.prbs_amplitude_n
+    if peak > cfg.force_loop.force_limit_n:
+        raise ConfigError("excitation.chirp_amplitude_n", ex.chirp_amplitude_n,
+                          f"chirp + PRBS amplitude <= force_loop.force_limit_n = "
+                          f"{cfg.force_loop.force_limit_n} N (got {peak} N)")
+    if peak <= 0.0:
+        raise ConfigError("excitation.chirp_amplitude_n", ex.chirp_amplitude_n,
+                          "chirp + PRBS amplitude > 0")
+    if ex.travel_limit_m > cfg.vehicle.rattlespace_travel_m:
+        raise ConfigError("excitation.travel_limit_m", ex.travel_limit_m,
+                          f"<= vehicle.rattlespace_travel_m = {cfg.vehicle.rattlespace_travel_m}"
+                          " (stop before the bump stops)")
+    if 2.0 * ex.taper_s >= ex.duration_s:
+        raise ConfigError("excitation.taper_s", ex.taper_s,
+                          f"< half of excitation.duration_s = {ex.duration_s}")
 
 
 _HOST_NAME = r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"

@@ -39,6 +39,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "tune": ("tune", "search the LQ weights over Monte Carlo plants and roads (optuna)"),
     "replay": ("replay", "replay a recorded run (MCAP or candump log) through the loop"),
     "report": ("report", "HTML report with plots of a recorded run"),
+    "identify": ("identify", "identify the rig (masses, rates, tire, actuator) from an "
+                             "excitation run"),
 }
 
 

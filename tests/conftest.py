@@ -29,3 +29,12 @@ def design_path(tmp_path_factory: pytest.TempPathFactory, default_design: Design
     path = tmp_path_factory.mktemp("design") / "design.npz"
     save_design(default_design, path)
     return path
+
+
+@pytest.fixture(scope="session")
+def identification_run(tmp_path_factory: pytest.TempPathFactory, design_path: Path) -> Path:
+    """An identification run (``tests/support/identify_run.py``), recorded once."""
+    from tests.support.identify_run import record_identification_run
+
+    path = tmp_path_factory.mktemp("identify") / "ex.mcap"
+    return record_identification_run(path, design_path.read_bytes())

@@ -27,6 +27,9 @@ Names:
     Logarithmic sine sweep 0.5 -> 25 Hz over the run with a constant 0.1 m/s road
     velocity amplitude (height amplitude 0.1 / (2 pi f)); ``speed_mps`` only scales the
     spatial wavelength.
+``flat``
+    The road held at rest (height and velocity 0): the shaker of an identification run
+    (``rig demo --excite``, ``rig hil --excite``).
 ``csv:PATH``
     Measured profile: two columns distance [m], height [m] (comma separated, optional
     header line), distance strictly increasing; linear interpolation.  At most
@@ -72,7 +75,7 @@ ISO_N2 = 2.83    # cycle/m, upper band edge
 ISO_CLASSES: dict[str, float] = {c: 16e-6 * 4.0**k for k, c in enumerate("ABCDEFGH")}
 ROUGH_COURSE_RMS_M = 1.35 * 0.0254
 ROAD_NAMES = (*[f"iso-{c}" for c in ISO_CLASSES], "rough-course", "datp", "bump",
-              "pothole", "sweep", "csv:PATH")
+              "pothole", "sweep", "flat", "csv:PATH")
 #: largest ``csv:`` profile file read
 MAX_CSV_BYTES = 256 << 20
 
@@ -224,7 +227,7 @@ def _read_csv(path: str) -> tuple[FloatArray, FloatArray]:
     return arr[:, 0], arr[:, 1]
 
 
-_FIXED_ROADS = ("rough-course", "datp", "bump", "pothole", "sweep")
+_FIXED_ROADS = ("rough-course", "datp", "bump", "pothole", "sweep", "flat")
 
 
 def check_road(name: str) -> str:
@@ -286,6 +289,9 @@ def make_road(name: str, speed_mps: float, duration_s: float, dt_s: float,
     if low == "pothole":
         return _finish("pothole", speed_mps, dt_s, _pothole(s, 5.0, 0.6, 0.06, 0.05), None,
                        "pothole 60 mm deep, 0.6 m long, at 5 m")
+    if low == "flat":
+        return _finish("flat", speed_mps, dt_s, np.zeros(n_ticks + 1), None,
+                       "road held at rest (shaker still: identification runs)")
     if low == "sweep":
         t = np.arange(n_ticks + 1) * dt_s
         f0, f1, v0 = 0.5, 25.0, 0.1

@@ -40,6 +40,7 @@ from rig import argtypes, strict_json
 SETTLE_S = 0.5     # skipped at the start of each half (start-up / switching transients)
 WARM_TICKS = 200   # loop ticks before the emulated rig starts
 MAX_REARMS = 1000
+EXCITE_TAIL_S = 0.5  # passive rest kept after an excitation (--excite)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -72,6 +73,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig-watchdog-ms", type=argtypes.real(0.0, 1e7, "ms", lo_open=True),
                    default=None, metavar="MS",
                    help="the emulated drive's command watchdog (default 5, as `rig hil`)")
+    p.add_argument("--excite", action="store_true",
+                   help="identification run (docs/identify.md): the road held at rest "
+                        "('flat'), armed excitation.duration_s + 0.5 s before the end, the "
+                        "force reference is the excitation of [excitation] instead of the "
+                        "bank's output; then `rig identify` the recording")
     p.add_argument("-q", "--quiet", action="store_true", help="no live progress line")
 
 
@@ -233,6 +239,16 @@ def run(args: argparse.Namespace) -> int:
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
     arm_tick = n_ticks // 2
+    if args.excite:
+        ex = cfg.excitation
+        need = ex.rest_s + ex.duration_s + EXCITE_TAIL_S
+        if args.duration < need:
+            print(f"rig demo: --excite needs --duration >= {need:g} s (excitation.rest_s "
+                  f"{ex.rest_s:g} + excitation.duration_s {ex.duration_s:g} + "
+                  f"{EXCITE_TAIL_S:g} s of rest after it)", file=sys.stderr)
+            return 2
+        args.road = "flat"
+        arm_tick = n_ticks - round((ex.duration_s + EXCITE_TAIL_S) * rate)
     # the rig process makes the road again; a bad one is refused here, before it starts
     make_road(args.road, args.speed, args.duration + 1.0, cfg.sample_time_s,
               seed=cfg.sensors.seed if args.seed is None else args.seed)
@@ -247,13 +263,13 @@ def run(args: argparse.Namespace) -> int:
             recording=False if args.no_record else None,
             telemetry=False if args.no_telemetry else None, controller=args.controller,
             weights=args.weights, realtime=realtime,
-            timing_ring=2 * n_ticks + 10_000),
+            timing_ring=2 * n_ticks + 10_000, excite=args.excite),
         RigProcessOptions(road=args.road, speed_mps=args.speed,
                           road_s=args.duration + 1.0, seed=args.seed,
                           watchdog_s=watchdog_s, trace_ticks=n_ticks + 2000,
                           realtime=realtime),
         metadata={"source": "rig demo", "road": args.road, "speed_mps": args.speed,
-                  "arm_tick": arm_tick},
+                  "arm_tick": arm_tick, "excitation": args.excite},
         stop=stop, rig_start_ticks=WARM_TICKS)
     service, trace = harness.service, harness.trace
     if service.foxglove is not None and service.foxglove.state == "serving":
@@ -272,6 +288,8 @@ def run(args: argparse.Namespace) -> int:
         if k < arm_tick:
             return
         lc = loop.lifecycle
+        if args.excite and state["armed_at"] >= 0:
+            return      # an identification run is played once; a fault aborts it
         if lc.state is LifecycleState.FAULT and state["rearms"] < args.max_rearms \
                 and loop.monitor.condition.name == "NONE" \
                 and loop.request("reset", timeout_s=None).accepted:
@@ -322,6 +340,7 @@ def run(args: argparse.Namespace) -> int:
                    for k in ("absorbed_power", "rattlespace_rms_m", "tire_load_rms_ratio")
                    if k in active and k in passive},
         "faults": faults, "rearms": state["rearms"],
+        "excitation": loop.excitation_state if args.excite else None,
         "final_state": loop.lifecycle.state.name,
         "timing": loop.timing.summary(),
         "recording": str(service.recording_path) if service.recording_path else None,

@@ -35,7 +35,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channel", default=None, help="e.g. vcan0 (default: can.channel)")
     p.add_argument("--road", default="rough-course", type=argtypes.road,
                    help="road name (iso-A..iso-H, rough-course, datp, bump, pothole, "
-                        "sweep, csv:PATH); default rough-course")
+                        "sweep, flat, csv:PATH); default rough-course")
+    p.add_argument("--excite", action="store_true",
+                   help="identification run: hold the road (shaker) at rest, i.e. --road "
+                        "flat, while the controller (`rig run --excite`) plays its "
+                        "excitation (docs/identify.md)")
     p.add_argument("--speed", type=argtypes.config_real("noise.nominal_speed_mps", "m/s"),
                    default=None, metavar="V",
                    help="vehicle speed [m/s] (default: noise.nominal_speed_mps)")
@@ -60,6 +64,8 @@ def run(args: argparse.Namespace) -> int:
     speed = cfg.noise.nominal_speed_mps if args.speed is None else args.speed
     road_s = MAX_ROAD_S if args.duration is None else min(args.duration, MAX_ROAD_S)
     seed = cfg.sensors.seed if args.seed is None else args.seed
+    if args.excite:
+        args.road = "flat"
     road = make_road(args.road, speed, road_s, cfg.sample_time_s, seed)
     faults = FaultSchedule.load(args.faults) if args.faults else FaultSchedule()
     if args.seed is not None:

@@ -28,6 +28,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channel", default=None, help="CAN channel, e.g. can0 / vcan0")
     p.add_argument("--arm", action="store_true",
                    help="arm (ACTIVE) as soon as the sensors are healthy")
+    p.add_argument("--excite", action="store_true",
+                   help="identification run (docs/identify.md): rest passive for "
+                        "excitation.rest_s, arm, play the excitation of [excitation] as the "
+                        "force reference (the shaker must hold the road at rest), disarm "
+                        "and stop 0.5 s after it; record it and `rig identify` the file")
     p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_SERVICE_S, "s",
                                                     lo_open=True),
                    default=None, metavar="S",
@@ -65,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
         fifo_priority=args.rt_priority, cpus=tuple(args.cpu or ()))
     opts = ServiceOptions(
         design_path=args.design, interface=args.interface, channel=args.channel,
-        arm=args.arm, duration_s=args.duration, record=args.record,
+        arm=args.arm or args.excite, duration_s=args.duration, excite=args.excite,
+        record=args.record,
         recording=False if args.no_record else None,
         telemetry=False if args.no_telemetry else None, controller=args.controller,
         weights=args.weights, realtime=rt)

@@ -55,8 +55,9 @@ __all__ = [
 #: Bumped when a channel, field meaning or attachment name changes incompatibly.
 #: 2: segment identity and end records (run id, index, sequence / tick ranges) and the
 #: data-section CRC (rig.recording.segments)
-#: 3: events also on ``/rig/log`` (foxglove.Log) and the quarter-car picture on
-#: ``/rig/scene`` (foxglove.SceneUpdate) and ``/tf`` (foxglove.FrameTransform)
+#: 3: events also on ``/rig/log`` (foxglove.Log), the quarter-car picture on
+#: ``/rig/scene`` (foxglove.SceneUpdate) and ``/tf`` (foxglove.FrameTransform), and the
+#: identification excitation marked by ``excitation`` events
 RECORDING_FORMAT_VERSION: Final = 3
 SCHEMA_ENCODING: Final = "jsonschema"
 MESSAGE_ENCODING: Final = "json"
@@ -85,7 +86,7 @@ TIMING_KEYS: Final = frozenset({
     "dropped_recording", "dropped_telemetry",
 })
 #: Event kinds (``detail`` layout per kind in docs/recording.md).
-EVENT_KINDS: Final = ("command", "lifecycle", "fault", "note")
+EVENT_KINDS: Final = ("command", "lifecycle", "fault", "note", "excitation")
 
 _NUM: Final[dict[str, Any]] = {"type": ["number", "null"]}
 _NUM_ARRAY: Final[dict[str, Any]] = {"type": "array", "items": _NUM}

@@ -102,7 +102,9 @@ def _runtime_settings(run: RecordedRun, cfg: RigConfig) -> dict[str, Any]:
     blending = meta.get("blending", first.get("blending", 0))
     weight_set = meta.get("weight_set", first.get("weight_set", cfg.design.weight_set))
     return {"blending": int(blending), "weight_set": int(weight_set),
-            "warmup_ticks": meta.get("warmup_ticks"), "single_model": meta.get("single_model")}
+            "warmup_ticks": meta.get("warmup_ticks"), "single_model": meta.get("single_model"),
+            # an identification run: the loop played cfg.excitation (docs/identify.md)
+            "excite": any(e.get("kind") == "excitation" for e in run.events)}
 
 
 def _build_loop(cfg: RigConfig, design: Design, bus: can.BusABC, settings: Mapping[str, Any],
@@ -111,9 +113,14 @@ def _build_loop(cfg: RigConfig, design: Design, bus: can.BusABC, settings: Mappi
                      single_model=settings.get("single_model"), cfg=cfg)
     pi = PIForceLoop.from_config(cfg)
     wt = settings.get("warmup_ticks")
+    excitation = None
+    if settings.get("excite"):
+        from controller.excitation import excitation_force
+
+        excitation = excitation_force(cfg)
     return ControlLoop(cfg, bus, rt, pi, recorder=recorder, blending=settings["blending"],
                        weight_set=settings["weight_set"], clock_ns=clock,
-                       warmup_ticks=None if wt is None else int(wt))
+                       warmup_ticks=None if wt is None else int(wt), excitation=excitation)
 
 
 def _open_out(out: str | Path, cfg: RigConfig, design_bytes: bytes | None,

@@ -36,7 +36,7 @@ __all__ = ["LIFECYCLE_NAMES", "SIGNAL_FIELDS", "TIMING_FIELDS", "Phase", "RunSer
 
 #: ``/rig/signals`` fields read as numbers
 SIGNAL_FIELDS = ("rattlespace_m", "sprung_accel_mps2", "force_meas_n", "force_ref_n",
-                 "spool_cmd", "valve_enable")
+                 "spool_cmd", "valve_enable", "sensor_counter", "sensor_age_ticks")
 #: ``/rig/timing`` fields read as numbers (booleans as 0 / 1)
 TIMING_FIELDS = ("wake_late_s", "compute_s", "period_s", "overrun", "overruns_total")
 #: lifecycle states in DBC order

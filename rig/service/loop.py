@@ -76,6 +76,7 @@ _OUT_OF_RANGE = DecodeStatus.OUT_OF_RANGE
 _NONE = FaultCode.NONE
 _ACTIVE = LifecycleState.ACTIVE
 _DEGRADED = int(StepFlag.DEGRADED)
+_DIVERGED = int(StepFlag.DIVERGED)
 _FAULT = LifecycleState.FAULT
 _STOPPING = LifecycleState.STOPPING
 
@@ -217,7 +218,7 @@ class ControlLoop:
                  blending: int = 0, weight_set: int | None = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns,
                  spin_ns: int = 60_000, warmup_ticks: int | None = None,
-                 timing_ring: int = 1 << 16) -> None:
+                 timing_ring: int = 1 << 16, excitation: np.ndarray | None = None) -> None:
         self.cfg = cfg
         self.rt = runtime
         self.pi = force_loop
@@ -264,6 +265,14 @@ class ControlLoop:
         assert self._handlers.keys() == OPERATOR_COMMANDS.keys(), "rig.operator changed"
         self._watchdog_period_ns = notifier.watchdog_period_ns if notifier else 0
         self.transitions: collections.deque[Transition] = collections.deque(maxlen=256)
+        #: identification excitation (controller.excitation): force reference samples
+        #: played once from the first arm instead of the bank's output; state one of
+        #: none / pending / playing / ended / aborted (docs/identify.md)
+        self.excitation = (None if excitation is None
+                           else np.ascontiguousarray(excitation, dtype=np.float64))
+        self.excitation_state = "none" if excitation is None else "pending"
+        self.excitation_index = 0
+        self.excitation_travel_m = cfg.excitation.travel_limit_m
         self.reset_state()
 
     @property
@@ -359,9 +368,16 @@ class ControlLoop:
 
     def _arm(self, _arg: None) -> CommandResult:
         problem = self.health_problem()
-        res = self.lifecycle.arm(self.tick_count, self.t_ns, not problem, problem)
+        tick, t = self.tick_count, self.t_ns
+        res = self.lifecycle.arm(tick, t, not problem, problem)
         if res.accepted:
             self.pi.reset()
+            if self.excitation is not None and self.excitation_state == "pending":
+                self.excitation_state = "playing"
+                self.excitation_index = 0
+                self._record_event(t, tick, "excitation", {
+                    "phase": "start", "samples": int(self.excitation.shape[0]),
+                    "sample_rate_hz": self.cfg.design.sample_rate_hz})
         return res
 
     def _disarm(self, _arg: None) -> CommandResult:
@@ -408,6 +424,8 @@ class ControlLoop:
 
     def _on_transition(self, tr: Transition) -> None:
         self.transitions.append(tr)
+        if self.excitation_state == "playing" and tr.state is not _ACTIVE:
+            self._end_excitation(tr.t_ns, tr.tick, "aborted", tr.reason)
         self._record_event(tr.t_ns, tr.tick, "fault" if tr.state is _FAULT else "lifecycle",
                            tr.as_dict())
         try:
@@ -417,6 +435,30 @@ class ControlLoop:
                 self.notifier.status(f"{tr.state.name}: {tr.reason}")
         except Exception as exc:
             self._on_output_error(exc)
+
+    def _end_excitation(self, t_ns: int, tick: int, how: str, reason: str) -> None:
+        """The excitation stops (``how``: ended / aborted): marked in the recording."""
+        self.excitation_state = how
+        self._record_event(t_ns, tick, "excitation", {
+            "phase": "end" if how == "ended" else "aborted", "reason": reason,
+            "samples_played": self.excitation_index})
+
+    def _excite(self, now_ns: int, tick: int) -> float:
+        """The excitation's force reference of this ACTIVE tick; at its end (or beyond
+        the travel limit) the loop disarms (valve safe) and the segment is marked."""
+        exc = self.excitation
+        assert exc is not None
+        i = self.excitation_index
+        if abs(self.rattlespace_m) > self.excitation_travel_m:
+            self.lifecycle.disarm(tick, now_ns, "excitation: travel limit "
+                                  f"{self.excitation_travel_m} m exceeded")
+            return 0.0
+        if i >= exc.shape[0]:
+            self._end_excitation(now_ns, tick, "ended", "complete")
+            self.lifecycle.disarm(tick, now_ns, "excitation complete")
+            return 0.0
+        self.excitation_index = i + 1
+        return float(exc[i])
 
     def _record_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> None:
         """An event to the recording and the live view; a failing output never disturbs
@@ -462,7 +504,13 @@ class ControlLoop:
                 if (flags ^ self.bank_flags) & _DEGRADED:
                     self._on_degraded_change(flags, now_ns, tick)
                 self.bank_flags = flags
-                mon.estimator(flags, force_ref)
+                if self.excitation_state == "playing":
+                    # the bank is not in the loop while the excitation plays (and is
+                    # designed for the rig being identified): its divergence monitor
+                    # is no actuator fault; sensor, bus, timing faults still latch
+                    mon.estimator(flags & ~_DIVERGED, 0.0)
+                else:
+                    mon.estimator(flags, force_ref)
                 if flags & 3:               # estimator state unusable: restart it warm
                     rt.reset()
                     self.good_ticks = 0
@@ -472,6 +520,8 @@ class ControlLoop:
             spool = 0.0
             if mon.code is not _NONE:
                 self._latch(mon.code, mon.detail, now_ns)
+            if lc.valve_enabled and self.excitation_state == "playing":
+                force_ref = self._excite(now_ns, tick)
             if lc.valve_enabled:
                 spool = self.pi.step(force_ref, io.force_meas_n, io.rattlespace_m)
                 mon.output(spool)

@@ -69,6 +69,8 @@ class ServiceOptions:
     realtime: RealtimeRequest | None = field(default_factory=RealtimeRequest)  # None = none
     install_signal_handlers: bool = True  # in run(), unless Service(stop=...) was given
     timing_ring: int = 1 << 16            # per-tick timing samples kept (ring buffer)
+    excite: bool = False                  # identification run (cfg.excitation): arm after
+                                          # excitation.rest_s, play it, stop after it
 
 
 def design_bytes(design: Any) -> bytes:
@@ -172,17 +174,23 @@ class Service:
                     "sample_rate_hz": cfg.design.sample_rate_hz, "blending": blending,
                     "weight_set": weight_set, "models": list(map(str, self.design.model_names)),
                     # the rest of what replay needs to build the same loop and runtime
-                    "warmup_ticks": warmup_ticks, "single_model": None}
+                    "warmup_ticks": warmup_ticks, "single_model": None,
+                    "excitation": opts.excite}
             meta.update(metadata or {})
             self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
                                         design_bytes=self.design_blob, metadata=meta,
                                         batch_ticks=cfg.recording.batch_ticks)
             self._check_stop()
+        excitation = None
+        if opts.excite:
+            from controller.excitation import excitation_force
+
+            excitation = excitation_force(cfg)
         self.loop = ControlLoop(cfg, bus, self.runtime, self.force_loop,
                                 recorder=self.recorder, notifier=self.notifier,
                                 blending=blending, weight_set=weight_set,
                                 warmup_ticks=warmup_ticks,
-                                timing_ring=opts.timing_ring)
+                                timing_ring=opts.timing_ring, excitation=excitation)
         telemetry_on = cfg.telemetry.enabled if opts.telemetry is None else opts.telemetry
         if telemetry_on:
             from rig.telemetry import TelemetryPublisher
@@ -206,7 +214,12 @@ class Service:
         #: how long a telemetry command waits for the loop to apply it [s]
         self.command_timeout_s = 0.05
         self._arm_pending = opts.arm
-        self._arm_after_ticks = round(opts.arm_after_s * cfg.design.sample_rate_hz)
+        arm_after_s = max(opts.arm_after_s, cfg.excitation.rest_s) if opts.excite \
+            else opts.arm_after_s
+        self._arm_after_ticks = round(arm_after_s * cfg.design.sample_rate_hz)
+        #: ticks of passive rest kept after the excitation ended before the run stops
+        self._excite_tail_ticks = round(0.5 * cfg.design.sample_rate_hz)
+        self._excite_ended_at = -1
         self._check_stop()
 
     def _abandon(self) -> None:
@@ -290,6 +303,14 @@ class Service:
         return self._stop.signal_name if self._stop is not None else ""
 
     def _on_tick(self, loop: ControlLoop) -> None:
+        if self.opts.excite and loop.excitation_state in ("ended", "aborted"):
+            # an unattended identification run stops shortly after its excitation
+            if self._excite_ended_at < 0:
+                self._excite_ended_at = loop.tick_count
+                log.info("excitation %s", loop.excitation_state)
+            elif loop.tick_count - self._excite_ended_at >= self._excite_tail_ticks:
+                self.exit_reason = self.exit_reason or f"excitation {loop.excitation_state}"
+                self.stop_event.set()
         if self._arm_pending and loop.tick_count >= self._arm_after_ticks \
                 and not loop.health_problem():
             self._arm_pending = False
