@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
-import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +26,7 @@ from hil.sim.roads import check_road, make_road
 from rig.cli import main as rig_main
 from rig.report.identify import IDENTIFY_FIGURES, MEASURED_COLOUR, MODEL_COLOUR
 from rig.report.series import load_series
+from tests.support.browser import chromium, chromium_run
 from tests.support.identify_run import ARM_S, IDENT_CFG, record_identification_run, true_values
 
 pytestmark = pytest.mark.timeout(300)
@@ -244,26 +242,6 @@ def test_cli_refusals_are_one_line_exit_2(design_path: Path, tmp_path: Path,
 # ---------------------------------------------------------------------------- report
 
 
-def _chromium() -> str:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    pytest.skip("CHROMIUM NOT INSTALLED: `bash scripts/ensure-debian-packages.sh` installs "
-                "the Debian package 'chromium' for the browser rendering tests")
-
-
-def _chromium_run(browser: str, page: Path, *args: str) -> str:
-    from tests.test_report import CHROMIUM_FLAGS
-
-    with tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile:
-        proc = subprocess.run([browser, *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
-                               *args, page.resolve().as_uri()],
-                              capture_output=True, text=True, timeout=120, check=False)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return proc.stdout
-
-
 def _pixels_near(img: np.ndarray, colour: str, tol: float = 8.0) -> int:
     rgb = np.array([int(colour[i:i + 2], 16) for i in (1, 3, 5)], dtype=float)
     px = img[..., :3].astype(float)
@@ -274,19 +252,19 @@ def _pixels_near(img: np.ndarray, colour: str, tol: float = 8.0) -> int:
 
 def test_report_renders_in_headless_chromium(identified: dict[str, Any],
                                              tmp_path: Path) -> None:
-    browser = _chromium()
+    browser = chromium()
     page = identified["report"]
-    dom = _chromium_run(browser, page, "--dump-dom")
+    dom = chromium_run(browser, page, "--dump-dom")
     n = len(IDENTIFY_FIGURES)
     assert f'data-images-loaded="{n}/{n}"' in dom, dom[:500]
     assert "<h1>Identification of" in dom and "vehicle.sprung_mass_kg" in dom
     # a page whose Bode plot is gone reports it (the check can fail)
     broken = tmp_path / "broken.html"
     broken.write_text(page.read_text().replace("src='data:image/png;base64,", "src='x", 1))
-    dom = _chromium_run(browser, broken, "--dump-dom")
+    dom = chromium_run(browser, broken, "--dump-dom")
     assert f'data-images-loaded="{n - 1}/{n}"' in dom
     shot = tmp_path / "identify.png"
-    _chromium_run(browser, page, "--window-size=1100,3000", f"--screenshot={shot}")
+    chromium_run(browser, page, "--window-size=1100,3000", f"--screenshot={shot}")
     img = np.asarray(mpimg.imread(shot))
     assert float(np.std(img[..., :3])) > 0.05
     # measured and model curves are both drawn

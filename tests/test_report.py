@@ -8,7 +8,6 @@ import itertools
 import math
 import re
 import shutil
-import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -48,14 +47,11 @@ from rig.report.plots import (
     envelope,
 )
 from rig.wire.protocol import VALVE_COMMAND_ID, FaultCode
+from tests.support.browser import chromium, chromium_run
 
 pytestmark = pytest.mark.timeout(300)
 CFG = default_config()
 DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "wire" / "rig.dbc"))
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-                  "--disable-background-networking", "--disable-component-update",
-                  "--disable-sync", "--no-first-run", "--hide-scrollbars",
-                  "--force-color-profile=srgb", "--virtual-time-budget=10000"]
 PLOTS = ["summary.png", "rattlespace.png", "acceleration.png", "force.png",
          "force_tracking.png", "models.png", "lifecycle.png", "timing.png"]
 #: the fixture run: passive, active, an overrun-streak fault, reset, active again
@@ -402,32 +398,14 @@ def test_cli_report_and_bad_files(recording: Path, work: Path,
 # ---------------------------------------------------------------------------- browser
 
 
-def _chromium() -> str:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    pytest.skip("CHROMIUM NOT INSTALLED: `bash scripts/ensure-debian-packages.sh` installs "
-                "the Debian package 'chromium' for the browser rendering tests")
-
-
-def _chromium_run(browser: str, index: Path, *args: str) -> str:
-    with tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile:
-        proc = subprocess.run([browser, *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
-                               *args, index.resolve().as_uri()],
-                              capture_output=True, text=True, timeout=120, check=False)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return proc.stdout
-
-
 def _screenshot(browser: str, index: Path, png: Path, height: int) -> np.ndarray:
-    _chromium_run(browser, index, f"--window-size=1100,{height}", f"--screenshot={png}")
+    chromium_run(browser, index, f"--window-size=1100,{height}", f"--screenshot={png}")
     return np.asarray(mpimg.imread(png))
 
 
 def test_report_renders_in_headless_chromium(report: Path, work: Path) -> None:
-    browser = _chromium()
-    dom = _chromium_run(browser, report, "--dump-dom")
+    browser = chromium()
+    dom = chromium_run(browser, report, "--dump-dom")
     n = len(PLOTS)
     assert f'data-images-loaded="{n}/{n}"' in dom, dom[:500]
     assert "<h1>Run report" in dom
@@ -435,7 +413,7 @@ def test_report_renders_in_headless_chromium(report: Path, work: Path) -> None:
     broken = work / "broken"
     shutil.copytree(report.parent, broken)
     (broken / "force.png").unlink()
-    dom = _chromium_run(browser, broken / "index.html", "--dump-dom")
+    dom = chromium_run(browser, broken / "index.html", "--dump-dom")
     assert f'data-images-loaded="{n - 1}/{n}"' in dom
 
 
@@ -444,7 +422,7 @@ def test_screenshot_shows_summary_events_table_and_model_legend(report: Path,
     """What a person sees: the first screen has the passive / active bars and the events
     table with its fault row; the page shows every model's colour (lines and legend of
     the models plot) and the phase shading.  The screenshots stay in the work directory."""
-    browser = _chromium()
+    browser = chromium()
     top = _screenshot(browser, report, work / "screenshot-top.png", 1500)
     assert top.shape[0] == 1500 and float(np.std(top[..., :3])) > 0.05   # not blank
     for phase in (Phase.PASSIVE, Phase.ACTIVE):                           # summary bars
