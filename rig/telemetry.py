@@ -25,7 +25,7 @@ from typing import Any
 import zenoh
 
 from controller.config import TelemetryConfig
-from rig.operator import OPERATOR_COMMANDS, brief, validate_command
+from rig.operator_commands import OPERATOR_COMMANDS, brief, validate_command
 from rig.recording.schema import encode_json
 
 __all__ = ["MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "SESSION_ATTEMPTS", "TelemetryPublisher",

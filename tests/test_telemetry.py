@@ -21,8 +21,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from controller.config import TelemetryConfig, default_config
-from rig.operator import OPERATOR_COMMANDS as COMMANDS
-from rig.operator import validate_command
+from rig.operator_commands import OPERATOR_COMMANDS as COMMANDS
+from rig.operator_commands import validate_command
 from rig.telemetry import TelemetryPublisher, zenoh_config
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ The parts, ros2_control-style: the hardware interface
 :class:`rig.service.hardware.RigIO` reads the rig's frames and writes the controller's
 (``read`` / ``write_*``); the update is the runtime bank's step and the PI force loop
 (the :class:`Runtime` and :class:`ForceLoop` seams); :class:`ControlLoop` is the
-manager: lifecycle, fault monitor, operator commands (:mod:`rig.operator`), pacing and
+manager: lifecycle, fault monitor, operator commands (:mod:`rig.operator_commands`), pacing and
 the outputs (recording, telemetry).
 
 Per tick, in this order (latency from sensor frame to valve command kept short):
@@ -52,7 +52,7 @@ import numpy as np
 
 from controller.config import RigConfig
 from controller.runtime.kernels import StepFlag
-from rig.operator import OPERATOR_COMMANDS
+from rig.operator_commands import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout
 from rig.rt.pacing import Pacer
 from rig.rt.sdnotify import SdNotifier
@@ -257,12 +257,12 @@ class ControlLoop:
                         lambda t, k, detail: self._record_event(t, k, "note", detail),
                         self._on_output_error)
         self._requests: collections.deque[_Request] = collections.deque(maxlen=64)
-        #: one handler per operator command (rig.operator owns the table)
+        #: one handler per operator command (rig.operator_commands owns the table)
         self._handlers: dict[str, Callable[[Any], CommandResult]] = {
             "arm": self._arm, "disarm": self._disarm, "reset": self._reset,
             "blending": self._set_blending, "weight_set": self._set_weight_set,
             "road": self._set_road}
-        assert self._handlers.keys() == OPERATOR_COMMANDS.keys(), "rig.operator changed"
+        assert self._handlers.keys() == OPERATOR_COMMANDS.keys(), "rig.operator_commands changed"
         self._watchdog_period_ns = notifier.watchdog_period_ns if notifier else 0
         self.transitions: collections.deque[Transition] = collections.deque(maxlen=256)
         #: identification excitation (controller.excitation): force reference samples

@@ -37,7 +37,7 @@ import can
 
 from controller.config import RigConfig, config_hash, config_to_toml
 from controller.modes import blending_of
-from rig.operator import loop_argument
+from rig.operator_commands import loop_argument
 from rig.rt.realtime import (
     RealtimeReport,
     RealtimeRequest,
