@@ -520,8 +520,9 @@ class ControlLoop:
             spool = 0.0
             if mon.code is not _NONE:
                 self._latch(mon.code, mon.detail, now_ns)
-            if lc.valve_enabled and self.excitation_state == "playing":
-                force_ref = self._excite(now_ns, tick)
+            if lc.valve_enabled and self.excitation is not None \
+                    and self.excitation_state == "playing":
+                force_ref = self._excite(now_ns, tick)    # may disarm at its end
             if lc.valve_enabled:
                 spool = self.pi.step(force_ref, io.force_meas_n, io.rattlespace_m)
                 mon.output(spool)
@@ -549,13 +550,17 @@ class ControlLoop:
             # out: a few numpy calls, tens of microseconds with cold caches
             self.lateness_p99_us = timing.lateness_p99_us()
         try:
+            rec = self._recorder
             viewer = self.viewer
             view = viewer is not None and tick % self.viewer_every == 0
-            scalars, arrays = self._tick_record(now_ns)
-            if self.recorder is not None:
-                self.recorder.tick_values(now_ns, scalars, arrays)
-            if view:
-                viewer.offer_tick(now_ns, scalars, arrays)  # type: ignore[union-attr]
+            if rec is not None or view:
+                scalars, arrays = self._tick_record(now_ns)
+                if rec is not None:
+                    rec.tick_values(now_ns, scalars, arrays)
+                if view:
+                    viewer.offer_tick(now_ns, scalars, arrays)  # type: ignore[union-attr]
+            else:
+                self._last_wake_ns = now_ns
             if self.telemetry is not None and tick % self.telemetry_every == 0:
                 self.telemetry.offer(self.snapshot())
         except Exception as exc:    # the outputs never stop the control loop

@@ -167,18 +167,16 @@ class FaultMonitor:
         """Count repeats of bit-identical values per signal (decoding is injective, so
         equal floats are equal raw values); SENSOR_FROZEN once a value was the same in
         more than ``frozen_ticks`` consecutive frames (``frozen_ticks`` repeats)."""
-        self._repeat(DETAIL_RATTLESPACE, rattlespace_m)
-        self._repeat(DETAIL_FORCE, force_n)
-        self._repeat(DETAIL_ACCEL, accel_mps2)
-
-    def _repeat(self, which: int, value: float) -> None:
-        if value == self.last_value[which]:
-            self.repeats[which] += 1
-            if self.repeats[which] >= self.frozen_ticks:
-                self._flag(FaultCode.SENSOR_FROZEN, which)
-        else:
-            self.repeats[which] = 0
-            self.last_value[which] = value
+        last, repeats, limit = self.last_value, self.repeats, self.frozen_ticks
+        for which, value in ((DETAIL_RATTLESPACE, rattlespace_m), (DETAIL_FORCE, force_n),
+                             (DETAIL_ACCEL, accel_mps2)):
+            if value == last[which]:
+                repeats[which] += 1
+                if repeats[which] >= limit:
+                    self._flag(FaultCode.SENSOR_FROZEN, which)
+            else:
+                repeats[which] = 0
+                last[which] = value
 
     def _range(self, value: float, which: int) -> None:
         if math.isfinite(value):
