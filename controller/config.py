@@ -57,6 +57,7 @@ __all__ = [
     "config_to_dict",
     "config_to_toml",
     "default_config",
+    "excitation_problems",
     "host_problem",
     "load_config",
     "parse_config",
@@ -750,10 +751,27 @@ def _cross_checks(cfg: RigConfig) -> None:
 
 
 def _excitation_checks(cfg: RigConfig) -> None:
+    """The [excitation] section on its own; what it must satisfy against the rest of the
+    configuration is checked when an excitation is built (:func:`excitation_problems`),
+    so that a configuration made for other runs (a low rate, short travel, a small force
+    limit) is not refused for an excitation it never plays."""
     ex = cfg.excitation
     if ex.chirp_stop_hz <= ex.chirp_start_hz:
         raise ConfigError("excitation.chirp_stop_hz", ex.chirp_stop_hz,
                           f"> excitation.chirp_start_hz = {ex.chirp_start_hz}")
+    if ex.chirp_amplitude_n + ex.prbs_amplitude_n <= 0.0:
+        raise ConfigError("excitation.chirp_amplitude_n", ex.chirp_amplitude_n,
+                          "chirp + PRBS amplitude > 0")
+    if 2.0 * ex.taper_s >= ex.duration_s:
+        raise ConfigError("excitation.taper_s", ex.taper_s,
+                          f"< half of excitation.duration_s = {ex.duration_s}")
+
+
+def excitation_problems(cfg: RigConfig) -> None:
+    """Raise :class:`ConfigError` (naming the key) when the [excitation] section does not
+    fit the rest of the configuration: below the Nyquist frequency of the controller
+    rate, within the force loop's limit, and stopping before the bump stops."""
+    ex = cfg.excitation
     nyquist = 0.5 * cfg.design.sample_rate_hz
     if ex.chirp_stop_hz >= nyquist or ex.prbs_clock_hz > cfg.design.sample_rate_hz:
         raise ConfigError("excitation.chirp_stop_hz", ex.chirp_stop_hz,
@@ -764,16 +782,10 @@ def _excitation_checks(cfg: RigConfig) -> None:
         raise ConfigError("excitation.chirp_amplitude_n", ex.chirp_amplitude_n,
                           f"chirp + PRBS amplitude <= force_loop.force_limit_n = "
                           f"{cfg.force_loop.force_limit_n} N (got {peak} N)")
-    if peak <= 0.0:
-        raise ConfigError("excitation.chirp_amplitude_n", ex.chirp_amplitude_n,
-                          "chirp + PRBS amplitude > 0")
     if ex.travel_limit_m > cfg.vehicle.rattlespace_travel_m:
         raise ConfigError("excitation.travel_limit_m", ex.travel_limit_m,
                           f"<= vehicle.rattlespace_travel_m = {cfg.vehicle.rattlespace_travel_m}"
                           " (stop before the bump stops)")
-    if 2.0 * ex.taper_s >= ex.duration_s:
-        raise ConfigError("excitation.taper_s", ex.taper_s,
-                          f"< half of excitation.duration_s = {ex.duration_s}")
 
 
 _HOST_NAME = r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
-from controller.config import RigConfig
+from controller.config import RigConfig, excitation_problems
 
 __all__ = ["chirp_frequency_hz", "excitation_force"]
 
@@ -52,7 +52,10 @@ def _prbs(n_bits: int, seed: int) -> FloatArray:
 
 def excitation_force(cfg: RigConfig) -> FloatArray:
     """The excitation's force reference [N], one sample per controller tick
-    (``cfg.excitation.duration_s`` x ``cfg.design.sample_rate_hz`` samples)."""
+    (``cfg.excitation.duration_s`` x ``cfg.design.sample_rate_hz`` samples).
+    :class:`controller.config.ConfigError` when the section does not fit the rest of the
+    configuration (:func:`controller.config.excitation_problems`)."""
+    excitation_problems(cfg)
     ex = cfg.excitation
     dt = cfg.sample_time_s
     n = round(ex.duration_s / dt)

@@ -56,8 +56,6 @@ def test_excitation_is_seeded_bounded_tapered_and_spans_the_band() -> None:
 
 @pytest.mark.parametrize(("section", "key", "value", "why"), [
     ("excitation", "chirp_stop_hz", 0.4, "chirp_start_hz"),
-    ("excitation", "chirp_amplitude_n", 7950.0, "force_limit_n"),
-    ("excitation", "travel_limit_m", 0.09, "rattlespace_travel_m"),
     ("excitation", "taper_s", 10.0, "duration_s"),
     ("excitation", "duration_s", 1.0, "[2.0, 3600.0]"),
 ])
@@ -66,6 +64,22 @@ def test_excitation_config_errors_name_the_key(section: str, key: str, value: fl
     with pytest.raises(ConfigError) as err:
         parse_config({section: {key: value}})
     assert f"{section}.{key}" in str(err.value) and why in str(err.value)
+
+
+@pytest.mark.parametrize(("changes", "key", "why"), [
+    ({"excitation": {"chirp_amplitude_n": 7950.0}}, "chirp_amplitude_n", "force_limit_n"),
+    ({"excitation": {"travel_limit_m": 0.09}}, "travel_limit_m", "rattlespace_travel_m"),
+    ({"excitation": {"chirp_stop_hz": 300.0}, "design": {"sample_rate_hz": 500.0}},
+     "chirp_stop_hz", "Nyquist"),
+])
+def test_an_excitation_that_does_not_fit_the_rig_is_refused_when_built(
+        changes: dict[str, Any], key: str, why: str) -> None:
+    """Checked when an excitation is built, not for every configuration: a configuration
+    made for other runs (short travel, a low rate) stays valid."""
+    cfg = parse_config(changes)
+    with pytest.raises(ConfigError) as err:
+        excitation_force(cfg)
+    assert f"excitation.{key}" in str(err.value) and why in str(err.value)
 
 
 def test_flat_road_holds_the_shaker_at_rest() -> None:
