@@ -564,7 +564,7 @@ def model_frequency_response(mass: float, m: float, k: float, c: float, kt: floa
     dm = np.array([[1.0 / mass], [0.0]])
     sys = control.ss(a, b, cm, dm)
     resp = control.frequency_response(sys, 2 * np.pi * np.asarray(f_hz))
-    h = np.asarray(resp.fresp)      # (outputs, inputs, freqs)
+    h = np.asarray(resp.frdata)     # (outputs, inputs, freqs)
     return h[0, 0], h[1, 0]
 
 
