@@ -75,6 +75,9 @@ class Lifecycle:
 
     def __init__(self) -> None:
         self.state = LifecycleState.INACTIVE
+        #: True only in ACTIVE: every other state commands the safe valve state (kept
+        #: with ``state`` by the one method that changes it; read every tick)
+        self.valve_enabled = False
         self.fault_code = FaultCode.NONE
         self.fault_tick = -1
         self.fault_detail = 0
@@ -83,11 +86,6 @@ class Lifecycle:
         self._listeners: list[Listener] = []
 
     # ------------------------------------------------------------------ queries
-    @property
-    def valve_enabled(self) -> bool:
-        """True only in ACTIVE: every other state commands the safe valve state."""
-        return self.state is LifecycleState.ACTIVE
-
     @property
     def latched(self) -> bool:
         return self.state is LifecycleState.FAULT
@@ -100,6 +98,7 @@ class Lifecycle:
             code: FaultCode = FaultCode.NONE, detail: int = 0) -> None:
         tr = Transition(tick, t_ns, self.state, state, reason, code, detail)
         self.state = state
+        self.valve_enabled = state is LifecycleState.ACTIVE
         self.transitions += 1
         level = logging.ERROR if state is LifecycleState.FAULT else logging.INFO
         log.log(level, "lifecycle %s -> %s at tick %d: %s", tr.previous.name, state.name,

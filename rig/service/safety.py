@@ -107,9 +107,12 @@ class FaultMonitor:
         self.fresh = False              # a valid SensorData arrived this tick
         self.counts = np.zeros(256, dtype=np.int64)   # conditions seen, per FaultCode
         # frozen-sensor monitor: last accepted values and how often each repeated
-        # per signal, indexed by its DETAIL_* code: last value and its repeats
-        self.last_value = [math.nan] * 4
-        self.repeats = [0] * 4
+        self.last_rattlespace_m = math.nan
+        self.last_force_n = math.nan
+        self.last_accel_mps2 = math.nan
+        self.frozen_rattlespace = 0
+        self.frozen_force = 0
+        self.frozen_accel = 0
         # the rig's state as the last RigStatus (valid CRC) reported it: sticky until the
         # next one (RigStatus comes at 100 Hz, the loop runs at 1 kHz)
         self.rig_status_seen = False
@@ -167,16 +170,30 @@ class FaultMonitor:
         """Count repeats of bit-identical values per signal (decoding is injective, so
         equal floats are equal raw values); SENSOR_FROZEN once a value was the same in
         more than ``frozen_ticks`` consecutive frames (``frozen_ticks`` repeats)."""
-        last, repeats, limit = self.last_value, self.repeats, self.frozen_ticks
-        for which, value in ((DETAIL_RATTLESPACE, rattlespace_m), (DETAIL_FORCE, force_n),
-                             (DETAIL_ACCEL, accel_mps2)):
-            if value == last[which]:
-                repeats[which] += 1
-                if repeats[which] >= limit:
-                    self._flag(FaultCode.SENSOR_FROZEN, which)
-            else:
-                repeats[which] = 0
-                last[which] = value
+        # written out per signal: this runs for every good frame, and a loop or a helper
+        # call per signal costs more than the check itself
+        lim = self.frozen_ticks
+        if rattlespace_m == self.last_rattlespace_m:
+            self.frozen_rattlespace += 1
+            if self.frozen_rattlespace >= lim:
+                self._flag(FaultCode.SENSOR_FROZEN, DETAIL_RATTLESPACE)
+        else:
+            self.frozen_rattlespace = 0
+            self.last_rattlespace_m = rattlespace_m
+        if force_n == self.last_force_n:
+            self.frozen_force += 1
+            if self.frozen_force >= lim:
+                self._flag(FaultCode.SENSOR_FROZEN, DETAIL_FORCE)
+        else:
+            self.frozen_force = 0
+            self.last_force_n = force_n
+        if accel_mps2 == self.last_accel_mps2:
+            self.frozen_accel += 1
+            if self.frozen_accel >= lim:
+                self._flag(FaultCode.SENSOR_FROZEN, DETAIL_ACCEL)
+        else:
+            self.frozen_accel = 0
+            self.last_accel_mps2 = accel_mps2
 
     def _range(self, value: float, which: int) -> None:
         if math.isfinite(value):
