@@ -28,15 +28,13 @@ import numpy as np
 from controller.artifact import save_design
 from controller.config import RigConfig, config_to_toml, default_config
 from controller.design import design_bank
-from controller.runtime.bank import BankRuntime
-from controller.runtime.force_loop import PIForceLoop
 from hil.faults import FaultSchedule
 from hil.node import RigNode
 from hil.sim.roads import make_road
 from rig.bus.core import open_bus, shutdown_all
 from rig.recording.recorder import RunRecorder
 from rig.replay import load_recorded_run, replay_recording
-from rig.service.loop import ControlLoop
+from rig.service.assembly import LoopSettings, build_control_loop
 
 __all__ = ["record_emulated_run"]
 
@@ -92,24 +90,17 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     ctl_bus = open_bus(cfg.can, role="controller", interface="virtual", channel=channel)
     rig_bus = open_bus(cfg.can, role="rig", interface="virtual", channel=channel)
     node = RigNode(rig_bus, cfg, rd, faults, seed=seed, record_ticks=16)
-    rt = BankRuntime(design, weight_set=cfg.design.weight_set, cfg=cfg)
+    settings = LoopSettings(blending=0, weight_set=cfg.design.weight_set,
+                            warmup_ticks=warmup_ticks, excite=excite)
     clock = _SteppedClock()
     rec = RunRecorder(path, cfg.recording, config_toml=config_to_toml(cfg),
                       design_bytes=design_bytes,
                       metadata={"source": "bench.replay_bench", "seed": seed,
-                                "runtime": {"blending": 0,
-                                            "weight_set": cfg.design.weight_set,
-                                            "warmup_ticks": warmup_ticks}},
+                                **settings.metadata()},
                       clock="stepped", clock_offset_ns=1_700_000_000_000_000_000,
                       blocking=True)
     loop_bus = ctl_bus if wrap_bus is None else wrap_bus(ctl_bus)
-    excitation = None
-    if excite:
-        from controller.excitation import excitation_force
-
-        excitation = excitation_force(cfg)
-    loop = ControlLoop(cfg, loop_bus, rt, PIForceLoop.from_config(cfg), recorder=rec,
-                       clock_ns=clock, warmup_ticks=warmup_ticks, excitation=excitation)
+    loop = build_control_loop(cfg, design, loop_bus, settings, recorder=rec, clock_ns=clock)
     rng = np.random.default_rng(seed)
     lateness = rng.integers(2_000, 90_000, size=n).tolist()
     compute = rng.integers(15_000, 60_000, size=n).tolist()

@@ -14,21 +14,17 @@ loop: the recorded plant did not react to the replayed commands.
 
 from __future__ import annotations
 
-import contextlib
-import json
+import dataclasses
 import time
 import tomllib
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import can
 import numpy as np
 
 from controller.artifact import Design
 from controller.config import RigConfig, config_hash, config_to_toml, parse_config
-from controller.runtime.bank import BankRuntime
-from controller.runtime.force_loop import PIForceLoop
 from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT, RunRecorder
 from rig.replay.buses import LOG_SUFFIXES, LogReplayBus, McapReplayBus
 from rig.replay.reader import PIPELINE_MIN_BYTES, ReaderProcess, idle_cpu
@@ -50,6 +46,7 @@ from rig.replay.result import (
     series_comparison,
 )
 from rig.replay.scan import RecordingError
+from rig.service.assembly import LoopSettings, build_control_loop
 from rig.service.lifecycle import Transition
 from rig.service.loop import ControlLoop
 from rig.wire.protocol import LifecycleState
@@ -82,45 +79,6 @@ class _FaultLog:
         if tr.state is LifecycleState.FAULT:
             self.codes.append(tr.fault_code.name)
             self.ticks.append(tr.tick)
-
-
-def _runtime_settings(run: RecordedRun, cfg: RigConfig) -> dict[str, Any]:
-    """Loop/runtime construction arguments of the recorded run: metadata key ``runtime``
-    (a JSON object, see docs/replay.md), else the service's top-level metadata keys
-    ``blending`` / ``weight_set`` / ``warmup_ticks``, else the first tick record, else
-    the defaults."""
-    meta: dict[str, Any] = {}
-    for key in ("blending", "weight_set", "warmup_ticks", "single_model"):
-        if key in run.metadata:
-            with contextlib.suppress(json.JSONDecodeError, TypeError):
-                meta[key] = json.loads(run.metadata[key])
-    raw = run.metadata.get("runtime")
-    if raw:
-        with contextlib.suppress(json.JSONDecodeError, TypeError, ValueError):
-            meta.update(dict(json.loads(raw)))
-    first = run.first_internals or {}
-    blending = meta.get("blending", first.get("blending", 0))
-    weight_set = meta.get("weight_set", first.get("weight_set", cfg.design.weight_set))
-    return {"blending": int(blending), "weight_set": int(weight_set),
-            "warmup_ticks": meta.get("warmup_ticks"), "single_model": meta.get("single_model"),
-            # an identification run: the loop played cfg.excitation (docs/identify.md)
-            "excite": any(e.get("kind") == "excitation" for e in run.events)}
-
-
-def _build_loop(cfg: RigConfig, design: Design, bus: can.BusABC, settings: Mapping[str, Any],
-                clock: Callable[[], int], recorder: Any = None) -> ControlLoop:
-    rt = BankRuntime(design, blending=settings["blending"], weight_set=settings["weight_set"],
-                     single_model=settings.get("single_model"), cfg=cfg)
-    pi = PIForceLoop.from_config(cfg)
-    wt = settings.get("warmup_ticks")
-    excitation = None
-    if settings.get("excite"):
-        from controller.excitation import excitation_force
-
-        excitation = excitation_force(cfg)
-    return ControlLoop(cfg, bus, rt, pi, recorder=recorder, blending=settings["blending"],
-                       weight_set=settings["weight_set"], clock_ns=clock,
-                       warmup_ticks=None if wt is None else int(wt), excitation=excitation)
 
 
 def _open_out(out: str | Path, cfg: RigConfig, design_bytes: bytes | None,
@@ -274,9 +232,11 @@ def _replay(path: Path, cfg: RigConfig | None, design: Design | None,
         parse_config(tomllib.loads(rec_cfg_raw.decode())))
     same_design = rec_design_raw is not None and design_bytes == rec_design_raw
     same = same_cfg and same_design
-    settings = _runtime_settings(head, cfg)
+    settings = LoopSettings.from_metadata(
+        head.metadata, head.first_internals or {}, cfg,
+        excitation_played=any(e.get("kind") == "excitation" for e in head.events))
     if not same_cfg:   # another configuration brings its own weight set
-        settings["weight_set"] = cfg.design.weight_set
+        settings = dataclasses.replace(settings, weight_set=cfg.design.weight_set)
     clock = _VirtualClock()
     bus = McapReplayBus([], channel=f"mcap-replay:{head.path.name}")
     recorder: RunRecorder | None = None
@@ -286,8 +246,8 @@ def _replay(path: Path, cfg: RigConfig | None, design: Design | None,
             "source": "rig replay", "replay_of": str(head.path),
             "replay_of_run_id": head.metadata.get("run_id", ""),
             "open_loop": not same, "same_controller": same,
-            "runtime": settings}, offset)
-    loop = _build_loop(cfg, design, bus, settings, clock, recorder)
+            **settings.metadata()}, offset)
+    loop = build_control_loop(cfg, design, bus, settings, recorder=recorder, clock_ns=clock)
     faults = _FaultLog(loop)
     rp = _Replayer(loop, bus, clock)
     started = time.perf_counter()
@@ -380,14 +340,13 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
     unless ``arm_at_s`` (seconds after the first frame) arms it."""
     bus = LogReplayBus(path)
     clock = _VirtualClock()
-    settings = {"blending": 0, "weight_set": cfg.design.weight_set, "warmup_ticks": None,
-                "single_model": None}
+    settings = LoopSettings(blending=0, weight_set=cfg.design.weight_set)
     recorder: RunRecorder | None = None
     if out is not None:
         recorder = _open_out(out, cfg, design_bytes, {
             "source": "rig replay", "replay_of": str(path), "open_loop": True,
-            "runtime": settings}, 0)
-    loop = _build_loop(cfg, design, bus, settings, clock, recorder)
+            **settings.metadata()}, 0)
+    loop = build_control_loop(cfg, design, bus, settings, recorder=recorder, clock_ns=clock)
     faults = _FaultLog(loop)
     period = loop.period_ns
     t0_ns = round(bus.start_s * 1e9) + period // 2

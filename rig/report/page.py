@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import html
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -97,20 +95,17 @@ tr.ev-fault td {{ background: {_rgba(PHASE_COLOURS[Phase.FAULT], PHASE_ALPHA)}; 
 
 
 def _run_facts(s: RunSeries, metrics: dict[str, Any]) -> str:
-    meta = s.scan.rig_metadata
-    runtime: dict[str, Any] = {}
-    with contextlib.suppress(json.JSONDecodeError, TypeError):
-        runtime = json.loads(meta.get("runtime", "{}")) or {}
+    meta = s.scan.rig_metadata          # the loop settings: rig.service.assembly
     facts = [html.escape(meta.get("source", "recording"))]
     if meta.get("road"):
         speed = meta.get("speed_mps")
         facts.append(f"road {html.escape(meta['road'])}"
                      + (f" at {float(speed):.2f} m/s" if speed else ""))
     facts.append(f"{metrics['duration_s']:.2f} s, {metrics['ticks']:,} ticks")
-    blending = str(meta.get("blending", runtime.get("blending")))
+    blending = str(meta.get("blending"))
     if blending.isdigit() and int(blending) in Blending._value2member_map_:
         facts.append(f"{Blending(int(blending)).name.lower()} blending")
-    ws = meta.get("weight_set", runtime.get("weight_set"))
+    ws = meta.get("weight_set")
     if ws is not None:
         facts.append(f"weight set {html.escape(str(ws))}")
     models = " ".join(

@@ -47,6 +47,7 @@ from rig.rt.realtime import (
 )
 from rig.rt.sdnotify import SdNotifier
 from rig.rt.stop_signals import StopSignals
+from rig.service.assembly import LoopSettings, build_control_loop
 from rig.service.loop import ControlLoop
 
 __all__ = ["Service", "ServiceOptions", "design_bytes"]
@@ -125,8 +126,6 @@ class Service:
 
     def _build(self, cfg: RigConfig, opts: ServiceOptions, bus: can.BusABC | None,
                notifier: SdNotifier | None, metadata: dict[str, Any] | None) -> None:
-        from controller.runtime.bank import BankRuntime
-        from controller.runtime.force_loop import PIForceLoop
 
         t0 = time.monotonic()
         self._check_stop()
@@ -148,9 +147,7 @@ class Service:
         blending = int(blending_of(opts.controller))
         weight_set = cfg.design.weight_set if opts.weights is None else opts.weights
         warmup_ticks = round(cfg.safety.arm_warmup_s * cfg.design.sample_rate_hz)
-        self.runtime = BankRuntime(self.design, blending=blending, weight_set=weight_set,
-                                   cfg=cfg)
-        self.force_loop = PIForceLoop.from_config(cfg)
+        settings = LoopSettings(blending, weight_set, warmup_ticks, excite=opts.excite)
         if bus is None:
             from rig.bus.core import open_bus
 
@@ -171,26 +168,18 @@ class Service:
 
             target = opts.record or cfg.recording.directory
             meta = {"source": "rig run", "config_hash": config_hash(cfg),
-                    "sample_rate_hz": cfg.design.sample_rate_hz, "blending": blending,
-                    "weight_set": weight_set, "models": list(map(str, self.design.model_names)),
-                    # the rest of what replay needs to build the same loop and runtime
-                    "warmup_ticks": warmup_ticks, "single_model": None,
-                    "excitation": opts.excite}
+                    "sample_rate_hz": cfg.design.sample_rate_hz,
+                    "models": list(map(str, self.design.model_names)),
+                    # what replay needs to build the same loop (rig.service.assembly)
+                    **settings.metadata()}
             meta.update(metadata or {})
             self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
                                         design_bytes=self.design_blob, metadata=meta,
                                         batch_ticks=cfg.recording.batch_ticks)
             self._check_stop()
-        excitation = None
-        if opts.excite:
-            from controller.excitation import excitation_force
-
-            excitation = excitation_force(cfg)
-        self.loop = ControlLoop(cfg, bus, self.runtime, self.force_loop,
-                                recorder=self.recorder, notifier=self.notifier,
-                                blending=blending, weight_set=weight_set,
-                                warmup_ticks=warmup_ticks,
-                                timing_ring=opts.timing_ring, excitation=excitation)
+        self.loop = build_control_loop(cfg, self.design, bus, settings, recorder=self.recorder,
+                                       notifier=self.notifier, timing_ring=opts.timing_ring)
+        self.runtime, self.force_loop = self.loop.rt, self.loop.pi
         telemetry_on = cfg.telemetry.enabled if opts.telemetry is None else opts.telemetry
         if telemetry_on:
             from rig.telemetry import TelemetryPublisher
