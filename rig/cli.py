@@ -82,6 +82,8 @@ REFUSALS: dict[str, tuple[str, str, int]] = {
     "hil.rig_process.RigProcessError": ("emulated rig: ", "", 2),
     "rig.recording.recorder.RecorderStartError": ("", "", 2),
     "rig.replay.scan.RecordingError": ("", "", 2),
+    "hil.batch.ClusterError": ("", "", 2),
+    "hil.tune.TuneError": ("", "", 2),
 }
 
 

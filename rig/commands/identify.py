@@ -99,14 +99,9 @@ def summary_json(ident: Any) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     from controller.config import config_to_toml
     from controller.identify import IdentificationRefusedError, fitted_config, identify
-    from rig.replay import RecordingError
     from rig.report.series import load_series
 
-    try:
-        series = load_series(args.run)
-    except RecordingError as exc:
-        print(f"rig identify: {exc}", file=sys.stderr)
-        return 2
+    series = load_series(args.run)      # RecordingError: rig.cli.REFUSALS
     if series.config is None:
         print(f"rig identify: {args.run}: {series.config_problem}", file=sys.stderr)
         return 2

@@ -25,15 +25,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
-    from hil.batch import BatchError, ClusterError, make_executor
+    from hil.batch import BatchError, make_executor
     from hil.study.run import run_study
     try:
         with make_executor(args.cluster, args.jobs) as ex:
             res = run_study(cfg, args.out, quick=args.quick, jobs=args.jobs,
                             progress=not args.no_progress, executor=ex)
-    except ClusterError as exc:
-        print(f"rig study: {exc}", file=sys.stderr)
-        return 2
     except BatchError as exc:
         for failure in exc.failures:
             print(f"rig study: {failure}", file=sys.stderr)
