@@ -1,31 +1,187 @@
-"""rig/wire/dbc_constants.py is generated from rig/wire/rig.dbc and checked in: the DBC
-is the one place a protocol number is written."""
+"""rig/wire/dbc_constants.py and rig/wire/dbc_codec.py are generated from rig/wire/rig.dbc
+and checked in: the DBC is the one place a protocol number is written."""
 
 from __future__ import annotations
 
+import importlib.util
+import math
+import sys
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import cantools
+import pytest
 
 from rig.wire import dbc_constants as constants
-from rig.wire.generate import DBC_PATH, OUT_PATH, attr_name, generate, main
-from rig.wire.protocol import CODECS, Blending, FaultCode, LifecycleState
+from rig.wire.generate import (
+    CODEC_PATH,
+    DBC_PATH,
+    OUT_PATH,
+    attr_name,
+    generate,
+    generate_codec,
+    main,
+)
+from rig.wire.protocol import (
+    CODECS,
+    FAULT_REPORT,
+    SENSOR_DATA,
+    Blending,
+    DecodeStatus,
+    FaultCode,
+    LifecycleState,
+)
+from tests.test_e2e import crc8_bitwise
 
 
-def test_regenerating_gives_no_difference() -> None:
+def test_regenerating_gives_no_difference(tmp_path: Path) -> None:
     assert OUT_PATH.read_text(encoding="utf-8") == generate()
+    assert CODEC_PATH.read_text(encoding="utf-8") == generate_codec()
+    assert main(["--out-dir", str(tmp_path)]) == 0
+    for path in (OUT_PATH, CODEC_PATH):
+        assert (tmp_path / path.name).read_text(encoding="utf-8") == \
+            path.read_text(encoding="utf-8"), path.name
     assert main(["--check"]) == 0
 
 
-def test_a_changed_dbc_changes_the_generated_module(tmp_path: Path) -> None:
+def test_check_reports_a_stale_module(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--out-dir", str(tmp_path)]) == 0
+    capsys.readouterr()
+    stale = tmp_path / CODEC_PATH.name
+    stale.write_text(stale.read_text(encoding="utf-8").replace("0.005", "0.006"),
+                     encoding="utf-8")
+    assert main(["--check", "--out-dir", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "dbc_codec.py is stale" in err and "dbc_constants.py" not in err
+
+
+def test_generated_codec_module_is_clean() -> None:
+    """The generated codec has the do-not-edit header naming the command and no
+    hand-written frame code is left in rig.wire.protocol."""
+    text = CODEC_PATH.read_text(encoding="utf-8")
+    assert text.startswith('"""Generated from rig.dbc by ``python -m rig.wire.generate``: '
+                           "do not edit.")
+    protocol = (CODEC_PATH.parent / "protocol.py").read_text(encoding="utf-8")
+    assert "def encode" not in protocol and "def decode(self, data" not in protocol
+    assert "pack_into" not in protocol
+
+
+def _changed_dbc(tmp_path: Path, *replacements: tuple[str, str]) -> Path:
+    text = DBC_PATH.read_text(encoding="utf-8")
+    for old, new in replacements:
+        assert old in text, old
+        text = text.replace(old, new)
     dbc = tmp_path / "rig.dbc"
-    dbc.write_text(DBC_PATH.read_text(encoding="utf-8").replace(
-        "SG_ Rattlespace : 16|16@1- (5e-06,0)", "SG_ Rattlespace : 16|16@1- (1e-05,0)"),
-        encoding="utf-8")
+    dbc.write_text(text, encoding="utf-8")
+    return dbc
+
+
+def _import_codec(tmp_path: Path, dbc: Path) -> ModuleType:
+    """Generate the codec of ``dbc`` into ``tmp_path`` and import it (a module of its own,
+    next to the checked-in one)."""
+    assert main(["--dbc", str(dbc), "--out-dir", str(tmp_path)]) == 0
+    name = f"changed_dbc_codec_{abs(hash(str(tmp_path)))}"
+    spec = importlib.util.spec_from_file_location(name, tmp_path / CODEC_PATH.name)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        del sys.modules[name]
+    return module
+
+
+def _ref_encode(db: Any, frame_id: int, signals: dict[str, Any]) -> bytes:
+    """cantools encode with the E2E CRC of the bitwise reference."""
+    msg = db.get_message_by_frame_id(frame_id)
+    crc_name = msg.signals[0].name
+    body = bytes(msg.encode({**signals, crc_name: 0}, scaling=True, strict=True))
+    crc = crc8_bitwise(bytes([frame_id & 0xFF, frame_id >> 8]) + body[1:])
+    return bytes(msg.encode({**signals, crc_name: crc}, scaling=True, strict=True))
+
+
+def _with_crc(frame_id: int, payload: bytes) -> bytes:
+    return bytes([crc8_bitwise(bytes([frame_id & 0xFF, frame_id >> 8]) + payload[1:])]) \
+        + payload[1:]
+
+
+def test_a_changed_dbc_changes_the_generated_modules(tmp_path: Path) -> None:
+    dbc = _changed_dbc(tmp_path, ("SG_ Rattlespace : 16|16@1- (5e-06,0)",
+                                  "SG_ Rattlespace : 16|16@1- (1e-05,0)"))
     text = generate(dbc)
     assert "SENSOR_DATA_RATTLESPACE_SCALE: Final = 1e-05" in text
     assert text != OUT_PATH.read_text(encoding="utf-8")
+    codec_text = generate_codec(dbc)
+    assert "rattlespace_m / 1e-05" in codec_text and "rattlespace_m / 5e-06" not in codec_text
+    assert codec_text != CODEC_PATH.read_text(encoding="utf-8")
+
+
+def test_the_codec_takes_its_numbers_from_the_dbc(tmp_path: Path) -> None:
+    """A DBC with Rattlespace at 10 um per bit and +-0.2 m: the codec generated from it
+    encodes, clamps and range-checks by those numbers (byte-identical to cantools on the
+    changed DBC), where the checked-in one keeps 5 um and +-0.16384 m."""
+    dbc = _changed_dbc(tmp_path, ("SG_ Rattlespace : 16|16@1- (5e-06,0) [-0.16384|0.163835]",
+                                  "SG_ Rattlespace : 16|16@1- (1e-05,0) [-0.2|0.2]"))
+    changed = _import_codec(tmp_path, dbc)
+    db: Any = cantools.database.load_file(str(dbc))
+    sid = SENSOR_DATA.frame_id
+    for rattlespace in (0.01, -0.123456, 0.2, -0.2, 0.0):
+        signals = {"SensorData_Counter": 3, "SensorStatus": 1, "Rattlespace": rattlespace,
+                   "LoadCellForce": 120.5, "SprungAccel": -2.5}
+        buf = bytearray(8)
+        assert changed.SENSOR_DATA.encode_signals(buf, signals) == 0
+        assert bytes(buf) == _ref_encode(db, sid, signals)
+    buf, ours = bytearray(8), bytearray(8)
+    changed.SENSOR_DATA.encode(buf, 0, 0, 0.01, 0.0, 0.0)
+    SENSOR_DATA.encode(ours, 0, 0, 0.01, 0.0, 0.0)
+    assert int.from_bytes(buf[2:4], "little", signed=True) == 1000  # 0.01 m / 10 um
+    assert int.from_bytes(ours[2:4], "little", signed=True) == 2000  # 0.01 m / 5 um
+    # 0.19 m: in range on the changed DBC, clamped (bit 1) on the real one
+    assert changed.SENSOR_DATA.encode(buf, 0, 0, 0.19, 0.0, 0.0) == 0
+    assert SENSOR_DATA.encode(ours, 0, 0, 0.19, 0.0, 0.0) == 0b10
+    assert changed.SENSOR_DATA.encode(buf, 0, 0, 0.25, 0.0, 0.0) == 0b10
+    assert int.from_bytes(buf[2:4], "little", signed=True) == 20000
+    # decode: raw 20000 is 0.2 m and in range; raw 30000 (0.3 m) is out of the changed
+    # range, while every raw value is in range on the real DBC
+    for raw, status, mask in ((20000, DecodeStatus.OK, 0),
+                              (30000, DecodeStatus.OUT_OF_RANGE, 0b10)):
+        data = _with_crc(sid, bytes([0, 0x15]) + raw.to_bytes(2, "little", signed=True)
+                         + bytes(4))
+        frame = changed.SensorData()
+        assert changed.SENSOR_DATA.decode(data, frame) is status
+        assert frame.range_mask == mask
+        assert math.isclose(frame.rattlespace_m, raw * 1e-5)
+        ref = db.get_message_by_frame_id(sid).decode(data, decode_choices=False)
+        assert frame.rattlespace_m == ref["Rattlespace"]
+        real = SENSOR_DATA.new()
+        assert SENSOR_DATA.decode(data, real) is DecodeStatus.OK
+        assert real.rattlespace_m == raw * 5e-6
+
+
+def test_the_out_of_range_policy_comes_from_the_dbc(tmp_path: Path) -> None:
+    """FaultTick wraps (DBC attribute CodecOutOfRange = Wrap); without the attribute the
+    generated encoder clamps it and flags it like any other signal."""
+    dbc = _changed_dbc(tmp_path, ('BA_ "CodecOutOfRange" SG_ 129 FaultTick 1;\n', ""))
+    changed = _import_codec(tmp_path, dbc)
+    tick = 2**32 + 5
+    buf = bytearray(8)
+    assert FAULT_REPORT.encode(buf, 0, 2, 11, tick, 0) == 0
+    assert int.from_bytes(buf[3:7], "little") == 5
+    assert changed.FAULT_REPORT.encode(buf, 0, 2, 11, tick, 0) == 0b100
+    assert int.from_bytes(buf[3:7], "little") == 2**32 - 1
+
+
+def test_the_generator_refuses_what_the_codec_cannot_express(tmp_path: Path) -> None:
+    dbc = _changed_dbc(tmp_path, ("SG_ LoadCellForce : 32|16@1- (0.5,0)",
+                                  "SG_ LoadCellForce : 32|16@1- (0.5,100)"))
+    with pytest.raises(ValueError, match=r"SensorData\.LoadCellForce: offsets"):
+        generate_codec(dbc)
+    dbc = _changed_dbc(tmp_path, ("SG_ SprungAccel : 48|16@1- (0.005,0) [-163.84|163.835]",
+                                  "SG_ SprungAccel : 48|16@1- (0.005,0) [-200|200]"))
+    with pytest.raises(ValueError, match=r"SensorData\.SprungAccel: DBC range"):
+        generate_codec(dbc)
 
 
 def test_enumerations_are_the_dbc_value_tables() -> None:

@@ -1,19 +1,30 @@
-"""Generate :mod:`rig.wire.dbc_constants` from ``rig/wire/rig.dbc``.
+"""Generate :mod:`rig.wire.dbc_constants` and :mod:`rig.wire.dbc_codec` from ``rig/wire/rig.dbc``.
 
-    python -m rig.wire.generate            # rewrite rig/wire/dbc_constants.py
-    python -m rig.wire.generate --check    # exit 1 if the checked-in module is stale
+    python -m rig.wire.generate            # rewrite both modules in rig/wire
+    python -m rig.wire.generate --check    # exit 1 if a checked-in module is stale
+    python -m rig.wire.generate --dbc other.dbc --out-dir DIR   # e.g. to try a DBC change
 
 The DBC owns every number of the protocol: frame IDs and lengths, each signal's bit
 position, width, signedness, scale, range and unit, the ``VAL_`` tables, and as
 attributes each frame's cycle time and send type (``GenMsgCycleTime`` [ms],
-``GenMsgSendType``) and the E2E protection (network: ``E2EProfile``, the CRC-8
+``GenMsgSendType``), the E2E protection (network: ``E2EProfile``, the CRC-8
 polynomial, init and final XOR, the counter's maximum; per frame: its CRC and counter
-signals).  This
+signals) and, per signal, what the encoder does with a value outside the range
+(``CodecOutOfRange``: ``Clamp``, the default, or ``Wrap`` for a tick count).  This
 generator reads it with cantools (the reference DBC parser; a development dependency,
-not needed at run time) and writes them as plain constants, the enumerations as
-``IntEnum`` classes and each frame's ``struct`` layout, so that the hand-optimised codec
-in :mod:`rig.wire.protocol` writes no DBC number of its own.  ``tests/test_wire_generated.py``
-regenerates into a temporary file and requires no difference.
+not needed at run time) and writes
+
+- :mod:`rig.wire.dbc_constants`: the numbers as plain constants, the enumerations as
+  ``IntEnum`` classes and each frame's ``struct`` layout;
+- :mod:`rig.wire.dbc_codec`: the codec itself, per frame a frame class (one attribute
+  per signal) and a codec class whose ``encode`` / ``decode`` have the DBC's numbers
+  written in as literals (clamping, range mask, E2E CRC; behaviour described in
+  :mod:`rig.wire.protocol`).  Layouts the generated code cannot express (offsets,
+  big-endian signals, signals neither byte-aligned nor inside one byte, a range that
+  does not fit the bits) are refused with the signal named.
+
+``tests/test_wire_generated.py`` regenerates both into a temporary directory and requires
+no difference, and proves with a changed DBC that the codec's numbers come from it.
 
 Names: a signal's constants are ``<FRAME>_<SIGNAL>_<WHAT>`` in upper snake case, e.g.
 ``SENSOR_DATA_RATTLESPACE_SCALE``; ``SHIFT`` and ``MASK`` place a signal narrower than a
@@ -519,8 +530,16 @@ def main(argv: list[str] | None = None) -> int:
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true",
                         help="compare with the checked-in modules instead of writing them")
+    parser.add_argument("--dbc", type=Path, default=DBC_PATH,
+                        help="the DBC to read (default: rig/wire/rig.dbc)")
+    parser.add_argument("--out-dir", type=Path, default=None,
+                        help="write the modules into this directory instead of rig/wire")
     args = parser.parse_args(argv)
-    texts = outputs()
+    texts = outputs(args.dbc)
+    if args.out_dir is not None:
+        if not args.out_dir.is_dir():
+            parser.error(f"--out-dir {args.out_dir}: not a directory")
+        texts = {args.out_dir / p.name: text for p, text in texts.items()}
     if args.check:
         stale = [p for p, text in texts.items() if p.read_text(encoding="utf-8") != text]
         for path in stale:
