@@ -1,4 +1,4 @@
-"""Per-frame encode / decode time of the precompiled codec (rig.wire.protocol) vs cantools.
+"""Per-frame encode / decode time of the generated codec (rig.wire.protocol) vs cantools.
 
 ``run() -> list[dict]``: one row per frame type and direction with the median time per
 frame over several batches.  Ours includes the E2E CRC (compute on encode, check on

@@ -1,4 +1,5 @@
-"""The precompiled codec against cantools (the reference) loading rig/wire/rig.dbc."""
+"""The codec generated from the DBC (rig.wire.dbc_codec, used through rig.wire.protocol)
+against cantools (the reference) loading rig/wire/rig.dbc."""
 
 from __future__ import annotations
 

@@ -1,2 +1,3 @@
-"""The wire contract shared by the service and the emulated rig: the DBC, the
-codec, the E2E protection and the enumerations on the bus."""
+"""The wire contract shared by the service and the emulated rig: the DBC, the codec
+generated from it (``python -m rig.wire.generate``), the E2E protection and the
+enumerations on the bus."""
