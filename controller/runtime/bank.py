@@ -330,106 +330,106 @@ def _monitor(fv: np.ndarray, iv: np.ndarray, q_min: float, e_min: float) -> int:
     return flags
 
 
-@nb.njit(_SIG_STEP, cache=True, nogil=True)
-def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
-              fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, rattlespace_m: float,
-              accel_mps2: float, force_meas_n: float) -> float:
-    """One tick of the bank (see the module docstring).  Allocation-free, never raises."""
-    if not (math.isfinite(rattlespace_m) and math.isfinite(accel_mps2)
-            and math.isfinite(force_meas_n)):
-        iv[I_FLAGS] = _NONFINITE_INPUT
-        return 0.0
-    flags = 0
-    blend = iv[I_BLEND]
-    sentinel = -1
-    if blend == _MOVING and iv[I_MODE] == MODE_AIR:
-        sentinel = iv[I_SENTINEL]
-    # the bump-stop force from the LVDT reading: a known input, like the load-cell force
+# bank_step is composed of the small helpers below.  They are inlined into it at numba IR
+# level (``inline="always"``) and bank_step is compiled without the numba runtime
+# (``_nrt=False``, as numba's own allocation-free library helpers are): without the runtime
+# it cannot allocate -- a change that would allocate fails to compile -- and the array
+# arguments passed to the inlined helpers carry no reference counting (with the runtime,
+# every inlined call increfs and decrefs its array arguments: 13-19 % of the kernel time).
+# ``python -m bench controller`` and tests/test_bank.py::test_no_allocation_per_tick guard both.
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _measurements(fv: np.ndarray, rattlespace_m: float, accel_mps2: float,
+                  force_meas_n: float) -> tuple[float, float, float]:
+    """The filters' known input and measurements of this tick: u_in = load-cell force plus
+    the bump-stop force from the LVDT reading [N], y0 = absolute rattlespace [m], y1 =
+    acceleration minus its running mean (the accelerometer's bias) when enabled [m/s^2]."""
     f_stop = 0.0
     if rattlespace_m > fv[F_BS_HI]:
         f_stop = fv[F_BS_K] * (rattlespace_m - fv[F_BS_HI])
     elif rattlespace_m < fv[F_BS_LO]:
         f_stop = fv[F_BS_K] * (rattlespace_m - fv[F_BS_LO])
     fv[F_STOP] = f_stop
-    u_in = force_meas_n + f_stop
-    y0 = rattlespace_m + fv[F_STATIC]
     y1 = accel_mps2
-    if fv[F_AMEAN_ALPHA] > 0.0:     # minus the running mean (the accelerometer's bias)
+    if fv[F_AMEAN_ALPHA] > 0.0:
         fv[F_AMEAN] += fv[F_AMEAN_ALPHA] * (accel_mps2 - fv[F_AMEAN])
         y1 = accel_mps2 - fv[F_AMEAN]
-    xf0 = fv[F_XF]
-    xf1 = fv[F_XF + 1]
-    alpha = fv[F_ALPHA]
-    beta = fv[F_QW_ALPHA]
-    nact = iv[I_NACT]
-    nd = iv[I_DELAY]
-    if math.isnan(fv[F_FFW]):           # first reading since reset: rate filter at rest
-        fv[F_FFW] = -fv[F_FFB] * rattlespace_m
-    e_min = np.inf          # unusable test: min over models of the innovation / sensor range
-    for a in range(nact):
-        j = iv[IV_ACT + a]
-        st[j, S_CONTRIB] = 0.0
-        st[j, S_BAD] = 0.0
-        y0j = y0 - st[j, S_BR]
-        y1j = y1 - st[j, S_BA]
-        r0 = y0j - fv[F_YOFF] - vec[j, V_D] * u_in
-        r1 = y1j - fv[F_YOFF + 1] - vec[j, V_D + 1] * u_in
-        for i in range(4):
-            xm = st[j, S_XPRIOR + i]
-            r0 -= mat[j, i, M_CT] * xm
-            r1 -= mat[j, i, M_CT + 1] * xm
-        q = r0 * (vec[j, V_FINV] * r0 + vec[j, V_FINV + 1] * r1) \
-            + r1 * (vec[j, V_FINV + 2] * r0 + vec[j, V_FINV + 3] * r1)
-        ok = not math.isnan(q)
-        for i in range(4):
-            acc = mat[j, i, M_BY] * y0j + mat[j, i, M_BY + 1] * y1j + mat[j, i, M_BU] * u_in \
-                + mat[j, i, M_B]
-            for k in range(4):
-                acc += mat[j, i, M_A + k] * st[j, S_XPRIOR + k]
-            xp = st[j, S_XPRIOR + i] + mat[j, i, M_L] * r0 + mat[j, i, M_L + 1] * r1
-            fv[F_SCR + i] = xp
-            fv[F_SCR + 4 + i] = acc
-            if not (math.isfinite(xp) and math.isfinite(acc)):
-                ok = False
-        b_r = st[j, S_BR] + mat[j, 0, M_LB] * r0 + mat[j, 0, M_LB + 1] * r1
-        b_a = st[j, S_BA] + mat[j, 1, M_LB] * r0 + mat[j, 1, M_LB + 1] * r1
-        if not (math.isfinite(b_r) and math.isfinite(b_a)):
-            ok = False
-        u = 0.0
-        if vec[j, V_AIR] == 0.0:
-            u = -(vec[j, V_KF] * xf0 + vec[j, V_KF + 1] * xf1)
-            u -= vec[j, V_KA] * fv[F_XV] + vec[j, V_KA + 1] * force_meas_n \
-                + vec[j, V_KA + 2] * fv[F_FFW]
-            for i in range(nd):
-                u -= vec[j, V_KA + 3 + i] * fv[F_PEND + i]
-            for i in range(4):
-                u -= mat[j, i, M_KX] * (fv[F_SCR + i] - mat[j, i, M_XBAR])
-            if not math.isfinite(u):
-                ok = False
-        if ok:
-            qc = q if q < Q_MAX else Q_MAX
-            for i in range(4):
-                st[j, S_XPOST + i] = fv[F_SCR + i]
-                st[j, S_XPRIOR + i] = fv[F_SCR + 4 + i]
-            st[j, S_BR] = b_r
-            st[j, S_BA] = b_a
-            st[j, S_Q] = qc
-            st[j, S_U] = u
-            st[j, S_QS] += alpha * (qc - st[j, S_QS])
-            st[j, S_QW] += beta * (qc - st[j, S_QW])
-            if j != sentinel:
-                st[j, S_CONTRIB] = 1.0
-                e = max(abs(r0) * fv[F_UNUSE_R], abs(r1) * fv[F_UNUSE_A])
-                if e < e_min:
-                    e_min = e
-        else:
-            st[j, S_BAD] = 1.0
-            st[j, S_Q] = Q_MAX
-            st[j, S_U] = 0.0
-            flags |= _NONFINITE_STATE
+    return force_meas_n + f_stop, rattlespace_m + fv[F_STATIC], y1
 
-    # ---- blending weights
-    bayes_update(st, S_P, S_Q, S_CONTRIB, vec, V_LLC, fv[F_PFLOOR], iv, IV_ACT, nact)
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _filter_update(j: int, mat: np.ndarray, vec: np.ndarray, st: np.ndarray,
+                   fv: np.ndarray, nd: int, u_in: float, y0: float, y1: float,
+                   force_meas_n: float, xf0: float, xf1: float
+                   ) -> tuple[float, float, float, float, float, float]:
+    """Measurement and time update of filter j and its LQ control; the posterior goes to
+    ``fv[F_SCR:+4]``, the next prior to ``fv[F_SCR+4:+8]`` until accepted.  Returns the
+    likelihood quotient q (NaN when any result is not finite: the caller rejects the
+    update), the innovation (r0 [m], r1 [m/s^2]), the updated biases and the control u."""
+    y0j = y0 - st[j, S_BR]
+    y1j = y1 - st[j, S_BA]
+    r0 = y0j - fv[F_YOFF] - vec[j, V_D] * u_in
+    r1 = y1j - fv[F_YOFF + 1] - vec[j, V_D + 1] * u_in
+    for i in range(4):
+        xm = st[j, S_XPRIOR + i]
+        r0 -= mat[j, i, M_CT] * xm
+        r1 -= mat[j, i, M_CT + 1] * xm
+    q = r0 * (vec[j, V_FINV] * r0 + vec[j, V_FINV + 1] * r1) \
+        + r1 * (vec[j, V_FINV + 2] * r0 + vec[j, V_FINV + 3] * r1)
+    ok = not math.isnan(q)
+    for i in range(4):
+        acc = mat[j, i, M_BY] * y0j + mat[j, i, M_BY + 1] * y1j + mat[j, i, M_BU] * u_in \
+            + mat[j, i, M_B]
+        for k in range(4):
+            acc += mat[j, i, M_A + k] * st[j, S_XPRIOR + k]
+        xp = st[j, S_XPRIOR + i] + mat[j, i, M_L] * r0 + mat[j, i, M_L + 1] * r1
+        fv[F_SCR + i] = xp
+        fv[F_SCR + 4 + i] = acc
+        if not (math.isfinite(xp) and math.isfinite(acc)):
+            ok = False
+    b_r = st[j, S_BR] + mat[j, 0, M_LB] * r0 + mat[j, 0, M_LB + 1] * r1
+    b_a = st[j, S_BA] + mat[j, 1, M_LB] * r0 + mat[j, 1, M_LB + 1] * r1
+    if not (math.isfinite(b_r) and math.isfinite(b_a)):
+        ok = False
+    u = 0.0
+    if vec[j, V_AIR] == 0.0:
+        u = -(vec[j, V_KF] * xf0 + vec[j, V_KF + 1] * xf1)
+        u -= vec[j, V_KA] * fv[F_XV] + vec[j, V_KA + 1] * force_meas_n \
+            + vec[j, V_KA + 2] * fv[F_FFW]
+        for i in range(nd):
+            u -= vec[j, V_KA + 3 + i] * fv[F_PEND + i]
+        for i in range(4):
+            u -= mat[j, i, M_KX] * (fv[F_SCR + i] - mat[j, i, M_XBAR])
+        if not math.isfinite(u):
+            ok = False
+    return (q if ok else np.nan), r0, r1, b_r, b_a, u
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _accept(j: int, st: np.ndarray, fv: np.ndarray, q: float, b_r: float, b_a: float,
+            u: float, alpha: float, beta: float) -> None:
+    """Filter j's update of this tick stands: posterior, prior, biases, q (clamped),
+    control, and the smoothed and windowed q."""
+    qc = q if q < Q_MAX else Q_MAX
+    for i in range(4):
+        st[j, S_XPOST + i] = fv[F_SCR + i]
+        st[j, S_XPRIOR + i] = fv[F_SCR + 4 + i]
+    st[j, S_BR] = b_r
+    st[j, S_BA] = b_a
+    st[j, S_Q] = qc
+    st[j, S_U] = u
+    st[j, S_QS] += alpha * (qc - st[j, S_QS])
+    st[j, S_QW] += beta * (qc - st[j, S_QW])
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _blend_weights(st: np.ndarray, fv: np.ndarray, iv: np.ndarray, nact: int,
+                   blend: int) -> tuple[int, int, float, float]:
+    """Firing weights (fuzzy statistic through the tabulated App. A curve) and the
+    blending weights of the contributing filters, normalised.  Returns (flags, best
+    model or -1, sum of the raw weights, smallest per-tick q)."""
+    flags = 0
     G = iv[I_G]
     og = iv[I_QGRID]
     oc = iv[I_WCURVE]
@@ -473,11 +473,19 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         for a in range(nact):
             j = iv[IV_ACT + a]
             st[j, S_W] = st[j, S_W] / total
-    else:
-        if best >= 0:          # there are contributing models but none fired
-            flags |= _NO_RULE_FIRED
-            if iv[I_FALLBACK] == FALLBACK_BEST:
-                st[best, S_W] = 1.0
+    elif best >= 0:          # there are contributing models but none fired
+        flags |= _NO_RULE_FIRED
+        if iv[I_FALLBACK] == FALLBACK_BEST:
+            st[best, S_W] = 1.0
+    return flags, best, total, qmin
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _blend_estimates(mat: np.ndarray, st: np.ndarray, fv: np.ndarray, iv: np.ndarray,
+                     nact: int, best: int, total: float) -> tuple[float, float]:
+    """The blended force reference and, where any model has weight, the blended state,
+    next prior, deviations from the equilibria and biases (kept for bumpless starts).
+    Returns (force reference [N], sum of the weights used)."""
     out = 0.0
     for i in range(16):
         fv[F_SCR + i] = 0.0
@@ -508,31 +516,94 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             fv[F_XDEVM + i] = fv[F_SCR + 12 + i]
         fv[F_BIAS] = bias_r
         fv[F_BIAS + 1] = bias_a
-    # ---- recover the filters that went non-finite
-    if flags & _NONFINITE_STATE:
-        for a in range(nact):
-            j = iv[IV_ACT + a]
-            if st[j, S_BAD] != 0.0:
-                for i in range(4):
-                    x = mat[j, i, M_XBAR]
-                    if wsum > 0.0:
-                        x += fv[F_XDEVM + i]
-                    st[j, S_XPRIOR + i] = x
-                    st[j, S_XPOST + i] = x
-                st[j, S_BR] = fv[F_BIAS] if wsum > 0.0 else 0.0
-                st[j, S_BA] = fv[F_BIAS + 1] if wsum > 0.0 else 0.0
-    # ---- estimator monitor (docs/design.md §9)
-    flags |= _monitor(fv, iv, qmin, e_min)
-    # ---- human-body filter states from the measured acceleration
+    return out, wsum
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _restart_nonfinite(mat: np.ndarray, st: np.ndarray, fv: np.ndarray, iv: np.ndarray,
+                       nact: int, wsum: float) -> None:
+    """Restart the filters whose update went non-finite at their equilibrium (plus the
+    blended deviation and biases when there is a blend)."""
+    for a in range(nact):
+        j = iv[IV_ACT + a]
+        if st[j, S_BAD] != 0.0:
+            for i in range(4):
+                x = mat[j, i, M_XBAR]
+                if wsum > 0.0:
+                    x += fv[F_XDEVM + i]
+                st[j, S_XPRIOR + i] = x
+                st[j, S_XPOST + i] = x
+            st[j, S_BR] = fv[F_BIAS] if wsum > 0.0 else 0.0
+            st[j, S_BA] = fv[F_BIAS + 1] if wsum > 0.0 else 0.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _human_filter(fv: np.ndarray, xf0: float, xf1: float, accel_mps2: float) -> int:
+    """Advance the human-body filter on the measured acceleration; a non-finite state is
+    reset to rest (returns the NONFINITE_STATE flag then, else 0)."""
     n0 = fv[F_HAD] * xf0 + fv[F_HAD + 1] * xf1 + fv[F_HBD] * accel_mps2
     n1 = fv[F_HAD + 2] * xf0 + fv[F_HAD + 3] * xf1 + fv[F_HBD + 1] * accel_mps2
     if math.isfinite(n0) and math.isfinite(n1):
         fv[F_XF] = n0
         fv[F_XF + 1] = n1
-    else:
-        fv[F_XF] = 0.0
-        fv[F_XF + 1] = 0.0
-        flags |= _NONFINITE_STATE
+        return 0
+    fv[F_XF] = 0.0
+    fv[F_XF + 1] = 0.0
+    return _NONFINITE_STATE
+
+
+@nb.njit(_SIG_STEP, cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]
+def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+              fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, rattlespace_m: float,
+              accel_mps2: float, force_meas_n: float) -> float:
+    """One tick of the bank (see the module docstring).  Allocation-free (compiled without
+    the numba runtime), never raises."""
+    if not (math.isfinite(rattlespace_m) and math.isfinite(accel_mps2)
+            and math.isfinite(force_meas_n)):
+        iv[I_FLAGS] = _NONFINITE_INPUT
+        return 0.0
+    flags = 0
+    blend = iv[I_BLEND]
+    sentinel = iv[I_SENTINEL] if blend == _MOVING and iv[I_MODE] == MODE_AIR else -1
+    u_in, y0, y1 = _measurements(fv, rattlespace_m, accel_mps2, force_meas_n)
+    xf0 = fv[F_XF]
+    xf1 = fv[F_XF + 1]
+    alpha = fv[F_ALPHA]
+    beta = fv[F_QW_ALPHA]
+    nact = iv[I_NACT]
+    nd = iv[I_DELAY]
+    if math.isnan(fv[F_FFW]):           # first reading since reset: rate filter at rest
+        fv[F_FFW] = -fv[F_FFB] * rattlespace_m
+    # ---- the running filters
+    e_min = np.inf          # unusable test: min over models of the innovation / sensor range
+    for a in range(nact):
+        j = iv[IV_ACT + a]
+        st[j, S_CONTRIB] = 0.0
+        st[j, S_BAD] = 0.0
+        q, r0, r1, b_r, b_a, u = _filter_update(j, mat, vec, st, fv, nd, u_in, y0, y1,
+                                                force_meas_n, xf0, xf1)
+        if math.isnan(q):
+            st[j, S_BAD] = 1.0
+            st[j, S_Q] = Q_MAX
+            st[j, S_U] = 0.0
+            flags |= _NONFINITE_STATE
+            continue
+        _accept(j, st, fv, q, b_r, b_a, u, alpha, beta)
+        if j != sentinel:
+            st[j, S_CONTRIB] = 1.0
+            e = max(abs(r0) * fv[F_UNUSE_R], abs(r1) * fv[F_UNUSE_A])
+            if e < e_min:
+                e_min = e
+    # ---- blending
+    bayes_update(st, S_P, S_Q, S_CONTRIB, vec, V_LLC, fv[F_PFLOOR], iv, IV_ACT, nact)
+    wflags, best, total, qmin = _blend_weights(st, fv, iv, nact, blend)
+    flags |= wflags
+    out, wsum = _blend_estimates(mat, st, fv, iv, nact, best, total)
+    if flags & _NONFINITE_STATE:
+        _restart_nonfinite(mat, st, fv, iv, nact, wsum)
+    # ---- estimator monitor (docs/design.md §9), human-body filter, guard, spool model
+    flags |= _monitor(fv, iv, qmin, e_min)
+    flags |= _human_filter(fv, xf0, xf1, accel_mps2)
     out = stop_guard(fv, out * fv[F_AUTH], rattlespace_m)
     if not math.isfinite(out):
         out = 0.0
