@@ -23,7 +23,8 @@ from controller.config import RigConfig
 from controller.runtime.bank import BankRuntime
 from controller.runtime.force_loop import PIForceLoop
 from rig.rt.sdnotify import SdNotifier
-from rig.service.loop import ControlLoop, Recorder
+from rig.service.loop import ControlLoop
+from rig.service.seams import Recorder
 
 __all__ = ["LoopSettings", "build_control_loop"]
 

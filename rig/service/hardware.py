@@ -18,6 +18,7 @@ import can
 
 from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
 from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
+from rig.service.seams import Recorder
 from rig.wire.protocol import (
     CONTROLLER_STATUS,
     FAULT_REPORT,
@@ -32,14 +33,12 @@ from rig.wire.protocol import (
     SensorData,
 )
 
-__all__ = ["FrameRecorder", "RigIO", "bus_exception_note"]
+__all__ = ["RigIO", "bus_exception_note"]
 
 _OK = DecodeStatus.OK
 _OUT_OF_RANGE = DecodeStatus.OUT_OF_RANGE
 _NONE = FaultCode.NONE
 
-#: ``recorder.can_frame(t_ns, tick, id, data, is_rx, is_error_frame, is_extended_id)``
-FrameRecorder = Any
 #: ``note(t_ns, tick, detail)``: a ``note`` event for the recording
 Note = Callable[[int, int, dict[str, Any]], None]
 
@@ -53,7 +52,7 @@ def bus_exception_note(where: str, exc: BaseException) -> dict[str, Any]:
 class RigIO:
     """Frames in and out on one bus for the control loop."""
 
-    def __init__(self, bus: can.BusABC, monitor: FaultMonitor, recorder: FrameRecorder | None,
+    def __init__(self, bus: can.BusABC, monitor: FaultMonitor, recorder: Recorder | None,
                  note: Note, on_output_error: Callable[[Exception], None]) -> None:
         self.bus = bus
         self.monitor = monitor

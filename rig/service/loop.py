@@ -10,7 +10,8 @@ skipped and counted).
 The parts, ros2_control-style: the hardware interface
 :class:`rig.service.hardware.RigIO` reads the rig's frames and writes the controller's
 (``read`` / ``write_*``); the update is the runtime bank's step and the PI force loop
-(the :class:`Runtime` and :class:`ForceLoop` seams); :class:`ControlLoop` is the
+(the ``Runtime`` and ``ForceLoop`` seams of :mod:`rig.service.seams`, with the recorder,
+telemetry and viewer seams); :class:`ControlLoop` is the
 manager: lifecycle, fault monitor, operator commands (:mod:`rig.operator_commands`), pacing and
 the outputs (recording, telemetry).
 
@@ -45,7 +46,7 @@ import operator
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 import can
 import numpy as np
@@ -59,6 +60,7 @@ from rig.rt.sdnotify import SdNotifier
 from rig.service.hardware import RigIO
 from rig.service.lifecycle import CommandResult, Lifecycle, Transition
 from rig.service.safety import DETAIL_SEND, FaultMonitor
+from rig.service.seams import ForceLoop, Recorder, Runtime, Telemetry, Viewer
 from rig.service.timing import TimingStats
 from rig.wire.protocol import (
     DecodeStatus,
@@ -66,8 +68,7 @@ from rig.wire.protocol import (
     LifecycleState,
 )
 
-__all__ = ["TICK_RECORD_FIELDS", "ControlLoop", "Recorder", "Runtime", "Telemetry", "Viewer",
-           "tick_record_layout"]
+__all__ = ["TICK_RECORD_FIELDS", "ControlLoop", "tick_record_layout"]
 
 log = logging.getLogger(__name__)
 
@@ -79,56 +80,6 @@ _DEGRADED = int(StepFlag.DEGRADED)
 _DIVERGED = int(StepFlag.DIVERGED)
 _FAULT = LifecycleState.FAULT
 _STOPPING = LifecycleState.STOPPING
-
-#: operator commands understood by :meth:`ControlLoop.request` (argument in brackets)
-
-
-class Runtime(Protocol):
-    """What the loop needs of ``controller.runtime.bank.BankRuntime``."""
-
-    @property
-    def flags(self) -> Any: ...
-    q: np.ndarray
-    firing_weight: np.ndarray
-    probability: np.ndarray
-    u_model: np.ndarray
-    active: np.ndarray
-    x_post: np.ndarray
-    xf: np.ndarray
-
-    def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float: ...
-    def reset(self) -> None: ...
-    def set_blending(self, b: Any) -> None: ...
-    def set_weight_set(self, w: int) -> None: ...
-    def set_road(self, speed_mps: float, roughness_gd: float) -> Any: ...
-
-
-class ForceLoop(Protocol):
-    def step(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float
-             ) -> float: ...
-    def reset(self) -> None: ...
-
-
-class Recorder(Protocol):
-    """``rig.recording.recorder.RunRecorder`` as the loop uses it (all calls non-blocking)."""
-
-    @property
-    def dropped(self) -> int: ...
-    def can_frame(self, t_ns: int, tick: int, arbitration_id: int, data: bytes | bytearray,
-                  is_rx: bool, error_frame: bool = False, extended_id: bool = False
-                  ) -> bool: ...
-    def set_tick_layout(self, layout: TickLayout) -> None: ...
-    def tick_values(self, t_ns: int, scalars: Any, arrays: Any) -> bool: ...
-    def event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool: ...
-
-
-class Telemetry(Protocol):
-    """``rig.telemetry.TelemetryPublisher`` as the loop uses it."""
-
-    @property
-    def dropped(self) -> int: ...
-    def offer(self, snapshot: Any) -> bool: ...
-
 
 #: The loop's tick record in record order (docs/recording.md): (key, kind, where the
 #: loop holds the value as an attribute path).  Kind "array" takes dtype and shape from
@@ -198,15 +149,6 @@ class _Request:
         self.argument = argument
         self.done = threading.Event()
         self.result: CommandResult | None = None
-
-
-class Viewer(Protocol):
-    """``rig.foxglove_server.FoxgloveView`` as the loop uses it (never blocks)."""
-
-    @property
-    def dropped(self) -> int: ...
-    def offer_tick(self, t_ns: int, scalars: Any, arrays: Any) -> bool: ...
-    def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool: ...
 
 
 class ControlLoop:

@@ -1,0 +1,78 @@
+"""The control loop's seams: what :class:`rig.service.loop.ControlLoop` and
+:class:`rig.service.hardware.RigIO` need of the parts plugged into them.
+
+Structural types (``typing.Protocol``), so the service, replay, the benches and the tests
+plug in the real parts or their own without inheriting anything: the controller runtime
+(``controller.runtime.bank.BankRuntime``), the PI force loop
+(``controller.runtime.force_loop.PIForceLoop``), the run recorder, the Zenoh telemetry publisher and
+the live Foxglove view.  Every call the loop makes on a recorder, publisher or view is
+non-blocking: they queue and drop (and count) instead of waiting.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+
+from rig.recording.codec import TickLayout
+
+__all__ = ["ForceLoop", "Recorder", "Runtime", "Telemetry", "Viewer"]
+
+
+class Runtime(Protocol):
+    """What the loop needs of ``controller.runtime.bank.BankRuntime``."""
+
+    @property
+    def flags(self) -> Any: ...
+    q: np.ndarray
+    firing_weight: np.ndarray
+    probability: np.ndarray
+    u_model: np.ndarray
+    active: np.ndarray
+    x_post: np.ndarray
+    xf: np.ndarray
+
+    def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float: ...
+    def reset(self) -> None: ...
+    def set_blending(self, b: Any) -> None: ...
+    def set_weight_set(self, w: int) -> None: ...
+    def set_road(self, speed_mps: float, roughness_gd: float) -> Any: ...
+
+
+class ForceLoop(Protocol):
+    """``controller.runtime.force_loop.PIForceLoop`` (the force inner loop) as the loop uses it."""
+
+    def step(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float
+             ) -> float: ...
+    def reset(self) -> None: ...
+
+
+class Recorder(Protocol):
+    """``rig.recording.recorder.RunRecorder`` as the loop uses it (all calls non-blocking)."""
+
+    @property
+    def dropped(self) -> int: ...
+    def can_frame(self, t_ns: int, tick: int, arbitration_id: int, data: bytes | bytearray,
+                  is_rx: bool, error_frame: bool = False, extended_id: bool = False
+                  ) -> bool: ...
+    def set_tick_layout(self, layout: TickLayout) -> None: ...
+    def tick_values(self, t_ns: int, scalars: Any, arrays: Any) -> bool: ...
+    def event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool: ...
+
+
+class Telemetry(Protocol):
+    """``rig.telemetry.TelemetryPublisher`` as the loop uses it."""
+
+    @property
+    def dropped(self) -> int: ...
+    def offer(self, snapshot: Any) -> bool: ...
+
+
+class Viewer(Protocol):
+    """``rig.foxglove_server.FoxgloveView`` as the loop uses it (never blocks)."""
+
+    @property
+    def dropped(self) -> int: ...
+    def offer_tick(self, t_ns: int, scalars: Any, arrays: Any) -> bool: ...
+    def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool: ...
