@@ -26,32 +26,8 @@ from controller.runtime.bank import (
     config_of,
 )
 from controller.runtime.kernels import MEAS_DIM, QS_INIT
-from tests.support.reference_bank import ReferenceBank, quarter_car_measurements
-
-SMOOTH_SPEED, SMOOTH_GD = 5.0, 16e-6       # ISO class A at 5 m/s: tight filters
-
-
-def smooth_road_config(**design: object) -> RigConfig:
-    """One noise-table entry (fast designs), tuned for a smooth road."""
-    return default_config().replace(
-        noise={"speeds_mps": [SMOOTH_SPEED], "road_roughness_gd": [SMOOTH_GD],
-               "nominal_speed_mps": SMOOTH_SPEED, "nominal_roughness_gd": SMOOTH_GD},
-        design=dict(design))
-
-
-def trajectory(cfg: RigConfig, n: int, seed: int, *, drop_at: int | None = None,
-               force_std: float = 300.0, deflection_m: float | None = None
-               ) -> dict[str, np.ndarray]:
-    """Measurements of the piecewise-linear quarter car on a road matching the filter
-    tuning; ``drop_at``: the road falls 10 cm in 50 ms there (the wheel lifts off)."""
-    rng = np.random.default_rng(seed)
-    dt = cfg.sample_time_s
-    w = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
-    road = rng.normal(0.0, math.sqrt(w / dt), n)
-    if drop_at is not None:
-        road[drop_at:drop_at + 50] -= 2.0
-    force = rng.normal(0.0, force_std, n)
-    return quarter_car_measurements(cfg, dt, road, force, rng, deflection_m=deflection_m)
+from tests.support.reference_bank import ReferenceBank
+from tests.support.trajectories import SMOOTH_GD, SMOOTH_SPEED, smooth_road_config, trajectory
 
 
 @pytest.fixture(scope="module")

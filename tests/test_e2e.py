@@ -17,19 +17,7 @@ from rig.wire.e2e import (
     frame_crc,
     protect,
 )
-
-
-def crc8_bitwise(data: bytes, init: int = 0xFF, xorout: int = 0xFF) -> int:
-    """Independent reference: MSB-first shift register, polynomial x^8+x^4+x^3+x^2+1."""
-    reg = init
-    for byte in data:
-        for bit in range(7, -1, -1):
-            top = ((reg >> 7) & 1) ^ ((byte >> bit) & 1)
-            reg = (reg << 1) & 0xFF
-            if top:
-                reg ^= 0x1D
-    return reg ^ xorout
-
+from tests.support.crc import crc8_bitwise
 
 # AUTOSAR SWS CRC Library, "8-bit SAE J1850 CRC Calculation" check table
 AUTOSAR_CHECKS = [

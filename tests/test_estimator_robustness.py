@@ -16,8 +16,8 @@ from controller.human_filter import discretize_zoh
 from controller.plant import linear_model, static_tire_deflection_m, tire_damping_ns_per_m
 from controller.road_noise import nearest_noise_entry
 from controller.runtime.bank import BankRuntime, Blending, default_single_model
-from tests.test_bank import trajectory
-from tests.test_thesis_profile import PROFILE
+from tests.support.profiles import THESIS_PROFILE as PROFILE
+from tests.support.trajectories import trajectory
 
 CFG = default_config()
 THESIS = load_config(PROFILE)

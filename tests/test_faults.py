@@ -12,7 +12,7 @@ import pytest
 from controller.config import ConfigError
 from hil.faults import FaultKind, FaultSchedule, FaultWindow
 from rig.wire.protocol import CounterMonitor, CounterStatus, DecodeStatus
-from tests.test_node import CFG, Harness, harness
+from tests.support.node_harness import CFG, Harness, harness
 
 # window 100..150 ticks at 1 kHz
 T0, T1 = 0.100, 0.150

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from controller.config import default_config
 from rig.service.lifecycle import Lifecycle, Transition
 from rig.wire.protocol import FaultCode, LifecycleState
-from tests.test_loop import LoopHarness, make_harness
+from tests.support.loop_harness import LoopHarness, make_harness
 
 S = LifecycleState
 CFG = default_config()

@@ -14,7 +14,7 @@ from controller.config import ConfigError, default_config
 from controller.design import design_bank
 from controller.monitor import monitor_settings
 from controller.runtime.bank import BankRuntime, Blending
-from tests.test_bank import smooth_road_config, trajectory
+from tests.support.trajectories import smooth_road_config, trajectory
 
 
 def chi2_even_sf(x: float, dof: int) -> float:

@@ -23,7 +23,7 @@ from rig.wire.protocol import (
     SensorData,
     ValveCommand,
 )
-from tests.test_e2e import crc8_bitwise
+from tests.support.crc import crc8_bitwise
 
 DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "wire" / "rig.dbc"))
 CODEC_LIST = list(CODECS.values())

@@ -41,7 +41,7 @@ from rig.wire.protocol import (
     ValveCommand,
 )
 from tests.support.frames import drain_controller_frames
-from tests.test_loop import LoopHarness, make_harness
+from tests.support.loop_harness import LoopHarness, make_harness
 
 CFG = default_config()
 

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from controller.config import config_to_dict, default_config, load_config
 from controller.design import design_bank
 from controller.runtime.bank import BankRuntime, Blending, StepFlag
+from tests.support.profiles import THESIS_PROFILE as PROFILE
 
-PROFILE = Path(__file__).resolve().parents[1] / "deploy" / "thesis.toml"
 EXPECTED = {
     ("design", "bump_stop_filter_input"): False,
     ("design", "filter_rattlespace_bias_drift"): 0.0,

@@ -32,7 +32,7 @@ from rig.wire.protocol import (
     FaultCode,
     LifecycleState,
 )
-from tests.test_e2e import crc8_bitwise
+from tests.support.crc import crc8_bitwise
 
 
 def test_regenerating_gives_no_difference(tmp_path: Path) -> None:
