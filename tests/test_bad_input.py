@@ -84,7 +84,7 @@ def design_file(design_path: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def recording(files: dict[str, Path], design_file: Path) -> Path:
-    from bench.replay_bench import record_emulated_run
+    from hil.stepped_run import record_emulated_run
 
     return record_emulated_run(files["dir"] / "run.mcap", 0.3, cfg=CFG,
                                design_bytes=design_file.read_bytes())

@@ -238,7 +238,7 @@ def test_refuses_without_excitation_too_short_saturated_or_off_the_ground() -> N
 
 def test_cli_refusals_are_one_line_exit_2(design_path: Path, tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
-    from bench.replay_bench import record_emulated_run
+    from hil.stepped_run import record_emulated_run
 
     plain = record_emulated_run(tmp_path / "plain.mcap", 1.0, cfg=IDENT_CFG,
                                 design_bytes=design_path.read_bytes(), road="flat")

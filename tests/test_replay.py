@@ -31,11 +31,11 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from bench.replay_bench import record_emulated_run
 from controller.artifact import load_design, save_design
 from controller.config import default_config
 from controller.design import design_bank
 from controller.runtime.bank import BankRuntime
+from hil.stepped_run import record_emulated_run
 from rig.cli import main as rig_main
 from rig.recording.recorder import read_run
 from rig.recording.schema import RECORDING_FORMAT_VERSION

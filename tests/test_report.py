@@ -18,12 +18,12 @@ import pytest
 from matplotlib import image as mpimg
 from scipy import signal
 
-from bench.replay_bench import record_emulated_run
 from controller.actuator import servo_model
 from controller.artifact import save_design
 from controller.config import RigConfig, default_config
 from controller.design import design_bank
 from controller.runtime.kernels import StepFlag
+from hil.stepped_run import record_emulated_run
 from rig.cli import main as rig_main
 from rig.recording.recorder import read_run
 from rig.replay import ScanResult, replay_recording

@@ -1,5 +1,5 @@
 """An identification run recorded once per test session: the service's loop against the
-emulated rig's CAN node (``bench.replay_bench.record_emulated_run``, tick-stepped, road
+emulated rig's CAN node (``hil.stepped_run.record_emulated_run``, tick-stepped, road
 'flat', the excitation of ``[excitation]`` played from the arm) on the rig of the
 must-show figures (M x1.12, K x0.92, C x1.10, tire stiffness x0.90), shortened to an
 8 s excitation after 1.5 s of rest."""
@@ -35,7 +35,7 @@ def true_values(cfg: RigConfig = IDENT_CFG) -> dict[str, float]:
 
 def record_identification_run(path: Path, design_bytes: bytes, cfg: RigConfig = IDENT_CFG,
                               seconds: float = SECONDS, **kw: object) -> Path:
-    from bench.replay_bench import record_emulated_run
+    from hil.stepped_run import record_emulated_run
 
     return record_emulated_run(path, seconds, cfg=cfg, design_bytes=design_bytes,
                                arm_at_s=ARM_S, road="flat", excite=True, **kw)  # type: ignore[arg-type]
