@@ -18,12 +18,12 @@ from rig.wire.protocol import (
     VALVE_COMMAND,
     DecodeStatus,
     FaultCode,
-    FrameDecoder,
     LifecycleState,
     SensorData,
     ValveCommand,
 )
 from tests.support.crc import crc8_bitwise
+from tests.support.frames import FrameDecoder
 
 DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "wire" / "rig.dbc"))
 CODEC_LIST = list(CODECS.values())

@@ -19,7 +19,7 @@ __all__ = ["Codec", "DecodeStatus", "Frame", "SignalSpec"]
 class DecodeStatus(IntEnum):
     OK = 0
     BAD_LENGTH = 1  #: payload is not exactly 8 bytes
-    UNKNOWN_ID = 2  #: not a frame of this protocol (FrameDecoder only)
+    UNKNOWN_ID = 2  #: not a frame of this protocol (a decoder by frame ID; the codecs never)
     BAD_CRC = 3  #: E2E CRC mismatch: corrupted frame or wrong data ID
     OUT_OF_RANGE = 4  #: intact, fields filled, some value outside DBC range (range_mask)
 

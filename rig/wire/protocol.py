@@ -8,8 +8,7 @@ DBC's bit positions, scales, ranges and ``VAL_`` values written in as literals),
 enums); a test requires that regenerating changes neither, and ``tests/test_protocol.py``
 proves the codec byte-identical to cantools.  The hand-written parts hold no DBC number:
 :mod:`rig.wire.codec_base` (decode status, frame and codec base classes), the E2E CRC
-tables in :mod:`rig.wire.e2e`, and here the public names, :class:`SensorStatus` and
-:class:`FrameDecoder`.
+tables in :mod:`rig.wire.e2e`, and here the public names and :class:`SensorStatus`.
 
 Hot-path use::
 
@@ -34,7 +33,7 @@ which.  Rolling-counter supervision is separate: :class:`rig.wire.e2e.CounterMon
 from __future__ import annotations
 
 from enum import IntFlag
-from typing import Any, Final
+from typing import Final
 
 from rig.wire import dbc_constants as K  # noqa: N812  (K: the DBC constants)
 from rig.wire.codec_base import Codec, DecodeStatus, Frame, SignalSpec
@@ -85,7 +84,6 @@ __all__ = [
     "FaultReport",
     "FaultReportCodec",
     "Frame",
-    "FrameDecoder",
     "LifecycleState",
     "RigStatus",
     "RigStatusCodec",
@@ -114,42 +112,3 @@ class SensorStatus(IntFlag):
     LVDT_FAULT = 1
     LOAD_CELL_FAULT = 2
     ACCEL_FAULT = 4
-
-
-_UNKNOWN_ID: Final = DecodeStatus.UNKNOWN_ID
-
-
-class FrameDecoder:
-    """Decode any frame of the protocol by ID into preallocated per-ID objects.
-
-    ``status = dec.decode(msg.arbitration_id, msg.data)``; on OK / OUT_OF_RANGE the
-    values are in ``dec.frames[frame_id]`` (also ``dec.sensor_data`` etc.).  Unknown IDs
-    (and extended IDs: pass ``is_extended=True``) give UNKNOWN_ID.  Never raises for a
-    bytes-like payload of any length.
-    """
-
-    def __init__(self) -> None:
-        self.valve_command = ValveCommand()
-        self.fault_report = FaultReport()
-        self.sensor_data = SensorData()
-        self.rig_status = RigStatus()
-        self.controller_status = ControllerStatus()
-        self.frames: dict[int, Frame] = {
-            VALVE_COMMAND_ID: self.valve_command,
-            FAULT_REPORT_ID: self.fault_report,
-            SENSOR_DATA_ID: self.sensor_data,
-            RIG_STATUS_ID: self.rig_status,
-            CONTROLLER_STATUS_ID: self.controller_status,
-        }
-        self._dispatch: dict[int, tuple[Any, Frame]] = {
-            fid: (CODECS[fid], frame) for fid, frame in self.frames.items()
-        }
-
-    def decode(self, frame_id: int, data: bytes | bytearray | memoryview,
-               is_extended: bool = False) -> DecodeStatus:
-        entry = None if is_extended else self._dispatch.get(frame_id)
-        if entry is None:
-            return _UNKNOWN_ID
-        codec, frame = entry
-        status: DecodeStatus = codec.decode(data, frame)
-        return status

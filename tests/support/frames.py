@@ -1,18 +1,28 @@
-"""Reading what the controller sent, frame by frame, on a python-can bus."""
+"""Reading frames of the protocol in tests: what the controller sent on a python-can bus
+(:func:`drain_controller_frames`), any frame by ID (:class:`FrameDecoder`)."""
 
 from __future__ import annotations
+
+from typing import Any, Final
 
 import can
 
 from rig.wire.protocol import (
+    CODECS,
     CONTROLLER_STATUS,
     CONTROLLER_STATUS_ID,
     FAULT_REPORT,
     FAULT_REPORT_ID,
+    RIG_STATUS_ID,
+    SENSOR_DATA_ID,
     VALVE_COMMAND,
     VALVE_COMMAND_ID,
     ControllerStatus,
+    DecodeStatus,
     FaultReport,
+    Frame,
+    RigStatus,
+    SensorData,
     ValveCommand,
 )
 
@@ -39,3 +49,42 @@ def drain_controller_frames(
         assert not strict or result.name == "OK", (codec.NAME, result.name)
         out.append(frame)   # type: ignore[arg-type]
     return valves, faults, status
+
+
+_UNKNOWN_ID: Final = DecodeStatus.UNKNOWN_ID
+
+
+class FrameDecoder:
+    """Decode any frame of the protocol by ID into preallocated per-ID objects.
+
+    ``status = dec.decode(msg.arbitration_id, msg.data)``; on OK / OUT_OF_RANGE the
+    values are in ``dec.frames[frame_id]`` (also ``dec.sensor_data`` etc.).  Unknown IDs
+    (and extended IDs: pass ``is_extended=True``) give UNKNOWN_ID.  Never raises for a
+    bytes-like payload of any length.
+    """
+
+    def __init__(self) -> None:
+        self.valve_command = ValveCommand()
+        self.fault_report = FaultReport()
+        self.sensor_data = SensorData()
+        self.rig_status = RigStatus()
+        self.controller_status = ControllerStatus()
+        self.frames: dict[int, Frame] = {
+            VALVE_COMMAND_ID: self.valve_command,
+            FAULT_REPORT_ID: self.fault_report,
+            SENSOR_DATA_ID: self.sensor_data,
+            RIG_STATUS_ID: self.rig_status,
+            CONTROLLER_STATUS_ID: self.controller_status,
+        }
+        self._dispatch: dict[int, tuple[Any, Frame]] = {
+            fid: (CODECS[fid], frame) for fid, frame in self.frames.items()
+        }
+
+    def decode(self, frame_id: int, data: bytes | bytearray | memoryview,
+               is_extended: bool = False) -> DecodeStatus:
+        entry = None if is_extended else self._dispatch.get(frame_id)
+        if entry is None:
+            return _UNKNOWN_ID
+        codec, frame = entry
+        status: DecodeStatus = codec.decode(data, frame)
+        return status
