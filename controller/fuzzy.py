@@ -33,7 +33,6 @@ __all__ = [
     "firing_weight_curve",
     "fuzzy_inference",
     "trapezoid_membership",
-    "triangle_membership",
 ]
 
 
@@ -56,17 +55,6 @@ def trapezoid_membership(q: float, t: Sequence[float]) -> float:
         return (q - a) / (b - a)
     return (d - q) / (d - c)
 
-
-def triangle_membership(x: float, t: Sequence[float]) -> float:
-    """Degree of x in triangle [a, peak, c] (a < c; the peak may sit on an edge)."""
-    a, p, c = (float(v) for v in t)
-    if x < a or x > c:
-        return 0.0
-    if x == p:
-        return 1.0
-    if x < p:
-        return (x - a) / (p - a)
-    return (c - x) / (c - p)
 
 
 def _clipped_triangle_knots(t: Sequence[float], h: float) -> list[tuple[float, float]]:

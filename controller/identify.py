@@ -217,9 +217,6 @@ def _bcls(g: FloatArray, n: float, noise: FloatArray, y: int, xs: list[int],
     return np.asarray(np.linalg.solve(sxx, sxy), dtype=np.float64)
 
 
-def _combine(cols: FloatArray, t: FloatArray) -> FloatArray:
-    return np.asarray(cols @ t.T, dtype=np.float64)
-
 
 def _jack_ci(full: float, reps: FloatArray, widen: float = 1.0,
              bias: float = 0.0, se_floor: float = 0.0) -> tuple[float, float, float]:

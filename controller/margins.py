@@ -46,7 +46,7 @@ import numpy as np
 from controller.actuator import FlowFeedforward, ServoModel, flow_feedforward, servo_model
 from controller.arrays import FloatArray
 from controller.config import ForceLoopConfig, RigConfig
-from controller.design import ModelDesign, design_models, measurement_noise_cov
+from controller.design import ModelDesign, measurement_noise_cov
 from controller.human_filter import HumanFilter, discretize_zoh, human_filter
 from controller.kalman import process_noise_cov, steady_state_kalman
 from controller.lq import actuated_lq_gain, actuated_plant, augmented_plant, lq_gain
@@ -66,7 +66,6 @@ __all__ = [
     "fullstate_controller_ss",
     "loop_parts",
     "lqg_loop_gain",
-    "margin_table",
     "rig_plant_ss",
     "runtime_controller_ss",
 ]
@@ -399,23 +398,3 @@ def delay_margin_s(L: control.StateSpace) -> float:
 def closed_loop_stable(L: control.StateSpace) -> bool:
     cl = control.feedback(L, 1)
     return bool(np.max(np.abs(np.linalg.eigvals(cl.A))) < 1.0)
-
-
-def margin_table(cfg: RigConfig, delays: tuple[int, ...] = (0, 1, 2)
-                 ) -> list[dict[str, object]]:
-    """Rows for docs/design.md section 7: per on-ground model, weight set and delay:
-    the smallest delay margin [ms] of the LQG loop on the hydraulic rig (0 = unstable)
-    and the phase margin of the force loop [deg]."""
-    rows: list[dict[str, object]] = []
-    for md in design_models(cfg):
-        if md.model.airborne:
-            continue
-        for d in delays:
-            inner = crossovers(force_loop_gain(cfg, md, d))
-            pm = min((c.phase_margin_deg for c in inner), default=math.inf)
-            for w, weights in enumerate(cfg.design.weight_sets, start=1):
-                L = lqg_loop_gain(cfg, md, weights, "hydraulic", d)
-                rows.append({"set": w, "model": md.model.name, "delay": d,
-                             "delay_margin_ms": 1e3 * delay_margin_s(L),
-                             "force_loop_pm_deg": pm})
-    return rows

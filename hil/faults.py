@@ -248,10 +248,6 @@ class FaultSchedule:
         self._ticks = [(round(w.start_s / dt_s), round(w.end_s / dt_s), w)
                        for w in self.windows]
 
-    def tick_range(self, window: FaultWindow, dt_s: float) -> tuple[int, int]:
-        """The ticks ``[first, end)`` during which ``window`` is active at ``dt_s``."""
-        return round(window.start_s / dt_s), round(window.end_s / dt_s)
-
     def active(self, tick: int) -> list[FaultWindow]:
         """Windows active at ``tick`` (after :meth:`bind`); empty list when none."""
         return [w for t0, t1, w in self._ticks if t0 <= tick < t1]

@@ -36,14 +36,8 @@ __all__ = [
     "load_pressure_rate",
     "max_force_n",
     "no_load_velocity_mps",
-    "spool_rate",
 ]
 
-
-@njit(cache=True)
-def spool_rate(spool: float, spool_cmd: float, tau_s: float) -> float:
-    """x_v' [1/s] for normalised spool ``spool`` and command ``spool_cmd``."""
-    return (spool_cmd - spool) / tau_s
 
 
 @njit(cache=True)

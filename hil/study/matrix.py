@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -29,7 +29,7 @@ from controller.config import RigConfig, config_to_toml
 from hil.batch import BatchExecutor, LocalExecutor
 from hil.sim.montecarlo import draw_params
 from hil.sim.plant import PlantParams
-from hil.sim.skyhook import DEFAULT_GAINS, TUNING_GRID, SkyhookGains
+from hil.sim.skyhook import TUNING_GRID, SkyhookGains
 from hil.study.cases import Case, run_case_task
 
 __all__ = ["RATIO_METRICS", "StudyPlan", "add_ratios", "bank_labels", "main_cases",
@@ -198,9 +198,3 @@ def add_ratios(rows: list[dict[str, Any]], cases: Sequence[Case]) -> None:
                 continue
             num, den = float(row[m]), float(base[m])
             row[f"{m}_ratio"] = num / den if den != 0.0 else math.nan
-
-
-def select_tuned(rows: list[dict[str, Any]], cases: Sequence[Case],
-                 chooser: Callable[[list[dict[str, float]]], SkyhookGains]) -> SkyhookGains:
-    sky = [r for r, c in zip(rows, cases, strict=True) if c.controller == "skyhook"]
-    return chooser(sky) if sky else DEFAULT_GAINS
