@@ -31,11 +31,6 @@ from tests.support.trajectories import SMOOTH_GD, SMOOTH_SPEED, smooth_road_conf
 
 
 @pytest.fixture(scope="module")
-def default_design() -> Design:
-    return design_bank(default_config())
-
-
-@pytest.fixture(scope="module")
 def smooth_cfg() -> RigConfig:
     return smooth_road_config()
 

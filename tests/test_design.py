@@ -29,8 +29,9 @@ CFG = default_config()
 
 
 @pytest.fixture(scope="module")
-def design() -> Design:
-    return design_bank(CFG)
+def design(default_design: Design) -> Design:
+    """The default design (conftest's, designed once per session)."""
+    return default_design
 
 
 def test_shapes_and_fields(design: Design) -> None:

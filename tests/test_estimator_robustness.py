@@ -25,8 +25,8 @@ K_NOM = CFG.vehicle.suspension_stiffness_n_per_m
 
 
 @pytest.fixture(scope="module")
-def designs() -> dict[str, tuple[RigConfig, Design]]:
-    return {"default": (CFG, design_bank(CFG)), "thesis": (THESIS, design_bank(THESIS))}
+def designs(default_design: Design) -> dict[str, tuple[RigConfig, Design]]:
+    return {"default": (CFG, default_design), "thesis": (THESIS, design_bank(THESIS))}
 
 
 def _parts(cfg: RigConfig, d: Design, ws: int) -> dict[str, np.ndarray]:

@@ -14,7 +14,6 @@ import control
 import numpy as np
 import pytest
 
-from controller.artifact import Design
 from controller.config import default_config
 from controller.design import design_bank, design_models
 from controller.margins import (
@@ -128,11 +127,6 @@ def test_actuator_aware_lqg_tolerates_up_to_two_ticks(j: int, w: int) -> None:
     for d, dm_min in ((0, 10e-3), (1, 10e-3), (2, 1e-3)):
         L = lqg_loop_gain(CFG, GROUND[j], SETS[w], "hydraulic", d)
         assert delay_margin_s(L) >= dm_min, d
-
-
-@pytest.fixture(scope="module")
-def design() -> Design:
-    return design_bank(CFG)
 
 
 def test_runtime_bank_is_the_linear_controller() -> None:

@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from controller.artifact import Design
 from controller.config import default_config
 from controller.runtime.force_loop import PIForceLoop
 from hil.faults import FaultSchedule
@@ -524,12 +525,6 @@ class HilPair:
             b.shutdown()
 
 
-@pytest.fixture(scope="module")
-def design() -> Any:
-    from hil.sim.closed_loop import cached_design
-    return cached_design(CFG)
-
-
 def make_hil(design: Any, faults: FaultSchedule | None = None) -> HilPair:
     from controller.runtime.bank import BankRuntime
     from hil.node import RigNode
@@ -567,12 +562,13 @@ STALE = CFG.safety.stale_ticks
     ("sensor_status", {"bits": 2}, FaultCode.SENSOR_STATUS, FAULT_TICK),
     ("supply_loss", {}, FaultCode.SUPPLY_LOSS, FAULT_TICK),
 ])
-def test_fault_schedule_on_emulated_rig(design: Any, kind: str, params: dict[str, Any],
-                                        code: FaultCode, observable: int) -> None:
+def test_fault_schedule_on_emulated_rig(default_design: Design, kind: str,
+                                        params: dict[str, Any], code: FaultCode,
+                                        observable: int) -> None:
     dt = CFG.sample_time_s
     schedule = FaultSchedule.from_list(
         [(FAULT_TICK * dt, (FAULT_TICK + 50) * dt, kind, params)])
-    h = make_hil(design, schedule)
+    h = make_hil(default_design, schedule)
     try:
         h.step(ARM_TICK)
         assert h.loop.request("arm", timeout_s=None).accepted
@@ -601,7 +597,7 @@ def test_fault_schedule_on_emulated_rig(design: Any, kind: str, params: dict[str
         h.close()
 
 
-def test_frozen_sensor_on_emulated_rig(design: Any) -> None:
+def test_frozen_sensor_on_emulated_rig(default_design: Design) -> None:
     """hil.faults ``frozen_sensor``: the rig repeats its last SensorData values with the
     counter advancing; the safe command goes out in the tick the repeat count passes
     ``safety.frozen_ticks``."""
@@ -609,7 +605,7 @@ def test_frozen_sensor_on_emulated_rig(design: Any) -> None:
     limit = CFG.safety.frozen_ticks
     schedule = FaultSchedule.from_list(
         [(FAULT_TICK * dt, (FAULT_TICK + 2 * limit) * dt, "frozen_sensor", {})])
-    h = make_hil(design, schedule)
+    h = make_hil(default_design, schedule)
     # frames FAULT_TICK - 1 (the last live one) .. FAULT_TICK + k: k + 2 identical ones
     observable = FAULT_TICK + limit - 1
     try:
@@ -632,8 +628,8 @@ def test_frozen_sensor_on_emulated_rig(design: Any) -> None:
         h.close()
 
 
-def test_rig_watchdog_trip_from_controller_stall(design: Any) -> None:
-    h = make_hil(design)
+def test_rig_watchdog_trip_from_controller_stall(default_design: Design) -> None:
+    h = make_hil(default_design)
     try:
         h.step(ARM_TICK)
         assert h.loop.request("arm", timeout_s=None).accepted
