@@ -14,8 +14,8 @@ from controller.config import default_config
 from controller.design import design_bank
 from controller.road_noise import road_velocity_intensity
 from controller.runtime.bank import BankRuntime, Blending
-from controller.runtime.bayes import bayes_update, bayes_update_numpy, log_likelihood_constant
-from tests.support.reference_bank import quarter_car_measurements
+from controller.runtime.bayes import bayes_update, log_likelihood_constant
+from tests.support.reference_bank import bayes_update_numpy, quarter_car_measurements
 
 M = 2
 

@@ -17,9 +17,8 @@ import math
 
 import numba as nb
 import numpy as np
-from numpy.typing import NDArray
 
-__all__ = ["bayes_update", "bayes_update_numpy", "log_likelihood_constant"]
+__all__ = ["bayes_update", "log_likelihood_constant"]
 
 
 def log_likelihood_constant(logdet_f: float, meas_dim: int) -> float:
@@ -77,24 +76,3 @@ def bayes_update(st: np.ndarray, col_p: int, col_q: int, col_contrib: int, vec: 
         j = rows[row0 + a]
         if st[j, col_contrib] != 0.0:
             st[j, col_p] = st[j, col_p] / total2
-
-
-def bayes_update_numpy(p_prev: NDArray[np.float64], q: NDArray[np.float64],
-                       logdet_f: NDArray[np.float64], meas_dim: int,
-                       floor: float) -> NDArray[np.float64]:
-    """The same update written directly from Eq. 4.2/4.6 (for tests and offline use).
-
-    Uses the densities themselves where they do not underflow, so it is an independent
-    check of the log-space kernel.
-    """
-    dens = np.exp(-0.5 * q) / ((2.0 * np.pi) ** (meas_dim / 2.0) * np.sqrt(np.exp(logdet_f)))
-    num = dens * p_prev
-    total = float(np.sum(num))
-    if not total > 1e-200:             # densities underflow: use logs (p_prev floor-free)
-        logs = np.log(np.maximum(p_prev, 1e-300)) - 0.5 * q - 0.5 * logdet_f
-        logs -= np.max(logs)
-        num = np.exp(logs)
-        total = float(np.sum(num))
-    p = num / total
-    p = np.maximum(p, floor)
-    return np.asarray(p / np.sum(p), dtype=np.float64)

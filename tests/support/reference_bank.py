@@ -10,7 +10,7 @@ Written straight from the thesis equations rather than from the fused kernel:
     u_j = -K_j [x⁺_j - x̄_j; x_f; x̂_v; u; w; s_pending]         (LQ, App. A per model)
     x̂_v, w, s_pending: the spool model of controller/actuator.py on the blended output,
         w the force loop's rate filter (``FlowFeedforward.step``, plain Python)
-    p_j: densities of Eq. 4.6 into Eq. 4.2 (:func:`controller.runtime.bayes.bayes_update_numpy`)
+    p_j: densities of Eq. 4.6 into Eq. 4.2 (:func:`bayes_update_numpy` here)
     f_j: ``np.interp`` on the App. A firing-weight table
 
 and the moving-bank rules of :mod:`controller.runtime.moving_bank` re-implemented with Python
@@ -32,11 +32,32 @@ from controller.config import RigConfig
 from controller.monitor import monitor_settings
 from controller.road_noise import nearest_noise_entry
 from controller.runtime import moving_bank
-from controller.runtime.bayes import bayes_update_numpy
 from controller.runtime.kernels import MEAS_DIM, Q_MAX, QS_INIT, Blending, StepFlag
 from controller.stop_guard import stop_guard_scale
 
-__all__ = ["ReferenceBank"]
+__all__ = ["ReferenceBank", "bayes_update_numpy"]
+
+
+def bayes_update_numpy(p_prev: FloatArray, q: FloatArray,
+                       logdet_f: FloatArray, meas_dim: int,
+                       floor: float) -> FloatArray:
+    """The Bayesian probability update written directly from Eq. 4.2/4.6 (the reference
+    of :func:`controller.runtime.bayes.bayes_update`).
+
+    Uses the densities themselves where they do not underflow, so it is an independent
+    check of the log-space kernel.
+    """
+    dens = np.exp(-0.5 * q) / ((2.0 * np.pi) ** (meas_dim / 2.0) * np.sqrt(np.exp(logdet_f)))
+    num = dens * p_prev
+    total = float(np.sum(num))
+    if not total > 1e-200:             # densities underflow: use logs (p_prev floor-free)
+        logs = np.log(np.maximum(p_prev, 1e-300)) - 0.5 * q - 0.5 * logdet_f
+        logs -= np.max(logs)
+        num = np.exp(logs)
+        total = float(np.sum(num))
+    p = num / total
+    p = np.maximum(p, floor)
+    return np.asarray(p / np.sum(p), dtype=np.float64)
 
 
 class ReferenceBank:
