@@ -4,7 +4,7 @@ docs/replay.md).
 
 The recordings are produced here by the real loop, tick-stepped against the emulated
 rig (hil.node.RigNode) on a python-can virtual bus with the RunRecorder on
-(bench.replay_bench.record_emulated_run).
+(hil.stepped_run.record_emulated_run).
 """
 
 from __future__ import annotations
