@@ -22,7 +22,8 @@ from rig.wire.protocol import (
     SensorData,
     ValveCommand,
 )
-from tests.support.crc import crc8_bitwise
+from tests.support.crc import crc8_bitwise, with_crc
+from tests.support.crc import ref_encode as cantools_encode
 from tests.support.frames import FrameDecoder
 
 DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "wire" / "rig.dbc"))
@@ -31,17 +32,8 @@ IDS = [c.frame_id for c in CODEC_LIST]
 
 
 def ref_encode(frame_id: int, signals: dict[str, Any]) -> bytes:
-    """cantools encode with the E2E CRC computed by the bitwise reference."""
-    msg = DBC.get_message_by_frame_id(frame_id)
-    crc_name = msg.signals[0].name
-    body = bytes(msg.encode({**signals, crc_name: 0}, scaling=True, strict=True))
-    crc = crc8_bitwise(bytes([frame_id & 0xFF, frame_id >> 8]) + body[1:])
-    return bytes(msg.encode({**signals, crc_name: crc}, scaling=True, strict=True))
-
-
-def with_crc(frame_id: int, payload: bytes) -> bytes:
-    return bytes([crc8_bitwise(bytes([frame_id & 0xFF, frame_id >> 8]) + payload[1:])]) \
-        + payload[1:]
+    """cantools encode (rig.dbc) with the E2E CRC computed by the bitwise reference."""
+    return cantools_encode(DBC, frame_id, signals)
 
 
 # ----------------------------------------------------------------- the DBC itself

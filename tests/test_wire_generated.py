@@ -32,7 +32,7 @@ from rig.wire.protocol import (
     FaultCode,
     LifecycleState,
 )
-from tests.support.crc import crc8_bitwise
+from tests.support.crc import ref_encode, with_crc
 
 
 def test_regenerating_gives_no_difference(tmp_path: Path) -> None:
@@ -93,20 +93,6 @@ def _import_codec(tmp_path: Path, dbc: Path) -> ModuleType:
     return module
 
 
-def _ref_encode(db: Any, frame_id: int, signals: dict[str, Any]) -> bytes:
-    """cantools encode with the E2E CRC of the bitwise reference."""
-    msg = db.get_message_by_frame_id(frame_id)
-    crc_name = msg.signals[0].name
-    body = bytes(msg.encode({**signals, crc_name: 0}, scaling=True, strict=True))
-    crc = crc8_bitwise(bytes([frame_id & 0xFF, frame_id >> 8]) + body[1:])
-    return bytes(msg.encode({**signals, crc_name: crc}, scaling=True, strict=True))
-
-
-def _with_crc(frame_id: int, payload: bytes) -> bytes:
-    return bytes([crc8_bitwise(bytes([frame_id & 0xFF, frame_id >> 8]) + payload[1:])]) \
-        + payload[1:]
-
-
 def test_a_changed_dbc_changes_the_generated_modules(tmp_path: Path) -> None:
     dbc = _changed_dbc(tmp_path, ("SG_ Rattlespace : 16|16@1- (5e-06,0)",
                                   "SG_ Rattlespace : 16|16@1- (1e-05,0)"))
@@ -132,7 +118,7 @@ def test_the_codec_takes_its_numbers_from_the_dbc(tmp_path: Path) -> None:
                    "LoadCellForce": 120.5, "SprungAccel": -2.5}
         buf = bytearray(8)
         assert changed.SENSOR_DATA.encode_signals(buf, signals) == 0
-        assert bytes(buf) == _ref_encode(db, sid, signals)
+        assert bytes(buf) == ref_encode(db, sid, signals)
     buf, ours = bytearray(8), bytearray(8)
     changed.SENSOR_DATA.encode(buf, 0, 0, 0.01, 0.0, 0.0)
     SENSOR_DATA.encode(ours, 0, 0, 0.01, 0.0, 0.0)
@@ -147,7 +133,7 @@ def test_the_codec_takes_its_numbers_from_the_dbc(tmp_path: Path) -> None:
     # range, while every raw value is in range on the real DBC
     for raw, status, mask in ((20000, DecodeStatus.OK, 0),
                               (30000, DecodeStatus.OUT_OF_RANGE, 0b10)):
-        data = _with_crc(sid, bytes([0, 0x15]) + raw.to_bytes(2, "little", signed=True)
+        data = with_crc(sid, bytes([0, 0x15]) + raw.to_bytes(2, "little", signed=True)
                          + bytes(4))
         frame = changed.SensorData()
         assert changed.SENSOR_DATA.decode(data, frame) is status
