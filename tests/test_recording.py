@@ -413,6 +413,26 @@ def test_another_format_version_is_refused_before_anything_is_read(
     assert len(err) == 2 and all(line.endswith(msg) for line in err)
 
 
+def test_a_payload_that_is_not_the_formats_json_is_refused(tmp_path: Path) -> None:
+    """Not a torn tail (the chunk passed its CRC): a message that is not one JSON
+    object is refused in one line naming the channel, not read as an empty run."""
+    from mcap.writer import Writer
+
+    path = tmp_path / "bad-json.mcap"
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start(profile="", library=f"rig-recorder/{RECORDING_FORMAT_VERSION}")
+        w.add_metadata("rig", {"format_version": str(RECORDING_FORMAT_VERSION)})
+        sid = w.register_schema("rig.CanFrame", "jsonschema", b"{}")
+        ch = w.register_channel("/can/rx", "json", sid)
+        w.add_message(ch, 1, b'{"tick":0,"t_ns":0,"id":1,"data":"","dlc":0}', 1, sequence=0)
+        w.add_message(ch, 2, b'{"tick":1,"t_ns":1,"id":1,"data":"", "dlc"', 2, sequence=1)
+        w.finish()
+    with pytest.raises(RecordingError, match=rf"^{re.escape(str(path))}: malformed /can/rx "
+                                             r"payload \(JSONDecodeError: "):
+        read_run(path)
+
+
 # ----------------------------------------------------------------------- SIGKILL
 
 

@@ -24,7 +24,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from rig.recording.scan import RecordingError, scan_recording, split_json
+from rig.recording.scan import RecordingError, ScanResult, scan_recording, split_json
 from rig.recording.schema import (
     PARTS_KEY,
     TOPIC_CAN_RX,
@@ -113,25 +113,29 @@ class _Sequences:
 
 
 class _Topic:
-    """The batches of one topic (a scanner handler)."""
+    """The messages of one topic as they are read (a scanner handler): decoded JSON
+    objects and their item numbers."""
 
-    def __init__(self, sequences: _Sequences) -> None:
-        self._sequences = sequences
-        self.parts: list[bytes] = []
+    def __init__(self, topic: str, scan: ScanResult, sequences: _Sequences) -> None:
+        self.topic, self._scan, self._sequences = topic, scan, sequences
+        self.msgs: list[dict[str, Any]] = []
         self.seqs: list[NDArray[np.int64]] = []
 
     def __call__(self, joined: bytes, seqs: NDArray[np.uint32]) -> None:
-        self.parts.append(joined)
+        try:
+            msgs = split_json(joined)
+        except ValueError as exc:              # JSONDecodeError, UnicodeDecodeError
+            msgs, why = [], f"({type(exc).__name__}: {str(exc)[:120]})"
+        else:
+            why = "(not one JSON object per message)"
+        if len(msgs) != seqs.size or not all(type(m) is dict for m in msgs):
+            raise RecordingError(f"{self._scan.segments[-1]}: malformed {self.topic} "
+                                 f"payload {why}")
+        self.msgs += msgs
         self.seqs.append(self._sequences.unwrap(seqs))
 
-    def decoded(self, path: Path, topic: str) -> tuple[list[Any], NDArray[np.int64]]:
-        """The messages (JSON objects) and their item numbers."""
-        seqs = np.concatenate(self.seqs) if self.seqs else np.zeros(0, np.int64)
-        objs = split_json(b"".join(self.parts))
-        if len(objs) != seqs.size or not all(type(o) is dict for o in objs):
-            raise RecordingError(f"{path}: {seqs.size} {topic} messages do not hold one "
-                                 "JSON object each")
-        return objs, seqs
+    def sequence(self) -> NDArray[np.int64]:
+        return np.concatenate(self.seqs) if self.seqs else np.zeros(0, np.int64)
 
 
 def read_run(path: str | Path, *, follow_segments: bool = True) -> RunData:
@@ -152,25 +156,24 @@ def read_run(path: str | Path, *, follow_segments: bool = True) -> RunData:
     MCAP, a recording of another format version, or holds a payload that is not the
     format's JSON; ``FileNotFoundError`` / ``IsADirectoryError``."""
     path = Path(path)
+    scan = ScanResult()
     sequences = _Sequences()
-    topics = {t: _Topic(sequences) for t in _TOPICS}
-    scan = scan_recording(path, dict(topics), follow_segments=follow_segments,
-                          replayable=False)
+    topics = {t: _Topic(t, scan, sequences) for t in _TOPICS}
+    scan_recording(path, dict(topics), follow_segments=follow_segments, result=scan,
+                   replayable=False)
     run = RunData(metadata=scan.metadata, attachments=scan.attachments,
                   segments=scan.segments, complete=scan.complete,
                   stopped_at=scan.stopped_at, notes=scan.notes)
     try:
-        _decode(path, topics, run)
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        if isinstance(exc, RecordingError):
-            raise
+        _decode(topics, run)
+    except (KeyError, TypeError, AttributeError, ValueError) as exc:  # a missing key ...
         raise RecordingError(f"{path}: malformed message payload ({type(exc).__name__}: "
                              f"{exc})") from exc
     return run
 
 
-def _decode(path: Path, topics: dict[str, _Topic], run: RunData) -> None:
-    records = _records(path, topics)
+def _decode(topics: dict[str, _Topic], run: RunData) -> None:
+    records = _records(topics)
     if not run.complete and records:           # a crash can cut the last record
         last = max(records)
         data, expected, seen = records[last]
@@ -179,36 +182,34 @@ def _decode(path: Path, topics: dict[str, _Topic], run: RunData) -> None:
             run.stopped_at = (f"{run.stopped_at}; dropped torn record of tick "
                               f"{data['tick']} ({seen}/{expected} parts)")
     rec_q = np.fromiter(sorted(records), np.int64, len(records))
-    rx, rx_q = topics[TOPIC_CAN_RX].decoded(path, TOPIC_CAN_RX)
-    tx, tx_q = topics[TOPIC_CAN_TX].decoded(path, TOPIC_CAN_TX)
-    events, ev_q = topics[TOPIC_EVENTS].decoded(path, TOPIC_EVENTS)
+    rx, tx, events = (topics[t] for t in (TOPIC_CAN_RX, TOPIC_CAN_TX, TOPIC_EVENTS))
     # index = rank in item order; a record before a frame or event of its number
-    every = np.concatenate((rec_q, rx_q, tx_q, ev_q))
+    every = np.concatenate((rec_q, rx.sequence(), tx.sequence(), events.sequence()))
     rank = np.concatenate((np.zeros(rec_q.size, np.int8), np.ones(every.size - rec_q.size,
                                                                   np.int8)))
     index = np.empty(every.size, np.int64)
     index[np.lexsort((rank, every))] = np.arange(every.size)
-    at = np.cumsum([0, rec_q.size, len(rx), len(tx)]).tolist()
+    at = np.cumsum([0, rec_q.size, len(rx.msgs), len(tx.msgs)]).tolist()
     idx = index.tolist()
     tick_records = []
     for i, q in zip(idx[:at[1]], rec_q.tolist(), strict=True):
         data = records[q][0]
         tick_records.append(TickRecord(i, data.pop("t_ns"), data["tick"], data))
     run.records = tick_records
-    frames = [_frame(i, m, True) for i, m in zip(idx[at[1]:at[2]], rx, strict=True)]
-    frames += [_frame(i, m, False) for i, m in zip(idx[at[2]:at[3]], tx, strict=True)]
+    frames = [_frame(i, m, True) for i, m in zip(idx[at[1]:at[2]], rx.msgs, strict=True)]
+    frames += [_frame(i, m, False) for i, m in zip(idx[at[2]:at[3]], tx.msgs, strict=True)]
     frames.sort(key=lambda f: f.index)
     run.frames = frames
     run.events = [EventRecord(i, m["t_ns"], m["tick"], m["kind"], m["detail"])
-                  for i, m in zip(idx[at[3]:], events, strict=True)]
+                  for i, m in zip(idx[at[3]:], events.msgs, strict=True)]
 
 
-def _records(path: Path, topics: dict[str, _Topic]) -> dict[int, list[Any]]:
+def _records(topics: dict[str, _Topic]) -> dict[int, list[Any]]:
     """Tick records by item number: [merged data, messages expected, messages read]."""
     records: dict[int, list[Any]] = {}
     for topic in _RECORD_TOPICS:
-        msgs, seqs = topics[topic].decoded(path, topic)
-        for q, msg in zip(seqs.tolist(), msgs, strict=True):
+        part = topics[topic]
+        for q, msg in zip(part.sequence().tolist(), part.msgs, strict=True):
             rec = records.get(q)
             if rec is None:
                 records[q] = [msg, int(msg.pop(PARTS_KEY, 1)), 1]

@@ -389,6 +389,8 @@ class _Segment:
         if pending is not None:   # complete chunk, its indexes possibly cut: walk it
             try:
                 self._chunk(pending, None)
+            except RecordingError:
+                raise                 # a malformed payload (after_chunk, a handler)
             except Exception as exc:
                 self._stop(f"corrupt chunk before byte {off} ({type(exc).__name__}: {exc})")
 
@@ -458,15 +460,16 @@ def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
     ``after_chunk()`` after each chunk.
 
     Raises :class:`RecordingError` (not an MCAP -- decided on the first 8 bytes --,
-    foreign, another format version -- refused at its metadata record, before any
-    data is handed out --, missing channels, nothing readable (these two only
-    if ``replayable``, see :func:`check_is_recording`), a later segment of a run given instead of its
-    first) and ``FileNotFoundError``.  A truncated or corrupt
-    tail, a damaged summary or closing magic ends the scan after the last complete
-    chunk (``complete`` False, ``stopped_at`` says where).  With ``follow_segments``
-    the next segment is the one the segment's end record names, and it is read only if
-    it belongs to the run (:class:`rig.recording.segments.SegmentChain`); a missing or
-    foreign segment ends the scan, ``stopped_at`` naming what is missing."""
+    foreign, another format version -- refused at its metadata record, before any data
+    is handed out --, missing channels and nothing readable -- these two only if
+    ``replayable``, see :func:`check_is_recording` --, a later segment of a run given
+    instead of its first, a payload a handler or ``after_chunk`` cannot decode) and
+    ``FileNotFoundError``.  A truncated or corrupt tail, a damaged summary or closing
+    magic ends the scan after the last complete chunk (``complete`` False,
+    ``stopped_at`` says where).  With ``follow_segments`` the next segment is the one
+    the segment's end record names, and it is read only if it belongs to the run
+    (:class:`rig.recording.segments.SegmentChain`); a missing or foreign segment ends the
+    scan, ``stopped_at`` naming what is missing."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such recording")

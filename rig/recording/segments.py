@@ -1,5 +1,5 @@
-"""Segment sets and file integrity of recordings, shared by the readers
-(:func:`rig.recording.recorder.read_run`, :func:`rig.replay.scan_recording`).
+"""Segment sets and file integrity of recordings, for the one MCAP reader
+(:func:`rig.recording.scan.scan_recording`, and so ``read_run``, replay and report).
 
 A run is written as ``run.mcap``, ``run.001.mcap``, ... (``[recording] rotate_*``).  Each
 segment opens with a ``rig`` metadata record that names its run and place
@@ -308,7 +308,7 @@ def tail_problem(read: Callable[[int, int], bytes], size: int,
 
 
 class ReadOutcome(Protocol):
-    """What a reader of a run reports besides the data (both MCAP readers' results)."""
+    """What a reader of a run reports besides the data (the scanner's result)."""
 
     complete: bool
     stopped_at: str | None
