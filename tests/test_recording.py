@@ -413,23 +413,44 @@ def test_another_format_version_is_refused_before_anything_is_read(
     assert len(err) == 2 and all(line.endswith(msg) for line in err)
 
 
-def test_a_payload_that_is_not_the_formats_json_is_refused(tmp_path: Path) -> None:
-    """Not a torn tail (the chunk passed its CRC): a message that is not one JSON
-    object is refused in one line naming the channel, not read as an empty run."""
+def hand_made(path: Path, meta: dict[str, str], payloads: list[bytes]) -> Path:
+    """A one-channel (/can/rx) file with the writer's header and a 'rig' record."""
     from mcap.writer import Writer
 
-    path = tmp_path / "bad-json.mcap"
     with path.open("wb") as f:
         w = Writer(f)
         w.start(profile="", library=f"rig-recorder/{RECORDING_FORMAT_VERSION}")
-        w.add_metadata("rig", {"format_version": str(RECORDING_FORMAT_VERSION)})
+        w.add_metadata("rig", {"format_version": str(RECORDING_FORMAT_VERSION), **meta})
         sid = w.register_schema("rig.CanFrame", "jsonschema", b"{}")
         ch = w.register_channel("/can/rx", "json", sid)
-        w.add_message(ch, 1, b'{"tick":0,"t_ns":0,"id":1,"data":"","dlc":0}', 1, sequence=0)
-        w.add_message(ch, 2, b'{"tick":1,"t_ns":1,"id":1,"data":"", "dlc"', 2, sequence=1)
+        for k, payload in enumerate(payloads):
+            w.add_message(ch, k, payload, k, sequence=k)
         w.finish()
+    return path
+
+
+_IDENTITY = {"run_id": "ab" * 16, "segment": "0", "sequence_start": "0"}
+_FRAME = b'{"tick":0,"t_ns":0,"id":1,"data":"","dlc":0}'
+
+
+def test_a_payload_that_is_not_the_formats_json_is_refused(tmp_path: Path) -> None:
+    """Not a torn tail (the chunk passed its CRC): a message that is not one JSON
+    object is refused in one line naming the channel, not read as an empty run."""
+    path = hand_made(tmp_path / "bad-json.mcap", _IDENTITY,
+                     [_FRAME, b'{"tick":1,"t_ns":1,"id":1,"data":"", "dlc"'])
     with pytest.raises(RecordingError, match=rf"^{re.escape(str(path))}: malformed /can/rx "
                                              r"payload \(JSONDecodeError: "):
+        read_run(path)
+    assert [f.tick for f in read_run(hand_made(tmp_path / "good.mcap", _IDENTITY,
+                                               [_FRAME])).frames] == [0]
+
+
+def test_a_recording_without_segment_identity_is_refused(tmp_path: Path) -> None:
+    """Every recording of this format version names its run and segment; a file whose
+    'rig' record does not is not read as a run of one segment."""
+    path = hand_made(tmp_path / "anon.mcap", {}, [_FRAME])
+    with pytest.raises(RecordingError, match=r"'rig' metadata record has no segment "
+                                             r"identity \(run_id, segment, sequence_start\)"):
         read_run(path)
 
 

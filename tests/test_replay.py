@@ -100,7 +100,7 @@ def plain_recording(work: Path, design_blob: bytes) -> Path:
 
 def test_replay_reproduces_the_recorded_frames_bit_for_bit(recording: Path) -> None:
     res = replay_recording(recording)
-    run = read_run(recording)                     # helper F's reader as the reference
+    run = read_run(recording)     # checked against the mcap library's reader (below)
     tx = [(f.tick, f.arbitration_id, f.data) for f in run.frames if not f.is_rx]
     assert res.same_controller and res.bit_exact, res.summary()
     assert res.tx_frames_recorded == len(tx) == res.tx_frames_compared
@@ -578,8 +578,10 @@ def _fault_events(path: Path) -> list[tuple[int, str]]:
 
 
 def test_bus_trouble_is_recorded(flaky_recording: Path) -> None:
-    """The recording holds what replay needs (lead's reader as the reference)."""
+    """The recording holds what replay needs (read_run, checked here against the mcap
+    library's reader)."""
     run = read_run(flaky_recording)
+    assert items_of_run(run) == reference_items([flaky_recording])
     flagged = [(f.tick, f.arbitration_id, f.is_error_frame, f.is_extended_id)
                for f in run.frames if f.is_rx and (f.is_error_frame or f.is_extended_id)]
     assert flagged == [(EXT_TICK, 0x002, True, False),
@@ -946,7 +948,7 @@ def test_a_damaged_file_end_is_noticed_and_the_chunks_still_read(
     assert run.tx == full.tx and run.rx == full.rx and run.events == full.events
     res = replay_recording(p, run=run)
     assert res.bit_exact and res.ticks == full.tick.size and not res.complete
-    ref = read_run(p)                                      # the reference reader agrees
+    ref = read_run(p)                                      # the Python API agrees
     assert not ref.complete and expected in str(ref.stopped_at)
     assert len(ref.records) == full.tick.size
 

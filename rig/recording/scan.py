@@ -416,8 +416,9 @@ class _Segment:
 
 def check_is_recording(res: ScanResult, path: Path, *, replayable: bool = True) -> None:
     """RecordingError unless ``res`` (the scan of ``path`` so far) is a recording of
-    this software's format version, ``replayable``: with something to replay, on the
-    channels of :data:`REQUIRED_TOPICS`.  Not ``replayable`` (:func:`read_run
+    this software's format version, with its segment identity
+    (:class:`rig.recording.segments.SegmentHead`), ``replayable``: with something to
+    replay, on the channels of :data:`REQUIRED_TOPICS`.  Not ``replayable`` (:func:`read_run
     <rig.recording.run_data.read_run>`): a file cut anywhere is a prefix of a run, and
     a run without frames or events has no such channels."""
     meta = res.rig_metadata
@@ -448,6 +449,10 @@ def check_is_recording(res: ScanResult, path: Path, *, replayable: bool = True) 
              != MESSAGE_ENCODING]
     if wrong:
         raise RecordingError(f"{path}: channels {wrong} are not '{MESSAGE_ENCODING}' encoded")
+    if meta and SegmentHead.parse(meta) is None:
+        raise RecordingError(f"{path}: its '{METADATA_NAME}' metadata record has no segment "
+                             "identity (run_id, segment, sequence_start), which every "
+                             f"recording of format version {RECORDING_FORMAT_VERSION} has")
 
 
 def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,

@@ -139,8 +139,8 @@ class SegmentChain:
     def check_first(self, head: SegmentHead | None) -> str:
         """'' when the first file read is segment 0 of a run, else why not (the file
         is a later segment: the run must be read from its first)."""
-        if head is None:
-            return ""                  # a recording without segments (checked elsewhere)
+        if head is None:               # refused by rig.recording.scan.check_is_recording
+            return ""
         if head.index != 0:
             start = base_of_segment(self.first)       # by name, else as recorded
             if not start.exists() and head.first_segment:
