@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -352,6 +353,27 @@ def test_read_run_equals_the_mcap_library_reader(tmp_path: Path) -> None:
     assert sorted(ref[-2][3]["nonfinite"]) == ["force_ref_n", "q"]
     # the index is the rank in recording order
     assert [r.index for r in run.timeline()] == list(range(len(ref)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(start=st.one_of(st.integers((1 << 32) - 600, 1 << 32),        # across the wrap
+                      st.integers((2 << 32) - 600, 2 << 32), st.integers(0, 3 << 32)),
+       steps=st.lists(st.integers(0, 3), min_size=1,
+                                                     max_size=300),
+       cuts=st.lists(st.integers(0, 300), max_size=8))
+def test_item_numbers_continue_across_the_u32_sequence_wrap(start: int, steps: list[int],
+                                                           cuts: list[int]) -> None:
+    """MCAP sequence numbers are u32 (the writer's item counter mod 2**32): read_run's
+    item numbers keep counting across the wrap, batch after batch."""
+    from rig.recording.run_data import _Sequences
+
+    true = start + np.cumsum(np.array(steps, dtype=np.int64))
+    seqs = (true % (1 << 32)).astype(np.uint32)
+    bounds = [0, *sorted(c for c in cuts if c < true.size), true.size]
+    unwrap = _Sequences().unwrap
+    got = np.concatenate([unwrap(seqs[a:b]) for a, b in itertools.pairwise(bounds)])
+    np.testing.assert_array_equal(got - got[0], true - true[0])
+    assert got[0] == true[0] % (1 << 32)
 
 
 def test_a_torn_record_is_dropped_whole(tmp_path: Path) -> None:
