@@ -153,9 +153,12 @@ class McapReplayBus(_ReplayBus):
 
     def _message(self, i: int) -> can.Message:
         _, t_ns, fid, data, flags = self._frames[i]
+        if flags:
+            error, extended = bool(flags & ERROR_FRAME), bool(flags & EXTENDED_ID)
+        else:   # a standard data frame (the common case: no test per flag)
+            error = extended = False
         return can.Message(timestamp=t_ns * 1e-9, arbitration_id=fid, data=data,
-                           is_extended_id=bool(flags & EXTENDED_ID),
-                           is_error_frame=bool(flags & ERROR_FRAME), dlc=len(data),
+                           is_extended_id=extended, is_error_frame=error, dlc=len(data),
                            is_rx=True, channel=self.channel_info)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
