@@ -81,7 +81,7 @@ REFUSALS: dict[str, tuple[str, str, int]] = {
     "hil.sim.roads.RoadError": ("", "", 2),
     "hil.rig_process.RigProcessError": ("emulated rig: ", "", 2),
     "rig.recording.recorder.RecorderStartError": ("", "", 2),
-    "rig.replay.scan.RecordingError": ("", "", 2),
+    "rig.recording.scan.RecordingError": ("", "", 2),
     "hil.batch.ClusterError": ("", "", 2),
     "hil.tune.TuneError": ("", "", 2),
 }

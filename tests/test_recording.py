@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -25,6 +26,7 @@ from mcap.reader import make_reader
 
 from controller.config import RecordingConfig, config_hash, config_to_toml, default_config
 from rig.recording.recorder import CanFrameRecord, EventRecord, RunRecorder, read_run, segment_paths
+from rig.recording.scan import RecordingError, scan_recording
 from rig.recording.schema import (
     RECORDING_FORMAT_VERSION,
     SIGNAL_KEYS,
@@ -34,6 +36,7 @@ from rig.recording.schema import (
     TOPIC_TF,
     TOPICS,
 )
+from tests.support.mcap_reference import items_of_run, reference_items
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)
@@ -320,6 +323,157 @@ def test_segments_carry_run_identity_and_read_run_checks_it(tmp_path: Path) -> N
     with pytest.raises(ValueError, match=f"this is segment 3 of run {run_id}; a run is read "
                                          f"from its first segment: start from {path}"):
         read_run(segs[3])
+
+
+# ----------------------------------------------------------------------- the reference
+
+
+def test_read_run_equals_the_mcap_library_reader(tmp_path: Path) -> None:
+    """read_run (on the production scanner) against an independent reader (the mcap
+    library's indexed reader + json + the channels' JSON schemas), over a rotated run
+    with every kind of item: frames (error and extended ones too), tick records of
+    three messages, non-finite values, events."""
+    path = tmp_path / "ref.mcap"
+    with recorder(path, rotate_bytes=16 * 1024, chunk_bytes=4096) as rec:
+        write_mixed(rec, 300)
+        rec.can_frame(1, 300, 0x1ABCDEF, b"\x05\x06", True, extended_id=True)
+        rec.can_frame(2, 300, 0, b"", True, error_frame=True)
+        rec.tick(3, {**tick_record(300), "force_ref_n": float("nan"),
+                     "q": np.array([np.inf, 1.0, 2.0])})
+        rec.event(4, 300, "fault", {"fault": "STALE_SENSOR", "to": "FAULT"})
+    segs = segment_paths(path)
+    assert len(segs) >= 3
+    ref = reference_items(segs)
+    run = read_run(path)
+    assert run.complete and items_of_run(run) == ref
+    assert len(ref) == rec.written
+    kinds = {item[0] for item in ref}
+    assert kinds == {"frame", "record", "event"}
+    assert ref[-3][6] and ref[-4][7]               # the error and the extended frame
+    assert sorted(ref[-2][3]["nonfinite"]) == ["force_ref_n", "q"]
+    # the index is the rank in recording order
+    assert [r.index for r in run.timeline()] == list(range(len(ref)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(start=st.one_of(st.integers((1 << 32) - 600, 1 << 32),        # across the wrap
+                      st.integers((2 << 32) - 600, 2 << 32), st.integers(0, 3 << 32)),
+       steps=st.lists(st.integers(0, 3), min_size=1,
+                                                     max_size=300),
+       cuts=st.lists(st.integers(0, 300), max_size=8))
+def test_item_numbers_continue_across_the_u32_sequence_wrap(start: int, steps: list[int],
+                                                           cuts: list[int]) -> None:
+    """MCAP sequence numbers are u32 (the writer's item counter mod 2**32): read_run's
+    item numbers keep counting across the wrap, batch after batch."""
+    from rig.recording.run_data import _Sequences
+
+    true = start + np.cumsum(np.array(steps, dtype=np.int64))
+    seqs = (true % (1 << 32)).astype(np.uint32)
+    bounds = [0, *sorted(c for c in cuts if c < true.size), true.size]
+    unwrap = _Sequences().unwrap
+    got = np.concatenate([unwrap(seqs[a:b]) for a, b in itertools.pairwise(bounds)])
+    np.testing.assert_array_equal(got - got[0], true - true[0])
+    assert got[0] == true[0] % (1 << 32)
+
+
+def test_a_torn_record_is_dropped_whole(tmp_path: Path) -> None:
+    """A file cut between two chunks may end inside a tick record (one or two of its
+    three messages in one chunk, the rest in the next): that record is dropped whole
+    and stopped_at says so; every record read is whole."""
+    path = tmp_path / "torn.mcap"
+    with recorder(path, chunk_bytes=700, compression="none") as rec:
+        expected = write_mixed(rec, 40)
+    want = {v[1]: v[2] for kind, v in expected if kind == "record"}
+    blob = path.read_bytes()
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    torn = 0
+    for ci in summary.chunk_indexes:
+        cut = ci.chunk_start_offset + ci.chunk_length + ci.message_index_length
+        p = tmp_path / f"cut{cut}.mcap"
+        p.write_bytes(blob[:cut])
+        run = read_run(p)
+        assert not run.complete and run.stopped_at is not None
+        assert all(r.data == {k: v for k, v in want[r.tick].items() if k != "t_ns"}
+                   for r in run.records), cut
+        m = re.search(r"; dropped torn record of tick (\d+) \([12]/3 parts\)$", run.stopped_at)
+        if m:
+            torn += 1
+            assert int(m.group(1)) == run.records[-1].tick + 1
+    assert torn >= 3
+
+
+def test_another_format_version_is_refused_before_anything_is_read(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording of another format version is refused in one line naming both
+    versions -- by read_run, the scanner (no handler is ever called), replay and report."""
+    from rig.cli import main as rig_main
+
+    path = tmp_path / "v2.mcap"
+    with RunRecorder(path, rcfg(), config_toml=TOML, design_bytes=None,
+                     metadata={"format_version": "2"}, poll_s=0.001) as rec:
+        write_mixed(rec, 20)
+    with open(path, "rb") as f:
+        (meta,) = [m for m in make_reader(f).iter_metadata() if m.name == "rig"]
+    assert meta.metadata["format_version"] == "2"
+    msg = f"{path}: recording format version 2, this software reads version 3 only"
+    with pytest.raises(RecordingError) as exc:
+        read_run(path)
+    assert str(exc.value) == msg
+
+    def never(joined: bytes, seqs: Any) -> None:
+        raise AssertionError("a handler was called before the version was checked")
+
+    with pytest.raises(RecordingError, match=re.escape(msg)):
+        scan_recording(path, {t: never for t in TOPICS})
+    with pytest.raises(RecordingError, match=re.escape(msg)):
+        read_run(path, follow_segments=False)
+    assert rig_main(["replay", str(path)]) == 2
+    assert rig_main(["report", str(path), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.endswith(msg) for line in err)
+
+
+def hand_made(path: Path, meta: dict[str, str], payloads: list[bytes]) -> Path:
+    """A one-channel (/can/rx) file with the writer's header and a 'rig' record."""
+    from mcap.writer import Writer
+
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start(profile="", library=f"rig-recorder/{RECORDING_FORMAT_VERSION}")
+        w.add_metadata("rig", {"format_version": str(RECORDING_FORMAT_VERSION), **meta})
+        sid = w.register_schema("rig.CanFrame", "jsonschema", b"{}")
+        ch = w.register_channel("/can/rx", "json", sid)
+        for k, payload in enumerate(payloads):
+            w.add_message(ch, k, payload, k, sequence=k)
+        w.finish()
+    return path
+
+
+_IDENTITY = {"run_id": "ab" * 16, "segment": "0", "sequence_start": "0"}
+_FRAME = b'{"tick":0,"t_ns":0,"id":1,"data":"","dlc":0}'
+
+
+def test_a_payload_that_is_not_the_formats_json_is_refused(tmp_path: Path) -> None:
+    """Not a torn tail (the chunk passed its CRC): a message that is not one JSON
+    object is refused in one line naming the channel, not read as an empty run."""
+    path = hand_made(tmp_path / "bad-json.mcap", _IDENTITY,
+                     [_FRAME, b'{"tick":1,"t_ns":1,"id":1,"data":"", "dlc"'])
+    with pytest.raises(RecordingError, match=rf"^{re.escape(str(path))}: malformed /can/rx "
+                                             r"payload \(JSONDecodeError: "):
+        read_run(path)
+    assert [f.tick for f in read_run(hand_made(tmp_path / "good.mcap", _IDENTITY,
+                                               [_FRAME])).frames] == [0]
+
+
+def test_a_recording_without_segment_identity_is_refused(tmp_path: Path) -> None:
+    """Every recording of this format version names its run and segment; a file whose
+    'rig' record does not is not read as a run of one segment."""
+    path = hand_made(tmp_path / "anon.mcap", {}, [_FRAME])
+    with pytest.raises(RecordingError, match=r"'rig' metadata record has no segment "
+                                             r"identity \(run_id, segment, sequence_start\)"):
+        read_run(path)
 
 
 # ----------------------------------------------------------------------- SIGKILL

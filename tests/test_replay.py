@@ -58,6 +58,7 @@ from rig.wire.protocol import (
     SensorData,
     ValveCommand,
 )
+from tests.support.mcap_reference import items_of_run, reference_items
 
 pytestmark = pytest.mark.timeout(300)
 CFG = default_config()
@@ -99,7 +100,7 @@ def plain_recording(work: Path, design_blob: bytes) -> Path:
 
 def test_replay_reproduces_the_recorded_frames_bit_for_bit(recording: Path) -> None:
     res = replay_recording(recording)
-    run = read_run(recording)                     # helper F's reader as the reference
+    run = read_run(recording)     # checked against the mcap library's reader (below)
     tx = [(f.tick, f.arbitration_id, f.data) for f in run.frames if not f.is_rx]
     assert res.same_controller and res.bit_exact, res.summary()
     assert res.tx_frames_recorded == len(tx) == res.tx_frames_compared
@@ -274,6 +275,21 @@ def test_log_bus_filters_and_rejects_unknown_formats(work: Path) -> None:
 # ---------------------------------------------------------------------------- bad files
 
 
+def test_the_recording_reads_the_same_with_the_mcap_library(recording: Path) -> None:
+    """The one production reader (read_run on the scanner replay uses) against an
+    independent one (the mcap library + json + the channels' schemas) over a run of the
+    real loop: packed tick records with the bank's internals, commands, a fault."""
+    run = read_run(recording)
+    ref = reference_items([recording])
+    assert run.complete and items_of_run(run) == ref
+    assert sum(1 for item in ref if item[0] == "record") > 1000
+    assert {item[3] for item in ref if item[0] == "event"} >= {"command", "lifecycle"}
+    replayed = load_recorded_run(recording)        # and what replay decodes of it
+    np.testing.assert_array_equal(replayed.tick, [r.tick for r in run.records])
+    assert replayed.tx == [(f.tick, f.arbitration_id, f.data, 0)
+                           for f in run.frames if not f.is_rx]
+
+
 def test_truncated_recording_replays_to_its_last_complete_chunk(recording: Path,
                                                                  work: Path) -> None:
     full = load_recorded_run(recording)
@@ -390,7 +406,7 @@ def test_config_replace_keeps_other_sections() -> None:
 def test_indexed_gather_and_piecewise_decoding_equal_the_record_walk(recording: Path,
                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """The MessageIndex fast path hands out exactly what walking every record does."""
-    from rig.replay import scan as scan_mod
+    from rig.recording import scan as scan_mod
     from rig.replay.recorded import RunDecoder, assemble_run
 
     fast = load_recorded_run(recording)
@@ -562,8 +578,10 @@ def _fault_events(path: Path) -> list[tuple[int, str]]:
 
 
 def test_bus_trouble_is_recorded(flaky_recording: Path) -> None:
-    """The recording holds what replay needs (lead's reader as the reference)."""
+    """The recording holds what replay needs (read_run, checked here against the mcap
+    library's reader)."""
     run = read_run(flaky_recording)
+    assert items_of_run(run) == reference_items([flaky_recording])
     flagged = [(f.tick, f.arbitration_id, f.is_error_frame, f.is_extended_id)
                for f in run.frames if f.is_rx and (f.is_error_frame or f.is_extended_id)]
     assert flagged == [(EXT_TICK, 0x002, True, False),
@@ -667,19 +685,21 @@ def test_a_recorded_bus_exception_is_rebuilt_alike(exc: Exception) -> None:
 
 
 def test_replay_bus_frame_flags() -> None:
-    """Flags become the Message's; a flagless frame with an ID above 0x7FF is an
-    extended one (recordings made before the flags were recorded)."""
+    """The recorded flags become the Message's, and only they: a frame recorded without
+    flags is a standard data frame (no guessing from the ID: the recording format
+    records every extended frame as such)."""
     from rig.replay import ERROR_FRAME, EXTENDED_ID
 
     bus = McapReplayBus([(0, 1, 0x80, bytes(8), ERROR_FRAME),
                          (0, 2, 0x100, bytes(8), EXTENDED_ID),
                          (0, 3, 0x100, bytes(8), 0),
-                         (0, 4, 0x18FF00, bytes(8), 0)])
+                         (0, 4, 0x18FF00, bytes(8), EXTENDED_ID),
+                         (0, 5, 0x7FF, bytes(8), 0)])
     bus.advance(0)
     got = [(m.arbitration_id, m.is_error_frame, m.is_extended_id)
            for m in iter(lambda: bus.recv(0), None)]
     assert got == [(0x80, True, False), (0x100, False, True), (0x100, False, False),
-                   (0x18FF00, False, True)]
+                   (0x18FF00, False, True), (0x7FF, False, False)]
     bus.shutdown()
 
 
@@ -928,7 +948,7 @@ def test_a_damaged_file_end_is_noticed_and_the_chunks_still_read(
     assert run.tx == full.tx and run.rx == full.rx and run.events == full.events
     res = replay_recording(p, run=run)
     assert res.bit_exact and res.ticks == full.tick.size and not res.complete
-    ref = read_run(p)                                      # the reference reader agrees
+    ref = read_run(p)                                      # the Python API agrees
     assert not ref.complete and expected in str(ref.stopped_at)
     assert len(ref.records) == full.tick.size
 

@@ -48,6 +48,7 @@ from rig.report.plots import (
 )
 from rig.wire.protocol import VALVE_COMMAND_ID, FaultCode
 from tests.support.browser import chromium, chromium_run
+from tests.support.mcap_reference import items_of_run, reference_items
 
 pytestmark = pytest.mark.timeout(300)
 CFG = default_config()
@@ -158,7 +159,7 @@ def test_long_series_envelope_keeps_every_extreme() -> None:
 
 def test_phases_follow_the_valve_and_the_lifecycle(recording: Path) -> None:
     s = load_series(recording)
-    run = read_run(recording)                       # the recorder's own reader
+    run = read_run(recording)            # checked against the mcap library's reader below
     enable = np.array([bool(r.data["valve_enable"]) for r in run.records])
     fault = np.array([r.data["lifecycle"] == "FAULT" for r in run.records])
     assert np.array_equal(s.phase == Phase.ACTIVE, enable)
@@ -201,7 +202,10 @@ def test_applied_force_reference_is_what_the_valve_command_carried(recording: Pa
 def test_metrics_against_independent_computations(recording: Path) -> None:
     s = load_series(recording)
     m = run_metrics(s)
-    run = read_run(recording)                      # the recorder's own reader
+    run = read_run(recording)
+    # read_run and the report share the scanner: the mcap library's reader is the
+    # independent reference for what the file holds
+    assert items_of_run(run) == reference_items([recording], validate=False)
     rs = np.array([r.data["rattlespace_m"] for r in run.records])
     acc = np.array([r.data["sprung_accel_mps2"] for r in run.records])
     active = np.array([bool(r.data["valve_enable"]) for r in run.records])

@@ -17,8 +17,9 @@ every item in :attr:`RunRecorder.dropped`; events of a dropped batch are kept ba
 (up to 1024) and sent with the next batch, so a fault record survives a frame flood.
 ``blocking=True`` (offline replay) waits instead of dropping.
 
-Format, channels and the tick-record keys: ``docs/recording.md``.  :func:`read_run`
-reads a run back (tolerating a missing footer / truncated tail) for replay and report.
+Format, channels and the tick-record keys: ``docs/recording.md``.  Reading a run back:
+:func:`read_run` (:mod:`rig.recording.run_data`, re-exported here), on top of the one
+MCAP reader :mod:`rig.recording.scan`.
 """
 
 from __future__ import annotations
@@ -36,20 +37,16 @@ import threading
 import time
 import tomllib
 import uuid
-from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata
-from mcap.stream_reader import StreamReader
 
 from controller.config import RecordingConfig
 from rig.output_paths import new_recording_problem, recording_file
-from rig.recording import schema
 from rig.recording.codec import (
     FRAME_ERROR,
     FRAME_EXTENDED,
@@ -67,20 +64,14 @@ from rig.recording.codec import (
     encode_layout,
     encode_pickled_tick,
 )
-from rig.recording.schema import PARTS_KEY, RECORDING_FORMAT_VERSION
-from rig.recording.segments import (
-    SEGMENT_END_NAME,
-    SegmentChain,
-    SegmentHead,
-    next_segment,
-    segment_path,
-    tail_problem,
-)
-from rig.recording.writer import (
+from rig.recording.run_data import CanFrameRecord, EventRecord, RunData, TickRecord, read_run
+from rig.recording.schema import (
     CONFIG_ATTACHMENT,
     DESIGN_ATTACHMENT,
     METADATA_NAME,
+    RECORDING_FORMAT_VERSION,
 )
+from rig.recording.segments import segment_path
 from rig.strict_json import json_lines
 
 __all__ = [
@@ -98,7 +89,6 @@ __all__ = [
     "segment_paths",
 ]
 
-_RECORD_TOPICS = (schema.TOPIC_SIGNALS, schema.TOPIC_INTERNALS, schema.TOPIC_TIMING)
 _EVENT_RETRY = 1024        # events of dropped batches kept back for the next batch
 _KEPT_BACK = frozenset({ITEM_EVENT, ITEM_LAYOUT})
 _BATCH_BYTES = 1 << 16     # batch buffer; a fuller one is flushed before the next item
@@ -527,210 +517,3 @@ class RunRecorder:
         for k, v in user.items():
             meta[str(k)] = v if isinstance(v, str) else json.dumps(v, default=str)
         return meta
-
-
-# ---------------------------------------------------------------------------- reading
-
-
-@dataclass(frozen=True)
-class CanFrameRecord:
-    index: int            # position in the run (file order across segments)
-    t_ns: int
-    tick: int
-    arbitration_id: int
-    data: bytes
-    is_rx: bool
-    is_error_frame: bool = False
-    is_extended_id: bool = False
-
-
-@dataclass(frozen=True)
-class TickRecord:
-    index: int
-    t_ns: int
-    tick: int
-    data: dict[str, Any]  # the record as handed to RunRecorder.tick (JSON round trip)
-
-
-@dataclass(frozen=True)
-class EventRecord:
-    index: int
-    t_ns: int
-    tick: int
-    kind: str
-    detail: Any
-
-
-@dataclass
-class RunData:
-    frames: list[CanFrameRecord] = field(default_factory=list)
-    records: list[TickRecord] = field(default_factory=list)
-    events: list[EventRecord] = field(default_factory=list)
-    metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # first segment
-    attachments: dict[str, bytes] = field(default_factory=dict)        # first segment
-    segments: list[Path] = field(default_factory=list)
-    complete: bool = True          # every segment present, intact, with its footer
-    stopped_at: str | None = None  # where and why reading stopped early
-    notes: list[str] = field(default_factory=list)  # e.g. a stale file after the run
-
-    def timeline(self) -> Iterator[CanFrameRecord | TickRecord | EventRecord]:
-        """Frames, records and events merged in recording order."""
-        items: list[CanFrameRecord | TickRecord | EventRecord] = [
-            *self.frames, *self.records, *self.events]
-        return iter(sorted(items, key=lambda r: r.index))
-
-
-def read_run(path: str | Path, *, follow_segments: bool = True) -> RunData:
-    """Read a recording (and its rotation successors).  A truncated file (no footer,
-    partial chunk) yields everything up to the last complete chunk; ``complete`` is
-    False and ``stopped_at`` says where and why reading stopped.
-
-    With ``follow_segments`` the run is read from its first segment on, segment by
-    segment as each one's end record names the next, and a segment is used only when it
-    belongs (same run id, next index, sequence numbers continuing,
-    :mod:`rig.recording.segments`).  Reading stops at the first incomplete, damaged,
-    missing or foreign segment, and ``stopped_at`` says which and what is missing.
-    ``ValueError`` when ``path`` is a later segment of its run (read from the first)."""
-    path = Path(path)
-    run = RunData()
-    chain = SegmentChain(path) if follow_segments else None
-    index = 0
-    p: Path | None = path
-    while p is not None:
-        run.segments.append(p)
-        seg = _read_segment(p, run, index, chain=chain, first=len(run.segments) == 1)
-        index = seg.index
-        if seg.refused:
-            run.segments.pop()
-        p = next_segment(chain, p, seg.ok, seg.end, run)
-    _strip_t_ns(run)
-    return run
-
-
-@dataclass
-class _Segment:
-    index: int                             # run-wide index after this segment
-    ok: bool = False                       # read whole, intact, identity accepted
-    refused: bool = False                  # not the run's next segment: nothing used
-    end: dict[str, str] | None = None      # its rig_segment_end metadata
-
-
-def _read_segment(path: Path, run: RunData, index: int, *, chain: SegmentChain | None,
-                  first: bool) -> _Segment:
-    topics: dict[int, str] = {}
-    last_rec: tuple[int, dict[str, Any]] | None = None  # (sequence, merged record data)
-    parts = [0, 0]  # of the last record: messages expected, messages seen
-    n_msgs = 0
-    footer = False
-    data_end_at: int | None = None
-    accepted = chain is None or first     # a later segment: only after its identity
-    wrong_start = ""
-    seg = _Segment(index)
-
-    def stop(why: str) -> _Segment:
-        run.complete = False
-        run.stopped_at = why + _drop_torn_record(run, parts)
-        seg.index = index
-        return seg
-
-    with open(path, "rb") as f:
-        size = os.fstat(f.fileno()).st_size
-        try:
-            for rec in StreamReader(f, validate_crcs=True).records:
-                if isinstance(rec, Metadata):
-                    meta = dict(rec.metadata)
-                    if first:
-                        run.metadata[rec.name] = meta
-                    if rec.name == METADATA_NAME and chain is not None:
-                        head = SegmentHead.parse(meta)
-                        if first:
-                            problem = chain.check_first(head) if meta.get(
-                                "format_version") == str(RECORDING_FORMAT_VERSION) else ""
-                            if problem:
-                                wrong_start = problem
-                                break
-                        else:
-                            problem = chain.check_head(path, head)
-                            if problem:
-                                seg.refused = True
-                                return stop(problem)
-                            accepted = True
-                    elif rec.name == SEGMENT_END_NAME:
-                        seg.end = meta
-                    continue
-                if isinstance(rec, DataEnd):
-                    data_end_at = f.tell()
-                    continue
-                if isinstance(rec, Footer):
-                    footer = True
-                    continue
-                if not accepted and isinstance(rec, Channel | Message):
-                    assert chain is not None
-                    seg.refused = True
-                    return stop(chain.check_head(path, None))
-                if isinstance(rec, Channel):
-                    topics[rec.id] = rec.topic
-                elif isinstance(rec, Message):
-                    topic = topics.get(rec.channel_id, "")
-                    msg = json.loads(rec.data)
-                    n_msgs += 1
-                    if topic in _RECORD_TOPICS:
-                        if last_rec is not None and last_rec[0] == rec.sequence:
-                            bad = last_rec[1].get("nonfinite", []) + msg.get("nonfinite", [])
-                            last_rec[1].update(msg)
-                            if bad:
-                                last_rec[1]["nonfinite"] = bad
-                            parts[1] += 1
-                            continue
-                        last_rec = (rec.sequence, msg)
-                        parts[:] = [int(msg.pop(PARTS_KEY, 1)), 1]
-                        run.records.append(TickRecord(index, msg["t_ns"], msg["tick"], msg))
-                    elif topic in (schema.TOPIC_CAN_RX, schema.TOPIC_CAN_TX):
-                        last_rec = None
-                        run.frames.append(CanFrameRecord(
-                            index, msg["t_ns"], msg["tick"], msg["id"],
-                            bytes.fromhex(msg["data"]), topic == schema.TOPIC_CAN_RX,
-                            bool(msg.get("error_frame", False)),
-                            bool(msg.get("extended_id", False))))
-                    elif topic == schema.TOPIC_EVENTS:
-                        last_rec = None
-                        run.events.append(EventRecord(index, msg["t_ns"], msg["tick"],
-                                                      msg["kind"], msg["detail"]))
-                    else:
-                        continue
-                    index += 1
-                elif first and isinstance(rec, Attachment):
-                    run.attachments[rec.name] = bytes(rec.data)
-        except Exception as exc:  # truncated / corrupt tail: keep what was complete
-            if data_end_at is None:
-                return stop(f"{path}: {type(exc).__name__} {exc} after {n_msgs} messages "
-                            f"(offset {f.tell()} of {size} bytes)")
-        if wrong_start:
-            raise ValueError(wrong_start)
-        if data_end_at is None:
-            return stop(f"{path}: no footer after {n_msgs} messages")
-
-        def read(offset: int, n: int) -> bytes:
-            f.seek(offset)
-            return f.read(n)
-
-        tail = tail_problem(read, size, data_end_at)
-    if tail:
-        return stop(f"{path}: {tail}; every message before it was read")
-    if not footer:
-        return stop(f"{path}: no footer after {n_msgs} messages")
-    seg.index, seg.ok = index, True
-    return seg
-
-
-def _drop_torn_record(run: RunData, parts: list[int]) -> str:
-    """A crash can cut the last tick record between its messages: drop it whole."""
-    if run.records and parts[1] < parts[0]:
-        torn = run.records.pop()
-        return f"; dropped torn record of tick {torn.tick} ({parts[1]}/{parts[0]} parts)"
-    return ""
-
-
-def _strip_t_ns(run: RunData) -> None:
-    for r in run.records:
-        r.data.pop("t_ns", None)

@@ -27,9 +27,12 @@ from rig.recording.scene import FRAME_TRANSFORM_SCHEMA, SCENE_UPDATE_SCHEMA
 from rig.wire.fault_descriptions import FAULT_DESCRIPTIONS
 
 __all__ = [
+    "CONFIG_ATTACHMENT",
+    "DESIGN_ATTACHMENT",
     "EVENT_KINDS",
     "LOG_SCHEMA",
     "MESSAGE_ENCODING",
+    "METADATA_NAME",
     "PARTS_KEY",
     "RECORDING_FORMAT_VERSION",
     "SCHEMA_ENCODING",
@@ -60,6 +63,11 @@ __all__ = [
 #: identification excitation marked by ``excitation`` events
 RECORDING_FORMAT_VERSION: Final = 3
 SCHEMA_ENCODING: Final = "jsonschema"
+#: the metadata record that opens every segment (format version, run identity, settings)
+METADATA_NAME: Final = "rig"
+#: attachments of every segment: the configuration (TOML) and the design artifact (npz)
+CONFIG_ATTACHMENT: Final = "config.toml"
+DESIGN_ATTACHMENT: Final = "design.npz"
 MESSAGE_ENCODING: Final = "json"
 
 TOPIC_CAN_RX: Final = "/can/rx"

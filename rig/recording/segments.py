@@ -1,5 +1,5 @@
-"""Segment sets and file integrity of recordings, shared by the readers
-(:func:`rig.recording.recorder.read_run`, :func:`rig.replay.scan_recording`).
+"""Segment sets and file integrity of recordings, for the one MCAP reader
+(:func:`rig.recording.scan.scan_recording`, and so ``read_run``, replay and report).
 
 A run is written as ``run.mcap``, ``run.001.mcap``, ... (``[recording] rotate_*``).  Each
 segment opens with a ``rig`` metadata record that names its run and place
@@ -139,8 +139,8 @@ class SegmentChain:
     def check_first(self, head: SegmentHead | None) -> str:
         """'' when the first file read is segment 0 of a run, else why not (the file
         is a later segment: the run must be read from its first)."""
-        if head is None:
-            return ""                  # a recording without segments (checked elsewhere)
+        if head is None:               # refused by rig.recording.scan.check_is_recording
+            return ""
         if head.index != 0:
             start = base_of_segment(self.first)       # by name, else as recorded
             if not start.exists() and head.first_segment:
@@ -308,7 +308,7 @@ def tail_problem(read: Callable[[int, int], bytes], size: int,
 
 
 class ReadOutcome(Protocol):
-    """What a reader of a run reports besides the data (both MCAP readers' results)."""
+    """What a reader of a run reports besides the data (the scanner's result)."""
 
     complete: bool
     stopped_at: str | None

@@ -45,8 +45,11 @@ from rig.recording.codec import (
 )
 from rig.recording.scene import SCENE_PERIOD_NS, scene_json
 from rig.recording.schema import (
+    CONFIG_ATTACHMENT,
+    DESIGN_ATTACHMENT,
     EVENT_KINDS,
     MESSAGE_ENCODING,
+    METADATA_NAME,
     RECORDING_FORMAT_VERSION,
     SCHEMA_ENCODING,
     TOPICS,
@@ -57,11 +60,9 @@ from rig.recording.schema import (
 )
 from rig.recording.segments import SEGMENT_END_NAME, segment_path
 
-__all__ = ["McapRunSink", "main", "segment_path"]
+__all__ = ["CONFIG_ATTACHMENT", "DESIGN_ATTACHMENT", "METADATA_NAME", "McapRunSink", "main",
+           "segment_path"]
 
-CONFIG_ATTACHMENT = "config.toml"
-DESIGN_ATTACHMENT = "design.npz"
-METADATA_NAME = "rig"
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
 

@@ -3,9 +3,10 @@
 A replay is one more ``can.BusABC`` behind the project's one bus abstraction, feeding
 an unmodified :class:`rig.service.loop.ControlLoop` with a virtual clock.  Modules:
 
-* :mod:`rig.replay.scan` -- the MCAP scanner (also used by ``rig report``): batches of
-  JSON payloads per chunk and topic; clear errors for files that are not replayable;
-  truncated / corrupt tails read up to the last complete chunk;
+* :mod:`rig.recording.scan` (re-exported here) -- the one MCAP reader of recordings
+  (also used by ``rig report`` and ``read_run``): batches of JSON payloads per chunk
+  and topic; clear errors for files that are not replayable; truncated / corrupt tails
+  read up to the last complete chunk;
 * :mod:`rig.replay.recorded` -- decodes the batches into a :class:`RecordedRun` (tick
   times, lateness, outputs, frames with their flags, events, bus exceptions);
 * :mod:`rig.replay.bus_faults` -- recorded recv / send exceptions, raised again;
@@ -18,6 +19,7 @@ an unmodified :class:`rig.service.loop.ControlLoop` with a virtual clock.  Modul
 
 from __future__ import annotations
 
+from rig.recording.scan import RecordingError, ScanResult, scan_recording
 from rig.replay.bus_faults import BusFault
 from rig.replay.buses import LOG_SUFFIXES, MAX_LOG_SPAN_S, LogReplayBus, McapReplayBus
 from rig.replay.driver import replay_file, replay_log, replay_recording
@@ -32,7 +34,6 @@ from rig.replay.recorded import (
     split_json,
 )
 from rig.replay.result import OPEN_LOOP_NOTE, ReplayResult
-from rig.replay.scan import RecordingError, ScanResult, scan_recording
 
 __all__ = [
     "ERROR_FRAME",

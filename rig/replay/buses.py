@@ -19,9 +19,9 @@ from typing import Any, Final
 import can
 
 from rig.bus.core import receive_filters
+from rig.recording.scan import RecordingError
 from rig.replay.bus_faults import BusFault
 from rig.replay.recorded import ERROR_FRAME, EXTENDED_ID, RxFrame, TxFrame, load_recorded_run
-from rig.replay.scan import RecordingError
 
 __all__ = ["LOG_SUFFIXES", "MAX_LOG_SPAN_S", "LogReplayBus", "McapReplayBus"]
 
@@ -155,8 +155,8 @@ class McapReplayBus(_ReplayBus):
         _, t_ns, fid, data, flags = self._frames[i]
         if flags:
             error, extended = bool(flags & ERROR_FRAME), bool(flags & EXTENDED_ID)
-        else:   # a data frame; recordings made before the flags existed: by its ID
-            error, extended = False, fid > 0x7FF
+        else:   # a standard data frame (the common case: no test per flag)
+            error = extended = False
         return can.Message(timestamp=t_ns * 1e-9, arbitration_id=fid, data=data,
                            is_extended_id=extended, is_error_frame=error, dlc=len(data),
                            is_rx=True, channel=self.channel_info)

@@ -26,6 +26,7 @@ import numpy as np
 from controller.artifact import Design
 from controller.config import RigConfig, config_hash, config_to_toml, parse_config
 from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT, RunRecorder
+from rig.recording.scan import RecordingError
 from rig.replay.buses import LOG_SUFFIXES, LogReplayBus, McapReplayBus
 from rig.replay.reader import PIPELINE_MIN_BYTES, ReaderProcess, idle_cpu
 from rig.replay.recorded import (
@@ -45,7 +46,6 @@ from rig.replay.result import (
     max_abs_diff,
     series_comparison,
 )
-from rig.replay.scan import RecordingError
 from rig.service.assembly import LoopSettings, build_control_loop
 from rig.service.lifecycle import Transition
 from rig.service.loop import ControlLoop

@@ -13,8 +13,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Final
 
+from rig.recording.scan import RecordingError, ScanResult, check_is_recording, scan_recording
 from rig.replay.recorded import Piece, RunDecoder, malformed_payload
-from rig.replay.scan import RecordingError, ScanResult, check_is_recording, scan_recording
 
 __all__ = ["PIPELINE_MIN_BYTES", "ReaderProcess", "idle_cpu"]
 

@@ -1,4 +1,5 @@
-"""What replay needs of a recording, decoded from the scanner's batches.
+"""What replay needs of a recording, decoded from the batches of the recording scanner
+(:mod:`rig.recording.scan`).
 
 :func:`load_recorded_run` returns a :class:`RecordedRun`: per-tick times, recorded
 lateness / compute time and outputs (columns pulled out of the concatenated JSON with
@@ -27,9 +28,9 @@ from numpy.typing import NDArray
 from controller.artifact import Design, DesignMismatch, load_design
 from controller.config import RigConfig, parse_config
 from rig.recording import schema
-from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
+from rig.recording.scan import Handler, RecordingError, ScanResult, scan_recording, split_json
+from rig.recording.schema import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
 from rig.replay.bus_faults import BusFault, SendAttempts, bus_fault_of
-from rig.replay.scan import Handler, RecordingError, ScanResult, scan_recording
 
 __all__ = [
     "ERROR_FRAME",
@@ -50,8 +51,7 @@ __all__ = [
 ]
 
 #: frame flag bits of :data:`RxFrame` / :data:`TxFrame` (JSON keys ``error_frame`` /
-#: ``extended_id``, present only when true; recordings made before they existed have
-#: neither)
+#: ``extended_id``, present only when true)
 ERROR_FRAME: Final = 1
 EXTENDED_ID: Final = 2
 #: (tick, t_ns, arbitration id, data, flags) of a received frame
@@ -126,18 +126,6 @@ def _raw_columns(joined: bytes, n: int, keys: Sequence[str]) -> dict[str, NDArra
     decoded = split_json(joined)
     return {key: np.array([json.dumps(d.get(key)).encode() for d in decoded])
             for key in keys}
-
-
-def split_json(joined: bytes) -> list[dict[str, Any]]:
-    """Decode concatenated JSON objects (a batch of :data:`Handler` payloads)."""
-    text = joined.decode("utf-8")
-    dec = json.JSONDecoder()
-    out: list[dict[str, Any]] = []
-    i, n = 0, len(text)
-    while i < n:
-        obj, i = dec.raw_decode(text, i)
-        out.append(obj)
-    return out
 
 
 def _as_f64(a: NDArray[Any]) -> NDArray[np.float64]:

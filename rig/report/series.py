@@ -1,7 +1,7 @@
 """Per-tick series of a recording, its configuration and its phases.
 
 :func:`load_series` decodes ``/rig/signals``, ``/controller/internals``, ``/rig/timing``
-and ``/rig/events`` through the replay scanner (:func:`rig.replay.scan_recording`).
+and ``/rig/events`` through the recording scanner (:func:`rig.recording.scan.scan_recording`).
 Every tick belongs to one :class:`Phase`: ACTIVE while the valve is driven
 (``valve_enable`` = 1), FAULT while a fault is latched, PASSIVE otherwise (INACTIVE,
 STOPPING).  In PASSIVE and FAULT the rig's bypass is open and the suspension is passive.
@@ -25,9 +25,15 @@ from numpy.typing import NDArray
 from controller.arrays import FloatArray
 from controller.config import ConfigError, RigConfig, default_config, parse_config
 from controller.runtime.kernels import StepFlag
-from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
-from rig.recording.schema import TOPIC_EVENTS, TOPIC_INTERNALS, TOPIC_SIGNALS, TOPIC_TIMING
-from rig.replay import RecordingError, ScanResult, scan_recording, split_json
+from rig.recording.scan import RecordingError, ScanResult, scan_recording, split_json
+from rig.recording.schema import (
+    CONFIG_ATTACHMENT,
+    DESIGN_ATTACHMENT,
+    TOPIC_EVENTS,
+    TOPIC_INTERNALS,
+    TOPIC_SIGNALS,
+    TOPIC_TIMING,
+)
 from rig.wire.protocol import LifecycleState
 
 __all__ = ["LIFECYCLE_NAMES", "SIGNAL_FIELDS", "TIMING_FIELDS", "Phase", "RunSeries", "Segment",
@@ -212,7 +218,7 @@ def _require_int(path: str | Path, topic: str, objs: list[dict[str, Any]], seqs:
 
 def load_series(path: str | Path) -> RunSeries:
     """Decode signals, internals, timing and events of a recording (errors: see
-    :func:`rig.replay.scan_recording`)."""
+    :func:`rig.recording.scan.scan_recording`)."""
     parts: dict[str, list[tuple[bytes, NDArray[np.uint32]]]] = {
         TOPIC_SIGNALS: [], TOPIC_INTERNALS: [], TOPIC_TIMING: [], TOPIC_EVENTS: []}
 

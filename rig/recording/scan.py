@@ -1,30 +1,33 @@
-"""The MCAP scanner of replay and report: walks a recording's records itself.
+"""The one MCAP reader of recordings: walks a recording's records itself.
 
 :func:`scan_recording` hands each wanted topic one batch per chunk (the JSON payloads
 of the chunk's messages of that topic, concatenated, with their MCAP sequence numbers)
-instead of decoding every message into Python objects as
-:func:`rig.recording.recorder.read_run` does (~25 us/tick): replay must read a 1 kHz recording
-50x faster than real time.  It names what is wrong with a file (not an MCAP, foreign,
-wrong version, missing channels, truncated or corrupt at byte N, damaged summary or
-closing magic, a missing or foreign segment of a run) and reads a truncated file up to
-its last complete chunk (docs/replay.md, "The scanner").
+instead of decoding every message into Python objects: replay must read a 1 kHz
+recording 50x faster than real time.  Every reader of recordings is built on it:
+replay (:mod:`rig.replay.recorded`), the report (:mod:`rig.report.series`) and the
+Python API :func:`rig.recording.run_data.read_run` (every frame, record and event as
+objects).  It names what is wrong with a file (not an MCAP, foreign, another format
+version, missing channels, truncated or corrupt at byte N, damaged summary or closing
+magic, a missing or foreign segment of a run) and reads a truncated file up to its last
+complete chunk (docs/recording.md, "Reading"; docs/replay.md, "The scanner").
 """
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
 
-from rig.recording.recorder import METADATA_NAME
 from rig.recording.schema import (
     MESSAGE_ENCODING,
+    METADATA_NAME,
     RECORDING_FORMAT_VERSION,
     TOPIC_CAN_RX,
     TOPIC_CAN_TX,
@@ -49,6 +52,7 @@ __all__ = [
     "ScanResult",
     "check_is_recording",
     "scan_recording",
+    "split_json",
 ]
 
 #: channels a recording must have to be replayed / reported
@@ -75,7 +79,27 @@ _HEAD_BYTES: Final = np.arange(15)        # opcode, length, channel id, sequence
 
 
 class RecordingError(ValueError):
-    """The file is not a replayable recording; the message names what is wrong."""
+    """The file is not a readable recording; the message names what is wrong."""
+
+
+def version_problem(path: Path, version: str) -> str:
+    """'' for this software's format version, else the one-line refusal."""
+    if version == str(RECORDING_FORMAT_VERSION):
+        return ""
+    return (f"{path}: recording format version {version}, this software reads version "
+            f"{RECORDING_FORMAT_VERSION} only")
+
+
+def split_json(joined: bytes) -> list[dict[str, Any]]:
+    """Decode concatenated JSON objects (a batch of :data:`Handler` payloads)."""
+    text = joined.decode("utf-8")
+    dec = json.JSONDecoder()
+    out: list[dict[str, Any]] = []
+    i, n = 0, len(text)
+    while i < n:
+        obj, i = dec.raw_decode(text, i)
+        out.append(obj)
+    return out
 
 
 @dataclass
@@ -246,19 +270,19 @@ class _Segment:
             self.res.metadata[name] = meta
         if name == SEGMENT_END_NAME:
             self.end = meta
+        elif name == METADATA_NAME and self.first:
+            # another format version is refused before any of its data is handed out
+            problem = version_problem(self.path, meta.get("format_version", "(none)"))
+            if not problem and self.chain is not None:
+                problem = self.chain.check_first(SegmentHead.parse(meta))
+            if problem:
+                raise RecordingError(problem)
         elif name == METADATA_NAME and self.chain is not None:
-            head = SegmentHead.parse(meta)
-            if self.first:
-                if meta.get("format_version") == str(RECORDING_FORMAT_VERSION):
-                    problem = self.chain.check_first(head)
-                    if problem:
-                        raise RecordingError(problem)
-            else:
-                problem = self.chain.check_head(self.path, head)
-                if problem:
-                    self._refuse(problem)
-                    return False
-                self.accepted = True
+            problem = self.chain.check_head(self.path, SegmentHead.parse(meta))
+            if problem:
+                self._refuse(problem)
+                return False
+            self.accepted = True
         return True
 
     def _refuse(self, why: str) -> None:
@@ -272,6 +296,8 @@ class _Segment:
         path = self.path
         with open(path, "rb") as f:
             magic = f.read(len(MCAP_MAGIC))
+            if len(magic) < len(MCAP_MAGIC) and MCAP_MAGIC.startswith(magic):
+                return magic                  # cut inside the magic (scan() says so)
             if magic != MCAP_MAGIC:
                 raise RecordingError(f"{path}: not an MCAP file (first bytes {magic!r}, "
                                      f"expected {MCAP_MAGIC!r})")
@@ -286,6 +312,9 @@ class _Segment:
         pending: bytes | None = None          # a decompressed chunk awaiting its indexes
         index: dict[int, NDArray[np.uint64]] = {}
         off = 8
+        if size < off:
+            self._stop(f"truncated at byte {size} of {size}: inside the opening magic")
+            return
         while off < size:
             if off + 9 > size:
                 self._stop(f"truncated at byte {off} of {size}: incomplete record header")
@@ -360,6 +389,8 @@ class _Segment:
         if pending is not None:   # complete chunk, its indexes possibly cut: walk it
             try:
                 self._chunk(pending, None)
+            except RecordingError:
+                raise                 # a malformed payload (after_chunk, a handler)
             except Exception as exc:
                 self._stop(f"corrupt chunk before byte {off} ({type(exc).__name__}: {exc})")
 
@@ -383,48 +414,67 @@ class _Segment:
         self.res.stopped_at = f"{self.path}: {why}"
 
 
-def check_is_recording(res: ScanResult, path: Path) -> None:
+def check_is_recording(res: ScanResult, path: Path, *, replayable: bool = True) -> None:
+    """RecordingError unless ``res`` (the scan of ``path`` so far) is a recording of
+    this software's format version, with its segment identity
+    (:class:`rig.recording.segments.SegmentHead`), ``replayable``: with something to
+    replay, on the channels of :data:`REQUIRED_TOPICS`.  Not ``replayable`` (:func:`read_run
+    <rig.recording.run_data.read_run>`): a file cut anywhere is a prefix of a run, and
+    a run without frames or events has no such channels."""
     meta = res.rig_metadata
     if not res.complete and not res.topics and not res.library and not meta:
+        if not replayable:
+            return
         raise RecordingError(f"{path}: nothing to replay: {res.stopped_at} "
                              "(cut inside the header)")
     if not res.library.startswith(RECORDER_LIBRARY_PREFIX) and not meta:
         raise RecordingError(
             f"{path}: foreign MCAP (profile {res.profile!r}, library {res.library!r}, "
             f"no '{METADATA_NAME}' metadata record; channels {sorted(res.topics) or 'none'})")
-    version = meta.get("format_version")
-    if version is not None and version != str(RECORDING_FORMAT_VERSION):
-        raise RecordingError(f"{path}: recording format version {version}, this software "
-                             f"reads version {RECORDING_FORMAT_VERSION}")
-    if not res.topics and not res.complete:
+    # the version: of the metadata record, else (cut before it) of the writer's name
+    version = meta.get("format_version", "(none)") if meta else \
+        res.library[len(RECORDER_LIBRARY_PREFIX):]
+    problem = version_problem(path, version)
+    if problem:
+        raise RecordingError(problem)
+    if not res.topics and not res.complete and replayable:
         raise RecordingError(f"{path}: nothing to replay: {res.stopped_at} "
                              "(before the first complete chunk)")
     missing = [t for t in REQUIRED_TOPICS if t not in res.topics]
-    if missing:
+    if missing and replayable:
         raise RecordingError(f"{path}: missing channels {missing} (has "
                              f"{sorted(res.topics) or 'none'}; profile {res.profile!r}, "
                              f"library {res.library!r})")
-    wrong = [t for t in REQUIRED_TOPICS if res.topics[t] != MESSAGE_ENCODING]
+    wrong = [t for t in REQUIRED_TOPICS if res.topics.get(t, MESSAGE_ENCODING)
+             != MESSAGE_ENCODING]
     if wrong:
         raise RecordingError(f"{path}: channels {wrong} are not '{MESSAGE_ENCODING}' encoded")
+    if meta and SegmentHead.parse(meta) is None:
+        raise RecordingError(f"{path}: its '{METADATA_NAME}' metadata record has no segment "
+                             "identity (run_id, segment, sequence_start), which every "
+                             f"recording of format version {RECORDING_FORMAT_VERSION} has")
 
 
 def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
                    follow_segments: bool = True,
                    after_chunk: Callable[[], None] | None = None,
-                   result: ScanResult | None = None) -> ScanResult:
+                   result: ScanResult | None = None, replayable: bool = True
+                   ) -> ScanResult:
     """Scan a recording (and its rotation successors), calling ``handlers[topic]`` with
     each chunk's batch of that topic (see :data:`Handler`), in file order, and
     ``after_chunk()`` after each chunk.
 
     Raises :class:`RecordingError` (not an MCAP -- decided on the first 8 bytes --,
-    foreign, wrong version, missing channels, nothing readable, a later segment of a
-    run given instead of its first) and ``FileNotFoundError``.  A truncated or corrupt
-    tail, a damaged summary or closing magic ends the scan after the last complete
-    chunk (``complete`` False, ``stopped_at`` says where).  With ``follow_segments``
-    the next segment is the one the segment's end record names, and it is read only if
-    it belongs to the run (:class:`rig.recording.segments.SegmentChain`); a missing or
-    foreign segment ends the scan, ``stopped_at`` naming what is missing."""
+    foreign, another format version -- refused at its metadata record, before any data
+    is handed out --, missing channels and nothing readable -- these two only if
+    ``replayable``, see :func:`check_is_recording` --, a later segment of a run given
+    instead of its first, a payload a handler or ``after_chunk`` cannot decode) and
+    ``FileNotFoundError``.  A truncated or corrupt tail, a damaged summary or closing
+    magic ends the scan after the last complete chunk (``complete`` False,
+    ``stopped_at`` says where).  With ``follow_segments`` the next segment is the one
+    the segment's end record names, and it is read only if it belongs to the run
+    (:class:`rig.recording.segments.SegmentChain`); a missing or foreign segment ends the
+    scan, ``stopped_at`` naming what is missing."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such recording")
@@ -441,6 +491,6 @@ def scan_recording(path: str | Path, handlers: Mapping[str, Handler], *,
         if seg.refused:
             res.segments.pop()
         if len(res.segments) == 1 and p == path:
-            check_is_recording(res, p)
+            check_is_recording(res, p, replayable=replayable)
         p = next_segment(chain, p, seg.footer, seg.end, res)
     return res
