@@ -48,6 +48,7 @@ from rig.replay import (
     replay_recording,
 )
 from rig.report import load_series
+from rig.service.assembly import LoopSettings
 from rig.wire.protocol import (
     FAULT_REPORT_ID,
     SENSOR_DATA,
@@ -989,3 +990,41 @@ def test_non_mcap_input_is_refused_after_its_magic(command: str, tmp_path: Path)
         assert proc.returncode == 2, proc.stderr
         assert f"{src}: not an MCAP file (first bytes" in proc.stderr
         assert "Traceback" not in proc.stderr
+
+
+# ---------------------------------------------------------------------------- loop settings
+
+
+@given(blending=st.integers(0, 3), weight_set=st.integers(1, 3),
+       warmup=st.none() | st.integers(0, 10_000), single=st.none() | st.integers(0, 20),
+       excite=st.booleans())
+def test_loop_settings_round_trip_through_the_metadata(blending: int, weight_set: int,
+                                                       warmup: int | None, single: int | None,
+                                                       excite: bool) -> None:
+    """What the service writes (JSON per key, as the recorder stores it) reads back equal."""
+    s = LoopSettings(blending, weight_set, warmup, single, excite)
+    stored = {k: json.dumps(v) for k, v in s.metadata().items()}
+    assert LoopSettings.from_metadata(stored) == s
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("weight_set", None, "no loop setting 'weight_set'"),
+    ("blending", "fuzzy", "'blending' is not JSON"),
+    ("blending", '"fuzzy"', "'blending' = 'fuzzy': expected int"),
+    ("excitation", "1", "'excitation' = 1: expected bool"),
+    ("warmup_ticks", "true", "'warmup_ticks' = True: expected int or null"),
+])
+def test_a_recording_without_valid_loop_settings_is_refused(plain_recording: Path, key: str,
+                                                            value: str | None,
+                                                            match: str) -> None:
+    """No guessing the mode or weight set from tick records or the configuration: a
+    recording of this format always has its loop settings, one that lacks one is refused
+    naming the key."""
+    run = load_recorded_run(plain_recording)
+    meta = run.scan.rig_metadata
+    if value is None:
+        del meta[key]
+    else:
+        meta[key] = value
+    with pytest.raises(RecordingError, match=f"{plain_recording.name}: .*{match}"):
+        replay_recording(plain_recording, run=run)

@@ -232,9 +232,10 @@ def _replay(path: Path, cfg: RigConfig | None, design: Design | None,
         parse_config(tomllib.loads(rec_cfg_raw.decode())))
     same_design = rec_design_raw is not None and design_bytes == rec_design_raw
     same = same_cfg and same_design
-    settings = LoopSettings.from_metadata(
-        head.metadata, head.first_internals or {}, cfg,
-        excitation_played=any(e.get("kind") == "excitation" for e in head.events))
+    try:
+        settings = LoopSettings.from_metadata(head.metadata)
+    except ValueError as exc:
+        raise RecordingError(f"{head.path}: {exc}") from None
     if not same_cfg:   # another configuration brings its own weight set
         settings = dataclasses.replace(settings, weight_set=cfg.design.weight_set)
     clock = _VirtualClock()

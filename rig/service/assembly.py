@@ -9,7 +9,6 @@ reads them back with :meth:`LoopSettings.from_metadata` and builds the same loop
 
 from __future__ import annotations
 
-import contextlib
 import json
 import time
 from collections.abc import Callable, Mapping
@@ -30,6 +29,10 @@ __all__ = ["LoopSettings", "build_control_loop"]
 
 #: recording metadata keys of the settings (values JSON-encoded by the recorder)
 _KEYS = ("blending", "weight_set", "warmup_ticks", "single_model", "excitation")
+#: the JSON types each key may take
+_TYPES: dict[str, tuple[type, ...]] = {
+    "blending": (int,), "weight_set": (int,), "warmup_ticks": (int, type(None)),
+    "single_model": (int, type(None)), "excitation": (bool,)}
 
 
 @dataclass(frozen=True)
@@ -49,26 +52,28 @@ class LoopSettings:
                 "excitation": self.excite}
 
     @classmethod
-    def from_metadata(cls, metadata: Mapping[str, str], first_record: Mapping[str, Any],
-                      cfg: RigConfig, excitation_played: bool = False) -> LoopSettings:
-        """The settings a recording was made with: its metadata (:meth:`metadata`);
-        mode and weight set of a recording made without them from its first tick
-        record, else the configuration's defaults.  ``excitation_played``: the recording
-        has ``excitation`` events (the mark of an identification run, docs/identify.md)."""
+    def from_metadata(cls, metadata: Mapping[str, str]) -> LoopSettings:
+        """The settings a recording was made with, from its metadata (:meth:`metadata`;
+        every recording of the current format has them).  Raises ``ValueError`` naming
+        the key that is missing or not of its type."""
         meta: dict[str, Any] = {}
         for key in _KEYS:
-            if key in metadata:
-                with contextlib.suppress(json.JSONDecodeError, TypeError):
-                    meta[key] = json.loads(metadata[key])
-        blending = meta.get("blending", first_record.get("blending", 0))
-        weight_set = meta.get("weight_set", first_record.get("weight_set",
-                                                             cfg.design.weight_set))
-        warmup = meta.get("warmup_ticks")
-        single = meta.get("single_model")
-        return cls(int(blending), int(weight_set),
-                   None if warmup is None else int(warmup),
-                   None if single is None else int(single),
-                   bool(meta.get("excitation")) or excitation_played)
+            try:
+                meta[key] = json.loads(metadata[key])
+            except KeyError:
+                raise ValueError(f"the recording's metadata has no loop setting {key!r}"
+                                 ) from None
+            except (json.JSONDecodeError, TypeError):
+                raise ValueError(f"the recording's loop setting {key!r} is not JSON: "
+                                 f"{metadata[key]!r}") from None
+        for key, kinds in _TYPES.items():
+            v = meta[key]
+            if isinstance(v, bool) != (bool in kinds) or not isinstance(v, kinds):
+                raise ValueError(f"the recording's loop setting {key!r} = {v!r}: expected "
+                                 + " or ".join("null" if k is type(None) else k.__name__
+                                               for k in kinds))
+        return cls(meta["blending"], meta["weight_set"], meta["warmup_ticks"],
+                   meta["single_model"], meta["excitation"])
 
 
 def build_control_loop(cfg: RigConfig, design: Design, bus: can.BusABC,
