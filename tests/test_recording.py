@@ -51,6 +51,7 @@ def rcfg(**kw: Any) -> RecordingConfig:
 def recorder(path: Path, **kw: Any) -> RunRecorder:
     opts = {k: kw.pop(k) for k in ("poll_s", "compression", "max_chunk_age_s", "pipe_bytes",
                                    "tick_layout", "blocking") if k in kw}
+    kw.setdefault("batch_ticks", 1)    # one tick per write: the drop tests count single ticks
     return RunRecorder(path, rcfg(**kw), config_toml=TOML, design_bytes=b"\x93NUMPY-design",
                        metadata={"operator": "test", "seed": 7}, **{"poll_s": 0.001, **opts})
 
@@ -635,6 +636,29 @@ def test_writer_behind_drops_whole_batches_keeps_events_and_counts(tmp_path: Pat
     assert [f.tick for f in run.frames] == list(range(n_ok))
     assert [r.tick for r in run.records] == list(range(n_ok))
     assert [(e.tick, e.detail) for e in run.events] == [(300, {"code": 3})]
+
+
+def test_batches_of_the_configured_ticks_are_kept_or_dropped_whole(tmp_path: Path) -> None:
+    """``[recording] batch_ticks`` ticks go to the writer in one write: with the writer
+    stopped, what reaches the file is a whole number of batches, and every item of a
+    dropped batch is counted."""
+    path = tmp_path / "batch.mcap"
+    rec = recorder(path, queue_size=16, pipe_bytes=4096, batch_ticks=8)
+    assert rec.batch_ticks == 8
+    os.kill(rec.pid, signal.SIGSTOP)      # the writer (started by this test) stops reading
+    try:
+        for k in range(400):
+            rec.can_frame(k, k, 0x100, b"\x01", True)
+            rec.tick(k, {"tick": k})
+    finally:
+        os.kill(rec.pid, signal.SIGCONT)
+    rec.close()
+    assert rec.error is None
+    run = read_run(path)
+    kept = len(run.records)
+    assert kept % 8 == 0 and 0 < kept < 400
+    assert [r.tick for r in run.records] == [f.tick for f in run.frames] == list(range(kept))
+    assert rec.dropped == 2 * (400 - kept)
 
 
 def test_close_waits_for_the_writer_instead_of_dropping_the_last_batch(

@@ -3,7 +3,7 @@ its own so that the control loop never waits for (or competes with) the encoder.
 
 The 1 kHz loop calls :meth:`RunRecorder.can_frame`, :meth:`RunRecorder.tick_values`
 (or the generic :meth:`RunRecorder.tick`) and :meth:`RunRecorder.event`.  Each packs
-the item into a preallocated batch buffer (no JSON, no I/O); every ``batch_ticks``
+the item into a preallocated batch buffer (no JSON, no I/O); every ``cfg.batch_ticks``
 ticks the batch goes to a pipe in one non-blocking ``write``.  The writer process
 (:mod:`rig.recording.writer`) reads the pipe, encodes JSON, fills MCAP chunks
 (``cfg.chunk_bytes``), flushes every finished chunk to the OS and rotates into numbered
@@ -148,7 +148,7 @@ class RunRecorder:
                  compression: str = "zstd", poll_s: float = 0.002,
                  max_chunk_age_s: float = 1.0, tick_layout: TickLayout | None = None,
                  blocking: bool = False, pipe_bytes: int = 1 << 20,
-                 batch_ticks: int = 1, start_timeout_s: float = 60.0) -> None:
+                 start_timeout_s: float = 60.0) -> None:
         # the writer process runs in another directory
         target = recording_file(path_or_dir).absolute()
         problem = new_recording_problem(target)
@@ -164,9 +164,7 @@ class RunRecorder:
         self.base_path = target
         self.paths: list[Path] = []
         self.blocking = blocking
-        if batch_ticks < 1:
-            raise ValueError(f"batch_ticks {batch_ticks}: must be >= 1")
-        self.batch_ticks = int(batch_ticks)
+        self.batch_ticks = cfg.batch_ticks
         self._ticks_in_batch = 0
         if clock_offset_ns is None:
             clock_offset_ns = time.time_ns() - time.monotonic_ns() if clock == "monotonic" else 0

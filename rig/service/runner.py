@@ -174,8 +174,7 @@ class Service:
                     **settings.metadata()}
             meta.update(metadata or {})
             self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
-                                        design_bytes=self.design_blob, metadata=meta,
-                                        batch_ticks=cfg.recording.batch_ticks)
+                                        design_bytes=self.design_blob, metadata=meta)
             self._check_stop()
         self.loop = build_control_loop(cfg, self.design, bus, settings, recorder=self.recorder,
                                        notifier=self.notifier, timing_ring=opts.timing_ring)
