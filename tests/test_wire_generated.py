@@ -31,6 +31,7 @@ from rig.wire.protocol import (
     DecodeStatus,
     FaultCode,
     LifecycleState,
+    SensorStatus,
 )
 from tests.support.crc import ref_encode, with_crc
 
@@ -238,3 +239,26 @@ def test_e2e_attributes_are_what_the_codec_uses() -> None:
         counter = msg.get_signal_by_name(attrs["E2ECounterSignal"])
         assert (crc.start, crc.length) == (0, 8), msg.name
         assert (counter.start, counter.length) == (8, 4), msg.name
+
+
+def test_bit_flags_are_the_dbc_attribute(tmp_path: Path) -> None:
+    """SensorStatus is generated from SensorData.SensorStatus's BitFlags attribute: renamed,
+    unnamed or added bits in the DBC change the IntFlag; too many or bad names are refused."""
+    db: Any = cantools.database.load_file(str(DBC_PATH))
+    sig = db.get_message_by_name("SensorData").get_signal_by_name("SensorStatus")
+    names = str(sig.dbc.attributes["BitFlags"].value).split(",")
+    assert {m.name: m.value for m in SensorStatus} == {n: 1 << i for i, n in enumerate(names)}
+    line = 'BA_ "BitFlags" SG_ 256 SensorStatus "LVDT_FAULT,LOAD_CELL_FAULT,ACCEL_FAULT";'
+
+    def generated_flags(value: str) -> str:
+        text = generate(_changed_dbc(tmp_path, (line, line.replace(
+            "LVDT_FAULT,LOAD_CELL_FAULT,ACCEL_FAULT", value))))
+        return text[text.index("class SensorStatus(IntFlag):"):text.index("# E2E protection")]
+
+    flags = generated_flags("LVDT_FAULT,,ACCEL_FAULT,TEMP_FAULT")
+    assert "    LVDT_FAULT = 1\n    ACCEL_FAULT = 4\n    TEMP_FAULT = 8\n" in flags
+    assert "LOAD_CELL" not in flags
+    with pytest.raises(ValueError, match="SensorStatus: BitFlags names 5 bits, the signal has 4"):
+        generated_flags("A,B,C,D,E")
+    with pytest.raises(ValueError, match=r"SensorStatus: BitFlags bit names \['B-C'\] are not"):
+        generated_flags("A,B-C")

@@ -6,7 +6,7 @@ docstring for the naming).
 
 from __future__ import annotations
 
-from enum import IntEnum
+from enum import IntEnum, IntFlag
 from typing import Final
 
 
@@ -56,6 +56,14 @@ class Blending(IntEnum):
     BAYES = 1
     MOVING = 2
     LQG = 3
+
+
+class SensorStatus(IntFlag):
+    """DBC ``BitFlags`` of SensorData.SensorStatus (its comment says what a set bit means)."""
+
+    LVDT_FAULT = 1
+    LOAD_CELL_FAULT = 2
+    ACCEL_FAULT = 4
 
 
 # E2E protection (network attributes): CRC-8 parameters, counter range

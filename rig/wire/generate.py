@@ -113,7 +113,7 @@ def generate(dbc_path: Path = DBC_PATH) -> str:
     out = [f'"""Generated from {dbc_path.name} by ``python -m rig.wire.generate``: do not '
            'edit.\n\nEvery number of the CAN protocol, as the DBC defines it (see the '
            'generator\'s\ndocstring for the naming).\n"""',
-           "", "from __future__ import annotations", "", "from enum import IntEnum",
+           "", "from __future__ import annotations", "", "from enum import IntEnum, IntFlag",
            "from typing import Final", "", ""]
     for enum_name, (msg_name, sig_name) in ENUMS.items():
         choices = db.get_message_by_name(msg_name).get_signal_by_name(sig_name).choices
@@ -128,6 +128,17 @@ def generate(dbc_path: Path = DBC_PATH) -> str:
                     "        from rig.wire.fault_descriptions import FAULT_DESCRIPTIONS",
                     "", "        return FAULT_DESCRIPTIONS[self.name]"]
         out += ["", ""]
+    for msg in sorted(db.messages, key=lambda m: m.frame_id):
+        for sig in msg.signals:
+            bits = _bit_flags(sig)
+            if not bits:
+                continue
+            out.append(f"class {sig.name}(IntFlag):")
+            out.append(f'    """DBC ``{BIT_FLAGS_ATTRIBUTE}`` of {msg.name}.{sig.name} (its '
+                       'comment says what a set bit means)."""')
+            out.append("")
+            out += [f"    {label} = {1 << bit}" for bit, label in enumerate(bits) if label]
+            out += ["", ""]
     net = {k: a.value for k, a in db.dbc.attributes.items()}
     out.append("# E2E protection (network attributes): CRC-8 parameters, counter range")
     out.append(f"E2E_PROFILE: Final = {net['E2EProfile']!r}")
@@ -190,6 +201,26 @@ def generate(dbc_path: Path = DBC_PATH) -> str:
 
 #: the DBC signal attribute that says what the encoder does with an out-of-range value
 OUT_OF_RANGE_ATTRIBUTE = "CodecOutOfRange"
+#: signal attribute naming the bits of a bit-flag signal, from bit 0 up, comma-separated
+#: (an empty name leaves that bit unnamed): generated as an ``IntFlag`` named like the signal
+BIT_FLAGS_ATTRIBUTE = "BitFlags"
+
+
+def _bit_flags(sig: Any) -> list[str]:
+    """The bit names of a signal's ``BitFlags`` attribute ([] if it has none); refuses
+    more names than the signal has bits and names that are not Python identifiers."""
+    attr = sig.dbc.attributes.get(BIT_FLAGS_ATTRIBUTE) if sig.dbc is not None else None
+    if attr is None or not str(attr.value).strip():
+        return []
+    names = [n.strip() for n in str(attr.value).split(",")]
+    if len(names) > sig.length:
+        raise ValueError(f"{sig.name}: {BIT_FLAGS_ATTRIBUTE} names {len(names)} bits, "
+                         f"the signal has {sig.length}")
+    bad = [n for n in names if n and not n.isidentifier()]
+    if bad:
+        raise ValueError(f"{sig.name}: {BIT_FLAGS_ATTRIBUTE} bit names {bad} are not "
+                         "identifiers")
+    return names
 _WIDTH = 100  # ruff's line length
 
 

@@ -5,10 +5,11 @@ from the DBC by ``python -m rig.wire.generate`` into the checked-in
 :mod:`rig.wire.dbc_codec` (per frame its frame class and ``encode`` / ``decode`` with the
 DBC's bit positions, scales, ranges and ``VAL_`` values written in as literals), next to
 :mod:`rig.wire.dbc_constants` (every number as a named constant, the ``VAL_`` tables as
-enums); a test requires that regenerating changes neither, and ``tests/test_protocol.py``
+enums, the ``BitFlags`` signals as flag sets such as :class:`SensorStatus`); a test
+requires that regenerating changes neither, and ``tests/test_protocol.py``
 proves the codec byte-identical to cantools.  The hand-written parts hold no DBC number:
 :mod:`rig.wire.codec_base` (decode status, frame and codec base classes), the E2E CRC
-tables in :mod:`rig.wire.e2e`, and here the public names and :class:`SensorStatus`.
+tables in :mod:`rig.wire.e2e`, and here the public names.
 
 Hot-path use::
 
@@ -32,7 +33,6 @@ which.  Rolling-counter supervision is separate: :class:`rig.wire.e2e.CounterMon
 
 from __future__ import annotations
 
-from enum import IntFlag
 from typing import Final
 
 from rig.wire import dbc_constants as K  # noqa: N812  (K: the DBC constants)
@@ -55,7 +55,7 @@ from rig.wire.dbc_codec import (
     ValveCommand,
     ValveCommandCodec,
 )
-from rig.wire.dbc_constants import Blending, FaultCode, LifecycleState
+from rig.wire.dbc_constants import Blending, FaultCode, LifecycleState, SensorStatus
 from rig.wire.e2e import CounterMonitor, CounterStatus
 
 __all__ = [
@@ -106,9 +106,3 @@ CONTROLLER_RX_IDS: Final = (SENSOR_DATA_ID, RIG_STATUS_ID)
 RIG_RX_IDS: Final = (VALVE_COMMAND_ID, FAULT_REPORT_ID, CONTROLLER_STATUS_ID)
 
 
-class SensorStatus(IntFlag):
-    """``SensorData.SensorStatus`` bits (a set bit = that sensor reports a fault)."""
-
-    LVDT_FAULT = 1
-    LOAD_CELL_FAULT = 2
-    ACCEL_FAULT = 4
