@@ -5,7 +5,9 @@ ROOT = Path(__file__).resolve().parents[1]
 Each case times many single steps with ``time.perf_counter_ns`` around each call (after
 a warm-up, garbage collector disabled during the run) and reports the median, p99 and
 p99.9 in microseconds, plus the kernel-only mean (the same steps called from a compiled
-loop, i.e. without the Python call and numba argument unboxing).  Inputs are the
+loop, i.e. without the Python call and numba argument unboxing; the fastest of
+``KERNEL_PASSES`` passes over the inputs, so that a pass that shared the core with other
+work does not count).  Inputs are the
 measurements of a simulated quarter car (so the moving bank does real work).
 
 Cases: fuzzy J=3 (the thesis's three deflections, no airborne model), fuzzy J=4 (the
@@ -36,6 +38,10 @@ TITLE = "Controller step (BankRuntime.step, one call per tick), microseconds"
 
 GRID_DEFLECTIONS_M = [0.045, 0.04, 0.035, 0.03, 0.025, 0.02, 0.015, 0.01, 0.005]
 GRID_DAMPING_SCALES = [0.5, 1.0, 2.0]
+
+
+#: passes of the compiled loop over the inputs; the kernel column is the fastest
+KERNEL_PASSES = 5
 
 
 def _inputs(cfg: RigConfig, n: int, seed: int = 1) -> np.ndarray:
@@ -70,10 +76,12 @@ def _time_case(rt: BankRuntime, data: np.ndarray) -> dict[str, float]:
     rt.reset()
     args = (rt._mat, rt._vec, rt._st, rt._active, rt._fv, rt._iv, rt._nbr)
     bank_steps(*args, data[:10])
-    rt.reset()
-    t0 = time.perf_counter_ns()
-    bank_steps(*args, data)
-    kernel_ns = (time.perf_counter_ns() - t0) / len(rows)
+    kernel_ns = math.inf
+    for _ in range(KERNEL_PASSES):       # the fastest pass: the others met other work
+        rt.reset()
+        t0 = time.perf_counter_ns()
+        bank_steps(*args, data)
+        kernel_ns = min(kernel_ns, (time.perf_counter_ns() - t0) / len(rows))
     us = times / 1000.0
     return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
             "p99.9_us": float(np.percentile(us, 99.9)), "max_us": float(us.max()),
