@@ -248,10 +248,17 @@ def test_loop_timing_on_the_bus(closed_loop: ScenarioResult) -> None:
 
 
 def test_telemetry_reaches_a_separate_zenoh_process(closed_loop: ScenarioResult) -> None:
+    """The loop offers a state sample every rate / telemetry.rate_hz ticks it executes
+    (deadlines missed under a UML stall are skipped, not executed): at least half of them
+    reach the subscriber process (it connects after the service started)."""
     r = closed_loop
     states = r.samples("state")
     lifecycles = [s.get("lifecycle") for s in r.samples("lifecycle")]
-    assert len(states) > 0.5 * 20.0 * 0.5 * SERVICE_S, f"{len(states)} state samples"
+    m = re.search(r"service stopped \(duration\): (\d+) ticks", r.service_output)
+    assert m is not None, r.service_output[-2000:]
+    every = max(1, round(r.cfg.design.sample_rate_hz / r.cfg.telemetry.rate_hz))
+    offered = int(m[1]) // every
+    assert len(states) > 0.5 * offered, f"{len(states)} state samples of {offered} offered"
     assert "ACTIVE" in lifecycles, lifecycles
     ticks = [s["tick"] for s in states]
     assert ticks == sorted(ticks), "telemetry out of order"
