@@ -23,6 +23,7 @@ from tests.socketcan.harness import (
     ROAD,
     SEED,
     SPEED_MPS,
+    Scenario,
     ScenarioResult,
     e2e_config,
     e2e_marks,
@@ -46,6 +47,14 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x))))
 
 
+def _see_it_armed(sc: Scenario) -> None:
+    """The service arms itself on start; a UML stall in its first ticks can trip the rig's
+    drive watchdog first (the arm is then refused from FAULT), so the operator resets and
+    arms over Zenoh until it is ACTIVE, as on the rig.  A service that never arms fails
+    test_processes_ran_and_stopped_cleanly."""
+    sc.operator.recover(sc.state, timeout_s=60.0)
+
+
 @pytest.fixture(scope="module")
 def closed_loop(tmp_path_factory: pytest.TempPathFactory) -> ScenarioResult:
     """One armed run of SERVICE_S seconds on vcan0, shared by the closed-loop tests."""
@@ -53,7 +62,8 @@ def closed_loop(tmp_path_factory: pytest.TempPathFactory) -> ScenarioResult:
     kids = Children(tmp)
     try:
         cfg, cfg_path = e2e_config(tmp, CHANNEL)
-        result = run_scenario(kids, tmp, cfg, cfg_path, duration_s=SERVICE_S)
+        result = run_scenario(kids, tmp, cfg, cfg_path, duration_s=SERVICE_S,
+                              during=_see_it_armed)
     finally:
         kids.stop_all()
     # the processes' outputs are in the result (and in tmp); a failing test prints them
