@@ -29,19 +29,10 @@ from hil.node import RigNode
 from hil.sim.roads import make_road
 from rig.bus.core import open_bus, shutdown_all
 from rig.recording.recorder import RunRecorder
+from rig.rt.pacing import SteppedClock
 from rig.service.assembly import LoopSettings, build_control_loop
 
 __all__ = ["record_emulated_run"]
-
-
-class _SteppedClock:
-    """Loop clock for a tick-stepped run: tick time + a drawn compute time."""
-
-    def __init__(self) -> None:
-        self.now_ns = 0
-
-    def __call__(self) -> int:
-        return self.now_ns
 
 
 def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | None = None,
@@ -85,7 +76,7 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     node = RigNode(rig_bus, cfg, rd, faults, seed=seed, record_ticks=16)
     settings = LoopSettings(blending=0, weight_set=cfg.design.weight_set,
                             warmup_ticks=warmup_ticks, excite=excite)
-    clock = _SteppedClock()
+    clock = SteppedClock()
     rec = RunRecorder(path, cfg.recording, config_toml=config_to_toml(cfg),
                       design_bytes=design_bytes,
                       metadata={"source": "hil.stepped_run", "seed": seed,

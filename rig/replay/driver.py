@@ -46,25 +46,13 @@ from rig.replay.result import (
     max_abs_diff,
     series_comparison,
 )
+from rig.rt.pacing import SteppedClock
 from rig.service.assembly import LoopSettings, build_control_loop
 from rig.service.lifecycle import Transition
 from rig.service.loop import ControlLoop
 from rig.wire.protocol import LifecycleState
 
 __all__ = ["replay_file", "replay_log", "replay_recording"]
-
-
-class _VirtualClock:
-    """The loop's ``clock_ns``: the loop reads it once at the end of a tick (compute
-    time = clock - tick time), so it is set to tick time + recorded compute time."""
-
-    __slots__ = ("now_ns",)
-
-    def __init__(self) -> None:
-        self.now_ns = 0
-
-    def __call__(self) -> int:
-        return self.now_ns
 
 
 class _FaultLog:
@@ -104,7 +92,7 @@ def _apply_commands(loop: ControlLoop, cmds: Sequence[dict[str, Any]]) -> tuple[
 class _Replayer:
     """Feeds pieces of a recording through the loop, tick by tick (module docstring)."""
 
-    def __init__(self, loop: ControlLoop, bus: McapReplayBus, clock: _VirtualClock) -> None:
+    def __init__(self, loop: ControlLoop, bus: McapReplayBus, clock: SteppedClock) -> None:
         self.loop = loop
         self.bus = bus
         self.clock = clock
@@ -238,7 +226,7 @@ def _replay(path: Path, cfg: RigConfig | None, design: Design | None,
         raise RecordingError(f"{head.path}: {exc}") from None
     if not same_cfg:   # another configuration brings its own weight set
         settings = dataclasses.replace(settings, weight_set=cfg.design.weight_set)
-    clock = _VirtualClock()
+    clock = SteppedClock()
     bus = McapReplayBus([], channel=f"mcap-replay:{head.path.name}")
     recorder: RunRecorder | None = None
     if out is not None:
@@ -340,7 +328,7 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
     carries no commands: the controller stays INACTIVE (computing its force reference)
     unless ``arm_at_s`` (seconds after the first frame) arms it."""
     bus = LogReplayBus(path)
-    clock = _VirtualClock()
+    clock = SteppedClock()
     settings = LoopSettings(blending=0, weight_set=cfg.design.weight_set)
     recorder: RunRecorder | None = None
     if out is not None:

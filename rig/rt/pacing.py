@@ -15,7 +15,22 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-__all__ = ["Pacer"]
+__all__ = ["Pacer", "SteppedClock"]
+
+
+class SteppedClock:
+    """A clock [ns] that reads what its owner last set in :attr:`now_ns`: the loop's
+    ``clock_ns`` where time is the tick's, not the machine's (a tick-stepped run, replay).
+    The loop reads it once at the end of a tick (compute time = clock - tick time), so
+    the owner sets it to tick time + the compute time it wants recorded."""
+
+    __slots__ = ("now_ns",)
+
+    def __init__(self) -> None:
+        self.now_ns = 0
+
+    def __call__(self) -> int:
+        return self.now_ns
 
 
 class Pacer:
