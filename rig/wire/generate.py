@@ -105,6 +105,28 @@ def layout(message: Any) -> tuple[str, list[list[Any]]]:
     return fmt, groups
 
 
+#: signal attribute naming the bits of a bit-flag signal, from bit 0 up, comma-separated
+#: (an empty name leaves that bit unnamed): generated as an ``IntFlag`` named like the signal
+BIT_FLAGS_ATTRIBUTE = "BitFlags"
+
+
+def _bit_flags(sig: Any) -> list[str]:
+    """The bit names of a signal's ``BitFlags`` attribute ([] if it has none); refuses
+    more names than the signal has bits and names that are not Python identifiers."""
+    attr = sig.dbc.attributes.get(BIT_FLAGS_ATTRIBUTE) if sig.dbc is not None else None
+    if attr is None or not str(attr.value).strip():
+        return []
+    names = [n.strip() for n in str(attr.value).split(",")]
+    if len(names) > sig.length:
+        raise ValueError(f"{sig.name}: {BIT_FLAGS_ATTRIBUTE} names {len(names)} bits, "
+                         f"the signal has {sig.length}")
+    bad = [n for n in names if n and not n.isidentifier()]
+    if bad:
+        raise ValueError(f"{sig.name}: {BIT_FLAGS_ATTRIBUTE} bit names {bad} are not "
+                         "identifiers")
+    return names
+
+
 def generate(dbc_path: Path = DBC_PATH) -> str:
     """The source of :mod:`rig.wire.dbc_constants` for ``dbc_path``."""
     import cantools
@@ -201,26 +223,6 @@ def generate(dbc_path: Path = DBC_PATH) -> str:
 
 #: the DBC signal attribute that says what the encoder does with an out-of-range value
 OUT_OF_RANGE_ATTRIBUTE = "CodecOutOfRange"
-#: signal attribute naming the bits of a bit-flag signal, from bit 0 up, comma-separated
-#: (an empty name leaves that bit unnamed): generated as an ``IntFlag`` named like the signal
-BIT_FLAGS_ATTRIBUTE = "BitFlags"
-
-
-def _bit_flags(sig: Any) -> list[str]:
-    """The bit names of a signal's ``BitFlags`` attribute ([] if it has none); refuses
-    more names than the signal has bits and names that are not Python identifiers."""
-    attr = sig.dbc.attributes.get(BIT_FLAGS_ATTRIBUTE) if sig.dbc is not None else None
-    if attr is None or not str(attr.value).strip():
-        return []
-    names = [n.strip() for n in str(attr.value).split(",")]
-    if len(names) > sig.length:
-        raise ValueError(f"{sig.name}: {BIT_FLAGS_ATTRIBUTE} names {len(names)} bits, "
-                         f"the signal has {sig.length}")
-    bad = [n for n in names if n and not n.isidentifier()]
-    if bad:
-        raise ValueError(f"{sig.name}: {BIT_FLAGS_ATTRIBUTE} bit names {bad} are not "
-                         "identifiers")
-    return names
 _WIDTH = 100  # ruff's line length
 
 
@@ -267,7 +269,7 @@ def _dbc_line(sig: Any) -> str:
 class _Sig:
     """What the codec generator needs to know of one signal (counter and CRC apart)."""
 
-    def __init__(self, db: Any, msg: Any, sig: Any, bit: int, shared: bool) -> None:
+    def __init__(self, msg: Any, sig: Any, bit: int, shared: bool) -> None:
         where = f"{msg.name}.{sig.name}"
         if sig.offset != 0:
             raise ValueError(f"{where}: offsets are not supported (offset {sig.offset})")
@@ -374,7 +376,7 @@ def _crc_lines(var: str, start: int, xorout: int, target: str) -> list[str]:
             f"        {target}_T1[s ^ b7] ^ {xorout:#04x}"]
 
 
-def _codec_frame(db: Any, msg: Any, poly: int, init: int, xorout: int) -> list[str]:
+def _codec_frame(msg: Any, poly: int, init: int, xorout: int) -> list[str]:
     """Frame class, codec class for one message."""
     name, prefix = msg.name, snake(msg.name).upper()
     attrs = {k: a.value for k, a in msg.dbc.attributes.items()}
@@ -402,7 +404,7 @@ def _codec_frame(db: Any, msg: Any, poly: int, init: int, xorout: int) -> list[s
             var = f"r_{snake(group[0].name)}"
         for s in group:
             if s not in (crc_sig, counter_sig):
-                sigs[s.name] = _Sig(db, msg, s, bit_of[s.name], shared)
+                sigs[s.name] = _Sig(msg, s, bit_of[s.name], shared)
         fields.append((var, group))
     ordered = [sigs[s.name] for s in plain]
     senders = ", ".join(msg.senders)
@@ -542,7 +544,7 @@ def generate_codec(dbc_path: Path = DBC_PATH) -> str:
         out.append(f"_{prefix}_UNPACK: Final = struct.Struct({fmt!r}).unpack")
     out += ["", ""]
     for msg in messages:
-        out += _codec_frame(db, msg, poly, init, xorout)
+        out += _codec_frame(msg, poly, init, xorout)
     names = [snake(m.name).upper() for m in messages]
     out += [f"{p}: Final = {m.name}Codec()" for p, m in zip(names, messages, strict=True)]
     out.append("#: frame ID -> codec")
