@@ -3,6 +3,8 @@ points drop the bank's cached kernels when a source they compile in changed."""
 
 from __future__ import annotations
 
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,21 +19,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_importing_the_bank_writes_no_file(tmp_path: Path) -> None:
     """A fresh interpreter imports controller.runtime.bank with the cache guard's stamp
-    absent: the import itself leaves no stamp (only entry points write it)."""
+    absent: the import itself leaves no stamp (only entry points write it).
+
+    The interpreter imports a copy of ``controller/`` made for this test: the source
+    tree's ``__pycache__`` is shared with the other xdist worker, whose entry points write
+    the stamp there at any moment."""
+    shutil.copytree(ROOT / "controller", tmp_path / "controller",
+                    ignore=shutil.ignore_patterns("__pycache__"))
     code = ("import controller.runtime.bank, pathlib, controller.runtime as r; "
-            "p = pathlib.Path(r.__file__).parent / '__pycache__' / 'bank_kernels.sha256'; "
-            "print(p.exists())")
-    stamp = Path(controller.runtime.__file__).parent / "__pycache__" / "bank_kernels.sha256"
-    saved = stamp.read_text() if stamp.exists() else None
-    try:
-        stamp.unlink(missing_ok=True)
-        out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                             text=True, check=True, timeout=300)
-        assert out.stdout.strip() == "False"
-    finally:
-        if saved is not None:
-            stamp.parent.mkdir(exist_ok=True)
-            stamp.write_text(saved)
+            "p = pathlib.Path(r.__file__).parent; "
+            "print(p); print((p / '__pycache__' / 'bank_kernels.sha256').exists())")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, check=True, timeout=300)
+    imported_from, stamp_written = out.stdout.split()
+    assert Path(imported_from) == tmp_path / "controller" / "runtime"
+    assert stamp_written == "False"
 
 
 def test_changed_sources_drop_the_cached_kernels(tmp_path: Path,
