@@ -203,6 +203,11 @@ def bias_augmented(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
     return Phi_a, C_a, Q_a, kept
 
 
+#: A filter whose error dynamics have a spectral radius within this of 1 is not stabilising
+#: (a marginal mode never forgets its initial error).
+_STABLE_MARGIN = 1e-9
+
+
 def steady_state_kalman(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
                         R: FloatArray, bias_qd: FloatArray | None = None) -> SteadyStateKalman:
     """Steady-state prior covariance (filter DARE) and the measurement-update gain.
@@ -226,6 +231,13 @@ def steady_state_kalman(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
     F_inv = np.linalg.inv(F)
     F_inv = 0.5 * (F_inv + F_inv.T)
     L_all = P @ C.T @ F_inv
+    # solve_discrete_are may return a non-stabilising solution without raising (scipy
+    # 1.17: the maximal solution for a model with unobservable modes on the unit circle,
+    # such as the airborne model's centre of mass): check the error dynamics.
+    rho = float(np.max(np.abs(np.linalg.eigvals(Phi @ (np.eye(Phi.shape[0]) - L_all @ C)))))
+    if not rho < 1.0 - _STABLE_MARGIN:
+        raise ValueError(f"Kalman filter DARE has no stabilising solution "
+                         f"(error dynamics spectral radius {rho:.12f})")
     sign, logdet = np.linalg.slogdet(F)
     if sign <= 0:
         raise ValueError("innovation covariance is not positive definite")

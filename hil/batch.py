@@ -42,6 +42,8 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Generic, Protocol, TypeVar
 
+from rig.blas_threads import one_blas_thread
+
 __all__ = ["MAX_LOCAL_WORKERS", "BatchError", "BatchExecutor", "BatchResult",
            "ClusterAddress", "ClusterAddressError", "ClusterError", "DaskExecutor",
            "LocalExecutor", "TaskFailure", "make_executor", "parse_cluster_address"]
@@ -168,6 +170,13 @@ class BatchExecutor(Protocol):
                  tb: TracebackType | None) -> None: ...
 
 
+def _one_blas_thread_then(fn: Callable[[S, T], R], shared: S, item: T) -> R:
+    """A task on a Dask worker: the worker runs one BLAS thread, as a local worker does
+    (rig.blas_threads: bit-identical results wherever a run is computed)."""
+    one_blas_thread()
+    return fn(shared, item)
+
+
 def _identity(x: S) -> S:
     return x
 
@@ -236,7 +245,8 @@ class LocalExecutor(_ContextMixin):
                         bar.update(1)
             else:
                 if self._pool is None:
-                    self._pool = ProcessPoolExecutor(max_workers=self.jobs)
+                    self._pool = ProcessPoolExecutor(max_workers=self.jobs,
+                                                     initializer=one_blas_thread)
                 futs: dict[Future[R], int] = {self._pool.submit(fn, shared, items[i]): i
                                               for i in idx}
                 broken = False
@@ -317,7 +327,8 @@ class DaskExecutor(_ContextMixin):
         # lost with its copy has it recomputed; each worker fetches it once, not per task
         shared_f = self.client.submit(_identity, shared, pure=False, retries=RETRIES)
         # one message for the whole batch; tasks start in ``order`` (submission order)
-        futs = self.client.map(fn, [shared_f] * len(idx), [items[i] for i in idx],
+        futs = self.client.map(_one_blas_thread_then, [fn] * len(idx),
+                               [shared_f] * len(idx), [items[i] for i in idx],
                                retries=RETRIES, pure=False)
         where = {f.key: i for f, i in zip(futs, idx, strict=True)}
         bar = _bar(progress, len(items), desc)

@@ -19,6 +19,7 @@ from collections.abc import Sequence
 
 from controller.config import ConfigError, load_config
 from rig.argtypes import OneLineParser, bind_config, overwrite_problem
+from rig.blas_threads import one_blas_thread
 from rig.rt.kernel_cache import drop_stale_kernel_cache
 from rig.rt.stop_signals import StopSignals
 
@@ -108,6 +109,7 @@ def _os_error(exc: OSError) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    one_blas_thread()
     drop_stale_kernel_cache()
     command = next((a for a in argv if not a.startswith("-")), None)
     stop = StopSignals().install() if command in STOPPABLE else None

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
+from rig.blas_threads import one_blas_thread
 
-from controller.artifact import Design, save_design
-from controller.config import default_config
-from rig.rt.kernel_cache import drop_stale_kernel_cache
+one_blas_thread()  # before numpy loads its BLAS: as in every process `rig` starts
+
+import pytest  # noqa: E402
+
+from controller.artifact import Design, save_design  # noqa: E402
+from controller.config import default_config  # noqa: E402
+from rig.rt.kernel_cache import drop_stale_kernel_cache  # noqa: E402
 
 # before any test module imports the runtime bank (numba's on-disk cache of its kernels)
 drop_stale_kernel_cache()
