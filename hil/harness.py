@@ -116,10 +116,10 @@ class RigHarness:
             self.service = Service(cfg, service_options, bus=self.bus, metadata=metadata,
                                    stop=stop, clock=self.clock)
         except BaseException:
-            self.rig.close()
-            self.bus.shutdown()
             if self.turns is not None:
                 self.turns.close()
+            self.rig.close()
+            self.bus.shutdown()
             raise
         self.result = HarnessResult()
         self._period_ns = self.service.loop.period_ns
@@ -174,12 +174,12 @@ class RigHarness:
         finally:
             svc.close()
             res.ticks_run = svc.ticks_run
+            if self.turns is not None:  # (closed already unless the loop never ran)
+                self.turns.close()
             res.rig_stats = self.rig.stop()
             res.rig_error = res.rig_error or self.rig.error
             res.trace = self.rig.trace.copy()
             self.bus.shutdown()
-            if self.turns is not None:
-                self.turns.close()
         return res
 
     def _drain(self) -> None:
@@ -191,7 +191,7 @@ class RigHarness:
         """Stop what still runs and unmap the rig's trace (idempotent; after
         :meth:`run`, or instead of it)."""
         self.service.close()
+        if self.turns is not None:      # a lockstep rig waits for its turn until then
+            self.turns.close()
         self.rig.close()
         self.bus.shutdown()
-        if self.turns is not None:
-            self.turns.close()
