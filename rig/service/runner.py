@@ -92,7 +92,7 @@ class Service:
     ``time.monotonic_ns``, for a run in lockstep with the emulated rig; :meth:`run` then
     needs the matching ``pacer`` (:class:`rig.rt.lockstep.LockstepPacer`), and the
     recording names the clock ``lockstep`` (its log times: wall time at the start plus
-    loop time).
+    loop time) and blocks rather than drops (no deadline to protect).
 
     ``stop``: the command's :class:`rig.rt.stop_signals.StopSignals` (already installed);
     the design is then interruptible, the other set-up steps check it in between
@@ -184,8 +184,11 @@ class Service:
                     # what replay needs to build the same loop (rig.service.assembly)
                     **settings.metadata()}
             meta.update(metadata or {})
+            # lockstep: no deadline to protect, so the recorder waits for its writer
+            # instead of dropping (the run slows down, nothing is lost)
             clock_kw: dict[str, Any] = {} if self.clock is None else {
-                "clock": "lockstep", "clock_offset_ns": time.time_ns() - self.clock()}
+                "clock": "lockstep", "clock_offset_ns": time.time_ns() - self.clock(),
+                "blocking": True}
             self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
                                         design_bytes=self.design_blob, metadata=meta,
                                         **clock_kw)
