@@ -257,10 +257,14 @@ def run(args: argparse.Namespace) -> int:
     stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
     timing, why = choose_timing(args.timing)
     lockstep = timing == "lockstep"
-    pace = ("as fast as possible" if args.max_speedup <= 0
-            else f"at most {args.max_speedup:g} x real time")
-    print(f"rig demo: timing {timing} ({why}"
-          + (f"; {pace}" if lockstep else "") + ")", file=sys.stderr, flush=True)
+    pace = ""
+    if lockstep:
+        pace = ("; as fast as possible" if args.max_speedup <= 0
+                else f"; at most {args.max_speedup:g} x real time")
+    elif args.max_speedup != 1.0:
+        pace = "; --max-speedup ignored: lockstep only"
+    # the first line: which timing runs, and why
+    print(f"rig demo: timing {timing} ({why}{pace})", file=sys.stderr, flush=True)
     cfg = argtypes.with_foxglove(load_config(args.config), args.foxglove)
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
