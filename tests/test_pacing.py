@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import threading
+import tracemalloc
 
 from hypothesis import given
 from hypothesis import strategies as st
@@ -67,13 +68,15 @@ def test_never_more_than_max_lag_behind_after_advance(work: int, max_lag: int) -
 # ---------------------------------------------------------------------------- lockstep
 
 
-def _peer(link: LockstepLink, log: list[int], ticks: int) -> None:
-    """The rig's side: run each turn handed over, report it done, then close."""
+def _peer(link: LockstepLink, log: list[int] | None, ticks: int) -> None:
+    """The rig's side: run each turn handed over (noted in ``log``), report it done,
+    then close."""
     for _ in range(ticks):
         k = link.wait_go()
         if k is None:
             return
-        log.append(k)
+        if log is not None:
+            log.append(k)
         link.done(k)
     link.close()
 
@@ -107,7 +110,7 @@ def test_lockstep_pacer_hands_over_turns_on_a_stepped_clock() -> None:
 
 def test_lockstep_pacer_as_fast_as_possible_and_after_a_stall() -> None:
     ours, theirs = lockstep_pair()
-    peer = threading.Thread(target=_peer, args=(LockstepLink(theirs), [], 4))
+    peer = threading.Thread(target=_peer, args=(LockstepLink(theirs), None, 4))
     peer.start()
     wall = FakeClock()
     slept: list[float] = []
@@ -125,4 +128,28 @@ def test_lockstep_pacer_as_fast_as_possible_and_after_a_stall() -> None:
     fast.advance()
     fast.wait()
     assert slept and 0.0009 < slept[-1] <= 0.001
+    peer.join(5.0)
+
+
+def test_lockstep_turns_allocate_nothing() -> None:
+    """A turn of the loop's side reuses its buffers: memory does not grow with ticks."""
+    ours, theirs = lockstep_pair()
+    peer = threading.Thread(target=_peer, args=(LockstepLink(theirs), None, 600))
+    peer.start()
+    pacer = LockstepPacer(PERIOD, SteppedClock(), LockstepLink(ours, timeout_s=5.0),
+                          start_ns=PERIOD, stop=threading.Event(), max_speedup=0.0)
+
+    def turns(n: int) -> None:
+        for _ in range(n):
+            pacer.wait()
+            pacer.advance()
+    turns(100)
+    only = [tracemalloc.Filter(True, "*rig/rt/lockstep.py")]
+    tracemalloc.start()
+    snap0 = tracemalloc.take_snapshot().filter_traces(only)
+    turns(400)
+    snap1 = tracemalloc.take_snapshot().filter_traces(only)
+    tracemalloc.stop()
+    grown = sum(s.size_diff for s in snap1.compare_to(snap0, "lineno") if s.size_diff > 0)
+    assert grown < 512 and pacer.error is None, snap1.compare_to(snap0, "lineno")[:5]
     peer.join(5.0)
