@@ -27,6 +27,16 @@ GIL, a garbage collector or a memory lock with the other.
 
 Stopped before the loop ran (a stop signal during the set-up), nothing runs, no
 recording is left and :attr:`HarnessResult.ticks_run` is 0.
+
+Lockstep (``RigProcessOptions(lockstep=True)``, :mod:`rig.rt.lockstep`): the same two
+processes on the same wire, but they take turns, rig tick k then loop tick k, handed over
+on a second socket pair.  The loop's clock is a :class:`rig.rt.pacing.SteppedClock` at
+``rig.rt.lockstep.START_NS + k period`` (no lateness, compute time 0) and its pacer a
+:class:`rig.rt.lockstep.LockstepPacer` (wall clock best effort, at most ``max_speedup`` x
+real time); the rig runs from the loop's tick 0 (no warm-up ticks alone, nothing to
+drop) until the service closes the turn channel after its shutdown frames.  The run is
+then the one :func:`hil.stepped_run.record_emulated_run` computes in one process, bit for
+bit, whatever the host's scheduling.
 """
 
 from __future__ import annotations
@@ -42,6 +52,8 @@ from numpy.typing import NDArray
 from controller.config import RigConfig
 from hil.rig_process import RigProcess, RigProcessError, RigProcessOptions, RigTrace
 from rig.bus.socketpair import SocketPairBus, socketpair_wire
+from rig.rt.lockstep import START_NS, LockstepLink, LockstepPacer, lockstep_pair
+from rig.rt.pacing import SteppedClock
 
 __all__ = ["HarnessResult", "RigHarness", "RigProcessError", "RigProcessOptions"]
 
@@ -63,6 +75,9 @@ class HarnessResult:
     rig_realtime: dict[str, Any] = field(default_factory=dict)
     rig_error: str | None = None
     trace: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+    #: lockstep only: realtime_factor (loop time / wall time), behind_s (wall time the
+    #: pace was re-anchored by after host stalls), stalls
+    lockstep: dict[str, float] = field(default_factory=dict)
 
 
 class RigHarness:
@@ -70,27 +85,39 @@ class RigHarness:
 
     ``service_options`` as for :class:`rig.service.runner.Service` (``interface`` / ``channel``
     are ignored: the bus is the wire); ``metadata`` goes into the recording; ``stop``:
-    the command's installed :class:`rig.rt.stop_signals.StopSignals`.  Raises what the
-    service's constructor raises (after stopping the rig process)."""
+    the command's installed :class:`rig.rt.stop_signals.StopSignals`; ``max_speedup``:
+    lockstep only, see :class:`rig.rt.lockstep.LockstepPacer`.  Raises what the service's
+    constructor raises (after stopping the rig process)."""
 
     def __init__(self, cfg: RigConfig, service_options: Any,
                  rig_options: RigProcessOptions | None = None, *,
                  metadata: dict[str, Any] | None = None, stop: Any = None,
-                 rig_start_ticks: int = RIG_START_TICKS) -> None:
+                 rig_start_ticks: int = RIG_START_TICKS, max_speedup: float = 1.0) -> None:
         from rig.service.runner import Service
 
         self.cfg = cfg
         self.rig_options = rig_options or RigProcessOptions()
         self.rig_start_ticks = max(1, int(rig_start_ticks))
+        self.max_speedup = float(max_speedup)
         ours, theirs = socketpair_wire()
-        self.rig = RigProcess(cfg, self.rig_options, theirs)
+        self.turns: LockstepLink | None = None
+        self.clock: SteppedClock | None = None
+        rig_turns = None
+        if self.rig_options.lockstep:
+            loop_turns, rig_turns = lockstep_pair()
+            self.turns = LockstepLink(loop_turns)
+            self.clock = SteppedClock()
+            self.clock.now_ns = START_NS
+        self.rig = RigProcess(cfg, self.rig_options, theirs, rig_turns)
         self.bus = SocketPairBus(ours, fd=cfg.can.fd, channel="controller")
         try:
             # the rig's own errors (road, configuration) before the long design
             self.rig.wait_built(stop_event=None if stop is None else stop.event)
             self.service = Service(cfg, service_options, bus=self.bus, metadata=metadata,
-                                   stop=stop)
+                                   stop=stop, clock=self.clock)
         except BaseException:
+            if self.turns is not None:
+                self.turns.close()
             self.rig.close()
             self.bus.shutdown()
             raise
@@ -98,6 +125,8 @@ class RigHarness:
         self._period_ns = self.service.loop.period_ns
         # the rig stops once the safe command is on the wire, not before: it must see it
         self.service.after_shutdown_frames.append(self.rig.request_stop)
+        if self.turns is not None:      # the rig waits for a turn: this ends its wait
+            self.service.after_shutdown_frames.append(self.turns.close)
 
     @property
     def trace(self) -> RigTrace:
@@ -113,6 +142,12 @@ class RigHarness:
             res.rig_realtime = self.rig.wait_ready(
                 stop_event=svc.stop_event).get("realtime", {})
             self._drain()
+            pacer = None
+            if self.turns is not None and self.clock is not None:
+                pacer = LockstepPacer(self._period_ns, self.clock, self.turns,
+                                      start_ns=START_NS, stop=svc.stop_event,
+                                      max_speedup=self.max_speedup)
+                res.rig_started_at = 0      # rig tick 0 comes before loop tick 0
 
             def hook(loop: Any) -> None:
                 tick = loop.tick_count
@@ -130,10 +165,17 @@ class RigHarness:
                 if on_tick is not None:
                     on_tick(loop)
 
-            svc.run(on_tick=hook)
+            svc.run(on_tick=hook, pacer=pacer)
+            if pacer is not None:
+                res.rig_error = res.rig_error or pacer.error
+                res.lockstep = {"realtime_factor": pacer.realtime_factor,
+                                "behind_s": pacer.behind_ns * 1e-9,
+                                "stalls": float(pacer.stalls)}
         finally:
             svc.close()
             res.ticks_run = svc.ticks_run
+            if self.turns is not None:  # (closed already unless the loop never ran)
+                self.turns.close()
             res.rig_stats = self.rig.stop()
             res.rig_error = res.rig_error or self.rig.error
             res.trace = self.rig.trace.copy()
@@ -149,5 +191,7 @@ class RigHarness:
         """Stop what still runs and unmap the rig's trace (idempotent; after
         :meth:`run`, or instead of it)."""
         self.service.close()
+        if self.turns is not None:      # a lockstep rig waits for its turn until then
+            self.turns.close()
         self.rig.close()
         self.bus.shutdown()

@@ -18,7 +18,10 @@ Life of the rig process:
    ``ready`` on stdout;
 3. ticks from the time given by ``start <t_ns>`` (``time.monotonic_ns``, a clock shared
    by all processes) on absolute deadlines until ``stop`` or the end of stdin (the
-   controller process ended), then reports ``final`` with its counters.
+   controller process ended), then reports ``final`` with its counters.  In lockstep
+   (:attr:`RigProcessOptions.lockstep`, :mod:`rig.rt.lockstep`) it ticks instead when
+   the control loop hands it the turn, from tick 0, until the loop closes the turn
+   channel (or its process ended).
 
 SIGINT / SIGTERM are ignored: the controller process decides when the rig stops (it
 sends its safe valve command and its shutdown report first), and a terminal's Ctrl-C
@@ -55,6 +58,7 @@ from numpy.typing import NDArray
 
 from controller.config import RigConfig, config_to_toml
 from hil.node import DEFAULT_WATCHDOG_S, RigNode
+from rig.rt.lockstep import LockstepLink
 from rig.rt.realtime import RealtimeRequest
 from rig.strict_json import json_lines
 
@@ -88,6 +92,9 @@ class RigProcessOptions:
     #: inherited from the controller process is dropped)
     realtime: RealtimeRequest | None = field(default_factory=RealtimeRequest)
     start_timeout_s: float = 120.0      # for the set-up (imports, numba, road)
+    #: tick in turns with the control loop (rig.rt.lockstep) instead of in real time;
+    #: RigProcess then needs the rig's end of the turn channel
+    lockstep: bool = False
 
 
 # ---------------------------------------------------------------------------- shared trace
@@ -147,14 +154,18 @@ class RigTrace:
 
 class RigProcess:
     """Start the emulated rig as ``python -m hil.rig_process`` on ``wire_end`` (one end of
-    :func:`rig.bus.socketpair.socketpair_wire`; handed over and closed here).
+    :func:`rig.bus.socketpair.socketpair_wire`; handed over and closed here) and, in
+    lockstep, ``turn_end`` (the rig's end of :func:`rig.rt.lockstep.lockstep_pair`,
+    handed over and closed here too).
 
     Construction returns at once (the rig sets itself up in parallel, e.g. while the
     controller designs its bank); :meth:`wait_ready` waits for it, :meth:`start_at`
     starts its ticks, :meth:`stop` ends it and returns its counters."""
 
     def __init__(self, cfg: RigConfig, options: RigProcessOptions,
-                 wire_end: socket.socket) -> None:
+                 wire_end: socket.socket, turn_end: socket.socket | None = None) -> None:
+        if options.lockstep != (turn_end is not None):
+            raise ValueError("a lockstep rig process needs the turn channel (and only it)")
         self.cfg = cfg
         self.options = options
         self.ready_info: dict[str, Any] = {}
@@ -169,6 +180,7 @@ class RigProcess:
         try:
             self.trace = RigTrace(trace_fd, options.trace_ticks, create=True)
             bus_fd = wire_end.fileno()
+            turn_fd = -1 if turn_end is None else turn_end.fileno()
             setup = {
                 "config_toml": config_to_toml(cfg), "bus_fd": bus_fd, "trace_fd": trace_fd,
                 "trace_ticks": options.trace_ticks, "road": options.road,
@@ -176,15 +188,19 @@ class RigProcess:
                 "seed": cfg.sensors.seed if options.seed is None else options.seed,
                 "watchdog_s": options.watchdog_s,
                 "realtime": None if options.realtime is None else asdict(options.realtime),
+                "turn_fd": turn_fd,
             }
             self._proc = subprocess.Popen(
                 [sys.executable, "-m", "hil.rig_process"], stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE, pass_fds=(bus_fd, trace_fd),
+                stdout=subprocess.PIPE,
+                pass_fds=(bus_fd, trace_fd) if turn_end is None else (bus_fd, trace_fd, turn_fd),
                 # where `-m hil.rig_process` finds this very copy of the package
                 cwd=Path(__file__).resolve().parents[1], start_new_session=True)
         finally:
             os.close(trace_fd)           # the mapping and the child keep the block
             wire_end.close()             # the child has its own copy of this end
+            if turn_end is not None:     # ... and of this one: its death ends our waits
+                turn_end.close()
         assert self._proc.stdin is not None and self._proc.stdout is not None
         self._stdin = self._proc.stdin
         self._status = threading.Thread(target=self._read_status, args=(self._proc.stdout,),
@@ -374,6 +390,26 @@ def _warm_up(cfg: RigConfig, road: Any, seed: int) -> None:
         bus.shutdown()
 
 
+def _run_lockstep(node: RigNode, link: LockstepLink, stop: threading.Event) -> str | None:
+    """Tick when the control loop hands over the turn (``go k``), report each tick done;
+    until the loop closes the channel (its shutdown frames are out) or its process ended
+    (no wait times out: a dead controller process closes its end).  An error message if
+    the turns came out of sequence, else None."""
+    error = None
+    while not stop.is_set():
+        k = link.wait_go()
+        if k is None:
+            break
+        if k != node.tick_count:
+            error = f"lockstep out of step: turn {k} at rig tick {node.tick_count}"
+            break
+        node.tick()
+        if not link.done(k):
+            break
+    link.close()
+    return error
+
+
 def main() -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
@@ -420,15 +456,24 @@ def main() -> int:
         request["cpus"] = tuple(request.get("cpus", ()))
         report = apply_realtime(RealtimeRequest(**request)).as_dict()
     status.send("ready", pid=os.getpid(), realtime=report)
-    start.wait()
+    turn_fd = int(setup.get("turn_fd", -1))
     t0 = time.monotonic()
-    if not stop.is_set():
-        # a node joining the bus sees only what is sent from now on: commands sent
-        # before (the controller runs already) would arm the drive watchdog with old news
-        with contextlib.suppress(Exception):
-            while bus.recv(0.0) is not None:
-                pass
-        node.run(stop, start_ns=start_ns[0] or None)
+    if turn_fd >= 0:    # lockstep: from tick 0, in turns with the control loop
+        lockstep_error = _run_lockstep(node, LockstepLink(fileno=turn_fd, timeout_s=None),
+                                       stop)
+        if lockstep_error:
+            status.send("error", error=lockstep_error)
+    else:
+        start.wait()
+        t0 = time.monotonic()
+        if not stop.is_set():
+            # a node joining the bus sees only what is sent from now on: commands sent
+            # before (the controller runs already) would arm the drive watchdog with old
+            # news
+            with contextlib.suppress(Exception):
+                while bus.recv(0.0) is not None:
+                    pass
+            node.run(stop, start_ns=start_ns[0] or None)
     with contextlib.suppress(Exception):
         bus.shutdown()
     status.send("final", stats=node.stats.as_dict(), wall_s=time.monotonic() - t0,

@@ -7,7 +7,9 @@ with a :class:`rig.recording.recorder.RunRecorder` (blocking, so nothing is drop
 a stepped clock: each tick's wake-up lateness and compute time are drawn from a seeded
 generator, so the recording carries the timing-dependent frames that a replay must
 reproduce.  Used by the replay benchmark (``bench/replay_bench.py``) and the tests of
-recording, replay, reports and identification.
+recording, replay, reports and identification.  With ``lockstep_timing`` they are zero,
+the timing of a lockstep run (:mod:`rig.rt.lockstep`): the run is then the one ``rig demo
+--timing lockstep`` makes with two processes on a socket-pair wire, bit for bit.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from hil.node import RigNode
 from hil.sim.roads import make_road
 from rig.bus.core import open_bus, shutdown_all
 from rig.recording.recorder import RunRecorder
+from rig.rt.lockstep import START_NS
 from rig.rt.pacing import SteppedClock
 from rig.service.assembly import LoopSettings, build_control_loop
 
@@ -45,7 +48,8 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
                         road_speed_mps: float | None = None,
                         wrap_bus: Callable[[can.BusABC], can.BusABC] | None = None,
                         before_tick: Callable[[int, can.BusABC], None] | None = None,
-                        excite: bool = False) -> Path:
+                        excite: bool = False, road_s: float | None = None,
+                        lockstep_timing: bool = False) -> Path:
     """Record ``seconds`` of the loop against :class:`hil.node.RigNode` (virtual bus,
     tick-stepped, no sleeping) into ``path``.  Wake-up lateness and compute time are
     drawn (seeded) so that replay has to reproduce the timing-dependent frames too;
@@ -54,7 +58,9 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     bus (a test double that raises in recv / send); ``before_tick(k, rig_bus)`` runs
     after the rig's tick k, before the loop's (e.g. to inject error frames).
     ``excite``: an identification run (the loop plays ``cfg.excitation`` from the arm;
-    pass ``road="flat"``).
+    pass ``road="flat"``).  ``road_s``: the length of road generated (default the run's,
+    at most 120 s; replayed cyclically).  ``lockstep_timing``: zero lateness and compute
+    time, as the loop of a lockstep run records (``late_ticks`` still apply).
     Returns ``path``."""
     cfg = cfg or default_config()
     if design_bytes is None:
@@ -69,7 +75,7 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     dt = cfg.sample_time_s
     n = round(seconds / dt)
     speed = cfg.noise.nominal_speed_mps if road_speed_mps is None else road_speed_mps
-    rd = make_road(road, speed, min(seconds, 120.0), dt, seed)
+    rd = make_road(road, speed, min(seconds, 120.0) if road_s is None else road_s, dt, seed)
     channel = f"stepped-run-{uuid.uuid4().hex}"
     ctl_bus = open_bus(cfg.can, role="controller", interface="virtual", channel=channel)
     rig_bus = open_bus(cfg.can, role="rig", interface="virtual", channel=channel)
@@ -86,8 +92,11 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     loop_bus = ctl_bus if wrap_bus is None else wrap_bus(ctl_bus)
     loop = build_control_loop(cfg, design, loop_bus, settings, recorder=rec, clock_ns=clock)
     rng = np.random.default_rng(seed)
-    lateness = rng.integers(2_000, 90_000, size=n).tolist()
-    compute = rng.integers(15_000, 60_000, size=n).tolist()
+    if lockstep_timing:
+        lateness, compute = [0] * n, [0] * n
+    else:
+        lateness = rng.integers(2_000, 90_000, size=n).tolist()
+        compute = rng.integers(15_000, 60_000, size=n).tolist()
     for k, v in (late_ticks or {}).items():
         if 0 <= k < n:
             lateness[k] = v
@@ -95,7 +104,7 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     arm_tick = round(arm_at_s / dt)
     cmds.setdefault(arm_tick, ("arm", None))
     period = loop.period_ns
-    t = 1_000_000_000
+    t = START_NS
     try:
         for k in range(n):
             node.tick()

@@ -1,4 +1,5 @@
-"""`rig demo` smoke test: a short real-time run, JSON summary keys, recording readable.
+"""`rig demo --timing realtime` smoke test: a short real-time run, JSON summary keys,
+recording readable (the lockstep timing: tests/test_lockstep.py).
 
 The configuration tolerates a starved machine (stale / overrun limits far out, a 10 s
 drive watchdog), so what is asserted does not depend on the CPU the demo gets."""
@@ -31,7 +32,8 @@ def test_demo_short_run_json(tmp_path: Path) -> None:
         "stale_ticks": 1000, "overrun_streak": 100000, "rig_status_stale_ticks": 100000})))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(
-        [sys.executable, "-m", "rig.cli", "demo", "--duration", "3", "--json",
+        [sys.executable, "-m", "rig.cli", "demo", "--timing", "realtime", "--duration", "3",
+         "--json",
          "--no-telemetry", "--record", str(record), "--no-realtime", "--config", str(config),
          "--rig-watchdog-ms", "10000"],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=170)
@@ -58,6 +60,8 @@ def test_demo_short_run_json(tmp_path: Path) -> None:
     assert summary["rig"]["valve_commands"] > 0 and summary["rig"]["bad_frames"] == 0
     assert summary["rig_realtime"] == {}              # --no-realtime: both sides
     assert "absorbed power" in proc.stderr and "passive" in proc.stderr   # the table
+    assert proc.stderr.startswith("rig demo: timing realtime (asked for)")
+    assert summary["timing_mode"] == "realtime" and summary["lockstep"] is None
     run = read_run(record)
     assert run.complete, run.stopped_at
     states = {r.data["lifecycle"] for r in run.records}

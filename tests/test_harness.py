@@ -114,6 +114,35 @@ def test_rig_process_that_dies_stops_the_run(design_path: Path) -> None:
     assert res.ticks_run < killed[0] + 10_000
 
 
+def test_lockstep_rig_process_that_dies_stops_the_run_at_the_next_turn(
+        design_path: Path) -> None:
+    opts = ServiceOptions(design_path=str(design_path), telemetry=False, realtime=None,
+                          install_signal_handlers=False, recording=False)
+    rig_opts = RigProcessOptions(road_s=5.0, realtime=None, trace_ticks=20_000,
+                                 lockstep=True)
+    h = RigHarness(CFG, opts, rig_opts, max_speedup=0.0)
+    killed: list[int] = []
+
+    def on_tick(loop: Any) -> None:
+        if killed:
+            return
+        assert h.trace.count == loop.tick_count      # rig tick k came before loop tick k
+        if loop.tick_count >= 300:
+            killed.append(loop.tick_count)
+            os.kill(h.rig.pid, signal.SIGKILL)       # our own child, by its PID
+    res = h.run(on_tick=on_tick)
+    assert killed and res.rig_started_at == 0
+    assert res.rig_error is not None and "lockstep peer" in res.rig_error
+    # the loop's next turn finds the rig gone: that tick runs without it, then the run ends
+    assert res.ticks_run == killed[0] + 1
+    # ... where the service may notice it on the wire too (peer gone: bus error), or not
+    # yet: the dying process's two ends close one after the other
+    faults = [t.fault_code for t in h.service.loop.transitions
+              if t.state is LifecycleState.FAULT]
+    assert faults in ([], [FaultCode.BUS_ERROR])
+    assert res.lockstep["stalls"] >= 0 and h.service.loop.timing.summary()["skipped"] == 0
+
+
 def test_bad_road_is_reported_before_the_service_is_built(design_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch
                                                          ) -> None:

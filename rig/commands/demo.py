@@ -1,4 +1,5 @@
-"""``rig demo``: the controller service against the emulated rig, in real time.
+"""``rig demo``: the controller service against the emulated rig, in real time or in
+lockstep.
 
 The service (:class:`rig.service.runner.Service`, its loop in the main thread) and the emulated
 rig (:class:`hil.node.RigNode` in a process of its own) talk CAN over a socket pair, as
@@ -10,6 +11,15 @@ at half time the demo arms the service (ACTIVE, fuzzy LQG bank).  A live line sh
 time, lifecycle, rattlespace, absorbed power so far and overruns; at the end a table
 compares the two halves (from the rig's true plant signals) with the loop timing of
 each, and ``--json`` prints the same as JSON.  The run is recorded (MCAP).
+
+``--timing`` (default ``auto``, resolved by :func:`rig.rt.timing_mode.choose_timing`):
+``realtime`` runs both processes on their own 1 kHz deadlines (as ``rig run`` and ``rig
+hil``; an ordinary host's stalls of a few ms show as SENSOR_STALE / drive watchdog);
+``lockstep`` lets them take turns tick by tick (:mod:`rig.rt.lockstep`): the same frames
+on the same wire, every safety check unchanged in ticks, the wall clock only pacing the
+run (at most ``--max-speedup`` x real time) -- the same run, bit for bit, as
+:func:`hil.stepped_run.record_emulated_run`.  The first line printed says which timing
+runs and why.
 
 If the service latches a fault the demo, acting as the operator, resets and re-arms
 (at most ``--max-rearms`` times); every fault is listed in the summary.
@@ -36,6 +46,7 @@ import numpy as np
 from controller.config import RigConfig, load_config
 from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
+from rig.rt.timing_mode import TIMINGS, choose_timing
 
 SETTLE_S = 0.5     # skipped at the start of each half (start-up / switching transients)
 WARM_TICKS = 200   # loop ticks before the emulated rig starts
@@ -64,7 +75,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     argtypes.add_weights_option(p, None)
     p.add_argument("--no-telemetry", action="store_true", help="no Zenoh telemetry")
     argtypes.add_foxglove_option(p)
-    p.add_argument("--no-realtime", action="store_true", help="skip the real-time set-up")
+    p.add_argument("--no-realtime", action="store_true",
+                   help="skip the real-time set-up (lockstep never does it)")
+    p.add_argument("--timing", choices=("auto", *TIMINGS), default="auto",
+                   help="realtime: both processes on their own 1 kHz deadlines; lockstep: "
+                        "in turns tick by tick, paced by the wall clock best effort (the "
+                        "host's stalls cannot fault it); auto (default): lockstep for now")
+    p.add_argument("--max-speedup", type=argtypes.real(0.0, 1e6, "x"), default=1.0,
+                   metavar="F",
+                   help="lockstep: run at most F x real time (default 1; 0 = as fast as "
+                        "the two processes go)")
     p.add_argument("--max-rearms", type=argtypes.integer(0, MAX_REARMS), default=10,
                    metavar="N",
                    help="reset + re-arm after a fault at most N times (default 10)")
@@ -235,6 +255,16 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr)
     stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
+    timing, why = choose_timing(args.timing)
+    lockstep = timing == "lockstep"
+    pace = ""
+    if lockstep:
+        pace = ("; as fast as possible" if args.max_speedup <= 0
+                else f"; at most {args.max_speedup:g} x real time")
+    elif args.max_speedup != 1.0:
+        pace = "; --max-speedup ignored: lockstep only"
+    # the first line: which timing runs, and why
+    print(f"rig demo: timing {timing} ({why}{pace})", file=sys.stderr, flush=True)
     cfg = argtypes.with_foxglove(load_config(args.config), args.foxglove)
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
@@ -254,7 +284,9 @@ def run(args: argparse.Namespace) -> int:
               seed=cfg.sensors.seed if args.seed is None else args.seed)
     watchdog_s = (DEFAULT_WATCHDOG_S if args.rig_watchdog_ms is None
                   else args.rig_watchdog_ms * 1e-3)
-    realtime = None if args.no_realtime else RealtimeRequest()
+    # lockstep: no real-time set-up (a SCHED_FIFO process that waits for its turn gains
+    # nothing and can starve the machine's other work)
+    realtime = None if args.no_realtime or lockstep else RealtimeRequest()
     if not args.quiet:
         print("rig demo: designing the bank ...", file=sys.stderr)
     harness = RigHarness(
@@ -267,10 +299,10 @@ def run(args: argparse.Namespace) -> int:
         RigProcessOptions(road=args.road, speed_mps=args.speed,
                           road_s=args.duration + 1.0, seed=args.seed,
                           watchdog_s=watchdog_s, trace_ticks=n_ticks + 2000,
-                          realtime=realtime),
+                          realtime=realtime, lockstep=lockstep),
         metadata={"source": "rig demo", "road": args.road, "speed_mps": args.speed,
-                  "arm_tick": arm_tick, "excitation": args.excite},
-        stop=stop, rig_start_ticks=WARM_TICKS)
+                  "arm_tick": arm_tick, "excitation": args.excite, "timing": timing},
+        stop=stop, rig_start_ticks=WARM_TICKS, max_speedup=args.max_speedup)
     service, trace = harness.service, harness.trace
     if service.foxglove is not None and service.foxglove.state == "serving":
         print(f"rig demo: Foxglove view on {service.foxglove.url}", file=sys.stderr)
@@ -308,9 +340,11 @@ def run(args: argparse.Namespace) -> int:
     service.loop.lifecycle.add_listener(on_transition)
     progress = _Progress(cfg, trace, service, arm_tick, enabled=not args.quiet)
     progress.start()
+    wall0 = time.monotonic()
     try:
         result = harness.run(on_tick=on_tick)
     finally:
+        wall_s = time.monotonic() - wall0
         progress.stop()
         harness.close()
     if result.ticks_run == 0:
@@ -332,6 +366,8 @@ def run(args: argparse.Namespace) -> int:
     passive = _half_metrics(cfg, rig_trace, 0, min(arm_tick, n_done), late, step)
     active = _half_metrics(cfg, rig_trace, min(armed_at, n_done), n_done, late, step)
     summary: dict[str, Any] = {
+        "timing_mode": timing, "timing_reason": why,
+        "wall_s": wall_s, "lockstep": result.lockstep or None,
         "duration_s": args.duration, "road": args.road, "speed_mps": args.speed,
         "controller": args.controller, "weights": loop.weight_set,
         "armed_at_s": armed_at / rate if state["armed_at"] >= 0 else None,
@@ -362,6 +398,12 @@ def run(args: argparse.Namespace) -> int:
           f"(passive, then {args.controller} bank armed at "
           f"{summary['armed_at_s'] if summary['armed_at_s'] is not None else '-'} s)", file=out)
     print(_table(passive, active), file=out)
+    if lockstep:
+        ls = result.lockstep
+        print(f"lockstep: {n_rig / rate:.2f} s of rig time in {wall_s:.2f} s of wall time "
+              f"(loop {ls.get('realtime_factor', math.nan):.2f} x real time; the host held "
+              f"it back {ls.get('behind_s', 0.0):.2f} s in {ls.get('stalls', 0):.0f} stalls); "
+              "the lateness and step-time rows are the lockstep clock's (0)", file=out)
     for f in faults:
         print(f"fault at {f['time_s']:.3f} s: {f['code']} ({f['reason']})", file=out)
     if active.get("bypass_open_fraction", 1.0) > 0.5:

@@ -14,8 +14,24 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import Protocol
 
-__all__ = ["Pacer", "SteppedClock"]
+__all__ = ["Pacer", "SteppedClock", "TickPacer"]
+
+
+class TickPacer(Protocol):
+    """What ``ControlLoop.run`` paces its ticks with: :class:`Pacer` (real time) or
+    :class:`rig.rt.lockstep.LockstepPacer` (in turns with the emulated rig)."""
+
+    deadline: int           #: the current tick's deadline [ns, the loop's clock]
+
+    def wait(self) -> int:
+        """Block until the current tick is due; the wake-up time [ns]."""
+        ...
+
+    def advance(self) -> int:
+        """Move to the next tick; the number of deadlines skipped."""
+        ...
 
 
 class SteppedClock:

@@ -55,7 +55,7 @@ from controller.config import RigConfig
 from controller.runtime.kernels import StepFlag
 from rig.operator_commands import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout
-from rig.rt.pacing import Pacer
+from rig.rt.pacing import Pacer, TickPacer
 from rig.rt.sdnotify import SdNotifier
 from rig.service.hardware import RigIO
 from rig.service.lifecycle import CommandResult, Lifecycle, Transition
@@ -685,16 +685,22 @@ class ControlLoop:
     # ------------------------------------------------------------------ pacing
     def run(self, stop: threading.Event, max_ticks: int | None = None,
             on_tick: Callable[[ControlLoop], None] | None = None,
-            duration_s: float | None = None) -> None:
+            duration_s: float | None = None, pacer: TickPacer | None = None) -> None:
         """Tick at the configured rate until ``stop`` is set, ``max_ticks`` ticks were
-        done or ``duration_s`` of wall time has passed (skipped deadlines included).
+        done or ``duration_s`` of the loop's clock has passed (skipped deadlines
+        included).
 
         ``on_tick`` (if given) runs after each tick in the loop thread: keep it cheap.
-        Pacing: :class:`rig.rt.pacing.Pacer` (absolute deadlines, missed ones skipped
-        once a whole period is lost), the same rule as the emulated rig's."""
+        Pacing: ``pacer``, by default a :class:`rig.rt.pacing.Pacer` on the loop's clock
+        (absolute deadlines, missed ones skipped once a whole period is lost), the same
+        rule as the emulated rig's; in lockstep with the emulated rig a
+        :class:`rig.rt.lockstep.LockstepPacer` (the loop's clock is then its
+        :class:`rig.rt.pacing.SteppedClock`)."""
         clock = self.clock_ns
         period = self.period_ns
-        pacer = Pacer(period, start_ns=clock() + period, spin_ns=self.spin_ns, clock=clock)
+        if pacer is None:
+            pacer = Pacer(period, start_ns=clock() + period, spin_ns=self.spin_ns,
+                          clock=clock)
         timing = self.timing
         end = None if max_ticks is None else self.tick_count + max_ticks
         end_ns = (None if duration_s is None

@@ -38,6 +38,7 @@ import can
 from controller.config import RigConfig, config_hash, config_to_toml
 from controller.modes import blending_of
 from rig.operator_commands import loop_argument
+from rig.rt.pacing import SteppedClock, TickPacer
 from rig.rt.realtime import (
     RealtimeReport,
     RealtimeRequest,
@@ -87,6 +88,12 @@ def design_bytes(design: Any) -> bytes:
 class Service:
     """One controller service instance (see the module docstring).
 
+    ``clock``: a settable loop clock (:class:`rig.rt.pacing.SteppedClock`) instead of
+    ``time.monotonic_ns``, for a run in lockstep with the emulated rig; :meth:`run` then
+    needs the matching ``pacer`` (:class:`rig.rt.lockstep.LockstepPacer`), and the
+    recording names the clock ``lockstep`` (its log times: wall time at the start plus
+    loop time) and blocks rather than drops (no deadline to protect).
+
     ``stop``: the command's :class:`rig.rt.stop_signals.StopSignals` (already installed);
     the design is then interruptible, the other set-up steps check it in between
     (:class:`rig.rt.stop_signals.StopRequested` out of the constructor, after closing what
@@ -96,8 +103,12 @@ class Service:
     def __init__(self, cfg: RigConfig, opts: ServiceOptions | None = None, *,
                  bus: can.BusABC | None = None, notifier: SdNotifier | None = None,
                  metadata: dict[str, Any] | None = None,
-                 stop: StopSignals | None = None) -> None:
+                 stop: StopSignals | None = None,
+                 clock: SteppedClock | None = None) -> None:
         self.cfg = cfg
+        #: the loop's clock when it is not the machine's (lockstep with the emulated
+        #: rig, rig.rt.lockstep); None = time.monotonic_ns
+        self.clock = clock
         self.opts = opts = opts or ServiceOptions()
         self._stop = stop
         self.stop_event = stop.event if stop is not None else threading.Event()
@@ -173,11 +184,18 @@ class Service:
                     # what replay needs to build the same loop (rig.service.assembly)
                     **settings.metadata()}
             meta.update(metadata or {})
+            # lockstep: no deadline to protect, so the recorder waits for its writer
+            # instead of dropping (the run slows down, nothing is lost)
+            clock_kw: dict[str, Any] = {} if self.clock is None else {
+                "clock": "lockstep", "clock_offset_ns": time.time_ns() - self.clock(),
+                "blocking": True}
             self.recorder = RunRecorder(target, cfg.recording, config_toml=config_to_toml(cfg),
-                                        design_bytes=self.design_blob, metadata=meta)
+                                        design_bytes=self.design_blob, metadata=meta,
+                                        **clock_kw)
             self._check_stop()
         self.loop = build_control_loop(cfg, self.design, bus, settings, recorder=self.recorder,
-                                       notifier=self.notifier, timing_ring=opts.timing_ring)
+                                       notifier=self.notifier, timing_ring=opts.timing_ring,
+                                       clock_ns=self.clock or time.monotonic_ns)
         self.runtime, self.force_loop = self.loop.rt, self.loop.pi
         telemetry_on = cfg.telemetry.enabled if opts.telemetry is None else opts.telemetry
         if telemetry_on:
@@ -313,10 +331,11 @@ class Service:
         self.realtime_report = apply_realtime(request)
         return self.realtime_report
 
-    def run(self, on_tick: Callable[[ControlLoop], None] | None = None) -> int:
+    def run(self, on_tick: Callable[[ControlLoop], None] | None = None,
+            pacer: TickPacer | None = None) -> int:
         """Run until SIGTERM / SIGINT / ``stop_event`` / ``duration_s``; returns 0.
         Stopped before the first tick, the loop does not start (and the recording is
-        removed)."""
+        removed).  ``pacer``: the loop's pacing (default: real time on its clock)."""
         own_signals = None
         if self._stop is None and self.opts.install_signal_handlers:
             own_signals = self._stop = StopSignals(self.stop_event).install()
@@ -334,7 +353,8 @@ class Service:
                 if on_tick is not None:
                     on_tick(loop)
 
-            self.loop.run(self.stop_event, on_tick=tick_hook, duration_s=self.opts.duration_s)
+            self.loop.run(self.stop_event, on_tick=tick_hook, duration_s=self.opts.duration_s,
+                          pacer=pacer)
             if not self.exit_reason:
                 self.exit_reason = (self._stop_reason() if self.stop_event.is_set()
                                     else "duration")

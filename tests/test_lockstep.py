@@ -1,0 +1,89 @@
+"""``rig demo --timing lockstep``: the service and the emulated rig in two processes on a
+socket-pair wire, taking turns tick by tick (rig.rt.lockstep), make the same run, bit for
+bit, as the loop and the rig stepped in one process (hil.stepped_run, with the lockstep
+timing: zero lateness and compute time) and as the replay of the demo's own recording.
+Nothing here depends on the host's timing: the demo runs as fast as the processes go."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from controller.config import default_config
+from hil.stepped_run import record_emulated_run
+from rig.recording.recorder import read_run
+from rig.recording.schema import DESIGN_ATTACHMENT
+from rig.replay import replay_recording
+from rig.rt.timing_mode import TIMINGS, choose_timing
+
+ROOT = Path(__file__).resolve().parents[1]
+DURATION_S = 2.0
+
+
+def _frames(run: object) -> list[tuple[object, ...]]:
+    return [(f.t_ns, f.tick, f.arbitration_id, f.data, f.is_rx, f.is_error_frame)
+            for f in run.frames]          # type: ignore[attr-defined]
+
+
+def _events(run: object) -> list[tuple[object, ...]]:
+    """The events; the reason of the stop is the stopper's words (demo: the stop it
+    requested at the end, stepped run: "end of recording")."""
+    out: list[tuple[object, ...]] = []
+    for e in run.events:                  # type: ignore[attr-defined]
+        detail = e.detail
+        if e.kind == "lifecycle" and detail.get("to") == "STOPPING":
+            detail = {k: v for k, v in detail.items() if k != "reason"}
+        out.append((e.t_ns, e.tick, e.kind, detail))
+    return out
+
+
+@pytest.mark.timeout(300)
+def test_lockstep_demo_is_the_stepped_run_and_its_replay_bit_for_bit(tmp_path: Path) -> None:
+    record = tmp_path / "demo.mcap"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "rig.cli", "demo", "--timing", "lockstep", "--max-speedup", "0",
+         "--duration", str(DURATION_S), "--json", "--no-telemetry", "--record", str(record),
+         "-q"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=280)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.splitlines()[0].startswith("rig demo: timing lockstep (asked for")
+    summary = json.loads(proc.stdout)
+    assert summary["timing_mode"] == "lockstep" and summary["faults"] == []
+    assert summary["final_state"] == "STOPPING" and summary["rig_error"] is None
+    assert summary["recording_dropped"] == 0 and summary["armed_at_s"] == DURATION_S / 2
+    assert summary["rig"]["watchdog_trips"] == 0 and summary["rig"]["late_ticks"] == 0
+    n = round(DURATION_S * 1000)
+    assert summary["rig"]["ticks"] == summary["timing"]["ticks"] == n
+
+    demo = read_run(record)
+    assert demo.complete, demo.stopped_at
+    cfg = default_config()
+    stepped = read_run(record_emulated_run(
+        tmp_path / "stepped.mcap", DURATION_S, cfg=cfg,
+        design_bytes=demo.attachments[DESIGN_ATTACHMENT], arm_at_s=DURATION_S / 2,
+        seed=cfg.sensors.seed, warmup_ticks=round(cfg.safety.arm_warmup_s * 1000),
+        road_s=DURATION_S + 1.0, lockstep_timing=True))
+    # every frame both ways, every tick record, every event: the same, times included
+    assert len(demo.records) == n
+    assert _frames(demo) == _frames(stepped)
+    assert [r.data for r in demo.records] == [r.data for r in stepped.records]
+    assert _events(demo) == _events(stepped)
+    states = {r.data["lifecycle"] for r in demo.records}
+    assert {"INACTIVE", "ACTIVE"} <= states
+
+    res = replay_recording(record)
+    assert res.same_controller and res.bit_exact, res.summary()
+    assert res.tx_frames_compared == res.tx_frames_recorded > n
+
+
+def test_auto_timing_is_chosen_in_one_place() -> None:
+    assert choose_timing("auto")[0] == "lockstep"       # until the host is checked
+    assert all(choose_timing(t) == (t, "asked for") for t in TIMINGS)
+    with pytest.raises(ValueError, match="expected auto"):
+        choose_timing("fast")
