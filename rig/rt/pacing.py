@@ -15,7 +15,10 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-__all__ = ["Pacer", "SteppedClock"]
+__all__ = ["LOOP_SPIN_NS", "Pacer", "SteppedClock"]
+
+#: the control loop sleeps to this much before a deadline and spins the rest [ns]
+LOOP_SPIN_NS = 60_000
 
 
 class SteppedClock:
