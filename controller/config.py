@@ -488,6 +488,13 @@ class SafetyConfig:
     rig_status_stale_ticks: int = _f(50, lo=1, hi=100000,
                                      doc="no RigStatus for more ticks (5 periods of 100 Hz) "
                                      "= arm/reset refused")
+    host_check_s: float = _f(1.0, lo=0.0, hi=60.0,
+                             doc="rig run: measure the loop thread's wake-up latency this "
+                                 "long before the first tick and report it (0 = no check; "
+                                 "`rig check-host`, docs/deploy.md)")
+    host_check_required: bool = _f(False, doc="a host check that fails the timing budgets "
+                                              "(stale_ticks x period, overrun_threshold_s) "
+                                              "refuses every arm")
 
 
 @dataclass(frozen=True)

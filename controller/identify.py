@@ -54,7 +54,8 @@ a and r; M, K, C fitted to them by complex least squares must agree with the tim
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -65,6 +66,7 @@ from controller.config import RigConfig
 
 __all__ = ["ACTUATOR_LOWPASS_HZ", "EXPONENT_HALF_WIDTH", "HIGHPASS_HZ", "LOWPASS_HZ",
            "MIN_EXCITATION_S", "MIN_REST_S", "N_BLOCKS", "RELATIVE_HALF_WIDTH",
+           "SEGMENT_SETTLE_S",
            "Identification", "IdentificationRefusedError", "RunData", "fitted_config",
            "identify", "model_frequency_response"]
 
@@ -96,9 +98,9 @@ HAC_LAG_S = 1.0
 RELATIVE_HALF_WIDTH = 0.25
 SATURATED_FRACTION = 0.005   # of the excitation's ticks
 MIN_TIRE_LOAD_FRACTION = 0.02
-#: ticks this close to a missed / held sensor sample are left out of the fit [s]
-GLITCH_GUARD_S = 0.1
-MAX_GLITCH_FRACTION = 0.5
+#: after a missed / held sensor sample the filter chains restart; the ticks this long
+#: after the restart (the chains settling) are left out of the fit [s]
+SEGMENT_SETTLE_S = 1.0
 
 
 class IdentificationRefusedError(ValueError):
@@ -270,31 +272,75 @@ def _corr_time_ticks(res: FloatArray) -> float:
 # ---------------------------------------------------------------------------- checks
 
 
-def _segments(data: RunData, cfg: RigConfig) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+def _pieces(data: RunData) -> list[tuple[int, int]]:
+    """[start, stop) of the runs the filter chains go through in one piece: a new piece
+    starts at every tick without the next sensor sample (a frame missed or held, a loop
+    period skipped: the series is not uniformly sampled across it)."""
+    n = data.rattlespace_m.size
+    if data.fresh is None or np.all(data.fresh):
+        return [(0, n)]
+    starts = np.unique(np.r_[0, np.flatnonzero(~data.fresh)])
+    stops = np.r_[starts[1:], n]
+    return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True)]
+
+
+def _piecewise(pieces: list[tuple[int, int]], fn: Callable[..., FloatArray],
+               data: RunData, *arrays: FloatArray) -> FloatArray:
+    """``fn(data, *arrays)`` run on every piece separately (the filter chains restart
+    after each gap), concatenated back onto the ticks."""
+    if len(pieces) == 1:
+        return fn(data, *arrays)
+    return np.concatenate([fn(_slice(data, a, b), *(x[a:b] for x in arrays))
+                           for a, b in pieces])
+
+
+def _slice(data: RunData, a: int, b: int) -> RunData:
+    return replace(data, rattlespace_m=data.rattlespace_m[a:b], accel_mps2=data.accel_mps2[a:b],
+                   force_n=data.force_n[a:b], force_ref_n=data.force_ref_n[a:b],
+                   spool_cmd=data.spool_cmd[a:b], excite=data.excite[a:b],
+                   rest=data.rest[a:b], fresh=None if data.fresh is None else data.fresh[a:b])
+
+
+def _segments(data: RunData, cfg: RigConfig
+              ) -> tuple[NDArray[np.int64], NDArray[np.int64], dict[str, Any]]:
+    """The excitation and rest ticks the fit uses, and what the gaps left out."""
     dt = data.dt_s
-    excite, rest_mask = data.excite, data.rest
-    if data.fresh is not None and not np.all(data.fresh):
-        # a missed or held sensor sample disturbs the filtered signals for the filters'
-        # memory: those ticks are left out of the fit
-        bad = (~data.fresh).astype(np.float64)
-        guard = round(GLITCH_GUARD_S / dt)
-        near = np.convolve(bad, np.ones(2 * guard + 1), mode="same") > 0
-        if np.any(data.excite) and np.mean(near[data.excite]) > MAX_GLITCH_FRACTION:
-            raise IdentificationRefusedError(
-                f"too many sensor samples missed: {int(bad[data.excite].sum())} ticks of "
-                f"the excitation had no fresh SensorData, {100 * np.mean(near[data.excite]):.0f}"
-                f" % of it is within {GLITCH_GUARD_S} s of one (at most "
-                f"{100 * MAX_GLITCH_FRACTION:.0f} %); rerun with the real-time set-up")
-        excite = excite & ~near
-        rest_mask = rest_mask & ~near
-    exc = np.flatnonzero(excite)
-    if exc.size == 0:
+    excite, rest_mask = data.excite.copy(), data.rest.copy()
+    played = np.flatnonzero(data.excite)
+    if played.size == 0:
         raise IdentificationRefusedError("no excitation segment: record `rig run --excite` (or "
                                     "`rig demo --excite`); this run has no 'excitation' "
                                     "start event with the valve driven")
     skip = round(1.0 / dt)          # the force loop and the filters settle
-    exc = exc[exc >= exc[0] + skip]
+    excite[:played[0] + skip] = False
+    considered = int(excite.sum())
+    pieces = _pieces(data)
+    if len(pieces) > 1:
+        # the chains restart at each gap: its ticks and the settling after it are out
+        assert data.fresh is not None
+        settle = round(SEGMENT_SETTLE_S / dt)
+        settled = np.ones_like(excite)
+        for a, b in pieces[1:]:
+            settled[a:min(b, a + settle)] = False
+        excite &= settled & data.fresh
+        rest_mask &= data.fresh
+    exc = np.flatnonzero(excite)
+    missed = 0 if data.fresh is None else int(np.sum(~data.fresh & data.excite))
+    gaps = int(sum(1 for a, _ in pieces[1:] if data.excite[a]
+                   and (a == 0 or data.fresh is None or data.fresh[a - 1])))
+    left_out = considered - exc.size
+    info = {"missed_sensor_samples": missed, "gaps": gaps,
+            "left_out_s": left_out * dt,
+            "left_out_fraction": left_out / considered if considered else 0.0,
+            "segment_settle_s": SEGMENT_SETTLE_S}
     if exc.size * dt < MIN_EXCITATION_S:
+        if left_out and considered * dt >= MIN_EXCITATION_S:
+            raise IdentificationRefusedError(
+                f"too little data between missed sensor samples: {exc.size * dt:.2f} s of "
+                f"the excitation usable, at least {MIN_EXCITATION_S:g} s needed ({missed} "
+                f"ticks without fresh SensorData in {gaps} gaps left out "
+                f"{left_out * dt:.2f} s with the filters' {SEGMENT_SETTLE_S:g} s settling "
+                "after each); rerun with the real-time set-up (`rig check-host`)")
         raise IdentificationRefusedError(
             f"excitation too short: {data.excite.sum() * dt:.2f} s recorded, at least "
             f"{MIN_EXCITATION_S + 1.0:g} s needed (excitation.duration_s "
@@ -305,7 +351,7 @@ def _segments(data: RunData, cfg: RigConfig) -> tuple[NDArray[np.int64], NDArray
         raise IdentificationRefusedError(
             f"rest too short: {rest.size * dt:.2f} s of passive rest before the excitation, "
             f"at least {MIN_REST_S + 0.2:g} s needed for the sensor offsets and noise")
-    return exc, rest
+    return exc, rest, info
 
 
 def _check_saturation(data: RunData, cfg: RigConfig, exc: NDArray[np.int64]) -> None:
@@ -336,6 +382,17 @@ _N_COLS = 8
 def _mech_columns(data: RunData, cfg: RigConfig, offsets: dict[str, float],
                   chain: _Chain, lp: tuple[FloatArray, FloatArray],
                   x2: FloatArray | None = None) -> FloatArray:
+    """The mechanical fit's columns, the chains restarted after every gap."""
+    pieces = _pieces(data)
+    if x2 is None:
+        return _piecewise(pieces, lambda d: _mech_piece(d, cfg, offsets, chain, lp), data)
+    return _piecewise(pieces, lambda d, x: _mech_piece(d, cfg, offsets, chain, lp, x),
+                      data, x2)
+
+
+def _mech_piece(data: RunData, cfg: RigConfig, offsets: dict[str, float],
+                chain: _Chain, lp: tuple[FloatArray, FloatArray],
+                x2: FloatArray | None = None) -> FloatArray:
     r = data.rattlespace_m - offsets["r"]
     a = data.accel_mps2 - offsets["a"]
     f = data.force_n - offsets["f"]
@@ -444,6 +501,13 @@ _A_DF, _A_F, _A_DR, _A_V = range(4)
 
 def _actuator_columns(data: RunData, cfg: RigConfig, offsets: dict[str, float],
                       chain: _Chain, tau: float, delay: int) -> FloatArray:
+    """The actuator fit's columns, the chains restarted after every gap."""
+    return _piecewise(_pieces(data),
+                      lambda d: _actuator_piece(d, cfg, offsets, chain, tau, delay), data)
+
+
+def _actuator_piece(data: RunData, cfg: RigConfig, offsets: dict[str, float],
+                    chain: _Chain, tau: float, delay: int) -> FloatArray:
     """Columns of the interval form of the pressure equation over [t_{k-1}, t_k]:
     (F_k - F_{k-1}) / T = -beta (F_k + F_{k-1}) / 2 + k_h (r_k - r_{k-1}) / T + gamma v_k,
     v_k the valve term of the spool's exact mean over the interval (command held,
@@ -619,7 +683,7 @@ def identify(data: RunData, cfg: RigConfig, n_blocks: int = N_BLOCKS) -> Identif
     :class:`IdentificationRefusedError` names why a run cannot be used."""
     dt = data.dt_s
     fs = 1.0 / dt
-    exc, rest = _segments(data, cfg)
+    exc, rest, gaps = _segments(data, cfg)
     _check_saturation(data, cfg, exc)
     offsets = {"r": float(np.mean(data.rattlespace_m[rest])),
                "a": float(np.mean(data.accel_mps2[rest])),
@@ -812,8 +876,8 @@ def identify(data: RunData, cfg: RigConfig, n_blocks: int = N_BLOCKS) -> Identif
                   f"error ({HAC_LAG_S:g} s window), plus the spread over a second pair of "
                   f"bands",
         "excitation_s": exc.size * dt, "rest_s": rest.size * dt,
-        "missed_sensor_samples": (0 if data.fresh is None
-                                  else int(np.sum(~data.fresh & data.excite))),
+        "missed_sensor_samples": gaps["missed_sensor_samples"],
+        "gaps": gaps,
         "body_residual_rms_n": rms_res, "body_force_rms_n": rms_f,
         "body_fit_r2": 1.0 - (rms_res / rms_f) ** 2 if rms_f > 0 else math.nan,
         "tire_stiffness_linear_n_per_m": full["kt"],

@@ -42,6 +42,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "report": ("report", "HTML report with plots of a recorded run"),
     "identify": ("identify", "identify the rig (masses, rates, tire, actuator) from an "
                              "excitation run"),
+    "check-host": ("check_host", "can this computer run the loop? wake-up latency against "
+                                 "the timing budgets"),
 }
 
 

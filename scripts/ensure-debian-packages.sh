@@ -4,13 +4,14 @@
 #   openssl   -> throw-away certificates for the Zenoh TLS test
 #   iproute2  -> `ip link` for vcan set-up
 #   chromium  -> renders the HTML run report in a real browser
+#   rt-tests  -> cyclictest, run next to `rig check-host` (rig/rt/cyclictest.py)
 #   podman, runc, debootstrap -> build and run the container image
 #               (scripts/container-image.sh, tests/test_deploy.py)
 # Usage: scripts/ensure-debian-packages.sh [package ...]   (defaults to the list above)
 # Does nothing (and says so) where apt-get is not available or we are not root.
 set -euo pipefail
 pkgs=("$@")
-[ ${#pkgs[@]} -gt 0 ] || pkgs=(systemd openssl iproute2 chromium podman runc debootstrap)
+[ ${#pkgs[@]} -gt 0 ] || pkgs=(systemd openssl iproute2 chromium rt-tests podman runc debootstrap)
 missing=()
 for p in "${pkgs[@]}"; do
     dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

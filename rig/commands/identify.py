@@ -125,6 +125,12 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"rig identify: {args.run}: {ident.fit['excitation_s']:.1f} s of excitation, "
           f"{ident.fit['rest_s']:.1f} s of rest")
+    gaps = ident.fit["gaps"]
+    if gaps["gaps"]:
+        print(f"missed sensor samples: {gaps['missed_sensor_samples']} ticks in {gaps['gaps']} "
+              f"gaps; the filters restart after each and settle "
+              f"{gaps['segment_settle_s']:g} s: {gaps['left_out_s']:.2f} s "
+              f"({100 * gaps['left_out_fraction']:.1f} %) of the excitation left out")
     print(f"{'key':40} {'estimate':>12} {'95 % interval':>27} {'+/- %':>7}")
     for key, value in ident.estimates.items():
         lo, hi = ident.ci95[key]

@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         record=args.record,
         recording=False if args.no_record else None,
         telemetry=False if args.no_telemetry else None, controller=args.controller,
-        weights=args.weights, realtime=rt)
+        weights=args.weights, realtime=rt, host_check=True)
     try:
         service = Service(cfg, opts, stop=stop)
     except RecorderStartError:
@@ -111,5 +111,6 @@ def run(args: argparse.Namespace) -> int:
         status["realtime"] = service.realtime_report.as_dict()
         status["telemetry"] = service.status()["telemetry"]
         status["foxglove"] = service.foxglove_status()
+        status["host_check"] = service.status()["host_check"]
         print(strict_json.dumps(status))
     return code

@@ -16,7 +16,10 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-__all__ = ["Pacer", "SteppedClock", "TickPacer"]
+__all__ = ["LOOP_SPIN_NS", "Pacer", "SteppedClock", "TickPacer"]
+
+#: the control loop sleeps to this much before a deadline and spins the rest [ns]
+LOOP_SPIN_NS = 60_000
 
 
 class TickPacer(Protocol):

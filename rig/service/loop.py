@@ -55,7 +55,7 @@ from controller.config import RigConfig
 from controller.runtime.kernels import StepFlag
 from rig.operator_commands import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout
-from rig.rt.pacing import Pacer, TickPacer
+from rig.rt.pacing import LOOP_SPIN_NS, Pacer, TickPacer
 from rig.rt.sdnotify import SdNotifier
 from rig.service.hardware import RigIO
 from rig.service.lifecycle import CommandResult, Lifecycle, Transition
@@ -159,7 +159,7 @@ class ControlLoop:
                  telemetry: Telemetry | None = None, notifier: SdNotifier | None = None,
                  blending: int = 0, weight_set: int | None = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns,
-                 spin_ns: int = 60_000, warmup_ticks: int | None = None,
+                 spin_ns: int = LOOP_SPIN_NS, warmup_ticks: int | None = None,
                  timing_ring: int = 1 << 16, excitation: np.ndarray | None = None) -> None:
         self.cfg = cfg
         self.rt = runtime
@@ -181,6 +181,8 @@ class ControlLoop:
                              else warmup_ticks)
         self.blending = int(blending)
         self.weight_set = int(cfg.design.weight_set if weight_set is None else weight_set)
+        #: not '' = every arm is refused with this reason (a failed required host check)
+        self.arm_blocker = ""
 
         if recorder is not None:
             recorder.set_tick_layout(tick_record_layout(runtime))
@@ -309,7 +311,7 @@ class ControlLoop:
                            {"command": name, "argument": arg, **res.as_dict()})
 
     def _arm(self, _arg: None) -> CommandResult:
-        problem = self.health_problem()
+        problem = self.arm_blocker or self.health_problem()
         tick, t = self.tick_count, self.t_ns
         res = self.lifecycle.arm(tick, t, not problem, problem)
         if res.accepted:

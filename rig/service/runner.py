@@ -38,6 +38,7 @@ import can
 from controller.config import RigConfig, config_hash, config_to_toml
 from controller.modes import blending_of
 from rig.operator_commands import loop_argument
+from rig.rt.hostcheck import HostCheck, check_host
 from rig.rt.pacing import SteppedClock, TickPacer
 from rig.rt.realtime import (
     RealtimeReport,
@@ -73,6 +74,8 @@ class ServiceOptions:
     timing_ring: int = 1 << 16            # per-tick timing samples kept (ring buffer)
     excite: bool = False                  # identification run (cfg.excitation): arm after
                                           # excitation.rest_s, play it, stop after it
+    host_check: bool = False              # measure the wake-up latency for
+                                          # safety.host_check_s before the first tick
 
 
 def design_bytes(design: Any) -> bytes:
@@ -113,6 +116,7 @@ class Service:
         self._stop = stop
         self.stop_event = stop.event if stop is not None else threading.Event()
         self.realtime_report = RealtimeReport()
+        self.host_check: HostCheck | None = None     # opts.host_check's result
         self.exit_reason = ""
         self.recording_discarded = False
         self._own_bus = bus is None
@@ -274,6 +278,7 @@ class Service:
         s["telemetry"] = {"state": "off"} if self.telemetry is None \
             else self.telemetry.status()
         s["foxglove"] = self.foxglove_status()
+        s["host_check"] = None if self.host_check is None else self.host_check.as_dict()
         return s
 
     def foxglove_status(self) -> dict[str, Any]:
@@ -331,6 +336,25 @@ class Service:
         self.realtime_report = apply_realtime(request)
         return self.realtime_report
 
+    def _check_host(self) -> None:
+        """``opts.host_check``: measure the loop thread's wake-up latency (its real-time
+        set-up already applied) for ``safety.host_check_s``; log it, keep it for
+        ``status()``; failing with ``safety.host_check_required``, every arm is refused."""
+        seconds = self.cfg.safety.host_check_s
+        if not self.opts.host_check or seconds <= 0:
+            return
+        self.host_check = check_host(self.cfg, seconds, applied=self.realtime_report)
+        if self.host_check.ok:
+            log.info(self.host_check.summary())
+            return
+        log.warning(self.host_check.summary())
+        if self.cfg.safety.host_check_required:
+            self.loop.arm_blocker = (f"host check failed (safety.host_check_required): "
+                                     f"{'; '.join(self.host_check.verdict.problems)}")
+            self.notifier.set_note("host_check", "FAILED: arming refused")
+        else:
+            self.notifier.set_note("host_check", "FAILED")
+
     def run(self, on_tick: Callable[[ControlLoop], None] | None = None,
             pacer: TickPacer | None = None) -> int:
         """Run until SIGTERM / SIGINT / ``stop_event`` / ``duration_s``; returns 0.
@@ -345,8 +369,11 @@ class Service:
                 return 0
             if self.opts.realtime is not None:
                 self.apply_realtime(self.opts.realtime)
+            self._check_host()
             self.notifier.ready(f"{self.loop.lifecycle.state.name}; "
-                                f"{self.realtime_report.summary()}")
+                                f"{self.realtime_report.summary()}"
+                                + (f"; {self.host_check.summary()}" if self.host_check
+                                   else ""))
 
             def tick_hook(loop: ControlLoop) -> None:
                 self._on_tick(loop)
