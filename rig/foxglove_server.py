@@ -32,9 +32,8 @@ import foxglove
 
 from controller.config import FoxgloveConfig
 from rig.recording.codec import TickDecoder, TickLayout, TickPacker
-from rig.recording.scene import SCENE_PERIOD_NS, scene_json
+from rig.recording.scene import next_scene_ns, scene_json
 from rig.recording.schema import (
-    EVENT_KINDS,
     MESSAGE_ENCODING,
     SCHEMA_ENCODING,
     TOPIC_EVENTS,
@@ -45,13 +44,19 @@ from rig.recording.schema import (
     TOPIC_TF,
     TOPIC_TIMING,
     TOPICS,
-    encode_json,
+    encode_message,
+    event_from_message,
+    event_message,
     log_message,
     schema_bytes,
     split_record,
 )
 
-__all__ = ["LIVE_TOPICS", "FoxgloveView"]
+__all__ = ["LIVE_TOPICS", "SUBPROTOCOL", "FoxgloveView"]
+
+#: the WebSocket subprotocol foxglove-sdk 0.30 serves (the messages of
+#: foxglove.websocket.v1); a client that offers only the old name gets HTTP 400
+SUBPROTOCOL = "foxglove.sdk.v1"
 
 log = logging.getLogger(__name__)
 
@@ -160,9 +165,9 @@ class FoxgloveView:
         wall = max(t_ns + self._offset, 0)
         for topic, msg in split_record(t_ns, record):
             if channels[topic].has_sinks():
-                self._log(topic, encode_json(msg), wall)
+                self._log(topic, encode_message(msg), wall)
         if self._next_scene_ns is None or t_ns >= self._next_scene_ns:
-            self._next_scene_ns = t_ns + SCENE_PERIOD_NS
+            self._next_scene_ns = next_scene_ns(self._next_scene_ns, t_ns)
             if not (channels[TOPIC_TF].has_sinks() or channels[TOPIC_SCENE].has_sinks()):
                 return
             tf, scene = scene_json(wall, record.get("rattlespace_m"),
@@ -173,13 +178,11 @@ class FoxgloveView:
 
     def _publish_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> None:
         wall = max(t_ns + self._offset, 0)
-        if kind not in EVENT_KINDS:
-            detail, kind = {"kind": str(kind), "detail": detail}, "note"
-        if not (detail is None or isinstance(detail, str | dict)):
-            detail = str(detail)
-        self._log(TOPIC_EVENTS, encode_json({"tick": int(tick), "t_ns": t_ns, "kind": kind,
-                                             "detail": detail}), wall)
-        self._log(TOPIC_LOG, encode_json(log_message(wall, tick, kind, detail)), wall)
+        msg = event_message(t_ns, tick, kind, detail)
+        self._log(TOPIC_EVENTS, encode_message(msg), wall)
+        self._log(TOPIC_LOG, encode_message(log_message(wall, tick, msg["kind"],
+                                                        event_from_message(msg)["detail"])),
+                  wall)
 
     def _run(self) -> None:
         get = self._queue.get

@@ -10,6 +10,7 @@ use is one line and the run goes on without the view.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import socket
@@ -362,3 +363,20 @@ def test_a_stalled_publisher_drops_and_counts_without_blocking_the_loop(
         release.set()
         view.close()
     assert view.state == "stopped"
+
+
+def test_scene_period_is_an_absolute_grid() -> None:
+    """Ticks offered every 10 ms, each 4 ms late: a picture every 50 ms (20 Hz), not
+    every 60 ms as when the period was counted from the (late) drawing tick."""
+    from rig.recording.scene import SCENE_PERIOD_NS, next_scene_ns
+
+    deadline: int | None = None
+    drawn = []
+    for k in range(101):
+        t_ns = k * 10_000_000 + 4_000_000
+        if deadline is None or t_ns >= deadline:
+            deadline = next_scene_ns(deadline, t_ns)
+            drawn.append(t_ns)
+    gaps = {b - a for a, b in itertools.pairwise(drawn)}
+    assert gaps == {SCENE_PERIOD_NS} and len(drawn) == 21
+    assert next_scene_ns(0, 500_000_000) == 550_000_000    # after a long gap: from now

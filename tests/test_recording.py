@@ -28,11 +28,14 @@ from controller.config import RecordingConfig, config_hash, config_to_toml, defa
 from rig.recording.recorder import CanFrameRecord, EventRecord, RunRecorder, read_run, segment_paths
 from rig.recording.scan import RecordingError, scan_recording
 from rig.recording.schema import (
+    NONFINITE_NUMBER,
     RECORDING_FORMAT_VERSION,
     SIGNAL_KEYS,
     TIMING_KEYS,
+    TOPIC_INTERNALS,
     TOPIC_LOG,
     TOPIC_SCENE,
+    TOPIC_SIGNALS,
     TOPIC_TF,
     TOPICS,
 )
@@ -58,7 +61,7 @@ def recorder(path: Path, **kw: Any) -> RunRecorder:
 
 def tick_record(k: int) -> dict[str, Any]:
     return {"tick": k, "rattlespace_m": 1e-3 * math.sin(k), "force_meas_n": 10.0 * k,
-            "lifecycle": "ACTIVE", "fault": None, "valve_enable": True,
+            "lifecycle": "ACTIVE", "fault": "", "valve_enable": 1,
             "q": np.array([0.1 * k, 2.0, 3.5]), "firing_weight": [1.0, 0.0, 0.0],
             "active": [True, True, False], "flags": 0,
             "x_post": np.arange(12.0).reshape(3, 4) * k,
@@ -66,8 +69,10 @@ def tick_record(k: int) -> dict[str, Any]:
 
 
 def expected_json(record: dict[str, Any]) -> dict[str, Any]:
-    """What a record reads back as: arrays as nested lists (independent of the writer)."""
-    return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in record.items()}
+    """What a record reads back as: arrays as lists, matrices flat row-major (independent
+    of the writer)."""
+    return {k: (v.ravel().tolist() if isinstance(v, np.ndarray) else v)
+            for k, v in record.items()}
 
 
 # ----------------------------------------------------------------------- round trip
@@ -150,7 +155,7 @@ def test_round_trip_property(tmp_path: Path, frames: list[tuple[int, bytes, bool
     assert timeline_of(path) == expected
 
 
-def test_nonfinite_values_become_null_and_are_listed(tmp_path: Path) -> None:
+def test_nonfinite_values_become_the_sentinel_and_are_listed(tmp_path: Path) -> None:
     path = tmp_path / "nan.mcap"
     with recorder(path) as rec:
         rec.tick(0, {"tick": 0, "force_ref_n": float("nan"), "q": np.array([1.0, np.inf]),
@@ -158,6 +163,11 @@ def test_nonfinite_values_become_null_and_are_listed(tmp_path: Path) -> None:
     (r,) = read_run(path).records
     assert r.data["force_ref_n"] is None and r.data["q"] == [1.0, None]
     assert sorted(r.data["nonfinite"]) == ["force_ref_n", "q"]
+    with path.open("rb") as f:     # on the wire: the documented number (JSON has no NaN)
+        raw = {ch.topic: json.loads(m.data) for _, ch, m in make_reader(f).iter_messages(
+            topics=[TOPIC_SIGNALS, TOPIC_INTERNALS])}
+    assert raw[TOPIC_SIGNALS]["force_ref_n"] == NONFINITE_NUMBER == -1e308
+    assert raw[TOPIC_INTERNALS]["q"] == [1.0, NONFINITE_NUMBER]
 
 
 # ----------------------------------------------------------------------- schemas, attachments
@@ -243,7 +253,7 @@ def test_schemas_messages_attachments_metadata(tmp_path: Path) -> None:
     versions = json.loads(meta.metadata["versions"])
     assert {"python", "numpy", "mcap", "eclipse-zenoh", "lqg-fuzzy-rig"} <= set(versions)
     run = read_run(path)
-    assert run.metadata["rig"]["format_version"] == str(RECORDING_FORMAT_VERSION) == "3"
+    assert run.metadata["rig"]["format_version"] == str(RECORDING_FORMAT_VERSION) == "4"
     assert run.events[-1].kind == "note"
     assert run.events[-1].detail == {"kind": "weird-kind", "detail": [1, 2]}
 
@@ -382,7 +392,7 @@ def test_a_torn_record_is_dropped_whole(tmp_path: Path) -> None:
     three messages in one chunk, the rest in the next): that record is dropped whole
     and stopped_at says so; every record read is whole."""
     path = tmp_path / "torn.mcap"
-    with recorder(path, chunk_bytes=700, compression="none") as rec:
+    with recorder(path, chunk_bytes=600, compression="none") as rec:
         expected = write_mixed(rec, 40)
     want = {v[1]: v[2] for kind, v in expected if kind == "record"}
     blob = path.read_bytes()
@@ -411,14 +421,14 @@ def test_another_format_version_is_refused_before_anything_is_read(
     versions -- by read_run, the scanner (no handler is ever called), replay and report."""
     from rig.cli import main as rig_main
 
-    path = tmp_path / "v2.mcap"
+    path = tmp_path / "v3.mcap"     # format 3: the schemas Foxglove could not convert
     with RunRecorder(path, rcfg(), config_toml=TOML, design_bytes=None,
-                     metadata={"format_version": "2"}, poll_s=0.001) as rec:
+                     metadata={"format_version": "3"}, poll_s=0.001) as rec:
         write_mixed(rec, 20)
     with open(path, "rb") as f:
         (meta,) = [m for m in make_reader(f).iter_metadata() if m.name == "rig"]
-    assert meta.metadata["format_version"] == "2"
-    msg = f"{path}: recording format version 2, this software reads version 3 only"
+    assert meta.metadata["format_version"] == "3"
+    msg = f"{path}: recording format version 3, this software reads version 4 only"
     with pytest.raises(RecordingError) as exc:
         read_run(path)
     assert str(exc.value) == msg
@@ -855,7 +865,7 @@ def expected_packed(layout: Any, scalars: list[Any], arrays: list[np.ndarray]
                 v = extra[v]
             out[key] = v
         else:
-            out[key] = next(a_it).tolist()
+            out[key] = next(a_it).ravel().tolist()      # matrices flat, row-major
     return out
 
 

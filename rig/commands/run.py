@@ -92,7 +92,9 @@ def run(args: argparse.Namespace) -> int:
     if service.recording_path is not None:
         print(f"rig run: recording to {service.recording_path}", file=sys.stderr)
     if service.foxglove is not None and service.foxglove.state == "serving":
-        print(f"rig run: Foxglove view on {service.foxglove.url}", file=sys.stderr)
+        from rig.foxglove_server import SUBPROTOCOL  # the SDK only when the view is on
+        print(f"rig run: Foxglove view on {service.foxglove.url} (WebSocket "
+              f"subprotocol {SUBPROTOCOL}; docs/foxglove.md)", file=sys.stderr)
     code = service.run()
     if service.ticks_run == 0:
         print(f"rig run: stopped by {service.stop_signal or 'request'} before the control "

@@ -29,6 +29,7 @@ knowing the loop.
 from __future__ import annotations
 
 import json
+import math
 import pickle
 import struct
 from collections.abc import Iterator, Mapping, Sequence
@@ -83,9 +84,9 @@ _U32: Final = struct.Struct("<I")
 #: scalar kinds: struct code and how the writer turns the packed value into JSON
 SCALAR_KINDS: Final[dict[str, str]] = {
     "int": "q",        # int
-    "float": "d",      # float (non-finite -> null, listed in "nonfinite")
+    "float": "d",      # float (non-finite: see schema.encode_message)
     "bool": "?",       # bool
-    "ns_as_s": "q",    # int nanoseconds -> float seconds (ns * 1e-9); negative -> null
+    "ns_as_s": "q",    # int nanoseconds -> float seconds (ns * 1e-9); negative -> NaN
     "enum": "B",       # index into the field's names; names[0] may be None
 }
 _ARRAY_DTYPES: Final = frozenset({"<f8", "|b1", "<i8", "<i4", "|u1"})
@@ -253,7 +254,7 @@ class TickDecoder:
         out: dict[str, Any] = {}
         for (key, kind, names), v in zip(self._scalars, values[3:], strict=True):
             if kind == "ns_as_s":
-                out[key] = v * 1e-9 if v >= 0 else None
+                out[key] = v * 1e-9 if v >= 0 else math.nan
             elif kind == "enum":
                 out[key] = names[v] if v < len(names) else f"unknown({v})"
             else:

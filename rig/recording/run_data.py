@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from rig.recording.scan import RecordingError, ScanResult, scan_recording, split_json
 from rig.recording.schema import (
+    NONFINITE_NUMBER,
     PARTS_KEY,
     TOPIC_CAN_RX,
     TOPIC_CAN_TX,
@@ -35,6 +36,7 @@ from rig.recording.schema import (
     TOPIC_INTERNALS,
     TOPIC_SIGNALS,
     TOPIC_TIMING,
+    event_from_message,
 )
 
 __all__ = ["CanFrameRecord", "EventRecord", "RunData", "TickRecord", "read_run"]
@@ -211,14 +213,24 @@ def _decode(topics: dict[str, _Topic], run: RunData) -> None:
     tick_records = []
     for i, q in zip(idx[:at[1]], rec_q.tolist(), strict=True):
         data = records[q][0]
+        for key in data.get("nonfinite", ()):
+            data[key] = _none_for_nonfinite(data.get(key))
         tick_records.append(TickRecord(i, data.pop("t_ns"), data["tick"], data))
     run.records = tick_records
     frames = [_frame(i, m, True) for i, m in zip(idx[at[1]:at[2]], rx.msgs, strict=True)]
     frames += [_frame(i, m, False) for i, m in zip(idx[at[2]:at[3]], tx.msgs, strict=True)]
     frames.sort(key=lambda f: f.index)
     run.frames = frames
-    run.events = [EventRecord(i, m["t_ns"], m["tick"], m["kind"], m["detail"])
-                  for i, m in zip(idx[at[3]:], events.msgs, strict=True)]
+    run.events = [EventRecord(i, e["t_ns"], e["tick"], e["kind"], e["detail"])
+                  for i, e in zip(idx[at[3]:], map(event_from_message, events.msgs),
+                                  strict=True)]
+
+
+def _none_for_nonfinite(value: Any) -> Any:
+    """:data:`NONFINITE_NUMBER` (in a key listed in ``nonfinite``) -> None, in lists too."""
+    if isinstance(value, list):
+        return [_none_for_nonfinite(v) for v in value]
+    return None if value == NONFINITE_NUMBER else value
 
 
 def _records(topics: dict[str, _Topic]) -> dict[int, list[Any]]:

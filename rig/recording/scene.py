@@ -25,6 +25,7 @@ __all__ = [
     "SCENE_PERIOD_NS",
     "SCENE_UPDATE_SCHEMA",
     "body_height_m",
+    "next_scene_ns",
     "scene_json",
     "scene_messages",
 ]
@@ -97,7 +98,59 @@ _TEXT: Final[dict[str, Any]] = {
                    "color": _COLOR, "text": {"type": "string"}},
     "required": ["pose", "billboard", "font_size", "scale_invariant", "color", "text"],
 }
-_ANY_ARRAY: Final[dict[str, Any]] = {"type": "array", "maxItems": 0}
+_POSE_COLOR: Final[dict[str, Any]] = {
+    "type": "object", "properties": {"pose": _POSE, "color": _COLOR},
+}
+
+
+def _empty(items: dict[str, Any]) -> dict[str, Any]:
+    """A primitive list this picture never fills: always empty, yet with its ``items``
+    (the Foxglove apps' schema converter needs a type for every array)."""
+    return {"type": "array", "items": items, "maxItems": 0}
+
+
+#: the items of the always-empty lists, as in the well-known schemas (the fields that
+#: place and colour them; the lists stay empty)
+_DELETION: Final[dict[str, Any]] = {
+    "title": "foxglove.SceneEntityDeletion", "type": "object",
+    "properties": {"timestamp": _TIME,
+                   "type": {"oneOf": [{"title": "MATCHING_ID", "const": 0},
+                                      {"title": "ALL", "const": 1}]},
+                   "id": {"type": "string"}},
+}
+_KEY_VALUE: Final[dict[str, Any]] = {
+    "title": "foxglove.KeyValuePair", "type": "object",
+    "properties": {"key": {"type": "string"}, "value": {"type": "string"}},
+}
+_ARROW: Final[dict[str, Any]] = {
+    **_POSE_COLOR, "title": "foxglove.ArrowPrimitive",
+    "properties": {**_POSE_COLOR["properties"],
+                   **{k: {"type": "number", "minimum": 0} for k in (
+                       "shaft_length", "shaft_diameter", "head_length", "head_diameter")}},
+}
+_SPHERE: Final[dict[str, Any]] = {
+    **_POSE_COLOR, "title": "foxglove.SpherePrimitive",
+    "properties": {**_POSE_COLOR["properties"], "size": _VEC3},
+}
+_CYLINDER: Final[dict[str, Any]] = {
+    **_POSE_COLOR, "title": "foxglove.CylinderPrimitive",
+    "properties": {**_POSE_COLOR["properties"], "size": _VEC3,
+                   "bottom_scale": {"type": "number"}, "top_scale": {"type": "number"}},
+}
+_TRIANGLES: Final[dict[str, Any]] = {
+    **_POSE_COLOR, "title": "foxglove.TriangleListPrimitive",
+    "properties": {**_POSE_COLOR["properties"],
+                   "points": {"type": "array", "items": _VEC3},
+                   "colors": {"type": "array", "items": _COLOR},
+                   "indices": {"type": "array", "items": {"type": "integer", "minimum": 0}}},
+}
+_MODEL: Final[dict[str, Any]] = {
+    **_POSE_COLOR, "title": "foxglove.ModelPrimitive",
+    "properties": {**_POSE_COLOR["properties"], "scale": _VEC3,
+                   "override_color": {"type": "boolean"}, "url": {"type": "string"},
+                   "media_type": {"type": "string"},
+                   "data": {"type": "string", "contentEncoding": "base64"}},
+}
 
 #: ``foxglove.SceneUpdate`` (the fields this picture uses; the other primitive lists are
 #: always empty)
@@ -107,18 +160,18 @@ SCENE_UPDATE_SCHEMA: Final[dict[str, Any]] = {
     "description": "the quarter car: road, wheel, body, spring, actuator, measured force",
     "type": "object",
     "properties": {
-        "deletions": {"type": "array", "maxItems": 0},
+        "deletions": _empty(_DELETION),
         "entities": {"type": "array", "items": {
             "title": "foxglove.SceneEntity",
             "type": "object",
             "properties": {
                 "timestamp": _TIME, "frame_id": {"type": "string"}, "id": {"type": "string"},
                 "lifetime": _TIME, "frame_locked": {"type": "boolean"},
-                "metadata": _ANY_ARRAY, "arrows": _ANY_ARRAY,
-                "cubes": {"type": "array", "items": _CUBE}, "spheres": _ANY_ARRAY,
-                "cylinders": _ANY_ARRAY, "lines": {"type": "array", "items": _LINE},
-                "triangles": _ANY_ARRAY, "texts": {"type": "array", "items": _TEXT},
-                "models": _ANY_ARRAY,
+                "metadata": _empty(_KEY_VALUE), "arrows": _empty(_ARROW),
+                "cubes": {"type": "array", "items": _CUBE}, "spheres": _empty(_SPHERE),
+                "cylinders": _empty(_CYLINDER), "lines": {"type": "array", "items": _LINE},
+                "triangles": _empty(_TRIANGLES),
+                "texts": {"type": "array", "items": _TEXT}, "models": _empty(_MODEL),
             },
             "required": ["timestamp", "frame_id", "id", "lifetime", "frame_locked",
                          "cubes", "lines", "texts"],
@@ -140,6 +193,17 @@ FRAME_TRANSFORM_SCHEMA: Final[dict[str, Any]] = {
     "required": ["timestamp", "parent_frame_id", "child_frame_id", "translation",
                  "rotation"],
 }
+
+
+def next_scene_ns(deadline_ns: int | None, t_ns: int) -> int:
+    """The loop time of the next picture after one drawn at the tick of ``t_ns`` that was
+    due at ``deadline_ns`` (None: the first): absolute deadlines, every
+    :data:`SCENE_PERIOD_NS`, so the lateness of the tick that draws one does not stretch
+    the period (counted from the tick, 20 Hz became ~18 Hz live); after a gap of more
+    than a period the grid starts again from ``t_ns``."""
+    if deadline_ns is None or t_ns - deadline_ns >= SCENE_PERIOD_NS:
+        return t_ns + SCENE_PERIOD_NS
+    return deadline_ns + SCENE_PERIOD_NS
 
 
 def body_height_m(rattlespace_m: float) -> float:

@@ -33,6 +33,7 @@ __all__ = [
     "LOG_SCHEMA",
     "MESSAGE_ENCODING",
     "METADATA_NAME",
+    "NONFINITE_NUMBER",
     "PARTS_KEY",
     "RECORDING_FORMAT_VERSION",
     "SCHEMA_ENCODING",
@@ -50,6 +51,9 @@ __all__ = [
     "TOPIC_TIMING",
     "LogLevel",
     "encode_json",
+    "encode_message",
+    "event_from_message",
+    "event_message",
     "log_message",
     "schema_bytes",
     "split_record",
@@ -61,7 +65,12 @@ __all__ = [
 #: 3: events also on ``/rig/log`` (foxglove.Log), the quarter-car picture on
 #: ``/rig/scene`` (foxglove.SceneUpdate) and ``/tf`` (foxglove.FrameTransform), and the
 #: identification excitation marked by ``excitation`` events
-RECORDING_FORMAT_VERSION: Final = 3
+#: 4: one JSON type per field, so that Foxglove / Lichtblick convert every schema:
+#: non-finite numbers are :data:`NONFINITE_NUMBER` (not null), ``fault`` is ``""``
+#: without a fault, ``valve_enable`` 0 / 1, ``blending`` the mode code only, ``x_post``
+#: flat (row-major), the event detail is JSON text in ``detail_json``, and the
+#: ``foxglove.SceneUpdate`` arrays declare their items
+RECORDING_FORMAT_VERSION: Final = 4
 SCHEMA_ENCODING: Final = "jsonschema"
 #: the metadata record that opens every segment (format version, run identity, settings)
 METADATA_NAME: Final = "rig"
@@ -96,8 +105,16 @@ TIMING_KEYS: Final = frozenset({
 #: Event kinds (``detail`` layout per kind in docs/recording.md).
 EVENT_KINDS: Final = ("command", "lifecycle", "fault", "note", "excitation")
 
-_NUM: Final[dict[str, Any]] = {"type": ["number", "null"]}
+#: what a schema'd channel (recording and live view) writes for a non-finite number (NaN,
+#: +-inf, a time not measured): JSON has no NaN and Foxglove's schema converter takes one
+#: type per field, so no null either; the keys concerned are listed in ``nonfinite`` and
+#: readers turn it back into NaN
+NONFINITE_NUMBER: Final = -1e308
+_NUM: Final[dict[str, Any]] = {"type": "number"}
 _NUM_ARRAY: Final[dict[str, Any]] = {"type": "array", "items": _NUM}
+_NONFINITE_KEYS: Final[dict[str, Any]] = {
+    "type": "array", "items": {"type": "string"},
+    "description": f"keys whose non-finite values were written as {NONFINITE_NUMBER:g}"}
 _TICK: Final[dict[str, Any]] = {
     "tick": {"type": "integer", "minimum": 0, "description": "loop tick number"},
     "t_ns": {"type": "integer", "description": "loop clock [ns] (see metadata 'clock')"},
@@ -142,15 +159,15 @@ SIGNALS_SCHEMA: Final = _obj(
         "force_meas_n": {**_NUM, "description": "load-cell actuator force"},
         "force_ref_n": {**_NUM, "description": "blended force reference"},
         "spool_cmd": {**_NUM, "description": "normalised spool command sent"},
-        "valve_enable": {"type": ["boolean", "integer"]},
+        "valve_enable": {"type": "integer", "minimum": 0, "maximum": 1,
+                         "description": "1 = the valve is driven (ACTIVE)"},
         "lifecycle": {"type": "string"},
-        "fault": {"type": ["string", "null"]},
+        "fault": {"type": "string", "description": "latched fault code, \"\" = none"},
         "sensor_counter": {"type": "integer"},
         "sensor_age_ticks": {"type": "integer"},
         "record_parts": {"type": "integer", "minimum": 1, "maximum": 3,
                          "description": "messages of this tick record (signals first)"},
-        "nonfinite": {"type": "array", "items": {"type": "string"},
-                      "description": "keys whose non-finite values were written as null"},
+        "nonfinite": _NONFINITE_KEYS,
     },
     [],
     description="decoded rig signals and loop outputs, one message per tick",
@@ -165,11 +182,13 @@ INTERNALS_SCHEMA: Final = _obj(
         "u_model": {**_NUM_ARRAY, "description": "force per model controller [N]"},
         "active": {"type": "array", "items": {"type": "boolean"}},
         "flags": {"type": "integer", "description": "StepFlag bits"},
-        "blending": {"type": ["integer", "string"]},
+        "blending": {"type": "integer", "minimum": 0,
+                     "description": "bank mode code (controller.modes.Blending)"},
         "weight_set": {"type": "integer"},
-        "x_post": {"type": "array", "items": _NUM_ARRAY, "description": "(J, 4) estimates"},
+        "x_post": {**_NUM_ARRAY, "description": "(J, 4) estimates, flat row-major: "
+                   "model j at [4j, 4j + 4)"},
         "xf": _NUM_ARRAY,
-        "nonfinite": {"type": "array", "items": {"type": "string"}},
+        "nonfinite": _NONFINITE_KEYS,
     },
     [],
     description="controller internals of one tick",
@@ -182,7 +201,7 @@ TIMING_SCHEMA: Final = _obj(
         "overrun": {"type": "boolean"},
         "overrun_streak": {"type": "integer"}, "overruns_total": {"type": "integer"},
         "dropped_recording": {"type": "integer"}, "dropped_telemetry": {"type": "integer"},
-        "nonfinite": {"type": "array", "items": {"type": "string"}},
+        "nonfinite": _NONFINITE_KEYS,
     },
     [],
     description="loop timing of one tick",
@@ -192,9 +211,10 @@ EVENT_SCHEMA: Final = _obj(
     "rig.Event",
     {
         "kind": {"type": "string", "enum": list(EVENT_KINDS)},
-        "detail": {"type": ["object", "string", "null"]},
+        "detail_json": {"type": "string",
+                        "description": "the detail (object, string or null) as JSON text"},
     },
-    ["kind", "detail"], additional=False,
+    ["kind", "detail_json"], additional=False,
     description="lifecycle transitions, applied commands, faults, notes",
 )
 
@@ -256,7 +276,8 @@ TOPICS: Final[dict[str, dict[str, Any]]] = {
 def split_record(t_ns: int, record: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     """One flat tick record -> ``[(topic, message), ...]`` by key (:data:`SIGNAL_KEYS`,
     :data:`TIMING_KEYS`, the rest internals); signals first, carrying
-    :data:`PARTS_KEY`; internals and timing only when they have fields.  The recording
+    :data:`PARTS_KEY`; internals and timing only when they have fields; matrices
+    (``x_post``) flat, row-major.  The recording
     writer and the live Foxglove view publish exactly these messages."""
     tick = int(record["tick"])
     sig: dict[str, Any] = {"tick": tick, "t_ns": t_ns}
@@ -268,12 +289,22 @@ def split_record(t_ns: int, record: Mapping[str, Any]) -> list[tuple[str, dict[s
         elif k in TIMING_KEYS:
             tim[k] = v
         elif k not in _RESERVED:
-            intl[k] = v
+            intl[k] = _flat(v)
     parts = [(TOPIC_SIGNALS, sig)]
     parts += [(t, m) for t, m in ((TOPIC_INTERNALS, intl), (TOPIC_TIMING, tim))
               if len(m) > 2]
     sig[PARTS_KEY] = len(parts)   # lets a reader spot a record torn by a crash
     return parts
+
+
+def _flat(value: Any) -> Any:
+    """A matrix (numpy array or list of lists) -> one flat row-major list (the schema
+    converter of the Foxglove apps takes no arrays of arrays); anything else as it is."""
+    if getattr(value, "ndim", 1) > 1:
+        return value.ravel()
+    if isinstance(value, list) and value and isinstance(value[0], list | tuple):
+        return [x for row in value for x in row]
+    return value
 
 
 def _text(value: Any, limit: int = 300) -> str:
@@ -340,23 +371,21 @@ def _np_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
-def _finite_or_none(v: Any) -> tuple[Any, bool]:
+def _finite_or(v: Any, fill: float | None) -> tuple[Any, bool]:
     if isinstance(v, float):
-        return (v, False) if math.isfinite(v) else (None, True)
+        return (v, False) if math.isfinite(v) else (fill, True)
     if isinstance(v, list):
         bad = False
         out = []
         for x in v:
-            y, b = _finite_or_none(x)
+            y, b = _finite_or(x, fill)
             out.append(y)
             bad |= b
         return out, bad
     return v, False
 
 
-def encode_json(obj: dict[str, Any]) -> bytes:
-    """Compact JSON; non-finite numbers become null and their keys are listed in
-    ``nonfinite`` (JSON has no NaN; Foxglove would reject the whole message)."""
+def _encode(obj: dict[str, Any], fill: float | None) -> bytes:
     try:
         return json.dumps(obj, separators=(",", ":"), allow_nan=False,
                           default=_np_default).encode()
@@ -364,8 +393,43 @@ def encode_json(obj: dict[str, Any]) -> bytes:
         plain = json.loads(json.dumps(obj, default=_np_default))  # NaN-tolerant round trip
         bad_keys = []
         for k, v in plain.items():
-            plain[k], bad = _finite_or_none(v)
+            plain[k], bad = _finite_or(v, fill)
             if bad:
                 bad_keys.append(k)
         plain["nonfinite"] = bad_keys
         return json.dumps(plain, separators=(",", ":"), allow_nan=False).encode()
+
+
+def encode_json(obj: dict[str, Any]) -> bytes:
+    """Compact JSON for the schema-less Zenoh telemetry; non-finite numbers become null
+    and their keys are listed in ``nonfinite`` (JSON has no NaN)."""
+    return _encode(obj, None)
+
+
+def encode_message(obj: dict[str, Any]) -> bytes:
+    """Compact JSON of one message of a schema'd channel (the recording and the live
+    Foxglove view); non-finite numbers become :data:`NONFINITE_NUMBER` and their keys
+    are listed in ``nonfinite`` (JSON has no NaN, and the channel schemas allow one type
+    per field)."""
+    return _encode(obj, NONFINITE_NUMBER)
+
+
+def event_message(t_ns: int, tick: int, kind: str, detail: Any) -> dict[str, Any]:
+    """The ``/rig/events`` message of one event: an unknown ``kind`` becomes ``note`` with
+    detail ``{"kind": kind, "detail": detail}``; the detail (object, string or null;
+    anything else as its text) is JSON text in ``detail_json``."""
+    if kind not in EVENT_KINDS:
+        detail, kind = {"kind": str(kind), "detail": detail}, "note"
+    if isinstance(detail, Mapping):
+        detail = dict(detail)
+    elif not (detail is None or isinstance(detail, str)):
+        detail = str(detail)
+    return {"tick": int(tick), "t_ns": int(t_ns), "kind": kind,
+            "detail_json": json.dumps(detail, separators=(",", ":"), default=_np_default)}
+
+
+def event_from_message(msg: Mapping[str, Any]) -> dict[str, Any]:
+    """A decoded ``/rig/events`` message -> ``{"tick", "t_ns", "kind", "detail"}`` (the
+    detail decoded from ``detail_json``)."""
+    return {"tick": msg["tick"], "t_ns": msg["t_ns"], "kind": msg["kind"],
+            "detail": json.loads(msg["detail_json"])}

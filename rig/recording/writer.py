@@ -43,17 +43,18 @@ from rig.recording.codec import (
     iter_items,
     split_items,
 )
-from rig.recording.scene import SCENE_PERIOD_NS, scene_json
+from rig.recording.scene import next_scene_ns, scene_json
 from rig.recording.schema import (
     CONFIG_ATTACHMENT,
     DESIGN_ATTACHMENT,
-    EVENT_KINDS,
     MESSAGE_ENCODING,
     METADATA_NAME,
     RECORDING_FORMAT_VERSION,
     SCHEMA_ENCODING,
     TOPICS,
-    encode_json,
+    encode_message,
+    event_from_message,
+    event_message,
     log_message,
     schema_bytes,
     split_record,
@@ -220,11 +221,12 @@ class McapRunSink:
             w.add_message(ch, log_time, payload, log_time, seq)
         elif kind == "tick":
             record: Mapping[str, Any] = item[2]
-            encoded = [(topic, encode_json(msg)) for topic, msg in split_record(t_ns, record)]
+            encoded = [(topic, encode_message(msg))
+                       for topic, msg in split_record(t_ns, record)]
             for topic, blob in encoded:
                 w.add_message(self._channels[topic], log_time, blob, log_time, seq)
             if self._next_scene_ns is None or t_ns >= self._next_scene_ns:
-                self._next_scene_ns = t_ns + SCENE_PERIOD_NS
+                self._next_scene_ns = next_scene_ns(self._next_scene_ns, t_ns)
                 tf, scene = scene_json(log_time, record.get("rattlespace_m"),
                                        record.get("force_meas_n"),
                                        str(record.get("lifecycle", "")))
@@ -233,17 +235,12 @@ class McapRunSink:
                               seq)
         elif kind == "event":
             _, _, tick, kind_s, detail = item
-            if kind_s not in EVENT_KINDS:
-                detail = {"kind": str(kind_s), "detail": detail}
-                kind_s = "note"
-            if not (detail is None or isinstance(detail, str | Mapping)):
-                detail = str(detail)
-            msg = {"tick": int(tick), "t_ns": t_ns, "kind": kind_s,
-                   "detail": dict(detail) if isinstance(detail, Mapping) else detail}
-            w.add_message(self._channels[schema.TOPIC_EVENTS], log_time, encode_json(msg),
+            msg = event_message(t_ns, tick, kind_s, detail)
+            w.add_message(self._channels[schema.TOPIC_EVENTS], log_time, encode_message(msg),
                           log_time, seq)
             w.add_message(self._channels[schema.TOPIC_LOG], log_time,
-                          encode_json(log_message(log_time, int(tick), kind_s, msg["detail"])),
+                          encode_message(log_message(log_time, int(tick), msg["kind"],
+                                                     event_from_message(msg)["detail"])),
                           log_time, seq)
         else:
             raise ValueError(f"unknown item {kind!r}")

@@ -129,8 +129,11 @@ def _raw_columns(joined: bytes, n: int, keys: Sequence[str]) -> dict[str, NDArra
 
 
 def _as_f64(a: NDArray[Any]) -> NDArray[np.float64]:
-    """JSON numbers (null = NaN) -> float64 (numpy parses like float())."""
-    return np.where(a == b"null", b"nan", a).astype(np.float64)
+    """JSON numbers (:data:`~rig.recording.schema.NONFINITE_NUMBER` = NaN) -> float64
+    (numpy parses like float())."""
+    out = a.astype(np.float64)
+    out[out == schema.NONFINITE_NUMBER] = np.nan
+    return out
 
 
 def _as_bool(a: NDArray[Any]) -> NDArray[np.int8]:
@@ -138,7 +141,7 @@ def _as_bool(a: NDArray[Any]) -> NDArray[np.int8]:
 
 
 def _as_ns(a: NDArray[Any]) -> NDArray[np.int64]:
-    """Seconds (as the loop wrote ``ns * 1e-9``) -> integer ns; null -> 0."""
+    """Seconds (as the loop wrote ``ns * 1e-9``) -> integer ns; not measured -> 0."""
     return np.nan_to_num(np.rint(_as_f64(a) * 1e9)).astype(np.int64)
 
 
@@ -285,7 +288,7 @@ class RunDecoder:
         self._held_seq = sig_seq[keep:]
         tx: list[TxFrame] = [(a, c, d, f) for a, _, c, d, f in
                              _frames(self.tx.joined(), self.tx.n)]
-        events = split_json(self.events.joined())
+        events = [schema.event_from_message(m) for m in split_json(self.events.joined())]
         self.emit(Piece(
             tick=sig["tick"][:keep].astype(np.int64), t_ns=sig["t_ns"][:keep].astype(np.int64),
             lateness_ns=late[:keep], compute_ns=comp[:keep],

@@ -29,10 +29,12 @@ from rig.recording.scan import RecordingError, ScanResult, scan_recording, split
 from rig.recording.schema import (
     CONFIG_ATTACHMENT,
     DESIGN_ATTACHMENT,
+    NONFINITE_NUMBER,
     TOPIC_EVENTS,
     TOPIC_INTERNALS,
     TOPIC_SIGNALS,
     TOPIC_TIMING,
+    event_from_message,
 )
 from rig.wire.protocol import LifecycleState
 
@@ -86,7 +88,7 @@ class RunSeries:
     t0_ns: int                            # loop clock of the first tick
     signals: dict[str, FloatArray]
     lifecycle: list[str]
-    fault: list[str | None]
+    fault: list[str]                      # latched fault code per tick, "" = none
     per_model: dict[str, FloatArray]      # (n, J): q, firing_weight, probability, u_model
     timing: dict[str, FloatArray]
     events: list[dict[str, Any]]
@@ -168,8 +170,9 @@ class RunSeries:
 
 
 def _f(v: Any) -> float:
-    """A recorded number; NaN for null or anything that is not a number."""
-    return float(v) if isinstance(v, int | float) else math.nan
+    """A recorded number; NaN for :data:`NONFINITE_NUMBER` or anything that is not a
+    number."""
+    return float(v) if isinstance(v, int | float) and v != NONFINITE_NUMBER else math.nan
 
 
 def _matrix(rows: list[Any], width: int) -> FloatArray:
@@ -216,6 +219,20 @@ def _require_int(path: str | Path, topic: str, objs: list[dict[str, Any]], seqs:
                                      f"integer '{key}'")
 
 
+def _events(path: str | Path, msgs: list[dict[str, Any]], seqs: list[int]
+            ) -> list[dict[str, Any]]:
+    """The events with their detail decoded; RecordingError naming the first that is
+    malformed."""
+    out = []
+    for i, m in enumerate(msgs):
+        try:
+            out.append(event_from_message(m))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RecordingError(f"{path}: {TOPIC_EVENTS} message {_which(i, seqs)} is not "
+                                 f"an event ({type(exc).__name__}: {str(exc)[:80]})") from None
+    return out
+
+
 def load_series(path: str | Path) -> RunSeries:
     """Decode signals, internals, timing and events of a recording (errors: see
     :func:`rig.recording.scan.scan_recording`)."""
@@ -239,8 +256,9 @@ def load_series(path: str | Path) -> RunSeries:
             if i is not None:
                 recs[i].update(obj)
     _require_int(path, TOPIC_SIGNALS, recs, rec_seqs, "tick", "t_ns")
-    events, event_seqs = decoded(TOPIC_EVENTS)
-    _require_int(path, TOPIC_EVENTS, events, event_seqs, "tick")
+    event_msgs, event_seqs = decoded(TOPIC_EVENTS)
+    _require_int(path, TOPIC_EVENTS, event_msgs, event_seqs, "tick")
+    events = _events(path, event_msgs, event_seqs)
     n = len(recs)
     tick = np.array([r["tick"] for r in recs], dtype=np.int64)
     t_ns = np.array([r["t_ns"] for r in recs], dtype=np.int64)
@@ -255,7 +273,7 @@ def load_series(path: str | Path) -> RunSeries:
     config, problem = _config(scan)
     return RunSeries(Path(path), scan, tick, t_s, t0_ns, signals,
                      [str(r.get("lifecycle", "")) for r in recs],
-                     [r.get("fault") for r in recs], per_model, timing, events,
+                     [str(r.get("fault", "")) for r in recs], per_model, timing, events,
                      _model_names(scan, J), config, problem, flags)
 
 

@@ -118,11 +118,11 @@ TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def _enum_names(key: str) -> tuple[str | None, ...]:
+def _enum_names(key: str) -> tuple[str, ...]:
     if key == "lifecycle":
         return tuple(s.name for s in LifecycleState)
     top = max(FaultCode)
-    return (None, *(FaultCode(v).name if v in FaultCode._value2member_map_
+    return ("", *(FaultCode(v).name if v in FaultCode._value2member_map_
                     else f"UNKNOWN_{v}" for v in range(1, top + 1)))
 
 

@@ -70,12 +70,16 @@ def reference_items(paths: Sequence[Path], *, validate: bool = True) -> list[Ite
                     assert msg["dlc"] == len(items[-1][4])
                 elif topic == EVENT_TOPIC:
                     items.append(("event", msg["t_ns"], msg["tick"], msg["kind"],
-                                  msg["detail"]))
+                                  json.loads(msg["detail_json"])))
     out: list[Item] = []
     for item in items:
         if item[0] == "record":
             record = dict(item[3])
             del record["t_ns"]
+            for key in record.get("nonfinite", ()):   # the documented number -> None
+                v = record[key]
+                record[key] = ([None if x == -1e308 else x for x in v] if isinstance(v, list)
+                               else None if v == -1e308 else v)
             out.append(("record", item[1], item[2], record))
         else:
             out.append(item)
