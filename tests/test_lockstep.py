@@ -19,7 +19,8 @@ from hil.stepped_run import record_emulated_run
 from rig.recording.recorder import read_run
 from rig.recording.schema import DESIGN_ATTACHMENT
 from rig.replay import replay_recording
-from rig.rt.timing_mode import TIMINGS, choose_timing
+from rig.rt.hostcheck import Budget, HostCheck, summarise, verdict
+from rig.rt.timing_mode import TIMINGS, checked_in_own_thread, choose_timing
 
 ROOT = Path(__file__).resolve().parents[1]
 DURATION_S = 2.0
@@ -82,8 +83,39 @@ def test_lockstep_demo_is_the_stepped_run_and_its_replay_bit_for_bit(tmp_path: P
     assert res.tx_frames_compared == res.tx_frames_recorded > n
 
 
+def _host_check(max_lateness_s: float, kernel: str) -> HostCheck:
+    cfg = default_config()
+    lat = summarise([20e-6] * 1000 + [max_lateness_s])
+    budget = Budget.from_config(cfg)
+    return HostCheck(lat, budget, verdict(lat, budget, realtime={}, kernel=kernel), {}, 1.0,
+                     kernel)
+
+
 def test_auto_timing_is_chosen_in_one_place() -> None:
-    assert choose_timing("auto")[0] == "lockstep"       # until the host is checked
+    """auto: realtime only where the host check passes on a PREEMPT_RT kernel."""
+    assert choose_timing("auto")[0] == "lockstep"       # not checked
     assert all(choose_timing(t) == (t, "asked for") for t in TIMINGS)
     with pytest.raises(ValueError, match="expected auto"):
         choose_timing("fast")
+    rt, plain = "6.1.0-rt #1 SMP PREEMPT_RT", "6.18.44 #1 SMP PREEMPT_DYNAMIC"
+    assert choose_timing("auto", lambda: _host_check(100e-6, rt))[0] == "realtime"
+    timing, why = choose_timing("auto", lambda: _host_check(100e-6, plain))
+    assert timing == "lockstep" and "not PREEMPT_RT" in why
+    timing, why = choose_timing("auto", lambda: _host_check(7e-3, rt))
+    assert timing == "lockstep" and "fails" in why and "7000 us" in why
+    calls: list[int] = []
+    choose_timing("lockstep", lambda: calls.append(1) or _host_check(0.0, rt))
+    assert not calls                                    # asked for: no check
+
+
+def test_the_auto_check_runs_in_a_thread_of_its_own() -> None:
+    import threading
+    me = threading.get_ident()
+    seen: list[int] = []
+
+    def check() -> HostCheck:
+        seen.append(threading.get_ident())
+        return _host_check(0.0, "x")
+
+    checked_in_own_thread(check)
+    assert seen and seen[0] != me

@@ -46,7 +46,8 @@ import numpy as np
 from controller.config import RigConfig, load_config
 from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
-from rig.rt.timing_mode import TIMINGS, choose_timing
+from rig.rt.hostcheck import check_host
+from rig.rt.timing_mode import AUTO_CHECK_S, TIMINGS, checked_in_own_thread, choose_timing
 
 SETTLE_S = 0.5     # skipped at the start of each half (start-up / switching transients)
 WARM_TICKS = 200   # loop ticks before the emulated rig starts
@@ -255,7 +256,9 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr)
     stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
-    timing, why = choose_timing(args.timing)
+    cfg = argtypes.with_foxglove(load_config(args.config), args.foxglove)
+    timing, why = choose_timing(args.timing, lambda: checked_in_own_thread(
+        lambda: check_host(cfg, AUTO_CHECK_S, None if args.no_realtime else RealtimeRequest())))
     lockstep = timing == "lockstep"
     pace = ""
     if lockstep:
@@ -265,7 +268,6 @@ def run(args: argparse.Namespace) -> int:
         pace = "; --max-speedup ignored: lockstep only"
     # the first line: which timing runs, and why
     print(f"rig demo: timing {timing} ({why}{pace})", file=sys.stderr, flush=True)
-    cfg = argtypes.with_foxglove(load_config(args.config), args.foxglove)
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
     arm_tick = n_ticks // 2
