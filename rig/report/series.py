@@ -96,6 +96,17 @@ class RunSeries:
     flags: NDArray[np.int64] = field(    # /controller/internals.flags (-1: not recorded)
         default_factory=lambda: np.zeros(0, np.int64))
 
+    def no_sensor_data(self) -> str | None:
+        """Why the run has nothing to show -- tick records, but on none of them a fresh
+        SensorData reading (``sensor_age_ticks`` never 0: the loop never received the
+        rig's sensor frames, e.g. nobody on the bus) -- or None."""
+        age = self.signals["sensor_age_ticks"]
+        if not np.isfinite(age).any() or (age == 0).any():
+            return None
+        return (f"no sensor data: {self.tick.size} tick records, none with a fresh "
+                "SensorData reading (/rig/signals.sensor_age_ticks never 0: the loop "
+                "never received the rig's sensor frames)")
+
     @property
     def dt_s(self) -> float:
         d = np.diff(self.t_s)
