@@ -84,3 +84,60 @@ def test_report_replaces_the_files_of_an_existing_directory(recording: Path,
     assert index == out / "index.html" and "Run report" in index.read_text()
     assert (out / "notes.txt").read_text() == "mine" and (out / "force.png").exists()
     assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]
+
+
+# ---------------------------------------------------------------------------- huge integers
+
+HUGE = "1" * 5000
+HUGE_HEX = "0x" + "f" * 4000
+
+
+@pytest.mark.parametrize(("text", "fragments"), [
+    (f"[sensors]\nseed = {HUGE}\n",
+     ("config key 'sensors.seed'", "more than 4300 digits on line 2",
+      "allowed an integer of at most 4300 digits")),
+    (f"[sensors]\nseed = {HUGE_HEX}\n",
+     ("config key 'sensors.seed'", "<an integer of about 4817 digits>")),
+    (f"[design]\nweight_sets = [[1, 2,\n  {HUGE}]]\n",
+     ("config key 'design.weight_sets'", "on line 3")),
+    (f"[design]\nweight_sets = [[{HUGE_HEX}, 1, 1, 1]]\n",
+     ("config key 'design.weight_sets[0][0]'", "a finite number")),
+    (f"x = {HUGE_HEX}\n", ("config key 'x'", "a known key")),
+])
+def test_huge_integer_in_a_config_names_the_key(text: str, fragments: tuple[str, ...],
+                                                tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "huge.toml"
+    path.write_text(text)
+    err = one_line(["sim", "--config", str(path)], capsys, *fragments)
+    assert len(err) < 400
+
+
+@pytest.fixture(scope="module")
+def huge_seed_recording(recording: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from controller.config import config_to_toml
+
+    toml = config_to_toml(CFG).replace("[sensors]\n", f"[sensors]\nseed = {HUGE}\n#", 1)
+    return rewrite(recording, tmp_path_factory.mktemp("huge") / "huge.mcap",
+                   "/rig/signals", lambda d: d,
+                   attachments={"config.toml": toml.encode()})
+
+
+@pytest.mark.parametrize("command", ["replay", "identify"])
+def test_huge_integer_in_a_recorded_config_names_the_key(
+        command: str, huge_seed_recording: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    one_line([command, str(huge_seed_recording)], capsys, "huge.mcap",
+             "config.toml", "config key 'sensors.seed'", "more than 4300 digits")
+
+
+def test_report_of_a_recorded_config_with_a_huge_integer_names_it(
+        huge_seed_recording: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from rig.cli import main
+
+    out = tmp_path / "rep"
+    assert main(["report", str(huge_seed_recording), "--out", str(out)]) == 0
+    assert capsys.readouterr().err == ""
+    page = (out / "index.html").read_text()
+    assert "config key &#x27;sensors.seed&#x27;" in page and "4300 digits" in page

@@ -12,7 +12,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from enum import IntEnum
 from functools import cached_property
@@ -23,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
-from controller.config import ConfigError, RigConfig, default_config, parse_config
+from controller.config import ConfigError, RigConfig, config_from_bytes, default_config
 from controller.runtime.kernels import StepFlag
 from rig.recording.scan import RecordingError, ScanResult, scan_recording, split_json
 from rig.recording.schema import (
@@ -275,8 +274,8 @@ def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:
     if raw is None:
         return None, f"the recording has no {CONFIG_ATTACHMENT} attachment"
     try:
-        return parse_config(tomllib.loads(raw.decode("utf-8"))), ""
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError, ConfigError) as exc:
+        return config_from_bytes(raw, CONFIG_ATTACHMENT), ""
+    except ConfigError as exc:
         return None, f"its {CONFIG_ATTACHMENT} could not be read ({exc})"
 
 
