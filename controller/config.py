@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
+from controller.files import NotRegularFileError, open_regular
+
 __all__ = [
     "MAX_BANK_MODELS",
     "MAX_BANK_TABLE_ENTRIES",
@@ -922,8 +924,11 @@ def read_text_file(path: str | Path, kind: str = "TOML",
     ``<file>``) when it cannot be read, is larger than ``max_bytes`` or is not UTF-8."""
     p = Path(path)
     try:
-        with p.open("rb") as f:
+        with open_regular(p) as f:
             raw = f.read(max_bytes + 1)
+    except NotRegularFileError as exc:
+        raise ConfigError("<file>", str(p), f"a readable {kind} file (it {exc.what})") \
+            from None
     except OSError as exc:
         raise ConfigError("<file>", str(p),
                           f"a readable {kind} file ({exc.strerror or exc})") from exc

@@ -141,3 +141,71 @@ def test_report_of_a_recorded_config_with_a_huge_integer_names_it(
     assert capsys.readouterr().err == ""
     page = (out / "index.html").read_text()
     assert "config key &#x27;sensors.seed&#x27;" in page and "4300 digits" in page
+
+
+# ---------------------------------------------------------------------------- terminal text
+
+def test_safe_escapes_control_characters_and_caps_the_length() -> None:
+    from rig.terminal import MAX_ECHO_CHARS, safe
+
+    assert safe("a\nb\x1b[2J\r\t\x7f\x9b\u2028\u202e\ufeffc") == \
+        "a\\nb\\x1b[2J\\r\\t\\x7f\\x9b\\u2028\\u202e\\ufeffc"
+    assert safe("r\xe9seau \u00fc \u4e2d") == "r\xe9seau \u00fc \u4e2d"
+    long = safe("k" * 7_000_000)
+    assert len(long) < MAX_ECHO_CHARS + 40 and long.endswith("[6999000 more characters]")
+    assert len(safe("\x1b" * 5000)) < MAX_ECHO_CHARS + 40
+
+
+@pytest.mark.parametrize(("key", "shown"), [
+    ('"a\\nb\\u001b[2J"', "a\\nb\\x1b[2J"),
+    ('"' + "k" * 7_000_000 + '"', "more characters]"),
+])
+def test_a_hostile_config_key_is_echoed_escaped_and_short(
+        key: str, shown: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "hostile.toml"
+    path.write_text(f"{key} = 1\n")
+    err = one_line(["sim", "--config", str(path)], capsys, "rig sim: config key", shown)
+    assert "\x1b" not in err and len(err) < 1100
+
+
+def test_a_hostile_file_name_is_echoed_escaped(tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "x\x1b[2J\ny.mcap"
+    bad.write_bytes(b"not a recording at all")
+    err = one_line(["replay", str(bad)], capsys, "x\\x1b[2J\\ny.mcap", "not an MCAP file")
+    assert "\x1b" not in err
+    err = one_line(["report", str(tmp_path / "nope\x1b.mcap"), "--compare",
+                    str(tmp_path / "gone\x07.mcap")], capsys, "gone\\x07.mcap")
+    assert "\x07" not in err
+
+
+# ---------------------------------------------------------------------------- FIFOs
+
+FIFO_CASES = [
+    (["sim", "--config", "{fifo}"], "a readable TOML file (it is a FIFO (named pipe)"),
+    (["hil", "--faults", "{fifo}"], "FIFO"),
+    (["sim", "--road", "csv:{fifo}"], "road file"),
+    (["replay", "{fifo}"], "fifo.mcap: is a FIFO (named pipe), expected a regular file"),
+    (["replay", "{fifo_log}"], "fifo.log: is a FIFO (named pipe)"),
+    (["report", "{fifo}"], "fifo.mcap: is a FIFO (named pipe)"),
+    (["identify", "{fifo}"], "is a FIFO (named pipe)"),
+    (["replay", "{rec}", "--design", "{fifo}"], "--design"),
+    (["report", "{rec}", "--compare", "{fifo}"], "--compare"),
+    (["replay", "/dev/zero"], "is a character device, expected a regular file"),
+]
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize(("argv", "fragment"), FIFO_CASES,
+                         ids=[" ".join(a) for a, _ in FIFO_CASES])
+def test_a_fifo_is_refused_without_blocking(argv: list[str], fragment: str, recording: Path,
+                                            tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    import os
+
+    names = {"fifo": tmp_path / "fifo.mcap", "fifo_log": tmp_path / "fifo.log",
+             "rec": recording}
+    os.mkfifo(names["fifo"])
+    os.mkfifo(names["fifo_log"])
+    one_line([a.format(**{k: str(v) for k, v in names.items()}) for a in argv], capsys,
+             fragment)

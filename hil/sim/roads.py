@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from controller.arrays import FloatArray
+from controller.files import NotRegularFileError, open_regular
 
 __all__ = [
     "ISO_CLASSES",
@@ -195,9 +196,11 @@ def _pothole(s: FloatArray, start: float, length: float, depth: float,
 def _read_csv(path: str) -> tuple[FloatArray, FloatArray]:
     p = Path(path)
     try:
-        with p.open("rb") as f:
+        with open_regular(p) as f:
             raw = f.read(MAX_CSV_BYTES + 1)
         text = raw.decode("utf-8")
+    except NotRegularFileError as exc:
+        raise RoadError(f"road file {path!r} is not readable: it {exc.what}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise RoadError(f"road file {path!r} is not readable: {exc}") from exc
     if len(raw) > MAX_CSV_BYTES:

@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rig import argtypes, strict_json
+from rig.terminal import refuse
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -103,13 +103,13 @@ def run(args: argparse.Namespace) -> int:
 
     series = load_series(args.run)      # RecordingError: rig.cli.REFUSALS
     if series.config is None:
-        print(f"rig identify: {args.run}: {series.config_problem}", file=sys.stderr)
+        refuse("identify", f"{args.run}: {series.config_problem}")
         return 2
     cfg = series.config
     try:
         ident = identify(run_data(series), cfg)
     except IdentificationRefusedError as exc:
-        print(f"rig identify: {args.run}: {exc}", file=sys.stderr)
+        refuse("identify", f"{args.run}: {exc}")
         return 2
     if args.out:
         fitted = fitted_config(cfg, ident)

@@ -18,6 +18,7 @@ import can
 from controller.config import load_config
 from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
+from rig.terminal import refuse
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -82,17 +83,17 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         if exc.filename is not None and args.design is not None \
                 and Path(exc.filename) == Path(args.design):
-            print(f"rig run: design artifact: {args.design}: {exc.strerror}", file=sys.stderr)
+            refuse("run", f"design artifact: {args.design}: {exc.strerror}")
         else:
-            print(f"rig run: cannot open the CAN bus: {exc}", file=sys.stderr)
+            refuse("run", f"cannot open the CAN bus: {exc}")
         return 2
     except can.CanError as exc:
-        print(f"rig run: cannot open the CAN bus: {exc}", file=sys.stderr)
+        refuse("run", f"cannot open the CAN bus: {exc}")
         return 2
     if service.recording_path is not None:
-        print(f"rig run: recording to {service.recording_path}", file=sys.stderr)
+        refuse("run", f"recording to {service.recording_path}")
     if service.foxglove is not None and service.foxglove.state == "serving":
-        print(f"rig run: Foxglove view on {service.foxglove.url}", file=sys.stderr)
+        refuse("run", f"Foxglove view on {service.foxglove.url}")
     code = service.run()
     if service.ticks_run == 0:
         print(f"rig run: stopped by {service.stop_signal or 'request'} before the control "

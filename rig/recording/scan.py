@@ -25,6 +25,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.files import NotRegularFileError, open_regular
 from rig.recording.schema import (
     MESSAGE_ENCODING,
     METADATA_NAME,
@@ -294,7 +295,11 @@ class _Segment:
         """The file, after its first 8 bytes were found to be the MCAP magic (a device
         or a large file of something else is never read whole)."""
         path = self.path
-        with open(path, "rb") as f:
+        try:
+            f = open_regular(path)
+        except NotRegularFileError as exc:
+            raise RecordingError(str(exc)) from None
+        with f:
             magic = f.read(len(MCAP_MAGIC))
             if len(magic) < len(MCAP_MAGIC) and MCAP_MAGIC.startswith(magic):
                 return magic                  # cut inside the magic (scan() says so)
