@@ -209,3 +209,35 @@ def test_a_fifo_is_refused_without_blocking(argv: list[str], fragment: str, reco
     os.mkfifo(names["fifo_log"])
     one_line([a.format(**{k: str(v) for k, v in names.items()}) for a in argv], capsys,
              fragment)
+
+
+# ---------------------------------------------------------------------------- attachment CRC
+
+def _damaged_config(recording: Path, dst: Path, *, cut: bool) -> Path:
+    """``recording`` with one byte of its config.toml attachment changed (the attachment
+    record's CRC left as it was); ``cut``: truncated at 90 % (no summary, no data CRC)."""
+    raw = bytearray(recording.read_bytes())
+    i = raw.index(b"stale_ticks = ") + len(b"stale_ticks = ")
+    raw[i] = ord("9") if raw[i] != ord("9") else ord("8")
+    dst.write_bytes(raw[:int(len(raw) * 0.9)] if cut else raw)
+    return dst
+
+
+@pytest.mark.parametrize("cut", [True, False], ids=["truncated", "whole"])
+def test_a_damaged_config_attachment_is_named_not_replayed(
+        cut: bool, recording: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    bad = _damaged_config(recording, tmp_path / "stale.mcap", cut=cut)
+    for command in ("replay", "identify"):
+        one_line([command, str(bad)], capsys, "stale.mcap",
+                 "attachment", "config.toml", "is damaged (CRC mismatch in its "
+                 "Attachment record at byte")
+
+
+def test_report_names_a_damaged_config_attachment(recording: Path, tmp_path: Path) -> None:
+    from rig.report import load_series
+
+    s = load_series(_damaged_config(recording, tmp_path / "stale.mcap", cut=True))
+    assert s.config is None and "config.toml attachment is damaged (CRC" in s.config_problem
+    assert "config.toml" not in s.scan.attachments
+    assert any("attachment 'config.toml' damaged" in n for n in s.scan.notes)

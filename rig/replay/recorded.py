@@ -362,6 +362,10 @@ def design_from_bytes(data: bytes) -> Design:
 def _attachment(run: RecordedRun, name: str, option: str) -> bytes:
     """The recording's attachment ``name``; its absence names the option that replaces it."""
     raw = run.scan.attachments.get(name)
+    damage = run.scan.damaged_attachments.get(name)
+    if damage:
+        raise RecordingError(f"{run.path}: attachment '{name}' is damaged ({damage}); "
+                             f"pass {option}")
     if raw is None:
         raise RecordingError(f"{run.path}: no '{name}' attachment; pass {option}")
     return raw

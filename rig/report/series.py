@@ -271,6 +271,9 @@ def load_series(path: str | Path) -> RunSeries:
 
 def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:
     raw = scan.attachments.get(CONFIG_ATTACHMENT)
+    damage = scan.damaged_attachments.get(CONFIG_ATTACHMENT)
+    if damage:
+        return None, f"its {CONFIG_ATTACHMENT} attachment is damaged ({damage})"
     if raw is None:
         return None, f"the recording has no {CONFIG_ATTACHMENT} attachment"
     try:
