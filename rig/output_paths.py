@@ -30,6 +30,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 __all__ = [
+    "OUTPUT_FAILED",
     "RECORDING_SUFFIX",
     "new_file_problem",
     "new_recording_problem",
@@ -40,6 +41,10 @@ __all__ = [
 ]
 
 RECORDING_SUFFIX = ".mcap"
+#: exit status of a command whose output (a recording it was asked for) could not be
+#: written whole: a write failed, e.g. a full disk (``rig replay --out``, ``rig run
+#: --record`` / ``--excite``, ``rig demo --record``)
+OUTPUT_FAILED = 3
 
 
 def _nearest_existing(path: Path) -> Path:

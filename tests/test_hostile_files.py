@@ -241,3 +241,80 @@ def test_report_names_a_damaged_config_attachment(recording: Path, tmp_path: Pat
     assert s.config is None and "config.toml attachment is damaged (CRC" in s.config_problem
     assert "config.toml" not in s.scan.attachments
     assert any("attachment 'config.toml' damaged" in n for n in s.scan.notes)
+
+
+# ---------------------------------------------------------------------------- full disk
+
+def _limited_file_size(limit: int) -> Any:
+    """preexec_fn: files written by the process (and its writer child) stop at ``limit``
+    bytes with EFBIG, as on a full disk (SIGXFSZ ignored: the write fails instead)."""
+    import resource
+    import signal
+
+    def apply() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return apply
+
+
+def test_replay_out_on_a_full_disk_says_so_and_exits_3(recording: Path,
+                                                        tmp_path: Path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "out.mcap"
+    proc = subprocess.run([sys.executable, "-m", "rig.cli", "replay", str(recording),
+                           "--out", str(out), "--json"],
+                          env={**os.environ, "PYTHONPATH": str(root)}, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120,
+                          preexec_fn=_limited_file_size(150_000))
+    assert proc.returncode == 3, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    assert f"rig replay: {out} is incomplete: recording to {out} failed:" in proc.stderr
+    assert "File too large" in proc.stderr
+    summary = json.loads(proc.stdout)
+    assert "File too large" in summary["out_error"] and summary["bit_exact"]
+
+
+def _failing_close(monkeypatch: pytest.MonkeyPatch) -> None:
+    from rig.recording.recorder import RunRecorder
+
+    real = RunRecorder.close
+
+    def close(self: RunRecorder, timeout_s: float = 30.0) -> None:
+        real(self, timeout_s)
+        self.error = self.error or "[Errno 28] No space left on device"
+    monkeypatch.setattr(RunRecorder, "close", close)
+
+
+def test_run_with_a_failed_recording_says_so_and_exits_3(
+        design_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from rig.cli import main
+
+    _failing_close(monkeypatch)
+    rec = tmp_path / "run.mcap"
+    rc = main(["run", "--interface", "virtual", "--channel", "full-disk", "--design",
+               str(design_path), "--no-telemetry", "--no-realtime", "--duration", "0.3",
+               "--record", str(rec)])
+    err = capsys.readouterr().err
+    assert rc == 3, err
+    assert (f"rig run: recording {rec} FAILED, it is incomplete: [Errno 28] No space left "
+            "on device") in err.splitlines()[-1]
+
+
+def test_demo_with_a_failed_recording_says_so(tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    from rig.cli import main
+
+    _failing_close(monkeypatch)
+    rec = tmp_path / "demo.mcap"
+    rc = main(["demo", "--duration", "1", "--no-telemetry", "--no-realtime", "-q",
+               "--record", str(rec)])
+    out = capsys.readouterr().out
+    assert rc == 3
+    assert f"recording: recording {rec} FAILED, it is incomplete: [Errno 28]" in out
+    assert f"recording: {rec}\n" not in out

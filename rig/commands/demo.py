@@ -36,6 +36,7 @@ import numpy as np
 from controller.config import RigConfig, load_config
 from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
+from rig.output_paths import OUTPUT_FAILED
 
 SETTLE_S = 0.5     # skipped at the start of each half (start-up / switching transients)
 WARM_TICKS = 200   # loop ticks before the emulated rig starts
@@ -369,8 +370,10 @@ def run(args: argparse.Namespace) -> int:
               f"{100 * (1 - active.get('bypass_open_fraction', 1.0)):.0f} % of the second "
               f"half (faults above); load average {os.getloadavg()[0]:.1f} on "
               f"{os.cpu_count()} CPUs", file=out)
+    failure = service.recording_failure
     if summary["recording"]:
-        print(f"recording: {summary['recording']}", file=out)
+        print(f"recording: {failure or summary['recording']}", file=out)
     if args.json:
         print(strict_json.dumps(summary))
-    return 0
+    # the recording was the point of --record / --excite (rig identify reads it)
+    return OUTPUT_FAILED if failure and (args.record or args.excite) else 0

@@ -5,7 +5,9 @@ With the recorded design and configuration the replay must reproduce the recorde
 transmitted frames bit for bit (exit status 1 if it does not).  With ``--design`` or
 ``--config`` it compares the two controllers on the same sensor data -- open loop: the
 recorded plant did not react to the replayed commands.  Exit status 2 for a file that
-is not a replayable recording (the message names what is wrong).
+is not a replayable recording (the message names what is wrong); 3 when the ``--out``
+recording could not be written whole (a write failed, e.g. a full disk: the partial file
+is kept, readable up to its last complete chunk, and named in one line on stderr).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from controller.artifact import DesignMismatch, load_design
 from controller.config import load_config
 from controller.files import regular_file_problem
 from rig import argtypes, strict_json
+from rig.output_paths import OUTPUT_FAILED
 from rig.replay import LOG_SUFFIXES, MAX_LOG_SPAN_S, RecordingError, ReplayResult, replay_file
 from rig.terminal import refuse, safe
 
@@ -69,7 +72,7 @@ def _print_text(res: ReplayResult) -> None:
             print(f"  {key:28s} {v:.6g}" if isinstance(v, float) else f"  {key:28s} {v}")
     for note in res.notes:
         print(f"note: {safe(note)}")
-    if res.out:
+    if res.out and not res.out_error:
         print(f"wrote {res.out}")
 
 
@@ -106,6 +109,9 @@ def run(args: argparse.Namespace) -> int:
         print(strict_json.dumps(res.summary(), indent=1))
     else:
         _print_text(res)
+    if res.out_error:        # a full disk: the output was the point
+        refuse("replay", f"{res.out} is incomplete: {res.out_error}")
+        return OUTPUT_FAILED
     if res.kind == "mcap" and res.same_controller and not res.bit_exact:
         return 1
     return 0

@@ -1,7 +1,9 @@
 """``rig run``: the real-time controller service on a CAN bus (systemd-ready).
 
 Exit status 0 after SIGTERM / SIGINT / ``--duration`` (valve left in its safe state,
-recording closed); 2 for a bad configuration, design artifact or bus.  SIGTERM / SIGINT
+recording closed); 2 for a bad configuration, design artifact or bus; 3 when the
+recording asked for with ``--record`` or ``--excite`` could not be written whole (a
+full disk: ``rig run: recording PATH FAILED, it is incomplete: ...``).  SIGTERM / SIGINT
 before the loop started (while the bank is designed, the bus or the recording opens)
 also exit 0, with a message and no recording (:mod:`rig.rt.stop_signals`).
 """
@@ -18,6 +20,7 @@ import can
 from controller.config import load_config
 from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
+from rig.output_paths import OUTPUT_FAILED
 from rig.terminal import refuse
 
 
@@ -112,5 +115,11 @@ def run(args: argparse.Namespace) -> int:
         status["realtime"] = service.realtime_report.as_dict()
         status["telemetry"] = service.status()["telemetry"]
         status["foxglove"] = service.foxglove_status()
+        status["recording_error"] = service.recording_failure
         print(strict_json.dumps(status))
+    failure = service.recording_failure
+    if failure:
+        refuse("run", failure)
+        if code == 0 and (args.excite or args.record):   # the recording was the point
+            return OUTPUT_FAILED
     return code

@@ -303,6 +303,7 @@ def _result(run: RecordedRun, rp: _Replayer, loop: ControlLoop, bus: McapReplayB
         faults=faults.codes, fault_ticks=faults.ticks,
         bus_exceptions_recorded=bus.faults_loaded, bus_exceptions_raised=bus.faults_raised,
         out=None if recorder is None else str(recorder.base_path),
+        out_error=None if recorder is None else recorder.error,
         notes=notes, tick=np.arange(first_tick, last_tick + 1, dtype=np.int64),
         spool_cmd=spool, force_ref_n=fref, valve_enable=enable)
     if bus.faults_raised != bus.faults_loaded:
@@ -375,6 +376,7 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
         tx_frames_replayed=len(bus.sent), final_state=loop.lifecycle.state.name,
         faults=faults.codes, fault_ticks=faults.ticks,
         out=None if recorder is None else str(recorder.base_path),
+        out_error=None if recorder is None else recorder.error,
         notes=notes, tick=np.arange(n, dtype=np.int64), spool_cmd=spool, force_ref_n=fref,
         valve_enable=enable)
 
