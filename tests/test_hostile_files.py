@@ -318,3 +318,24 @@ def test_demo_with_a_failed_recording_says_so(tmp_path: Path,
     assert rc == 3
     assert f"recording: recording {rec} FAILED, it is incomplete: [Errno 28]" in out
     assert f"recording: {rec}\n" not in out
+
+
+# ---------------------------------------------------------------------------- identify, cut
+
+def test_identify_on_a_cut_recording_says_it_is_incomplete(
+        identification_run: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from rig.cli import main
+
+    raw = identification_run.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(raw[:int(len(raw) * 0.9)])
+    assert main(["identify", str(cut), "--json"]) == 0
+    state = json.loads(capsys.readouterr().out)["recording"]
+    assert state["complete"] is False and "cut.mcap: truncated at byte" in state["stopped_at"]
+    assert state["excitation_ended"] is False
+    fitted = tmp_path / "fitted.toml"
+    assert main(["identify", str(cut), "--out", str(fitted)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("INCOMPLETE RECORDING: ") and "no end event" in out.splitlines()[0]
+    assert "# INCOMPLETE RECORDING: " in fitted.read_text()
