@@ -339,3 +339,46 @@ def test_identify_on_a_cut_recording_says_it_is_incomplete(
     out = capsys.readouterr().out
     assert out.startswith("INCOMPLETE RECORDING: ") and "no end event" in out.splitlines()[0]
     assert "# INCOMPLETE RECORDING: " in fitted.read_text()
+
+
+# ---------------------------------------------------------------------------- road profiles
+
+def test_a_byte_order_mark_keeps_the_first_row(tmp_path: Path) -> None:
+    from hil.sim.roads import _read_csv
+
+    p = tmp_path / "bom.csv"
+    p.write_bytes(b"\xef\xbb\xbf0,0.05\n10,0\n20,0\n")
+    dist, height = _read_csv(str(p))
+    assert list(dist) == [0.0, 10.0, 20.0] and height[0] == 0.05
+    p.write_bytes(b"\xef\xbb\xbfdistance_m,height_m\n0,0.05\n10,0\n")
+    assert list(_read_csv(str(p))[0]) == [0.0, 10.0]
+
+
+@pytest.mark.parametrize("height", ["1e300", "-11", "1e5"])
+def test_non_physical_road_heights_are_refused(height: str, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    p = tmp_path / "tall.csv"
+    p.write_text(f"0,0\n1,{height}\n100,0\n")
+    one_line(["sim", "--road", f"csv:{p}", "--duration", "1"], capsys,
+             "line 2: height", "allowed [-10, 10] m")
+
+
+def test_a_run_reads_only_the_rows_it_needs(tmp_path: Path) -> None:
+    import time
+    import tracemalloc
+
+    from hil.sim.roads import make_road
+
+    p = tmp_path / "long.csv"
+    rows = 400_000                                  # 4 km at 1 cm, ~8 MB
+    with p.open("w") as f:
+        f.write("distance_m,height_m\n")
+        f.writelines(f"{i * 0.01:.2f},{0.001 * (i % 7)}\n" for i in range(rows))
+        f.write("not,a,row\n")                      # never reached by a short run
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    road = make_road(f"csv:{p}", 10.0, 2.0, 1e-3)   # needs 20 m = 2,001 rows
+    elapsed = time.perf_counter() - t0
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert road.n_ticks == 2000 and elapsed < 2.0 and peak < 2_000_000, (elapsed, peak)
