@@ -382,3 +382,22 @@ def test_a_run_reads_only_the_rows_it_needs(tmp_path: Path) -> None:
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert road.n_ticks == 2000 and elapsed < 2.0 and peak < 2_000_000, (elapsed, peak)
+
+
+# ---------------------------------------------------------------------------- demo summary
+
+def test_demo_table_says_n_a_with_the_reason() -> None:
+    from rig.commands.demo import _table, ratio
+
+    short = _table({"ticks": 0.0}, {"ticks": 1.0})
+    assert "nan" not in short and "n/a: too short" in short
+    assert "too short to measure (passive 0 ticks, active 1 ticks" in short
+    passive = {"ticks": 1500.0, "absorbed_power": 2.9e-33, "rattlespace_rms_m": 1e-19,
+               "tire_load_rms_ratio": 0.0}
+    active = {"ticks": 2500.0, "absorbed_power": 0.0616, "rattlespace_rms_m": 0.0076,
+              "tire_load_rms_ratio": 0.12}
+    flat = _table(passive, active)
+    assert "e+" not in flat and "n/a: passive flat" in flat
+    assert ratio(passive, active, "absorbed_power") == (None, "n/a: passive flat")
+    assert ratio({"absorbed_power": 0.5}, {"absorbed_power": 0.1}, "absorbed_power") == \
+        (pytest.approx(0.2), "")
