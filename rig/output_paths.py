@@ -148,10 +148,9 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
         yield stage
-        try:
-            os.rename(stage, out)          # atomic where ``out`` does not exist yet
-        except OSError:
-            out.mkdir(exist_ok=True)
+        if not (out.exists() or out.is_symlink()):
+            os.rename(stage, out)          # atomic
+        else:                              # keep the directory (or symlink) the user has
             for item in sorted(stage.iterdir(), key=_html_last):
                 os.replace(item, out / item.name)
     finally:
