@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
+from controller.files import NotRegularFileError, open_regular
+
 __all__ = [
     "MAX_BANK_MODELS",
     "MAX_BANK_TABLE_ENTRIES",
@@ -53,9 +55,11 @@ __all__ = [
     "TelemetryConfig",
     "TireConfig",
     "VehicleConfig",
+    "config_from_bytes",
     "config_hash",
     "config_to_dict",
     "config_to_toml",
+    "decode_text",
     "default_config",
     "excitation_problems",
     "host_problem",
@@ -91,6 +95,53 @@ _short.maxstring = _short.maxother = 200
 _short.maxdict = 4
 
 
+#: most decimal digits of an integer in a configuration (Python's own limit on converting
+#: between text and int, ``sys.get_int_max_str_digits``: longer ones cost quadratic time)
+MAX_INT_DIGITS = 4300
+_LONG_INT = re.compile(rf"(?<![.\w])\d[\d_]{{{MAX_INT_DIGITS - 1},}}(?![.\w])")
+_TABLE_HEADER = re.compile(r"^\s*\[\[?\s*([^\]]*?)\s*\]")
+_KEY_BEFORE_VALUE = re.compile(r"^\s*([^=\s][^=]*?)\s*=")
+
+
+class _Described(str):
+    """A value that an error message describes instead of quoting."""
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+def _shown(value: object) -> str:
+    """``value`` abbreviated for an error message (an integer too long to print is
+    described by its length)."""
+    if isinstance(value, int) and value.bit_length() > 3 * MAX_INT_DIGITS:
+        return f"<an integer of about {int(value.bit_length() * math.log10(2)) + 1} digits>"
+    try:
+        return _short.repr(value)
+    except ValueError:              # an integer too long for str() inside a list
+        return f"<a {type(value).__name__} holding an integer too long to print>"
+
+
+def _long_int_key(text: str) -> tuple[str, int]:
+    """The key (``section.name``) and 1-based line of the first integer literal of
+    ``text`` longer than :data:`MAX_INT_DIGITS` digits (("<file>", 0) if none)."""
+    m = _LONG_INT.search(text)
+    if m is None:
+        return "<file>", 0
+    lines = text[:m.start()].split("\n")
+    name = section = ""
+    for line in reversed(lines):    # the key of the value (an array may span lines)
+        if h := _TABLE_HEADER.match(line):
+            section = h.group(1)
+            break
+        if not name and (k := _KEY_BEFORE_VALUE.match(line)):
+            name = k.group(1).strip()
+    if not name:
+        return f"<file> line {len(lines)}", len(lines)
+    return (f"{section}.{name}" if section else name), len(lines)
+
+
 #: largest ``design.compute_delay_ticks``: the runtime keeps this many pending spool
 #: commands in its buffers (controller.runtime.kernels)
 MAX_COMPUTE_DELAY_TICKS = 4
@@ -103,7 +154,7 @@ class ConfigError(ValueError):
         self.key = key
         self.value = value
         self.allowed = allowed
-        shown = _short.repr(value)
+        shown = _shown(value)
         if isinstance(value, list) and len(value) > _short.maxlist:
             shown += f" ({len(value)} entries)"
         super().__init__(f"config key '{key}' = {shown} is invalid: allowed {allowed}")
@@ -639,7 +690,10 @@ def _check_scalar(key: str, value: Any, typ: type, meta: Mapping[str, Any]) -> A
     elif typ is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(key, value, f"a number in {allowed}")
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:       # an integer beyond the largest float
+            raise ConfigError(key, value, f"a finite number in {allowed}") from None
         if not math.isfinite(value):
             raise ConfigError(key, value, f"a finite number in {allowed}")
     lo, hi = meta.get("lo"), meta.get("hi")
@@ -877,19 +931,34 @@ def read_text_file(path: str | Path, kind: str = "TOML",
     ``<file>``) when it cannot be read, is larger than ``max_bytes`` or is not UTF-8."""
     p = Path(path)
     try:
-        with p.open("rb") as f:
+        with open_regular(p) as f:
             raw = f.read(max_bytes + 1)
+    except NotRegularFileError as exc:
+        raise ConfigError("<file>", str(p), f"a readable {kind} file (it {exc.what})") \
+            from None
     except OSError as exc:
         raise ConfigError("<file>", str(p),
                           f"a readable {kind} file ({exc.strerror or exc})") from exc
     if len(raw) > max_bytes:
         raise ConfigError("<file>", str(p), f"a {kind} file of at most {max_bytes} bytes")
+    return decode_text(raw, p)
+
+
+def decode_text(raw: bytes, where: str | Path) -> str:
+    """``raw`` as UTF-8; :class:`ConfigError` (key ``<file>``, value ``where``) naming the
+    first byte that is not."""
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError("<file>", str(p),
+        raise ConfigError("<file>", str(where),
                           f"UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start} "
                           "is not UTF-8)") from exc
+
+
+def config_from_bytes(raw: bytes, where: str | Path) -> RigConfig:
+    """The configuration in the TOML bytes ``raw`` (e.g. a recording's attachment, named
+    by ``where``); :class:`ConfigError` as :func:`load_config`."""
+    return parse_config(parse_toml(decode_text(raw, where), where))
 
 
 def parse_toml(text: str, path: str | Path) -> dict[str, Any]:
@@ -899,6 +968,11 @@ def parse_toml(text: str, path: str | Path) -> dict[str, Any]:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError("<file>", str(path), f"valid TOML ({exc})") from exc
+    except ValueError:              # int(): more digits than sys.get_int_max_str_digits
+        key, line = _long_int_key(text)
+        raise ConfigError(key, _Described(f"<an integer of more than {MAX_INT_DIGITS} "
+                                          f"digits on line {line} of {path}>"),
+                          f"an integer of at most {MAX_INT_DIGITS} digits") from None
     except RecursionError:
         raise ConfigError("<file>", str(path),
                           "valid TOML nested at most a few hundred levels deep") from None

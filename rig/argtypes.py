@@ -29,8 +29,10 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from controller.config import RigConfig, host_problem
+from controller.files import regular_file_problem
 from controller.modes import BANK_MODES
 from rig.output_paths import new_file_problem, output_dir_problem, recording_target_problem
+from rig.terminal import safe
 
 __all__ = [
     "MAX_OFFLINE_S",
@@ -76,7 +78,7 @@ class OneLineParser(argparse.ArgumentParser):
     """argparse with its errors on one line: ``<prog>: <message> (see <prog> --help)``."""
 
     def error(self, message: str) -> NoReturn:
-        one_line = " ".join(message.split())
+        one_line = safe(" ".join(message.split()))
         self.exit(2, f"{self.prog}: {one_line} (see `{self.prog} --help`)\n")
 
     def _get_values(self, action: argparse.Action, arg_strings: list[str]) -> Any:
@@ -374,6 +376,9 @@ def input_file(text: str) -> str:
         _fail(f"{text}: no such file")
     if p.is_dir():
         _fail(f"{text}: is a directory, expected a file")
+    not_regular = regular_file_problem(p)
+    if not_regular:
+        _fail(f"{text}: {not_regular}")
     if not os.access(p, os.R_OK):
         _fail(f"{text}: not readable")
     return text

@@ -6,7 +6,9 @@ one line naming what is wrong and what is allowed, with exit status 2 and no tra
 the configuration is loaded first (its errors name the key), then every argument is
 checked as it is parsed (:mod:`rig.argtypes`), then an output file that exists is
 refused unless the command has ``--force``; file errors while the command runs are one
-line too.  ``--json`` output is strict JSON (:mod:`rig.strict_json`: NaN and infinities
+line too.  Text of the user's (keys, values, file names, recorded strings) is echoed
+through :func:`rig.terminal.safe`: control characters escaped, at most 1000 characters.
+``--json`` output is strict JSON (:mod:`rig.strict_json`: NaN and infinities
 are ``null``).
 """
 
@@ -22,6 +24,7 @@ from rig.argtypes import OneLineParser, bind_config, overwrite_problem
 from rig.blas_threads import one_blas_thread
 from rig.rt.kernel_cache import drop_stale_kernel_cache
 from rig.rt.stop_signals import StopSignals
+from rig.terminal import refuse
 
 #: subcommands that SIGTERM / SIGINT stop cleanly at any point (rig.rt.stop_signals): the
 #: handlers are installed before anything of theirs runs
@@ -133,18 +136,18 @@ def _main(command: str | None, argv: list[str], stop: StopSignals | None) -> int
             try:
                 bind_config(load_config(path) if path is not None else None)
             except ConfigError as exc:
-                print(f"rig {command}: {exc}", file=sys.stderr)
+                refuse(command, exc)
                 return 2
         args, extra = parser.parse_known_args(argv)
     except SystemExit as exc:        # --help, or a bad argument (one line said why)
         return exc.code if isinstance(exc.code, int) else 2
     if extra:
-        print(f"rig {args.command}: unrecognized arguments: {' '.join(extra)} "
-              f"(see `rig {args.command} --help`)", file=sys.stderr)
+        refuse(args.command, f"unrecognized arguments: {' '.join(extra)} "
+                             f"(see `rig {args.command} --help`)")
         return 2
     problem = overwrite_problem(args)
     if problem:
-        print(f"rig {args.command}: {problem}", file=sys.stderr)
+        refuse(args.command, problem)
         return 2
     args.stop_signals = stop
     try:
@@ -155,7 +158,7 @@ def _main(command: str | None, argv: list[str], stop: StopSignals | None) -> int
         said = refusal(exc)
         if said is None:
             raise
-        print(f"rig {args.command}: {said[0]}", file=sys.stderr)
+        refuse(args.command, said[0])
         return said[1]
 
 

@@ -8,7 +8,9 @@ RunRecorder`, at start).
 - A single output file (a design artifact, saved traces) is replaced only with
   ``--force``.
 - An output directory may exist (the command rewrites its own files in it) but must not
-  be a file.
+  be a file.  Its files are written into a hidden staging directory next to it and moved
+  in only when all of them are done (:func:`staged_dir`): a command that fails half-way
+  leaves no partial output.
 - Directories that do not exist yet are created, so the nearest existing ancestor must be
   a directory in which this process can create entries (tried, not guessed from mode
   bits: root passes ``os.access`` on a read-only or pseudo file system).
@@ -19,21 +21,30 @@ what is wrong and what would do (to follow ``"<path>: "``).
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 import tempfile
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 
 __all__ = [
+    "OUTPUT_FAILED",
     "RECORDING_SUFFIX",
     "new_file_problem",
     "new_recording_problem",
     "output_dir_problem",
     "recording_file",
     "recording_target_problem",
+    "staged_dir",
 ]
 
 RECORDING_SUFFIX = ".mcap"
+#: exit status of a command whose output (a recording it was asked for) could not be
+#: written whole: a write failed, e.g. a full disk (``rig replay --out``, ``rig run
+#: --record`` / ``--excite``, ``rig demo --record``)
+OUTPUT_FAILED = 3
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -123,3 +134,29 @@ def output_dir_problem(path: str | Path) -> str | None:
     if path.exists() and not path.is_dir():
         return "exists and is not a directory: give a directory"
     return _creatable_below(path / "x")
+
+
+@contextlib.contextmanager
+def staged_dir(out: str | Path) -> Iterator[Path]:
+    """A new empty directory to write the files of the output directory ``out`` into.
+    When the ``with`` block ends normally they are moved into ``out`` (``out`` itself
+    is renamed into place when it does not exist yet; else each file replaces its
+    namesake, the others in ``out`` are kept); when it raises, the staging directory is
+    removed and ``out`` is left as it was."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        yield stage
+        if not (out.exists() or out.is_symlink()):
+            os.rename(stage, out)          # atomic
+        else:                              # keep the directory (or symlink) the user has
+            for item in sorted(stage.iterdir(), key=_html_last):
+                os.replace(item, out / item.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def _html_last(item: Path) -> tuple[bool, str]:
+    """The page after its images: a reader never finds a page whose images are missing."""
+    return item.suffix == ".html", item.name

@@ -167,10 +167,10 @@ def test_bad_config_file_on_every_subcommand(command: str, case: str,
     assert f"rig {command}: config key" in err
 
 
-def test_dev_zero_as_config_is_refused_without_reading_it_all(
+def test_dev_zero_as_config_is_refused_without_reading_it(
         capsys: pytest.CaptureFixture[str]) -> None:
     _one_line_exit_2(["design", "--config", "/dev/zero", "--out", "x.npz"], capsys,
-                     "a TOML file of at most")
+                     "it is a character device, expected a regular file")
 
 
 # ---------------------------------------------------------------------------- arguments

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from controller.config import (
+    MAX_CONFIG_BYTES,
     ConfigError,
     config_hash,
     config_to_toml,
@@ -110,7 +111,12 @@ def test_unreadable_files_are_config_errors(tmp_path) -> None:
     deep.write_text("a = " + "[" * 3000 + "]" * 3000)
     with pytest.raises(ConfigError, match="nested at most"):
         load_config(deep)
+    big = tmp_path / "big.toml"
+    with big.open("wb") as f:
+        f.truncate(MAX_CONFIG_BYTES + 1)            # sparse: no disk used
     with pytest.raises(ConfigError, match="at most"):
+        load_config(big)
+    with pytest.raises(ConfigError, match="it is a character device"):
         load_config("/dev/zero")
     with pytest.raises(ConfigError, match="readable"):
         load_config(tmp_path)

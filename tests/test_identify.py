@@ -157,7 +157,9 @@ def test_recovers_the_emulated_rig_within_tolerance(identified: dict[str, Any]) 
 
 def test_json_keys_are_config_keys_and_intervals_bracket(identified: dict[str, Any]) -> None:
     doc = identified["json"]
-    assert set(doc) == {"estimates", "ci95", "fit"}
+    assert set(doc) == {"estimates", "ci95", "fit", "recording"}
+    assert doc["recording"] == {"complete": True, "stopped_at": None,
+                                "excitation_ended": True}
     assert set(doc["ci95"]) == set(doc["estimates"])
     cfg = default_config()
     for key, value in doc["estimates"].items():

@@ -17,8 +17,6 @@ import struct
 import subprocess
 import sys
 import tempfile
-import threading
-import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -968,27 +966,24 @@ def test_a_damaged_data_section_record_is_noticed(recording: Path, work: Path) -
 
 
 @pytest.mark.parametrize("command", ["replay", "report"])
-def test_non_mcap_input_is_refused_after_its_magic(command: str, tmp_path: Path) -> None:
-    """/dev/zero and a pipe whose writer never closes: refused on the first 8 bytes
-    (reading them whole would never end)."""
+def test_non_regular_input_is_refused_without_reading(command: str, tmp_path: Path) -> None:
+    """/dev/zero and a pipe whose writer never closes: refused as not a regular file
+    before a byte is read (reading them would never end; controller.files), a large
+    regular non-MCAP file on its first 8 bytes."""
     fifo = tmp_path / "pipe.mcap"
     os.mkfifo(fifo)
-    opened = threading.Event()
-
-    def writer() -> None:
-        with open(fifo, "wb") as f:
-            f.write(b"timestamp,can_id,data\n")
-            f.flush()
-            opened.set()
-            time.sleep(60)                 # keeps the pipe open: no end of file
-
-    threading.Thread(target=writer, daemon=True).start()
-    for src in ("/dev/zero", str(fifo)):
+    big = tmp_path / "big.mcap"
+    with big.open("wb") as f:
+        f.write(b"timestamp,can_id,data\n")
+        f.truncate(1 << 30)                   # sparse
+    for src, frag in (("/dev/zero", "is a character device, expected a regular file"),
+                      (str(fifo), "is a FIFO (named pipe), expected a regular file"),
+                      (str(big), "not an MCAP file (first bytes")):
         proc = subprocess.run([sys.executable, "-m", "rig.cli", command, src],
                               capture_output=True, text=True, timeout=60,
                               cwd=Path(__file__).resolve().parents[1])
         assert proc.returncode == 2, proc.stderr
-        assert f"{src}: not an MCAP file (first bytes" in proc.stderr
+        assert f"{src}: {frag}" in proc.stderr
         assert "Traceback" not in proc.stderr
 
 

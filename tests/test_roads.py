@@ -132,8 +132,9 @@ def test_bad_names_give_clear_errors(name: str, match: str) -> None:
 def test_bad_csv_and_arguments(tmp_path: Path) -> None:
     p = tmp_path / "bad.csv"
     p.write_text("0,0\n1,0\n0.5,1\n")
-    with pytest.raises(RoadError, match="increasing"):
-        make_road(f"csv:{p}", 1.0, 0.1, DT)
+    with pytest.raises(RoadError, match="line 3: distance must be strictly increasing"):
+        make_road(f"csv:{p}", 1.0, 2.0, DT)
+    make_road(f"csv:{p}", 1.0, 0.1, DT)     # a run of 0.1 m reads the first two rows
     p.write_text("0,0\n1,abc\n")
     with pytest.raises(RoadError, match="line 2"):
         make_road(f"csv:{p}", 1.0, 0.1, DT)

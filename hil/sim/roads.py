@@ -32,8 +32,10 @@ Names:
     (``rig demo --excite``, ``rig hil --excite``).
 ``csv:PATH``
     Measured profile: two columns distance [m], height [m] (comma separated, optional
-    header line), distance strictly increasing; linear interpolation.  At most
-    :data:`MAX_CSV_BYTES` (a 100 km profile at 1 cm spacing).
+    header line, UTF-8 with or without a byte order mark), distance strictly
+    increasing, heights within +/- :data:`MAX_ROAD_HEIGHT_M`; linear interpolation.  At
+    most :data:`MAX_CSV_BYTES` (a 100 km profile at 1 cm spacing); a run reads the rows
+    it needs (up to its distance) and stops, so an error further on is not seen.
 
 ``check_road(name)`` validates a name (and reads a ``csv:`` file) without building the
 road: the command line checks ``--road`` with it before anything else runs.
@@ -41,13 +43,18 @@ road: the command line checks ``--road`` with it before anything else runs.
 
 from __future__ import annotations
 
+import io
 import math
+import os
+from array import array
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from controller.arrays import FloatArray
+from controller.files import NotRegularFileError, open_regular
 
 __all__ = [
     "ISO_CLASSES",
@@ -55,6 +62,7 @@ __all__ = [
     "ISO_N1",
     "ISO_N2",
     "MAX_CSV_BYTES",
+    "MAX_ROAD_HEIGHT_M",
     "ROAD_NAMES",
     "ROUGH_COURSE_RMS_M",
     "Road",
@@ -76,8 +84,11 @@ ISO_CLASSES: dict[str, float] = {c: 16e-6 * 4.0**k for k, c in enumerate("ABCDEF
 ROUGH_COURSE_RMS_M = 1.35 * 0.0254
 ROAD_NAMES = (*[f"iso-{c}" for c in ISO_CLASSES], "rough-course", "datp", "bump",
               "pothole", "sweep", "flat", "csv:PATH")
-#: largest ``csv:`` profile file read
+#: largest ``csv:`` profile file (a run reads only the rows it needs)
 MAX_CSV_BYTES = 256 << 20
+#: largest height of a ``csv:`` profile: a road under a quarter car, not a survey of
+#: altitudes (a profile's height is the tire's base input; 1e300 would overflow)
+MAX_ROAD_HEIGHT_M = 10.0
 
 
 class RoadError(ValueError):
@@ -192,39 +203,63 @@ def _pothole(s: FloatArray, start: float, length: float, depth: float,
     return -depth * d
 
 
-def _read_csv(path: str) -> tuple[FloatArray, FloatArray]:
+def _read_csv(path: str, need_m: float | None = None) -> tuple[FloatArray, FloatArray]:
+    """(distance, height) of a ``csv:`` profile, read line by line and checked as it is
+    read; ``need_m``: stop at the first row ``need_m`` metres or more past the first (a
+    run reads what it needs of a long profile, not the whole file; None: read it all)."""
     p = Path(path)
     try:
-        with p.open("rb") as f:
-            raw = f.read(MAX_CSV_BYTES + 1)
-        text = raw.decode("utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        f = open_regular(p)
+    except NotRegularFileError as exc:
+        raise RoadError(f"road file {path!r} is not readable: it {exc.what}") from None
+    except OSError as exc:
         raise RoadError(f"road file {path!r} is not readable: {exc}") from exc
-    if len(raw) > MAX_CSV_BYTES:
-        raise RoadError(f"road file {path!r} is larger than {MAX_CSV_BYTES} bytes")
-    rows: list[tuple[float, float]] = []
-    for i, line in enumerate(text.splitlines(), 1):
-        line = line.strip()
+    with f:
+        if os.fstat(f.fileno()).st_size > MAX_CSV_BYTES:
+            raise RoadError(f"road file {path!r} is larger than {MAX_CSV_BYTES} bytes")
+        # utf-8-sig: a byte order mark (spreadsheet export) is not part of the first row
+        text = io.TextIOWrapper(f, encoding="utf-8-sig", newline=None)
+        try:
+            dist, height = _profile_rows(path, text, need_m)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RoadError(f"road file {path!r} is not readable: {exc}") from exc
+    if len(dist) < 2:
+        raise RoadError(f"road file {path!r}: needs at least two 'distance,height' rows")
+    return np.frombuffer(dist, dtype=np.float64), np.frombuffer(height, dtype=np.float64)
+
+
+def _profile_rows(path: str, lines: Iterable[str], need_m: float | None
+                  ) -> tuple[array[float], array[float]]:
+    dist: array[float] = array("d")
+    height: array[float] = array("d")
+    for i, raw in enumerate(lines, 1):
+        line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        parts = [x.strip() for x in line.split(",")]
+        parts = line.split(",")
         try:
             if len(parts) != 2:
                 raise ValueError
-            rows.append((float(parts[0]), float(parts[1])))
+            d, h = float(parts[0]), float(parts[1])
         except ValueError:
-            if not rows and i == 1:
+            if not dist and i == 1:
                 continue    # header line
             raise RoadError(f"road file {path!r} line {i}: expected 'distance_m,height_m', "
-                            f"got {line!r}") from None
-    if len(rows) < 2:
-        raise RoadError(f"road file {path!r}: needs at least two 'distance,height' rows")
-    arr = np.array(rows)
-    if not np.all(np.isfinite(arr)):
-        raise RoadError(f"road file {path!r}: non-finite values")
-    if np.any(np.diff(arr[:, 0]) <= 0):
-        raise RoadError(f"road file {path!r}: distance must be strictly increasing")
-    return arr[:, 0], arr[:, 1]
+                            f"got {line[:80]!r}") from None
+        if not (math.isfinite(d) and math.isfinite(h)):
+            raise RoadError(f"road file {path!r} line {i}: non-finite values")
+        if abs(h) > MAX_ROAD_HEIGHT_M:
+            raise RoadError(f"road file {path!r} line {i}: height {h:g} m is not a "
+                            f"physical road height; allowed [-{MAX_ROAD_HEIGHT_M:g}, "
+                            f"{MAX_ROAD_HEIGHT_M:g}] m")
+        if dist and d <= dist[-1]:
+            raise RoadError(f"road file {path!r} line {i}: distance must be strictly "
+                            f"increasing ({d:g} after {dist[-1]:g})")
+        dist.append(d)
+        height.append(h)
+        if need_m is not None and len(dist) >= 2 and d - dist[0] >= need_m:
+            break
+    return dist, height
 
 
 _FIXED_ROADS = ("rough-course", "datp", "bump", "pothole", "sweep", "flat")
@@ -239,7 +274,7 @@ def check_road(name: str) -> str:
     if low.startswith("iso-") and len(low) == 5:
         iso_gd(low[4])
     elif key.startswith("csv:"):
-        _read_csv(key[4:])
+        _read_csv(key[4:], need_m=0.0)      # readable, first rows valid
     elif low not in _FIXED_ROADS:
         raise RoadError(f"unknown road {name!r}: use one of {', '.join(ROAD_NAMES)}")
     return name
@@ -302,7 +337,7 @@ def make_road(name: str, speed_mps: float, duration_s: float, dt_s: float,
         return _finish("sweep", speed_mps, dt_s, v0 / (2 * math.pi * f) * np.sin(phase),
                        None, "log sine sweep 0.5-25 Hz, 0.1 m/s velocity amplitude")
     if key.startswith("csv:"):
-        dist, height = _read_csv(key[4:])
+        dist, height = _read_csv(key[4:], need_m=length)
         if dist[-1] - dist[0] < length:
             raise RoadError(f"road file {key[4:]!r} covers {dist[-1] - dist[0]:.1f} m but "
                             f"the run needs {length:.1f} m ({speed_mps} m/s x "

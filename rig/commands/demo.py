@@ -46,6 +46,7 @@ import numpy as np
 from controller.config import RigConfig, load_config
 from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
+from rig.output_paths import OUTPUT_FAILED
 from rig.rt.hostcheck import check_host
 from rig.rt.timing_mode import AUTO_CHECK_S, TIMINGS, checked_in_own_thread, choose_timing
 
@@ -230,14 +231,43 @@ _ROWS = (
 )
 
 
+#: the compared figures (active / passive)
+RATIO_KEYS = ("absorbed_power", "rattlespace_rms_m", "tire_load_rms_ratio")
+#: a passive figure below this share of the active one is flat (the road at rest before
+#: an excitation): no meaningful ratio
+FLAT_SHARE = 1e-9
+
+
+def ratio(passive: dict[str, float], active: dict[str, float], key: str
+          ) -> tuple[float | None, str]:
+    """active / passive of ``key`` and, when there is none, why (``"n/a ..."``)."""
+    a, b = passive.get(key), active.get(key)
+    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)):
+        return None, "n/a: too short"
+    if abs(a) <= FLAT_SHARE * abs(b) or a == 0:
+        return None, "n/a: passive flat"
+    return b / a, ""
+
+
+def _cell(d: dict[str, float], key: str, scale: float, fmt: str) -> str:
+    v = d.get(key)
+    return "n/a" if v is None or not math.isfinite(v) else fmt.format(v * scale)
+
+
 def _table(passive: dict[str, float], active: dict[str, float]) -> str:
-    lines = [f"{'':28} {'passive':>10} {'active':>10} {'active/passive':>15}"]
+    lines = [f"{'':28} {'passive':>10} {'active':>10} {'active/passive':>17}"]
     for label, key, scale, fmt in _ROWS:
-        a, b = passive.get(key, math.nan), active.get(key, math.nan)
-        ratio = b / a if key in ("absorbed_power", "rattlespace_rms_m", "tire_load_rms_ratio") \
-            and a else math.nan
-        lines.append(f"{label:28} {fmt.format(a * scale):>10} {fmt.format(b * scale):>10} "
-                     f"{'' if math.isnan(ratio) else f'{ratio:.3f}':>15}")
+        r, why = ratio(passive, active, key) if key in RATIO_KEYS else (None, "")
+        shown = why if r is None else f"{r:.3f}"
+        lines.append(f"{label:28} {_cell(passive, key, scale, fmt):>10} "
+                     f"{_cell(active, key, scale, fmt):>10} {shown:>17}")
+    short = [f"{name} {int(d.get('ticks', 0))} ticks" for name, d in
+             (("passive", passive), ("active", active)) if "absorbed_power" not in d]
+    if short:
+        lines.append(f"n/a: too short to measure ({', '.join(short)}; at least 2 each)")
+    if any(ratio(passive, active, k)[1] == "n/a: passive flat" for k in RATIO_KEYS):
+        lines.append("n/a: passive flat -- the passive part did not move (the road held at "
+                     "rest before an excitation): no ratio to it")
     return "\n".join(lines)
 
 
@@ -376,8 +406,7 @@ def run(args: argparse.Namespace) -> int:
         "controller": args.controller, "weights": loop.weight_set,
         "armed_at_s": armed_at / rate if state["armed_at"] >= 0 else None,
         "passive": passive, "active": active,
-        "ratios": {k: (active[k] / passive[k] if passive.get(k) else None)
-                   for k in ("absorbed_power", "rattlespace_rms_m", "tire_load_rms_ratio")
+        "ratios": {k: ratio(passive, active, k)[0] for k in RATIO_KEYS
                    if k in active and k in passive},
         "faults": faults, "rearms": state["rearms"],
         "excitation": loop.excitation_state if args.excite else None,
@@ -410,13 +439,15 @@ def run(args: argparse.Namespace) -> int:
               "the lateness and step-time rows are the lockstep clock's (0)", file=out)
     for f in faults:
         print(f"fault at {f['time_s']:.3f} s: {f['code']} ({f['reason']})", file=out)
-    if active.get("bypass_open_fraction", 1.0) > 0.5:
+    if active.get("bypass_open_fraction", 0.0) > 0.5:
         print(f"note: the controller was engaged for only "
-              f"{100 * (1 - active.get('bypass_open_fraction', 1.0)):.0f} % of the second "
-              f"half (faults above); load average {os.getloadavg()[0]:.1f} on "
-              f"{os.cpu_count()} CPUs", file=out)
+              f"{100 * (1 - active['bypass_open_fraction']):.0f} % of the second "
+              f"half{' (faults above)' if faults else ''}; load average "
+              f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs", file=out)
+    failure = service.recording_failure
     if summary["recording"]:
-        print(f"recording: {summary['recording']}", file=out)
+        print(f"recording: {failure or summary['recording']}", file=out)
     if args.json:
         print(strict_json.dumps(summary))
-    return 0
+    # the recording was the point of --record / --excite (rig identify reads it)
+    return OUTPUT_FAILED if failure and (args.record or args.excite) else 0

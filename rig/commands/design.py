@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from typing import Any
 
 import numpy as np
@@ -17,6 +16,7 @@ from controller.human_filter import discretize_zoh, human_filter
 from controller.lq import augmented_plant
 from controller.road_noise import nearest_noise_entry
 from rig import argtypes, strict_json
+from rig.terminal import refuse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         design = design_bank(cfg)
     except ValueError as exc:
-        print(f"rig design: design failed: {exc}", file=sys.stderr)
+        refuse("design", f"design failed: {exc}")
         return 1
     save_design(design, args.out)
     summary = design_summary(design, cfg)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import signal
-import sys
 import threading
 import time
 from types import FrameType
@@ -22,6 +21,7 @@ from hil.node import DEFAULT_WATCHDOG_S, RigNode
 from hil.sim.roads import make_road
 from rig import argtypes
 from rig.bus.core import open_bus
+from rig.terminal import refuse
 
 #: longest road generated; longer runs replay it cyclically
 MAX_ROAD_S = 120.0
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         bus = open_bus(cfg.can, role="rig", **overrides)
     except (can.CanError, OSError, ValueError) as exc:
-        print(f"rig hil: cannot open the CAN bus: {exc}", file=sys.stderr)
+        refuse("hil", f"cannot open the CAN bus: {exc}")
         return 1
     stop = threading.Event()
 

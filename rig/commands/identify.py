@@ -12,7 +12,11 @@ FAULT: the rig is still either way).  The math is
 
 Output: a table (estimate, 95 % interval, relative half width; what was not identified
 and why; the frequency-domain cross-check), or with ``--json``
-``{"estimates": {config key: value}, "ci95": {key: [lo, hi]}, "fit": {...}}``.  ``--out``
+``{"estimates": {config key: value}, "ci95": {key: [lo, hi]}, "fit": {...},
+"recording": {"complete", "stopped_at", "excitation_ended"}}``; a recording that was
+not read whole (cut, damaged) or whose excitation has no end event is fitted from what
+it holds and said to be incomplete (``INCOMPLETE RECORDING: ...`` first in the table
+and in the ``--out`` file's header).  ``--out``
 writes the recorded configuration with the estimates in (a file ``rig design --config``
 takes as is); ``--report`` an HTML page (measured vs fitted Bode, traces, residuals).
 A run that cannot be identified is refused in one line (exit status 2).
@@ -22,13 +26,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rig import argtypes, strict_json
+from rig.terminal import refuse, safe
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -90,10 +94,29 @@ def _fmt(v: float) -> str:
     return "-" if not math.isfinite(v) else f"{v:.6g}"
 
 
-def summary_json(ident: Any) -> dict[str, Any]:
+def summary_json(ident: Any, series: Any) -> dict[str, Any]:
     return {"estimates": dict(ident.estimates),
             "ci95": {k: [lo, hi] for k, (lo, hi) in ident.ci95.items()},
-            "fit": ident.fit}
+            "fit": ident.fit, "recording": recording_state(series)}
+
+
+def recording_state(series: Any) -> dict[str, Any]:
+    """Whether the recording was read whole: ``complete``, ``stopped_at`` (where and
+    why reading stopped, None when complete) and ``excitation_ended`` (its end or
+    aborted event is in the recording: a file cut during the excitation has none)."""
+    ended = any(e.get("kind") == "excitation" and isinstance(e.get("detail"), dict)
+                and e["detail"].get("phase") in ("end", "aborted") for e in series.events)
+    return {"complete": bool(series.scan.complete), "stopped_at": series.scan.stopped_at,
+            "excitation_ended": ended}
+
+
+def incomplete_note(state: dict[str, Any]) -> str | None:
+    """The line that says the fit used an incomplete recording, or None."""
+    if state["complete"] and state["excitation_ended"]:
+        return None
+    cut = "" if state["excitation_ended"] else \
+        "; the excitation has no end event: the fit used the part recorded"
+    return f"INCOMPLETE RECORDING: {safe(state['stopped_at'] or 'not read whole')}{cut}"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -103,26 +126,31 @@ def run(args: argparse.Namespace) -> int:
 
     series = load_series(args.run)      # RecordingError: rig.cli.REFUSALS
     if series.config is None:
-        print(f"rig identify: {args.run}: {series.config_problem}", file=sys.stderr)
+        refuse("identify", f"{args.run}: {series.config_problem}")
         return 2
     cfg = series.config
     try:
         ident = identify(run_data(series), cfg)
     except IdentificationRefusedError as exc:
-        print(f"rig identify: {args.run}: {exc}", file=sys.stderr)
+        refuse("identify", f"{args.run}: {exc}")
         return 2
+    state = recording_state(series)
+    note = incomplete_note(state)
     if args.out:
         fitted = fitted_config(cfg, ident)
         Path(args.out).write_text(
             f"# identified by `rig identify {Path(args.run).name}`; the keys not identified "
-            "are the recording's\n" + config_to_toml(fitted), encoding="utf-8")
+            "are the recording's\n" + ("" if note is None else f"# {note}\n")
+            + config_to_toml(fitted), encoding="utf-8")
     if args.report:
         from rig.report.identify import write_identify_report
 
         write_identify_report(ident, args.report, Path(args.run).name)
     if args.json:
-        print(strict_json.dumps(summary_json(ident)))
+        print(strict_json.dumps(summary_json(ident, series)))
         return 0
+    if note:
+        print(note)
     print(f"rig identify: {args.run}: {ident.fit['excitation_s']:.1f} s of excitation, "
           f"{ident.fit['rest_s']:.1f} s of rest")
     gaps = ident.fit["gaps"]

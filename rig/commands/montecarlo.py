@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from controller.config import load_config
 from hil.batch import make_executor
@@ -15,6 +14,7 @@ from hil.sim.closed_loop import CONTROLLERS
 from hil.sim.montecarlo import MAX_RIDE_HEIGHT_STD_M, MAX_SPREAD, RIDE_HEIGHT_STD_M, run_montecarlo
 from hil.sim.roads import ROAD_NAMES, make_road
 from rig import argtypes, strict_json
+from rig.terminal import refuse
 
 #: most Monte Carlo runs and worker processes of one command
 MAX_RUNS = 10_000
@@ -69,10 +69,10 @@ def run(args: argparse.Namespace) -> int:
                                                     else args.ride_height_std),
                                  executor=ex)
     except ValueError as exc:       # a bad road or spread (others: rig.cli.REFUSALS)
-        print(f"rig montecarlo: {exc}", file=sys.stderr)
+        refuse("montecarlo", f"{exc}")
         return 2
     for f in res.failed_runs:
-        print(f"rig montecarlo: {f['case']} failed: {f['error']}", file=sys.stderr)
+        refuse("montecarlo", f"{f['case']} failed: {f['error']}")
     if args.json:
         print(strict_json.dumps({"summary": res.summary, "unstable_runs": res.unstable_runs,
                                  "faulted_runs": res.faulted_runs,

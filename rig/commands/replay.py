@@ -5,7 +5,9 @@ With the recorded design and configuration the replay must reproduce the recorde
 transmitted frames bit for bit (exit status 1 if it does not).  With ``--design`` or
 ``--config`` it compares the two controllers on the same sensor data -- open loop: the
 recorded plant did not react to the replayed commands.  Exit status 2 for a file that
-is not a replayable recording (the message names what is wrong).
+is not a replayable recording (the message names what is wrong); 3 when the ``--out``
+recording could not be written whole (a write failed, e.g. a full disk: the partial file
+is kept, readable up to its last complete chunk, and named in one line on stderr).
 """
 
 from __future__ import annotations
@@ -18,8 +20,11 @@ from typing import Any
 
 from controller.artifact import DesignMismatch, load_design
 from controller.config import load_config
+from controller.files import regular_file_problem
 from rig import argtypes, strict_json
+from rig.output_paths import OUTPUT_FAILED
 from rig.replay import LOG_SUFFIXES, MAX_LOG_SPAN_S, RecordingError, ReplayResult, replay_file
+from rig.terminal import refuse, safe
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,7 +48,7 @@ def _print_text(res: ReplayResult) -> None:
           f"{s['elapsed_s']:.3f} s = {s['realtime_factor']:.1f}x real time; "
           f"{s['rx_frames_fed']} frames fed; final state {s['final_state']}")
     if not res.complete:
-        print(f"INCOMPLETE RECORDING: {res.stopped_at}")
+        print(f"INCOMPLETE RECORDING: {safe(res.stopped_at)}")
     if res.kind == "mcap":
         verdict = "BIT-EXACT" if res.bit_exact else (
             "DIFFERENT CONTROLLER" if not res.same_controller else "MISMATCH")
@@ -66,17 +71,21 @@ def _print_text(res: ReplayResult) -> None:
             v = c[key]
             print(f"  {key:28s} {v:.6g}" if isinstance(v, float) else f"  {key:28s} {v}")
     for note in res.notes:
-        print(f"note: {note}")
-    if res.out:
+        print(f"note: {safe(note)}")
+    if res.out and not res.out_error:
         print(f"wrote {res.out}")
 
 
 def run(args: argparse.Namespace) -> int:
     path = Path(args.run)
     is_log = path.suffix.lower() in LOG_SUFFIXES
+    not_regular = regular_file_problem(path)
+    if not_regular:          # a FIFO would block the reader
+        refuse("replay", f"{path}: {not_regular}")
+        return 2
     if args.arm_at is not None and not is_log:
-        print(f"rig replay: --arm-at applies to log files ({', '.join(LOG_SUFFIXES)}) only; "
-              f"{path.name} replays its recorded commands", file=sys.stderr)
+        refuse("replay", f"--arm-at applies to log files ({', '.join(LOG_SUFFIXES)}) "
+                         f"only; {path.name} replays its recorded commands")
         return 2
     try:
         cfg = load_config(args.config) if (args.config or is_log) else None
@@ -94,12 +103,15 @@ def run(args: argparse.Namespace) -> int:
         res = replay_file(path, cfg=cfg, design=design, design_bytes=design_bytes,
                           out=args.out, arm_at_s=args.arm_at)
     except (RecordingError, DesignMismatch) as exc:
-        print(f"rig replay: {exc}", file=sys.stderr)
+        refuse("replay", f"{exc}")
         return 2
     if args.json:
         print(strict_json.dumps(res.summary(), indent=1))
     else:
         _print_text(res)
+    if res.out_error:        # a full disk: the output was the point
+        refuse("replay", f"{res.out} is incomplete: {res.out_error}")
+        return OUTPUT_FAILED
     if res.kind == "mcap" and res.same_controller and not res.bit_exact:
         return 1
     return 0

@@ -1,7 +1,9 @@
 """``rig run``: the real-time controller service on a CAN bus (systemd-ready).
 
 Exit status 0 after SIGTERM / SIGINT / ``--duration`` (valve left in its safe state,
-recording closed); 2 for a bad configuration, design artifact or bus.  SIGTERM / SIGINT
+recording closed); 2 for a bad configuration, design artifact or bus; 3 when the
+recording asked for with ``--record`` or ``--excite`` could not be written whole (a
+full disk: ``rig run: recording PATH FAILED, it is incomplete: ...``).  SIGTERM / SIGINT
 before the loop started (while the bank is designed, the bus or the recording opens)
 also exit 0, with a message and no recording (:mod:`rig.rt.stop_signals`).
 """
@@ -18,6 +20,8 @@ import can
 from controller.config import load_config
 from controller.modes import BANK_MODES
 from rig import argtypes, strict_json
+from rig.output_paths import OUTPUT_FAILED
+from rig.terminal import refuse
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -82,19 +86,19 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         if exc.filename is not None and args.design is not None \
                 and Path(exc.filename) == Path(args.design):
-            print(f"rig run: design artifact: {args.design}: {exc.strerror}", file=sys.stderr)
+            refuse("run", f"design artifact: {args.design}: {exc.strerror}")
         else:
-            print(f"rig run: cannot open the CAN bus: {exc}", file=sys.stderr)
+            refuse("run", f"cannot open the CAN bus: {exc}")
         return 2
     except can.CanError as exc:
-        print(f"rig run: cannot open the CAN bus: {exc}", file=sys.stderr)
+        refuse("run", f"cannot open the CAN bus: {exc}")
         return 2
     if service.recording_path is not None:
-        print(f"rig run: recording to {service.recording_path}", file=sys.stderr)
+        refuse("run", f"recording to {service.recording_path}")
     if service.foxglove is not None and service.foxglove.state == "serving":
         from rig.foxglove_server import SUBPROTOCOL  # the SDK only when the view is on
-        print(f"rig run: Foxglove view on {service.foxglove.url} (WebSocket "
-              f"subprotocol {SUBPROTOCOL}; docs/foxglove.md)", file=sys.stderr)
+        refuse("run", f"Foxglove view on {service.foxglove.url} (WebSocket "
+               f"subprotocol {SUBPROTOCOL}; docs/foxglove.md)")
     code = service.run()
     if service.ticks_run == 0:
         print(f"rig run: stopped by {service.stop_signal or 'request'} before the control "
@@ -114,5 +118,11 @@ def run(args: argparse.Namespace) -> int:
         status["telemetry"] = service.status()["telemetry"]
         status["foxglove"] = service.foxglove_status()
         status["host_check"] = service.status()["host_check"]
+        status["recording_error"] = service.recording_failure
         print(strict_json.dumps(status))
+    failure = service.recording_failure
+    if failure:
+        refuse("run", failure)
+        if code == 0 and (args.excite or args.record):   # the recording was the point
+            return OUTPUT_FAILED
     return code

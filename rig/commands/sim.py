@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +16,7 @@ from controller.config import load_config
 from hil.sim.closed_loop import CONTROLLERS, SimResult, simulate
 from hil.sim.roads import ROAD_NAMES, make_road
 from rig import argtypes, strict_json
+from rig.terminal import refuse
 
 #: longest loop delay simulated (a second at 1 kHz)
 MAX_DELAY_TICKS = 1000
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         results = [simulate(cfg, road, c, args.weights, delay_ticks=args.delay,
                             seed=args.seed) for c in names]
     except ValueError as exc:
-        print(f"rig sim: {exc}", file=sys.stderr)
+        refuse("sim", f"{exc}")
         return 2
     if args.traces:
         arrays: dict[str, Any] = {f"{r.controller}.{k}": v for r in results

@@ -10,6 +10,7 @@ import sys
 
 from controller.config import load_config
 from rig import argtypes
+from rig.terminal import refuse
 
 #: most worker processes
 
@@ -33,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
                             progress=not args.no_progress, executor=ex)
     except BatchError as exc:
         for failure in exc.failures:
-            print(f"rig study: {failure}", file=sys.stderr)
+            refuse("study", f"{failure}")
         print(f"rig study: {len(exc.failures)} runs failed; nothing written",
               file=sys.stderr)
         return 1

@@ -12,12 +12,12 @@ running the same command again resumes the search (docs/scale-out.md).
 from __future__ import annotations
 
 import argparse
-import sys
 
 from controller.config import load_config
 from controller.modes import BANK_MODES
 from hil.sim.montecarlo import MAX_SPREAD
 from rig import argtypes, strict_json
+from rig.terminal import refuse
 
 MAX_TRIALS = 100_000
 MAX_PLANTS = 10_000
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     with make_executor(args.cluster, args.jobs) as ex:   # refusals: rig.cli.REFUSALS
         res = run_tune(cfg, plan, args.out, ex, progress=not args.no_progress)
     for f in res.failures:
-        print(f"rig tune: {f}", file=sys.stderr)
+        refuse("tune", f"{f}")
     if args.json:
         print(strict_json.dumps(res.as_json(), indent=1))
     else:

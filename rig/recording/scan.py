@@ -25,6 +25,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.files import NotRegularFileError, open_regular
 from rig.recording.schema import (
     MESSAGE_ENCODING,
     METADATA_NAME,
@@ -110,6 +111,9 @@ class ScanResult:
     topics: dict[str, str] = field(default_factory=dict)      # topic -> message encoding
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # first segment
     attachments: dict[str, bytes] = field(default_factory=dict)        # first segment
+    #: attachments of the first segment that failed their CRC (name -> what is wrong);
+    #: they are not in ``attachments``
+    damaged_attachments: dict[str, str] = field(default_factory=dict)
     messages: int = 0
     complete: bool = True          # every segment present, intact, with its footer
     stopped_at: str | None = None  # where and why reading stopped
@@ -294,7 +298,11 @@ class _Segment:
         """The file, after its first 8 bytes were found to be the MCAP magic (a device
         or a large file of something else is never read whole)."""
         path = self.path
-        with open(path, "rb") as f:
+        try:
+            f = open_regular(path)
+        except NotRegularFileError as exc:
+            raise RecordingError(str(exc)) from None
+        with f:
             magic = f.read(len(MCAP_MAGIC))
             if len(magic) < len(MCAP_MAGIC) and MCAP_MAGIC.startswith(magic):
                 return magic                  # cut inside the magic (scan() says so)
@@ -369,7 +377,16 @@ class _Segment:
                     aname, o = _str(view, start + 16)
                     _, o = _str(view, o)
                     (dlen,) = _U64.unpack_from(buf, o)
-                    res.attachments[aname] = bytes(buf[o + 8:o + 8 + dlen])
+                    dend = o + 8 + dlen
+                    if dend + 4 > end:
+                        raise ValueError("attachment data runs past its record")
+                    (acrc,) = _U32.unpack_from(buf, dend)
+                    if acrc and zlib.crc32(view[start:dend]) != acrc:
+                        why = f"CRC mismatch in its Attachment record at byte {off}"
+                        res.damaged_attachments[aname] = why
+                        res.notes.append(f"attachment '{aname}' damaged ({why}): not used")
+                    else:
+                        res.attachments[aname] = bytes(buf[o + 8:dend])
                 elif op == _OP_DATA_END:
                     self._data_end(buf, off, end)
                     return

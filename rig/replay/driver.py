@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from controller.artifact import Design
-from controller.config import RigConfig, config_hash, config_to_toml, parse_config
+from controller.config import RigConfig, config_hash, config_to_toml
 from rig.recording.recorder import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT, RunRecorder
 from rig.recording.scan import RecordingError
 from rig.replay.buses import LOG_SUFFIXES, LogReplayBus, McapReplayBus
@@ -217,7 +216,7 @@ def _replay(path: Path, cfg: RigConfig | None, design: Design | None,
             design = recorded_design(head)
             design_bytes = rec_design_raw
     same_cfg = rec_cfg_raw is not None and config_hash(cfg) == config_hash(
-        parse_config(tomllib.loads(rec_cfg_raw.decode())))
+        recorded_config(head))
     same_design = rec_design_raw is not None and design_bytes == rec_design_raw
     same = same_cfg and same_design
     try:
@@ -304,6 +303,7 @@ def _result(run: RecordedRun, rp: _Replayer, loop: ControlLoop, bus: McapReplayB
         faults=faults.codes, fault_ticks=faults.ticks,
         bus_exceptions_recorded=bus.faults_loaded, bus_exceptions_raised=bus.faults_raised,
         out=None if recorder is None else str(recorder.base_path),
+        out_error=None if recorder is None else recorder.error,
         notes=notes, tick=np.arange(first_tick, last_tick + 1, dtype=np.int64),
         spool_cmd=spool, force_ref_n=fref, valve_enable=enable)
     if bus.faults_raised != bus.faults_loaded:
@@ -376,6 +376,7 @@ def replay_log(path: str | Path, cfg: RigConfig, design: Design, *,
         tx_frames_replayed=len(bus.sent), final_state=loop.lifecycle.state.name,
         faults=faults.codes, fault_ticks=faults.ticks,
         out=None if recorder is None else str(recorder.base_path),
+        out_error=None if recorder is None else recorder.error,
         notes=notes, tick=np.arange(n, dtype=np.int64), spool_cmd=spool, force_ref_n=fref,
         valve_enable=enable)
 

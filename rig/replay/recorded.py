@@ -16,7 +16,6 @@ import itertools
 import json
 import re
 import tempfile
-import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.artifact import Design, DesignMismatch, load_design
-from controller.config import RigConfig, parse_config
+from controller.config import ConfigError, RigConfig, config_from_bytes
 from rig.recording import schema
 from rig.recording.scan import Handler, RecordingError, ScanResult, scan_recording, split_json
 from rig.recording.schema import CONFIG_ATTACHMENT, DESIGN_ATTACHMENT
@@ -366,6 +365,10 @@ def design_from_bytes(data: bytes) -> Design:
 def _attachment(run: RecordedRun, name: str, option: str) -> bytes:
     """The recording's attachment ``name``; its absence names the option that replaces it."""
     raw = run.scan.attachments.get(name)
+    damage = run.scan.damaged_attachments.get(name)
+    if damage:
+        raise RecordingError(f"{run.path}: attachment '{name}' is damaged ({damage}); "
+                             f"pass {option}")
     if raw is None:
         raise RecordingError(f"{run.path}: no '{name}' attachment; pass {option}")
     return raw
@@ -374,10 +377,9 @@ def _attachment(run: RecordedRun, name: str, option: str) -> bytes:
 def recorded_config(run: RecordedRun) -> RigConfig:
     raw = _attachment(run, CONFIG_ATTACHMENT, "--config")
     try:
-        return parse_config(tomllib.loads(raw.decode()))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"{run.path}: attachment '{CONFIG_ATTACHMENT}' is not TOML "
-                             f"({exc})") from exc
+        return config_from_bytes(raw, f"{run.path}: attachment '{CONFIG_ATTACHMENT}'")
+    except ConfigError as exc:
+        raise RecordingError(f"{run.path}: attachment '{CONFIG_ATTACHMENT}': {exc}") from None
 
 
 def recorded_design(run: RecordedRun) -> Design:

@@ -52,6 +52,7 @@ class ReplayResult:
     bus_exceptions_raised: int = 0     # ... raised again by the replay bus
     comparison: dict[str, Any] | None = None
     out: str | None = None
+    out_error: str | None = None    # why ``out`` is incomplete (a write failed), or None
     notes: list[str] = field(default_factory=list)
     # per-tick series of the replay (not in the summary)
     tick: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -80,7 +81,7 @@ class ReplayResult:
                 "commands_reapplied", "commands_outcome_differs",
                 "ticks_missing_in_recording", "final_state", "faults", "fault_ticks",
                 "bus_exceptions_recorded", "bus_exceptions_raised", "comparison",
-                "out", "notes")
+                "out", "out_error", "notes")
         out = {k: getattr(self, k) for k in keys}
         out["bit_exact"] = self.bit_exact
         out["realtime_factor"] = self.realtime_factor

@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from controller.runtime.kernels import Blending
-from rig.replay import OPEN_LOOP_NOTE
+from rig.output_paths import staged_dir
+from rig.replay import OPEN_LOOP_NOTE, RecordingError
 from rig.report.events import EventRow, event_rows
 from rig.report.metrics import SUMMARY_ROWS, phase_metrics, run_metrics
 from rig.report.plots import (
@@ -180,9 +181,18 @@ def write_report(path: str | Path, out_dir: str | Path | None = None,
     recording, ``<stem>-report/``); returns the HTML file.  ``compare`` (default: the
     source of a replay, if it exists) adds the recorded-vs-replayed controller plot."""
     s = load_series(path)
+    empty = s.no_sensor_data()
+    if empty:
+        raise RecordingError(f"{path}: {empty}; nothing to report")
     out = Path(out_dir) if out_dir is not None else Path(path).with_name(
         f"{Path(path).stem}-report")
-    out.mkdir(parents=True, exist_ok=True)
+    with staged_dir(out) as stage:
+        _write_page(s, path, compare, stage)
+    return out / "index.html"
+
+
+def _write_page(s: RunSeries, path: str | Path, compare: str | Path | None,
+                out: Path) -> None:
     meta = s.scan.rig_metadata
     replay_of = meta.get("replay_of")
     open_loop = meta.get("open_loop") == "true"
@@ -248,6 +258,4 @@ def write_report(path: str | Path, out_dir: str | Path | None = None,
 {_SCRIPT}
 </body></html>
 """
-    index = out / "index.html"
-    index.write_text(page, encoding="utf-8")
-    return index
+    (out / "index.html").write_text(page, encoding="utf-8")

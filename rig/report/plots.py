@@ -466,7 +466,8 @@ def _models(d: PlotInput, out: Path) -> Figure | None:
     ax.set_ylabel(f"firing weight\n({win_ms:.0f} ms means)")
     _title_and_legend(ax, "/controller/internals.firing_weight[j]", handles)
     _time_axes(ax2, s)
-    ax2.set_yscale("log")
+    if np.isfinite(q).any():     # no positive q (e.g. the bank never ran): linear
+        ax2.set_yscale("log")
     ax2.set_ylabel(f"q (median and\n10–90 % of {win_ms:.0f} ms)")
     _title_and_legend(ax2, "/controller/internals.q[j]", phase_handles(s))
     _save(fig, out, "models.png")

@@ -12,7 +12,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from enum import IntEnum
 from functools import cached_property
@@ -23,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
-from controller.config import ConfigError, RigConfig, default_config, parse_config
+from controller.config import ConfigError, RigConfig, config_from_bytes, default_config
 from controller.runtime.kernels import StepFlag
 from rig.recording.scan import RecordingError, ScanResult, scan_recording, split_json
 from rig.recording.schema import (
@@ -97,6 +96,17 @@ class RunSeries:
     config_problem: str = ""              # why ``config`` is None
     flags: NDArray[np.int64] = field(    # /controller/internals.flags (-1: not recorded)
         default_factory=lambda: np.zeros(0, np.int64))
+
+    def no_sensor_data(self) -> str | None:
+        """Why the run has nothing to show -- tick records, but on none of them a fresh
+        SensorData reading (``sensor_age_ticks`` never 0: the loop never received the
+        rig's sensor frames, e.g. nobody on the bus) -- or None."""
+        age = self.signals["sensor_age_ticks"]
+        if not np.isfinite(age).any() or (age == 0).any():
+            return None
+        return (f"no sensor data: {self.tick.size} tick records, none with a fresh "
+                "SensorData reading (/rig/signals.sensor_age_ticks never 0: the loop "
+                "never received the rig's sensor frames)")
 
     @property
     def dt_s(self) -> float:
@@ -279,11 +289,14 @@ def load_series(path: str | Path) -> RunSeries:
 
 def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:
     raw = scan.attachments.get(CONFIG_ATTACHMENT)
+    damage = scan.damaged_attachments.get(CONFIG_ATTACHMENT)
+    if damage:
+        return None, f"its {CONFIG_ATTACHMENT} attachment is damaged ({damage})"
     if raw is None:
         return None, f"the recording has no {CONFIG_ATTACHMENT} attachment"
     try:
-        return parse_config(tomllib.loads(raw.decode("utf-8"))), ""
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError, ConfigError) as exc:
+        return config_from_bytes(raw, CONFIG_ATTACHMENT), ""
+    except ConfigError as exc:
         return None, f"its {CONFIG_ATTACHMENT} could not be read ({exc})"
 
 

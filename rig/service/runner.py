@@ -270,6 +270,16 @@ class Service:
             return None
         return Path(self.recorder.base_path)
 
+    @property
+    def recording_failure(self) -> str | None:
+        """Why the recording is incomplete (its writer failed, e.g. a full disk), or None:
+        the summary line that replaces ``recording: PATH``."""
+        rec = self.recorder
+        if rec is None or self.recording_discarded or not rec.error:
+            return None
+        return (f"recording {rec.base_path} FAILED, it is incomplete: {rec.error} "
+                f"({rec.dropped} items lost)")
+
     def status(self) -> dict[str, Any]:
         """Status for the telemetry's ``status`` queryable (runs on a Zenoh thread)."""
         s = self.loop.status()
