@@ -735,7 +735,7 @@ def _cross_checks(cfg: RigConfig) -> None:
     if not all(c > 0 for c in d.human_filter_den):
         raise ConfigError("design.human_filter_den", d.human_filter_den,
                           "positive coefficients (a stable filter)")
-    if d.stop_barrier_margin_m >= cfg.vehicle.rattlespace_travel_m:
+    if d.stop_barrier and d.stop_barrier_margin_m >= cfg.vehicle.rattlespace_travel_m:
         raise ConfigError("design.stop_barrier_margin_m", d.stop_barrier_margin_m,
                           f"< vehicle.rattlespace_travel_m = "
                           f"{cfg.vehicle.rattlespace_travel_m} (the barrier must leave "
