@@ -278,6 +278,37 @@ class DesignConfig:
                                  "frame, as bump_stop_centre_lvdt_m) the bank's force toward "
                                  "that stop fades linearly to 0 at the stop; a force away "
                                  "from it is untouched (0 = off; docs/design.md §9.6)")
+    stop_barrier: bool = _f(False, doc="end-stop barrier: a safety filter on the force "
+                                       "reference that keeps the rattlespace short of the "
+                                       "bump stops given the body's momentum and the "
+                                       "actuator's braking force and lag (docs/design.md "
+                                       "§9.7); the law is untouched while it is safe")
+    stop_barrier_margin_m: float = _f(0.01, lo=0.0, hi=1.0,
+                                      doc="end-stop barrier: distance short of each stop "
+                                          "(LVDT frame) the barrier keeps the rattlespace")
+    stop_barrier_force_fraction: float = _f(0.5, lo=0.0, hi=1.0, lo_open=True,
+                                            doc="end-stop barrier: braking force it counts "
+                                                "on, as a fraction of the actuator's stall "
+                                                "force A Ps (and at most "
+                                                "force_loop.force_limit_n)")
+    stop_barrier_lag_s: float = _f(0.02, lo=0.0, hi=1.0, lo_open=True,
+                                   doc="end-stop barrier: reaction time of the force loop "
+                                       "(compute delay + force rise) the braking distance "
+                                       "allows for [s]")
+    stop_barrier_rate_lowpass_hz: float = _f(1.0, lo=0.0, hi=1000.0, lo_open=True,
+                                             doc="end-stop barrier: corner of the first-"
+                                                 "order low-pass on the LVDT rate it brakes "
+                                                 "(at the body mode: the body's momentum, "
+                                                 "not the wheel's) [Hz]")
+    stop_barrier_passive_uncertainty: float = _f(0.5, lo=0.0, hi=1.0, hi_open=True,
+                                                 doc="end-stop barrier: the plant's spring "
+                                                     "and damper are known within this "
+                                                     "fraction (K, C in [1 - d, 1 + d] x "
+                                                     "nominal): it counts on the least "
+                                                     "passive help and the most passive push")
+    stop_barrier_rate_per_s: float = _f(5.0, lo=0.0, hi=1e4, lo_open=True,
+                                        doc="end-stop barrier: gamma of the barrier "
+                                            "condition dh/dt >= -gamma h [1/s]")
     actuator_model: str = _f("hydraulic", choices=("hydraulic", "ideal"),
                              doc="plant the LQ gains are designed on: 'hydraulic' = plant + "
                                  "linearised servo-valve/actuator under the PI's proportional "
@@ -765,6 +796,11 @@ def _cross_checks(cfg: RigConfig) -> None:
     if not all(c > 0 for c in d.human_filter_den):
         raise ConfigError("design.human_filter_den", d.human_filter_den,
                           "positive coefficients (a stable filter)")
+    if d.stop_barrier and d.stop_barrier_margin_m >= cfg.vehicle.rattlespace_travel_m:
+        raise ConfigError("design.stop_barrier_margin_m", d.stop_barrier_margin_m,
+                          f"< vehicle.rattlespace_travel_m = "
+                          f"{cfg.vehicle.rattlespace_travel_m} (the barrier must leave "
+                          "travel to move in)")
     fz = cfg.fuzzy
     if len(fz.universe) != 2 or fz.universe[0] >= fz.universe[1]:
         raise ConfigError("fuzzy.universe", fz.universe, "[lo, hi] with lo < hi")

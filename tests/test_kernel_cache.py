@@ -52,6 +52,8 @@ def test_changed_sources_drop_the_cached_kernels(tmp_path: Path,
     cached.write_text("x")
     assert kernel_cache.drop_stale_kernel_cache() is False      # unchanged: kept
     assert cached.exists()
+    moving = pkg / "__pycache__" / "moving_bank.supervise-1.py311.nbc"
+    moving.write_text("x")      # compiled in kernels.py's slot offsets: dropped as well
     (pkg / "layout.py").write_text("# changed\n")
     assert kernel_cache.drop_stale_kernel_cache() is True
-    assert not cached.exists()
+    assert not cached.exists() and not moving.exists()

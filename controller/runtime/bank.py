@@ -102,6 +102,9 @@ from controller.runtime.kernels import (
     F_QUANT,
     F_QW_ALPHA,
     F_RECENTRE,
+    F_SB,
+    F_SB_DF,
+    F_SB_V,
     F_SCR,
     F_SDECAY,
     F_SFLIM,
@@ -169,6 +172,7 @@ from controller.runtime.kernels import (
     I_PROBE_PTR,
     I_QGRID,
     I_RECOMP,
+    I_SB_TICKS,
     I_SENTINEL,
     I_SINCE_RECENTRE,
     I_SINCE_SWITCH,
@@ -221,6 +225,7 @@ from controller.runtime.kernels import (
     deactivate,
     firing_weight,
     servo_update,
+    stop_barrier,
     stop_guard,
 )
 from controller.runtime.layout import SlotValue
@@ -237,6 +242,8 @@ from controller.runtime.moving_bank import (
     supervise,
     tire_load_update,
 )
+from controller.stop_barrier import BARRIER_SIZE
+from controller.stop_barrier import stop_barrier as stop_barrier_parameters
 
 __all__ = ["BankRuntime", "Blending", "StepFlag", "config_of", "default_single_model"]
 
@@ -605,6 +612,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     flags |= _monitor(fv, iv, qmin, e_min)
     flags |= _human_filter(fv, xf0, xf1, accel_mps2)
     out = stop_guard(fv, out * fv[F_AUTH], rattlespace_m)
+    out = stop_barrier(fv, iv, out, rattlespace_m)
     if not math.isfinite(out):
         out = 0.0
         flags |= _NONFINITE_STATE
@@ -689,6 +697,8 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_BIAS + 1] = 0.0
     fv[F_STOP] = 0.0
     fv[F_GUARD_S] = 1.0
+    fv[F_SB_DF] = 0.0
+    fv[F_SB_V] = np.nan
     fv[F_MON_SUM] = 0.0
     fv[F_AUTH] = 1.0
     fv[F_AMEAN] = 0.0
@@ -714,7 +724,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     for idx in (I_MODE, I_SINCE_SWITCH, I_SINCE_RECENTRE, I_PROBE_PTR, I_PROBE_CNT,
                 I_FLAGS, I_NUPD, I_NSWITCH, I_NLEARN, I_NRECENTRE, I_TICK, I_NLIFT_LOAD,
                 I_LPTR, I_LCNT, I_MON_PTR, I_MON_DEG, I_MON_OK, I_MON_BAD,
-                I_MON_NDEG, I_MON_DEGTICKS):
+                I_MON_NDEG, I_MON_DEGTICKS, I_SB_TICKS):
         iv[idx] = 0
     iv[I_MON_CNT] = -iv[I_MON_N]
     iv[I_SENTINEL] = -1
@@ -849,6 +859,8 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_PFLOOR] = cfg.bayes.probability_floor
     fv[F_BS_K], fv[F_BS_LO], fv[F_BS_HI] = design.bump_stop
     fv[F_GUARD_W] = cfg.design.stop_guard_m
+    fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
+        cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()
     aw = cfg.design.accel_mean_window_s
     fv[F_AMEAN_ALPHA] = 1.0 - math.exp(-dt / aw) if aw > 0.0 else 0.0
     fw = cfg.fuzzy.window_s
@@ -1118,6 +1130,12 @@ class BankRuntime:
     #: the end-stop guard's factor on the force of the last tick (1: not acting)
     stop_guard = SlotValue("_fv", F_GUARD_S, float, "End-stop guard factor (stop_guard.py).")
 
+    stop_barrier_force = SlotValue(
+        "_fv", F_SB_DF, float,
+        "Force the end-stop barrier added to the law's in the last tick [N] (0: not "
+        "limiting; > 0 away from the compression stop); counters()['stop_barrier_ticks'] "
+        "counts the ticks it limited (stop_barrier.py).")
+
     @property
     def bias_estimate(self) -> tuple[float, float]:
         """Blended measurement-bias estimates (rattlespace [m], acceleration [m/s^2])."""
@@ -1130,7 +1148,8 @@ class BankRuntime:
                 "degradations": int(iv[I_MON_NDEG]),
                 "degraded_ticks": int(iv[I_MON_DEGTICKS]),
                 "unusable_ticks": int(iv[I_MON_BAD]),
-                "load_liftoffs": int(iv[I_NLIFT_LOAD])}
+                "load_liftoffs": int(iv[I_NLIFT_LOAD]),
+                "stop_barrier_ticks": int(iv[I_SB_TICKS])}
 
     def snapshot(self) -> dict[str, Any]:
         """Copies of the state (for tests and telemetry; allocates)."""

@@ -12,7 +12,7 @@ the runtime packs its data into six buffers instead of ~30 named arrays:
 ``active`` (J,) bool: the filters that run this tick.
 ``fv`` float: scalar parameters, then scalar state (incl. the moving bank's tire-contact
     test, F_LOFF..F_LC, the bump-stop input F_BS_*, the estimator monitor F_MON_*, the
-    end-stop guard F_GUARD_*), then
+    end-stop guard F_GUARD_*, the end-stop barrier F_SB*), then
     the fuzzy table, the residual-history histogram, the tire-load estimator's rings of
     the last 2Δ+1 rattlespace and acceleration samples and the monitor's window ring, at
     offsets stored in ``iv`` (the rings follow the histogram).
@@ -171,6 +171,9 @@ F_AMEAN = FV.slot()  # running mean of the accelerometer reading (its bias) [m/s
 F_AMEAN_ALPHA = FV.slot()  # weight of the running mean, 1 - exp(-dt / accel_mean_window_s) (0 off)
 F_GUARD_W = FV.slot()  # end-stop guard: zone width in front of each stop [m] (0: off)
 F_GUARD_S = FV.slot()  # end-stop guard: factor applied to the force of the last tick (read-out)
+F_SB = FV.slot(9)  # end-stop barrier: StopBarrier.as_array() (stop_barrier.py; M = 0: off)
+F_SB_DF = FV.slot()  # end-stop barrier: force added in the last tick [N] (read-out)
+F_SB_V = FV.slot()  # end-stop barrier: low-passed LVDT rate [m/s] (state; NaN after reset)
 FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
@@ -225,6 +228,7 @@ I_MON_OK = IV.slot()  # consecutive ticks below the re-arm level (state)
 I_MON_BAD = IV.slot()  # consecutive ticks with an unusable estimate (state)
 I_MON_NDEG = IV.slot()  # degradations since reset (state)
 I_MON_DEGTICKS = IV.slot()  # ticks spent degraded since reset (state)
+I_SB_TICKS = IV.slot()  # ticks in which the end-stop barrier changed the force since reset (state)
 IV_ACT = IV.size  # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
 IV_HEAD = IV.size  # iv has IV_HEAD + J entries
 
@@ -316,6 +320,53 @@ def stop_guard(fv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
         s = min(max(s, 0.0), 1.0)
     fv[F_GUARD_S] = s
     return force_n * s
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _barrier_bound(fv: np.ndarray, distance_m: float, approach_mps: float,
+                   passive_toward_n: float) -> tuple[float, float]:
+    """(largest admissible force toward a stop [N], barrier h [m]): the kernel of
+    ``controller.stop_barrier.force_bound_toward_stop``."""
+    mass = fv[F_SB]
+    a = fv[F_SB + 4] / mass
+    lag = fv[F_SB + 5]
+    vp = max(approach_mps, 0.0)
+    d = fv[F_SB + 8]                    # worst case: least help, most push
+    passive_toward_n *= (1.0 + d) if passive_toward_n > 0.0 else (1.0 - d)
+    h = distance_m - fv[F_SB + 3] - vp * vp / (2.0 * a) - lag * vp
+    bound = mass * (fv[F_SB + 6] * h - vp) / (lag + vp / a) - passive_toward_n
+    return max(bound, -fv[F_SB + 4]), h
+
+
+@nb.njit(cache=True, nogil=True)
+def stop_barrier(fv: np.ndarray, iv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
+    """The force after the end-stop barrier (controller/stop_barrier.py, docs/design.md
+    §9.7): the law's force clipped to what keeps the braking-distance barrier of both
+    stops; the rattlespace rate is the force loop's filtered LVDT rate (F_FFW, advanced
+    later in the tick by :func:`servo_update`) low-passed once more (F_SB_V).  The change
+    is kept in ``F_SB_DF``, the ticks with a change are counted in ``I_SB_TICKS``."""
+    fv[F_SB_DF] = 0.0
+    if not (fv[F_SB] > 0.0):
+        return force_n
+    rate = fv[F_FFW] + fv[F_FFB] * rattlespace_m      # compression rate r' [m/s]
+    if math.isnan(fv[F_SB_V]):
+        fv[F_SB_V] = rate
+    rate = fv[F_SB_V] + fv[F_SB + 7] * (rate - fv[F_SB_V])
+    if math.isfinite(rate):
+        fv[F_SB_V] = rate
+    passive = fv[F_SB + 1] * rattlespace_m + fv[F_SB + 2] * rate
+    u_hi, h_hi = _barrier_bound(fv, fv[F_BS_HI] - rattlespace_m, rate, -passive)
+    u_lo, h_lo = _barrier_bound(fv, rattlespace_m - fv[F_BS_LO], -rate, passive)
+    f_min = -u_hi
+    f_max = u_lo
+    out = min(max(force_n, f_min), f_max)
+    if f_min > f_max:                   # the bounds cross: the nearer stop wins
+        out = f_min if h_hi <= h_lo else f_max
+    if out != force_n and math.isfinite(out):
+        fv[F_SB_DF] = out - force_n
+        iv[I_SB_TICKS] += 1
+        return out
+    return force_n
 
 
 @nb.njit(cache=True, nogil=True)

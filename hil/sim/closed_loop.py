@@ -169,12 +169,15 @@ class BankController:
 
     def diagnostics(self) -> dict[str, float]:
         """Fractions of ticks in which no fuzzy rule fired (fallback force used) and in
-        which the estimator monitor had the bank degraded (conservative law), and the
-        number of degradations."""
+        which the estimator monitor had the bank degraded (conservative law), the
+        number of degradations, and the fraction of ticks in which the end-stop barrier
+        limited the force (docs/design.md §9.7)."""
         n = self.ticks
+        c = self.rt.counters()
         return {"no_rule_fired_fraction": self.no_rule_ticks / n if n else 0.0,
                 "degraded_fraction": self.degraded_ticks / n if n else 0.0,
-                "degradations": float(self.rt.counters()["degradations"])}
+                "degradations": float(c["degradations"]),
+                "stop_barrier_fraction": c["stop_barrier_ticks"] / n if n else 0.0}
 
     @property
     def firing_weight(self) -> FloatArray:

@@ -34,7 +34,9 @@ def drop_stale_kernel_cache() -> bool:
         stamp = cache_dir / _STAMP
         if stamp.exists() and stamp.read_text() == digest:
             return False
-        stale = list(cache_dir.glob("bank.*.nb[ic]"))
+        # every kernel of the package: the others compile in kernels.py's slot offsets too
+        stale = [f for name in KERNEL_SOURCES
+                 for f in cache_dir.glob(f"{name.removesuffix('.py')}.*.nb[ic]")]
         for f in stale:
             f.unlink(missing_ok=True)
         cache_dir.mkdir(exist_ok=True)
