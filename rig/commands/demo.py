@@ -287,17 +287,6 @@ def run(args: argparse.Namespace) -> int:
                         stream=sys.stderr)
     stop: StopSignals = getattr(args, "stop_signals", None) or StopSignals()
     cfg = argtypes.with_foxglove(load_config(args.config), args.foxglove)
-    timing, why = choose_timing(args.timing, lambda: checked_in_own_thread(
-        lambda: check_host(cfg, AUTO_CHECK_S, None if args.no_realtime else RealtimeRequest())))
-    lockstep = timing == "lockstep"
-    pace = ""
-    if lockstep:
-        pace = ("; as fast as possible" if args.max_speedup <= 0
-                else f"; at most {args.max_speedup:g} x real time")
-    elif args.max_speedup != 1.0:
-        pace = "; --max-speedup ignored: lockstep only"
-    # the first line: which timing runs, and why
-    print(f"rig demo: timing {timing} ({why}{pace})", file=sys.stderr, flush=True)
     rate = cfg.design.sample_rate_hz
     n_ticks = round(args.duration * rate)
     arm_tick = n_ticks // 2
@@ -314,6 +303,17 @@ def run(args: argparse.Namespace) -> int:
     # the rig process makes the road again; a bad one is refused here, before it starts
     make_road(args.road, args.speed, args.duration + 1.0, cfg.sample_time_s,
               seed=cfg.sensors.seed if args.seed is None else args.seed)
+    timing, why = choose_timing(args.timing, lambda: checked_in_own_thread(
+        lambda: check_host(cfg, AUTO_CHECK_S, None if args.no_realtime else RealtimeRequest())))
+    lockstep = timing == "lockstep"
+    pace = ""
+    if lockstep:
+        pace = ("; as fast as possible" if args.max_speedup <= 0
+                else f"; at most {args.max_speedup:g} x real time")
+    elif args.max_speedup != 1.0:
+        pace = "; --max-speedup ignored: lockstep only"
+    # the first line of a run (after the inputs are checked): which timing, and why
+    print(f"rig demo: timing {timing} ({why}{pace})", file=sys.stderr, flush=True)
     watchdog_s = (DEFAULT_WATCHDOG_S if args.rig_watchdog_ms is None
                   else args.rig_watchdog_ms * 1e-3)
     # lockstep: no real-time set-up (a SCHED_FIFO process that waits for its turn gains
