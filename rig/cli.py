@@ -43,6 +43,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "tune": ("tune", "search the LQ weights over Monte Carlo plants and roads (optuna)"),
     "replay": ("replay", "replay a recorded run (MCAP or candump log) through the loop"),
     "report": ("report", "HTML report with plots of a recorded run"),
+    "export": ("export", "export a recorded run to ASAM MDF 4 (signals + CAN bus log) or "
+                         "Parquet"),
     "identify": ("identify", "identify the rig (masses, rates, tire, actuator) from an "
                              "excitation run"),
     "check-host": ("check_host", "can this computer run the loop? wake-up latency against "

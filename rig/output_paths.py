@@ -38,6 +38,7 @@ __all__ = [
     "recording_file",
     "recording_target_problem",
     "staged_dir",
+    "staged_file",
 ]
 
 RECORDING_SUFFIX = ".mcap"
@@ -155,6 +156,23 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
                 os.replace(item, out / item.name)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def staged_file(out: str | Path) -> Iterator[Path]:
+    """A new hidden path next to the output file ``out`` to write it to; renamed over
+    ``out`` when the ``with`` block ends normally, removed when it raises (no partial
+    output, an earlier ``out`` left as it was)."""
+    out = Path(out)
+    fd, name = tempfile.mkstemp(prefix=f".{out.stem}.partial-", suffix=out.suffix,
+                                dir=out.parent)
+    os.close(fd)
+    stage = Path(name)
+    try:
+        yield stage
+        os.replace(stage, out)             # atomic
+    finally:
+        stage.unlink(missing_ok=True)
 
 
 def _html_last(item: Path) -> tuple[bool, str]:

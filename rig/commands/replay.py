@@ -1,4 +1,4 @@
-"""``rig replay``: re-run a recorded run (MCAP, or a candump .log/.asc/.blf) through the
+"""``rig replay``: re-run a recorded run (MCAP, or a CAN log .log/.asc/.blf/.mf4) through the
 control loop, as fast as the CPU allows (virtual clock).
 
 With the recorded design and configuration the replay must reproduce the recorded

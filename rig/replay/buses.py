@@ -25,8 +25,9 @@ from rig.replay.recorded import ERROR_FRAME, EXTENDED_ID, RxFrame, TxFrame, load
 
 __all__ = ["LOG_SUFFIXES", "MAX_LOG_SPAN_S", "LogReplayBus", "McapReplayBus"]
 
-#: candump / Vector / python-can log formats read through ``can.LogReader``
-LOG_SUFFIXES: Final = (".log", ".asc", ".blf")
+#: candump / Vector / ASAM MDF 4 bus-log formats read through ``can.LogReader`` (.mf4:
+#: python-can's MF4Reader, asammdf; what ``rig export --format mf4`` writes)
+LOG_SUFFIXES: Final = (".log", ".asc", ".blf", ".mf4")
 #: longest time from a log's first to its last frame that replay accepts: the replay
 #: keeps three values per tick (6 h at 1 kHz = 21.6 M ticks, ~370 MB, minutes of CPU)
 MAX_LOG_SPAN_S: Final = 6 * 3600.0

@@ -1,0 +1,83 @@
+"""``rig export RUN.mcap --format mf4|parquet --out PATH [--force]``: a recording for
+measurement tools (docs/recording.md, "Export").
+
+``mf4``: one ASAM MDF 4 file, a channel group per tick topic (SI units) and the CAN bus
+log as ``CAN_DataFrame`` bus-logging groups (CANape, asammdf, python-can decode it with
+``rig/wire/rig.dbc``, attached).  ``parquet``: a directory with a file per tick topic
+and ``can.parquet``.  The output is written under a hidden name next to it and renamed
+when complete (a failure leaves no partial output); an existing output is replaced only
+with ``--force``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Final
+
+from rig import argtypes
+from rig.output_paths import new_file_problem, output_dir_problem, staged_dir, staged_file
+from rig.terminal import refuse, safe
+
+FORMATS: Final = ("mf4", "parquet")
+MF4_SUFFIX: Final = ".mf4"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", metavar="RUN", type=argtypes.input_file,
+                   help="recording (.mcap, its first segment)")
+    p.add_argument("--format", required=True, choices=FORMATS,
+                   help="mf4: one ASAM MDF 4 file (signals + CAN bus log); parquet: a "
+                        "directory, one file per topic + can.parquet")
+    p.add_argument("--out", metavar="PATH", required=True,
+                   help=f"mf4: a {MF4_SUFFIX} file; parquet: a directory")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing output")
+
+
+def output_problem(fmt: str, out: Path, force: bool) -> str | None:
+    """Why ``out`` cannot take the export, or None."""
+    if fmt == "mf4":
+        if out.suffix.lower() != MF4_SUFFIX:
+            return f"--out {out}: an mf4 export is a {MF4_SUFFIX} file"
+        problem = new_file_problem(out, force=force)
+    else:
+        problem = output_dir_problem(out)
+        if problem is None and out.is_dir() and any(out.iterdir()) and not force:
+            problem = "exists: add --force to replace its files"
+    return None if problem is None else f"--out {out}: {problem}"
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    problem = output_problem(args.format, out, args.force)
+    if problem:
+        refuse("export", problem)
+        return 2
+    from rig.export import run_tables
+    from rig.recording.run_data import read_run
+
+    t_start = time.perf_counter()
+    data = read_run(args.run)
+    if not data.complete:
+        print(f"rig export: INCOMPLETE RECORDING (exporting what was read): "
+              f"{safe(data.stopped_at)}", file=sys.stderr)
+    tables = run_tables(data)
+    if args.format == "mf4":
+        from rig.export.mf4 import write_mf4
+
+        with staged_file(out) as stage:
+            write_mf4(tables, stage, comment=f"rig export of {Path(args.run).name}")
+    else:
+        from rig.export.parquet import write_parquet
+
+        with staged_dir(out) as stage:
+            write_parquet(tables, stage)
+    elapsed = time.perf_counter() - t_start
+    print(f"wrote {out} ({args.format}): {len(data.records)} tick records in "
+          f"{len(tables.topics)} topics, {len(tables.can)} CAN frames, {elapsed:.2f} s")
+    if tables.skipped:
+        print(f"not numeric, left out: {', '.join(tables.skipped)}")
+    return 0

@@ -1,0 +1,73 @@
+"""A run as Parquet files (pyarrow), one per table, in a directory:
+``rig_signals.parquet``, ``controller_internals.parquet``, ``rig_timing.parquet`` (the
+tick topics: ``t_s``, ``t_ns``, ``tick``, then one column per field, its SI unit in the
+field metadata ``unit``) and ``can.parquet`` (``t_s``, ``t_ns``, ``tick``, ``id``,
+``dlc``, ``data`` (bytes), ``direction`` (``rx`` / ``tx``), ``error_frame``,
+``extended_id``).  ``t_s``: seconds since the run's first item; the file metadata
+``start_wall_ns`` is that instant on the wall clock."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Final
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from rig.export.tables import CanLog, RunTables
+
+__all__ = ["CAN_FILE", "table_file", "write_parquet"]
+
+CAN_FILE: Final = "can.parquet"
+
+
+def table_file(topic: str) -> str:
+    """The file of a tick topic: ``/rig/signals`` -> ``rig_signals.parquet``."""
+    return topic.strip("/").replace("/", "_") + ".parquet"
+
+
+def _time_fields(tables: RunTables) -> dict[bytes, bytes]:
+    return {b"start_wall_ns": str(tables.start_wall_ns).encode(),
+            b"t0_ns": str(tables.t0_ns).encode()}
+
+
+def _can_table(can: CanLog, tables: RunTables) -> pa.Table:
+    data = [bytes(row[:n]) for row, n in zip(can.data, can.dlc, strict=True)]
+    return pa.table({
+        "t_s": pa.array(tables.seconds(can.t_ns)),
+        "t_ns": pa.array(can.t_ns),
+        "tick": pa.array(can.tick),
+        "id": pa.array(can.arbitration_id),
+        "dlc": pa.array(can.dlc),
+        "data": pa.array(data, type=pa.binary()),
+        "direction": pa.array(["rx" if rx else "tx" for rx in can.is_rx.tolist()],
+                              type=pa.dictionary(pa.int8(), pa.string())),
+        "error_frame": pa.array(can.is_error_frame),
+        "extended_id": pa.array(can.is_extended_id),
+    }).replace_schema_metadata(_time_fields(tables))
+
+
+def write_parquet(tables: RunTables, out_dir: str | Path) -> list[Path]:
+    """Write the tables into the (new, empty) directory ``out_dir``; returns the files."""
+    out = Path(out_dir)
+    written = []
+    for table in tables.topics:
+        fields = [pa.field("t_s", pa.float64(), metadata={"unit": "s"}),
+                  pa.field("t_ns", pa.int64(), metadata={"unit": "ns"}),
+                  pa.field("tick", pa.int64())]
+        arrays = [pa.array(tables.seconds(table.t_ns)), pa.array(table.t_ns),
+                  pa.array(table.tick)]
+        for (name, col), unit in zip(table.columns.items(), table.units.values(),
+                                     strict=True):
+            arr = pa.array(col)
+            fields.append(pa.field(name, arr.type, metadata={"unit": unit} if unit else None))
+            arrays.append(arr)
+        schema = pa.schema(fields, metadata={**_time_fields(tables),
+                                             b"topic": table.topic.encode()})
+        path = out / table_file(table.topic)
+        pq.write_table(pa.Table.from_arrays(arrays, schema=schema), path)
+        written.append(path)
+    path = out / CAN_FILE
+    pq.write_table(_can_table(tables.can, tables), path)
+    written.append(path)
+    return written

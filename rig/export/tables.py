@@ -1,0 +1,167 @@
+"""A recorded run as columns: one :class:`TopicTable` per tick topic (``/rig/signals``,
+``/controller/internals``, ``/rig/timing``; the fields split by the recording schema's
+:data:`~rig.recording.schema.SIGNAL_KEYS` / :data:`~rig.recording.schema.TIMING_KEYS`)
+and the CAN bus log (:class:`CanLog`, ``/can/rx`` and ``/can/tx`` in recording order).
+
+Every numeric field becomes a column: integers (and booleans) ``int64`` when every
+record has one, else ``float64`` with NaN for a value not recorded or non-finite
+(``None`` in :func:`~rig.recording.read_run`); a list field (``x_post``, ``q`` ...) one
+column per element, ``name[i]``.  Text fields (``fault``) are left out and named in
+:attr:`RunTables.skipped`.  Times: ``t_ns`` is the loop clock as recorded; ``t_s`` is
+seconds since :attr:`RunTables.t0_ns` (the run's first item), the time base of every
+table; :attr:`RunTables.start_wall_ns` is that instant on the wall clock."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rig.recording.run_data import RunData
+from rig.recording.schema import (
+    SIGNAL_KEYS,
+    TIMING_KEYS,
+    TOPIC_INTERNALS,
+    TOPIC_SIGNALS,
+    TOPIC_TIMING,
+)
+
+__all__ = ["CAN_DATA_BYTES", "CanLog", "RunTables", "TopicTable", "run_tables", "unit_of"]
+
+#: classic CAN: at most 8 data bytes (the loop runs classic CAN, docs/recording.md)
+CAN_DATA_BYTES: Final = 8
+#: SI unit of a field, by the suffix of its name (the recording's naming convention)
+_UNITS: Final = (("_mps2", "m/s^2"), ("_mps", "m/s"), ("_m", "m"), ("_n", "N"),
+                 ("_s", "s"), ("_ns", "ns"), ("_hz", "Hz"), ("_ticks", "tick"))
+_NOT_FIELDS: Final = frozenset({"tick", "t_ns"})
+
+
+def unit_of(name: str) -> str:
+    """The SI unit of the field ``name`` (``""`` when it has none: counts, codes, flags,
+    normalised values)."""
+    base = name.split("[", 1)[0]
+    for suffix, unit in _UNITS:
+        if base.endswith(suffix):
+            return unit
+    return ""
+
+
+@dataclass
+class TopicTable:
+    topic: str
+    t_ns: NDArray[np.int64]
+    tick: NDArray[np.int64]
+    columns: dict[str, NDArray[Any]] = field(default_factory=dict)
+
+    @property
+    def units(self) -> dict[str, str]:
+        return {name: unit_of(name) for name in self.columns}
+
+
+@dataclass
+class CanLog:
+    """The frames of ``/can/rx`` and ``/can/tx`` in recording order."""
+
+    t_ns: NDArray[np.int64]
+    tick: NDArray[np.int64]
+    arbitration_id: NDArray[np.uint32]
+    dlc: NDArray[np.uint8]
+    data: NDArray[np.uint8]           # (n, CAN_DATA_BYTES), zero-padded past dlc
+    is_rx: NDArray[np.bool_]
+    is_error_frame: NDArray[np.bool_]
+    is_extended_id: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return int(self.t_ns.size)
+
+
+@dataclass
+class RunTables:
+    topics: list[TopicTable]
+    can: CanLog
+    t0_ns: int
+    start_wall_ns: int
+    skipped: list[str]
+
+    def seconds(self, t_ns: NDArray[np.int64]) -> NDArray[np.float64]:
+        """Seconds since :attr:`t0_ns` (the common time base)."""
+        return (t_ns - self.t0_ns).astype(np.float64) * 1e-9
+
+
+def _topic_of(key: str) -> str:
+    if key in SIGNAL_KEYS:
+        return TOPIC_SIGNALS
+    if key in TIMING_KEYS:
+        return TOPIC_TIMING
+    return TOPIC_INTERNALS
+
+
+def _column(values: list[Any]) -> NDArray[Any] | None:
+    """One numeric column, or None when the values are not numbers."""
+    if all(type(v) is int or type(v) is bool for v in values):
+        return np.array(values, dtype=np.int64)
+    if all(v is None or isinstance(v, int | float) for v in values):
+        return np.array(values, dtype=np.float64)        # None -> NaN
+    return None
+
+
+def _list_columns(name: str, values: list[Any]) -> dict[str, NDArray[Any]] | None:
+    lengths = {len(v) for v in values if isinstance(v, list)}
+    if len(lengths) != 1 or not all(v is None or isinstance(v, list) for v in values):
+        return None
+    width = lengths.pop()
+    out: dict[str, NDArray[Any]] = {}
+    for i in range(width):
+        col = _column([None if v is None else v[i] for v in values])
+        if col is None:
+            return None
+        out[f"{name}[{i}]"] = col
+    return out
+
+
+def _can_log(run: RunData) -> CanLog:
+    frames = run.frames
+    n = len(frames)
+    data = np.zeros((n, CAN_DATA_BYTES), dtype=np.uint8)
+    for i, f in enumerate(frames):
+        data[i, :len(f.data)] = np.frombuffer(f.data[:CAN_DATA_BYTES], dtype=np.uint8)
+    return CanLog(
+        t_ns=np.array([f.t_ns for f in frames], dtype=np.int64),
+        tick=np.array([f.tick for f in frames], dtype=np.int64),
+        arbitration_id=np.array([f.arbitration_id for f in frames], dtype=np.uint32),
+        dlc=np.array([len(f.data) for f in frames], dtype=np.uint8),
+        data=data,
+        is_rx=np.array([f.is_rx for f in frames], dtype=np.bool_),
+        is_error_frame=np.array([f.is_error_frame for f in frames], dtype=np.bool_),
+        is_extended_id=np.array([f.is_extended_id for f in frames], dtype=np.bool_))
+
+
+def run_tables(run: RunData) -> RunTables:
+    """The columns of ``run`` (see the module docstring)."""
+    records = run.records
+    keys: dict[str, None] = {}
+    for r in records:
+        keys.update(dict.fromkeys(r.data))
+    t_ns = np.array([r.t_ns for r in records], dtype=np.int64)
+    tick = np.array([r.tick for r in records], dtype=np.int64)
+    tables = {t: TopicTable(t, t_ns, tick) for t in (TOPIC_SIGNALS, TOPIC_INTERNALS,
+                                                     TOPIC_TIMING)}
+    skipped: list[str] = []
+    for key in keys:
+        if key in _NOT_FIELDS:
+            continue
+        values = [r.data.get(key) for r in records]
+        col = _column(values)
+        cols = {key: col} if col is not None else _list_columns(key, values)
+        if cols is None:
+            skipped.append(key)
+            continue
+        tables[_topic_of(key)].columns.update(cols)
+    can = _can_log(run)
+    firsts = [int(a[0]) for a in (t_ns, can.t_ns) if a.size]
+    t0 = min(firsts) if firsts else 0
+    offset = int(run.metadata.get("rig", {}).get("clock_offset_ns", "0") or 0)
+    return RunTables(topics=[t for t in tables.values() if t.columns], can=can, t0_ns=t0,
+                     start_wall_ns=t0 + offset, skipped=skipped)

@@ -1,0 +1,248 @@
+"""``rig export``: MF4 (asammdf, python-can's MF4 reader) and Parquet (pyarrow, pandas)
+round trips against :func:`rig.recording.read_run`, refusals, no partial output, and
+``rig replay`` of an exported MF4 CAN log."""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from asammdf import MDF
+
+from controller.artifact import load_design
+from controller.config import default_config
+from hil.stepped_run import record_emulated_run
+from rig.cli import main
+from rig.export import run_tables, unit_of
+from rig.export.parquet import CAN_FILE, table_file
+from rig.recording.run_data import RunData, read_run
+from rig.recording.schema import SIGNAL_KEYS, TIMING_KEYS, TOPIC_SIGNALS, TOPIC_TIMING
+from rig.replay import replay_log
+
+pytestmark = pytest.mark.timeout(300)
+CFG = default_config()
+
+
+@pytest.fixture(scope="module")
+def work() -> Any:
+    with tempfile.TemporaryDirectory(prefix="test-export-") as d:
+        yield Path(d)
+
+
+@pytest.fixture(scope="module")
+def recording(work: Path, design_path: Path) -> Path:
+    """0.4 s, armed, with a blending change (the internals change on the way)."""
+    return record_emulated_run(work / "run.mcap", 0.4, cfg=CFG,
+                               design_bytes=design_path.read_bytes(), seed=5,
+                               commands={200: ("blending", 1)})
+
+
+@pytest.fixture(scope="module")
+def run(recording: Path) -> RunData:
+    return read_run(recording)
+
+
+@pytest.fixture(scope="module")
+def mf4(recording: Path, work: Path) -> Path:
+    out = work / "run.mf4"
+    assert main(["export", str(recording), "--format", "mf4", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def parquet_dir(recording: Path, work: Path) -> Path:
+    out = work / "parquet"
+    assert main(["export", str(recording), "--format", "parquet", "--out", str(out)]) == 0
+    return out
+
+
+def _expected(run: RunData, key: str) -> np.ndarray:
+    """``key`` of every tick record as read_run gives it (None -> NaN, list -> rows)."""
+    vals = [r.data[key] for r in run.records]
+    return np.array([[math.nan if x is None else x for x in v] if isinstance(v, list)
+                     else (math.nan if v is None else v) for v in vals], dtype=np.float64)
+
+
+def _numeric_keys(run: RunData) -> list[str]:
+    return [k for k, v in run.records[0].data.items()
+            if k != "tick" and not isinstance(v, str)
+            and not (isinstance(v, list) and v and isinstance(v[0], str))]
+
+
+def _frames(run: RunData) -> list[tuple[int, bytes, bool]]:
+    return [(f.arbitration_id, f.data, f.is_rx) for f in run.frames]
+
+
+def _t_s(run: RunData, t_ns: list[int]) -> np.ndarray:
+    t0 = min(run.records[0].t_ns, run.frames[0].t_ns)
+    return (np.array(t_ns, dtype=np.int64) - t0) * 1e-9
+
+
+# ---------------------------------------------------------------------------- MF4
+
+
+def test_mf4_can_log_reads_back_with_python_can(run: RunData, mf4: Path) -> None:
+    with can.io.MF4Reader(str(mf4)) as reader:
+        msgs = list(reader)
+    assert len(msgs) == len(run.frames)
+    # MF4Reader merges by timestamp; within a timestamp the file order is kept per group
+    got = sorted(((m.arbitration_id, bytes(m.data), m.is_rx), round(m.timestamp, 5))
+                 for m in msgs)
+    t0 = msgs[0].timestamp - 0.0
+    want = sorted(((f.arbitration_id, f.data, f.is_rx),
+                   round(t0 + (f.t_ns - run.frames[0].t_ns) * 1e-9, 5)) for f in run.frames)
+    assert got == want
+    assert all(m.dlc == len(m.data) and not m.is_extended_id for m in msgs)
+
+
+def test_mf4_bus_log_is_asam_bus_logging(run: RunData, mf4: Path) -> None:
+    with MDF(str(mf4)) as mdf:
+        frames = mdf.get("CAN_DataFrame")
+        assert frames.samples.size == len(run.frames)
+        names = frames.samples.dtype.names
+        for field in ("ID", "DLC", "DataBytes", "Dir", "BusChannel"):
+            assert f"CAN_DataFrame.{field}" in names
+        ids = frames.samples["CAN_DataFrame.ID"].tolist()
+        assert ids == [f.arbitration_id for f in run.frames]
+        data = frames.samples["CAN_DataFrame.DataBytes"]
+        dlc = frames.samples["CAN_DataFrame.DLC"]
+        assert [bytes(d[:n]) for d, n in zip(data, dlc, strict=True)] == \
+            [f.data for f in run.frames]
+        assert (frames.samples["CAN_DataFrame.Dir"] == 0).tolist() == \
+            [f.is_rx for f in run.frames]
+        np.testing.assert_allclose(frames.timestamps, _t_s(run, [f.t_ns for f in run.frames]),
+                                   atol=1e-9)
+        # asammdf's own bus-log decoding with the DBC gives the signals of the frames
+        decoded = mdf.extract_bus_logging({"CAN": [(str(Path("rig/wire/rig.dbc")), 0)]})
+        names_decoded = {c.name for g in decoded.groups for c in g.channels}
+        assert {"Rattlespace", "SpoolCommand", "ForceReference"} <= names_decoded
+        decoded.close()
+
+
+def test_mf4_signals_equal_read_run(run: RunData, mf4: Path) -> None:
+    with MDF(str(mf4)) as mdf:
+        groups = {g.channel_group.acq_name: i for i, g in enumerate(mdf.groups)}
+        assert {TOPIC_SIGNALS, TOPIC_TIMING, "/controller/internals"} <= set(groups)
+        t_s = _t_s(run, [r.t_ns for r in run.records])
+        for key in _numeric_keys(run):
+            topic = (TOPIC_SIGNALS if key in SIGNAL_KEYS else TOPIC_TIMING
+                     if key in TIMING_KEYS else "/controller/internals")
+            want = _expected(run, key)
+            cols = [f"{key}[{i}]" for i in range(want.shape[1])] if want.ndim == 2 else [key]
+            for j, name in enumerate(cols):
+                sig = mdf.get(name, groups[topic])
+                np.testing.assert_array_equal(
+                    sig.samples.astype(np.float64), want[:, j] if want.ndim == 2 else want,
+                    err_msg=name)
+                np.testing.assert_allclose(sig.timestamps, t_s, atol=1e-9)
+                assert sig.unit == unit_of(name)
+        assert mdf.get("force_ref_n", groups[TOPIC_SIGNALS]).unit == "N"
+        assert mdf.get("sprung_accel_mps2", groups[TOPIC_SIGNALS]).unit == "m/s^2"
+
+
+# ---------------------------------------------------------------------------- Parquet
+
+
+def test_parquet_tables_equal_read_run(run: RunData, parquet_dir: Path) -> None:
+    tables = {t.topic: t for t in run_tables(run).topics}
+    assert sorted(p.name for p in parquet_dir.iterdir()) == sorted(
+        [CAN_FILE, *(table_file(t) for t in tables)])
+    t_s = _t_s(run, [r.t_ns for r in run.records])
+    for topic in tables:
+        tab = pq.read_table(parquet_dir / table_file(topic))
+        np.testing.assert_allclose(tab["t_s"].to_numpy(), t_s, atol=1e-12)
+        assert tab["t_ns"].to_pylist() == [r.t_ns for r in run.records]
+        assert tab["tick"].to_pylist() == [r.tick for r in run.records]
+        for name in tab.column_names[3:]:
+            key, _, idx = name.partition("[")
+            want = _expected(run, key)
+            if idx:
+                want = want[:, int(idx.rstrip("]"))]
+            np.testing.assert_array_equal(tab[name].to_numpy().astype(np.float64), want)
+            unit = unit_of(name)
+            meta = tab.schema.field(name).metadata
+            assert (meta or {}).get(b"unit", b"").decode() == unit
+    sig = pq.read_table(parquet_dir / table_file(TOPIC_SIGNALS))
+    assert sig.schema.field("force_ref_n").metadata == {b"unit": b"N"}
+
+
+def test_parquet_can_table_equals_the_frames(run: RunData, parquet_dir: Path) -> None:
+    tab = pq.read_table(parquet_dir / CAN_FILE).to_pydict()
+    assert list(zip(tab["id"], tab["data"], [d == "rx" for d in tab["direction"]],
+                    strict=True)) == _frames(run)
+    assert tab["dlc"] == [len(f.data) for f in run.frames]
+    assert tab["t_ns"] == [f.t_ns for f in run.frames]
+
+
+def test_parquet_reads_with_pandas(run: RunData, parquet_dir: Path) -> None:
+    pd = pytest.importorskip("pandas")
+    df = pd.read_parquet(parquet_dir / table_file(TOPIC_SIGNALS))
+    np.testing.assert_array_equal(df["force_ref_n"].to_numpy(), _expected(run, "force_ref_n"))
+    frames = pd.read_parquet(parquet_dir / CAN_FILE)
+    assert frames["id"].tolist() == [f.arbitration_id for f in run.frames]
+
+
+# ---------------------------------------------------------------------------- refusals
+
+
+def test_existing_output_needs_force_and_failure_leaves_nothing(
+        recording: Path, mf4: Path, parquet_dir: Path, work: Path,
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    before = mf4.read_bytes()
+    assert main(["export", str(recording), "--format", "mf4", "--out", str(mf4)]) == 2
+    assert "exists: add --force" in capsys.readouterr().err
+    assert main(["export", str(recording), "--format", "parquet",
+                 "--out", str(parquet_dir)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(["export", str(recording), "--format", "mf4", "--out",
+                 str(work / "x.mdf")]) == 2
+    assert ".mf4 file" in capsys.readouterr().err
+    assert main(["export", str(work / "none.mcap"), "--format", "mf4", "--out",
+                 str(work / "y.mf4")]) == 2
+    assert main(["export", str(recording), "--format", "csv", "--out", "z"]) == 2
+    capsys.readouterr()
+    not_mcap = work / "notes.mcap"
+    not_mcap.write_text("hello")
+    assert main(["export", str(not_mcap), "--format", "mf4", "--out",
+                 str(work / "n.mf4")]) == 2
+    err = capsys.readouterr().err
+    assert "not an MCAP file" in err and len(err.strip().splitlines()) == 1
+
+    import rig.export.mf4 as mf4_mod
+
+    def boom(*_a: Any, **_k: Any) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(mf4_mod.MDF, "save", boom)
+    assert main(["export", str(recording), "--format", "mf4", "--out", str(mf4),
+                 "--force"]) == 2
+    assert "No space left" in capsys.readouterr().err
+    assert mf4.read_bytes() == before
+    assert not [p for p in work.iterdir() if ".partial-" in p.name]
+
+
+# ---------------------------------------------------------------------------- replay
+
+
+def test_replay_of_the_mf4_log_equals_the_asc_equivalent(run: RunData, mf4: Path,
+                                                        work: Path, design_path: Path) -> None:
+    asc = work / "same.asc"
+    with can.io.MF4Reader(str(mf4)) as reader, can.Logger(str(asc)) as logger:
+        for m in reader:
+            logger.on_message_received(m)
+    design = load_design(design_path)
+    res_mf4 = replay_log(mf4, CFG, design)
+    res_asc = replay_log(asc, CFG, design)
+    assert res_mf4.ticks == res_asc.ticks >= len(run.records)
+    assert res_mf4.rx_frames_fed == res_asc.rx_frames_fed == sum(f.is_rx for f in run.frames)
+    np.testing.assert_array_equal(res_mf4.force_ref_n, res_asc.force_ref_n)
+    # and the bank's force reference is the recorded one where the loop was not yet armed
+    recorded = _expected(run, "force_ref_n")
+    n = len(recorded)
+    np.testing.assert_array_equal(res_mf4.force_ref_n[:n], recorded)
