@@ -40,6 +40,7 @@ from rig.recording.schema import (
     TOPICS,
 )
 from tests.support.mcap_reference import items_of_run, reference_items
+from tests.support.processes import stop_and_wait_stopped
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)
@@ -626,7 +627,7 @@ def test_sigkill_of_the_loop_process_loses_nothing_it_sent(tmp_path: Path) -> No
 def test_writer_behind_drops_whole_batches_keeps_events_and_counts(tmp_path: Path) -> None:
     path = tmp_path / "drop.mcap"
     rec = recorder(path, queue_size=16, pipe_bytes=4096)
-    os.kill(rec.pid, signal.SIGSTOP)      # the writer (started by this test) stops reading
+    stop_and_wait_stopped(rec.pid)        # the writer (started by this test) stops reading
     accepted = []
     try:
         for k in range(400):
@@ -655,7 +656,7 @@ def test_batches_of_the_configured_ticks_are_kept_or_dropped_whole(tmp_path: Pat
     path = tmp_path / "batch.mcap"
     rec = recorder(path, queue_size=16, pipe_bytes=4096, batch_ticks=8)
     assert rec.batch_ticks == 8
-    os.kill(rec.pid, signal.SIGSTOP)      # the writer (started by this test) stops reading
+    stop_and_wait_stopped(rec.pid)        # the writer (started by this test) stops reading
     try:
         for k in range(400):
             rec.can_frame(k, k, 0x100, b"\x01", True)
@@ -677,7 +678,7 @@ def test_close_waits_for_the_writer_instead_of_dropping_the_last_batch(
     when the pipe is full at that moment (it waits for the writer, which resumes)."""
     path = tmp_path / "last.mcap"
     rec = recorder(path, queue_size=16, pipe_bytes=4096)
-    os.kill(rec.pid, signal.SIGSTOP)      # the writer (started by this test) stops reading
+    stop_and_wait_stopped(rec.pid)        # the writer (started by this test) stops reading
     resume = threading.Timer(0.5, os.kill, (rec.pid, signal.SIGCONT))
     try:
         k = 0
@@ -904,7 +905,7 @@ def test_a_dropped_batch_keeps_its_tick_layout(tmp_path: Path) -> None:
 
     path = tmp_path / "layout.mcap"
     rec = recorder(path, pipe_bytes=4096)
-    os.kill(rec.pid, signal.SIGSTOP)      # the writer (started by this test) stops reading
+    stop_and_wait_stopped(rec.pid)        # the writer (started by this test) stops reading
     try:
         for k in range(200):              # fill the pipe
             rec.tick(k, {"tick": k})

@@ -27,3 +27,21 @@ def killed_on_exit(proc: subprocess.Popen[str]) -> Iterator[subprocess.Popen[str
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def stop_and_wait_stopped(pid: int, timeout_s: float = 30.0) -> None:
+    """SIGSTOP the test's own child ``pid`` and wait until the kernel shows it stopped
+    (state T in /proc/PID/stat).  kill() only queues the signal: a child blocked in a
+    read completes that read first, so a test that wrote to it at once could still see
+    it take data after the kill."""
+    import os
+    import time
+    os.kill(pid, signal.SIGSTOP)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            state = f.read().rsplit(")", 1)[1].split()[0]
+        if state in ("T", "t"):
+            return
+        time.sleep(0.001)
+    raise TimeoutError(f"process {pid} not stopped {timeout_s:g} s after SIGSTOP")
