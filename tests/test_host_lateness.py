@@ -188,3 +188,45 @@ def test_recent_window_finds_the_stall_and_the_skipped_deadlines() -> None:
     assert t.recent_window(4) == (10_000, 0, 3)         # ticks 36-39
     assert t.recent_window(5) == (4 * MS, 4, 3)         # tick 35 woke 4 ms late
     assert t.recent_window(10 * RECENT_TICKS)[0] == 4 * MS
+
+
+def test_the_emulated_rigs_trace_reports_its_lateness_and_an_ongoing_stall() -> None:
+    import os
+
+    from hil.rig_process import RigTrace
+
+    fd = os.memfd_create("rig-trace-test")
+    trace = RigTrace(fd, 100, create=True)
+    try:
+        assert trace.lateness(0, 3, period_ns=PERIOD_NS) == (0, -1)      # not started
+        wake, late = trace.arrays["wake_s"], trace.arrays["wake_late_s"]
+        for i in range(50):                     # on time, one 3 ms late wake-up at 40
+            late[i] = 3e-3 if i == 40 else 20e-6
+            wake[i] = 10.0 + i * 1e-3 + late[i]
+        trace.publish(50)
+        now = round((10.0 + 49e-3) * 1e9) + 300_000     # 0.3 ms after the last wake-up
+        assert trace.lateness(now, 3, period_ns=PERIOD_NS) == (20_000, 45)
+        assert trace.lateness(now, 9, period_ns=PERIOD_NS) == (3_000_000, 40)
+        # 5 ms since the last tick woke: 4 ms into a stall (the tick it owes: 50)
+        stalled = round(wake[49] * 1e9) + 5 * MS
+        assert trace.lateness(stalled, 3, period_ns=PERIOD_NS) == (4 * MS, 50)
+    finally:
+        trace.close()
+        os.close(fd)
+
+
+def test_the_demo_summary_line_says_whether_the_host_was_late() -> None:
+    from rig.commands.demo import fault_line
+
+    base = {"attributed": False, "window_ticks": 3, "budget_ms": 2.0, "loop_late_ms": 0.1,
+            "loop_late_tick": 10, "skipped": 0, "period_ms": 1.0, "rig_checked": True,
+            "rig_late_ms": 0.2, "rig_late_tick": 9}
+    lost = {"time_s": 1.5, "code": "SENSOR_STALE", "reason": "fault SENSOR_STALE: x",
+            "host_lateness": base}
+    assert fault_line(lost) == (
+        "fault at 1.500 s: SENSOR_STALE (fault SENSOR_STALE: x) (not host lateness: loop "
+        "at most 0.1 ms late, emulated rig at most 0.2 ms late over 3 ticks, budget 2 ms)")
+    late = {**lost, "reason": "fault SENSOR_STALE: x (host lateness: loop woke 5.0 ms late "
+            "at tick 10)", "host_lateness": {**base, "attributed": True}}
+    assert fault_line(late).endswith("(host lateness: loop woke 5.0 ms late at tick 10))")
+    assert fault_line({**lost, "code": "SUPPLY_LOSS"}).endswith("(fault SENSOR_STALE: x)")
