@@ -132,6 +132,9 @@ class RigHarness:
             # real time: a SENSOR_STALE asks the rig's trace how late its ticks were
             self.service.loop.peer_lateness = functools.partial(
                 self.rig.trace.lateness, period_ns=self._period_ns)
+        if self.turns is None and self.rig_options.watchdog_s:
+            # real time: a RIG_WATCHDOG is weighed against the drive's own watchdog
+            self.service.loop.peer_watchdog_ns = round(self.rig_options.watchdog_s * 1e9)
 
     @property
     def trace(self) -> RigTrace:

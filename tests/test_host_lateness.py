@@ -230,3 +230,20 @@ def test_the_demo_summary_line_says_whether_the_host_was_late() -> None:
             "at tick 10)", "host_lateness": {**base, "attributed": True}}
     assert fault_line(late).endswith("(host lateness: loop woke 5.0 ms late at tick 10))")
     assert fault_line({**lost, "code": "SUPPLY_LOSS"}).endswith("(fault SENSOR_STALE: x)")
+
+
+@pytest.mark.parametrize(("late_ns", "attributed"), [(4_500_000, True), (300_000, False)])
+def test_a_rig_watchdog_after_a_late_wake_up_names_host_lateness(
+        armed: LoopHarness, late_ns: int, attributed: bool) -> None:
+    h = armed
+    h.loop.peer_watchdog_ns = 5 * MS           # the emulated drive's watchdog
+    h.step(lateness_ns=late_ns)                 # the drive went without a command
+    h.run(6)
+    h.rig.rig_status(watchdog=1)                # the next RigStatus reports the trip
+    h.step(status=False)
+    assert h.loop.lifecycle.fault_code is FaultCode.RIG_WATCHDOG
+    cause = _fault(h)
+    assert cause["attributed"] is attributed and cause["budget_ms"] == 4.0
+    assert cause["window_ticks"] == 17
+    assert ("host lateness: loop woke 4.5 ms late" in h.loop.lifecycle.fault_message) \
+        is attributed

@@ -13,6 +13,10 @@ fault to the host only when that lateness reaches the fault's budget:
   genuine sensor loss (the rig ticks on time and sends nothing) is not attributed;
 * OVERRUN_STREAK: window = the streak, budget = ``safety.overrun_threshold_s`` (the
   fault is lateness by definition);
+* RIG_WATCHDOG, when the rig's drive watchdog is known (``watchdog_ns``, the emulated
+  rig's): window = the watchdog and the 100 Hz RigStatus that reports it (watchdog
+  ticks + 12), budget = the watchdog less one period (a loop that woke that late left
+  the drive that long without a command);
 * any other code: the numbers are recorded, nothing is attributed.
 
 Runs only when a fault latches (rare): it may allocate.
@@ -80,12 +84,17 @@ class HostLateness:
 
 
 def assess(code: FaultCode, detail: int, tick: int, now_ns: int, timing: TimingStats, *,
-           stale_ticks: int, peer: PeerLateness | None = None) -> HostLateness:
+           stale_ticks: int, peer: PeerLateness | None = None,
+           watchdog_ns: int = 0) -> HostLateness:
     """The lateness around a fault ``code`` (``detail`` = its FaultDetail byte) latched at
-    loop ``tick`` (``now_ns`` on the loop's clock); see the module docstring."""
+    loop ``tick`` (``now_ns`` on the loop's clock); ``watchdog_ns``: the rig's drive
+    watchdog (0: unknown); see the module docstring."""
     period = timing.period_ns
+    watchdog = code is FaultCode.RIG_WATCHDOG and watchdog_ns > 0
     if code is FaultCode.OVERRUN_STREAK:
         window, budget_ns = max(1, detail), timing.overrun_threshold_ns
+    elif watchdog:
+        window, budget_ns = -(-watchdog_ns // period) + 12, max(0, watchdog_ns - period)
     else:
         window = max(1, detail if code is FaultCode.SENSOR_STALE else stale_ticks + 1)
         budget_ns = stale_ticks * period
@@ -104,6 +113,8 @@ def assess(code: FaultCode, detail: int, tick: int, now_ns: int, timing: TimingS
         attributed = loop_behind_ns > budget_ns
     elif code is FaultCode.SENSOR_STALE:
         attributed = late_enough
+    elif watchdog:
+        attributed = loop_behind_ns >= budget_ns
     else:
         attributed = False
     return HostLateness(attributed, window, budget_ns / 1e6, late_ns / 1e6, tick - ago,

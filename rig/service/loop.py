@@ -187,6 +187,9 @@ class ControlLoop:
         #: how late the peer (the emulated rig) was, asked when a SENSOR_STALE latches
         #: (rig/service/host_lateness.py); None: no peer to ask (a real rig)
         self.peer_lateness: PeerLateness | None = None
+        #: the rig's drive watchdog [ns] when known (the emulated rig's), for attributing a
+        #: RIG_WATCHDOG to the loop's lateness; 0: unknown
+        self.peer_watchdog_ns = 0
 
         if recorder is not None:
             recorder.set_tick_layout(tick_record_layout(runtime))
@@ -572,7 +575,8 @@ class ControlLoop:
         host_lateness: dict[str, object] | None = None
         try:        # the attribution never stands in the way of the latch
             cause = assess(code, detail, self.tick_count, now_ns, self.timing,
-                           stale_ticks=self.monitor.stale_ticks, peer=self.peer_lateness)
+                           stale_ticks=self.monitor.stale_ticks, peer=self.peer_lateness,
+                           watchdog_ns=self.peer_watchdog_ns)
             host_lateness = cause.as_dict()
             if cause.attributed:
                 message = f"{message} ({cause.phrase()})"
