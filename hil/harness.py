@@ -41,6 +41,7 @@ bit, whatever the host's scheduling.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -127,6 +128,13 @@ class RigHarness:
         self.service.after_shutdown_frames.append(self.rig.request_stop)
         if self.turns is not None:      # the rig waits for a turn: this ends its wait
             self.service.after_shutdown_frames.append(self.turns.close)
+        elif self.rig_options.trace_ticks > 0:
+            # real time: a SENSOR_STALE asks the rig's trace how late its ticks were
+            self.service.loop.peer_lateness = functools.partial(
+                self.rig.trace.lateness, period_ns=self._period_ns)
+        if self.turns is None and self.rig_options.watchdog_s:
+            # real time: a RIG_WATCHDOG is weighed against the drive's own watchdog
+            self.service.loop.peer_watchdog_ns = round(self.rig_options.watchdog_s * 1e9)
 
     @property
     def trace(self) -> RigTrace:

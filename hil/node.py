@@ -166,6 +166,10 @@ class RigNode:
         self._wd_ticks = max(1, round(watchdog_timeout_s / self.dt_s))
         self._status_every = max(1, round(cfg.design.sample_rate_hz / status_rate_hz))
         self.stats = NodeStats()
+        #: the current tick's wake-up time and lateness [ns, monotonic] in real time (0 in
+        #: lockstep and when stepped); ``rig demo`` traces them (host-lateness attribution)
+        self.wake_ns = 0
+        self.wake_late_ns = 0
         self.record = NodeRecord(record_ticks)
         self.tick_count = 0
         # received state
@@ -399,7 +403,9 @@ class RigNode:
             if end_tick is not None and self.tick_count >= end_tick:
                 break
             if realtime:
-                late = pacer.wait() - pacer.deadline
+                now = pacer.wait()
+                late = now - pacer.deadline
+                self.wake_ns, self.wake_late_ns = now, late
                 if late > LATE_TICK_NS:
                     stats.late_ticks += 1
                     stats.max_lateness_s = max(stats.max_lateness_s, late * 1e-9)

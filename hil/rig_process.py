@@ -70,7 +70,7 @@ log = logging.getLogger(__name__)
 #: true plant signals written per rig tick (SI units; flags as 0.0 / 1.0)
 TRACE_FIELDS = ("accel_mps2", "rattlespace_m", "tire_force_n", "force_n",
                 "hydraulic_power_w", "off_ground_s", "bump_stop_s", "bypass_open",
-                "watchdog_tripped", "spool_applied")
+                "watchdog_tripped", "spool_applied", "wake_s", "wake_late_s")
 _HEADER_BYTES = 64      # int64 count, int64 capacity, int64 number of fields, padding
 
 
@@ -132,6 +132,26 @@ class RigTrace:
     def publish(self, count: int) -> None:
         """Rig side: ticks ``< count`` are written."""
         self._header[0] = count
+
+    def lateness(self, now_ns: int, window_ticks: int, *, period_ns: int) -> tuple[int, int]:
+        """How late the rig was (:class:`rig.service.host_lateness.PeerLateness`, read by
+        the loop when a SENSOR_STALE latches): ``(late_ns, rig_tick)``, the worst wake-up
+        lateness of its last ``window_ticks`` + 2 ticks, or the stall it is in now (the
+        time since its last tick woke beyond one ``period_ns``; ``now_ns`` on the same
+        monotonic clock), whichever is larger.  Real time only (lockstep traces 0)."""
+        n = self.count
+        if n == 0:
+            return 0, -1
+        lo = max(0, n - int(window_ticks) - 2)
+        late = self.arrays["wake_late_s"][lo:n]
+        i = int(np.argmax(late))
+        worst, tick = round(float(late[i]) * 1e9), lo + i
+        last_wake_s = float(self.arrays["wake_s"][n - 1])
+        if last_wake_s > 0.0:
+            stall = now_ns - round(last_wake_s * 1e9) - period_ns
+            if stall > worst:
+                worst, tick = stall, n
+        return worst, tick
 
     def copy(self) -> dict[str, NDArray[np.float64]]:
         """Plain arrays of the ticks written so far (independent of the shared block)."""
@@ -327,7 +347,7 @@ class _Status:
 def _traced_node(trace: RigTrace) -> type[RigNode]:
     """A RigNode class that also writes the true plant signals of each tick to ``trace``."""
     a = trace.arrays
-    accel, rattle, tire, force, power, off, bump, bypass, wd, spool = (
+    accel, rattle, tire, force, power, off, bump, bypass, wd, spool, wake, late = (
         a[name] for name in TRACE_FIELDS)
     capacity = trace.capacity
 
@@ -348,6 +368,8 @@ def _traced_node(trace: RigTrace) -> type[RigNode]:
                 bypass[i] = self.bypass_applied
                 wd[i] = self.watchdog_tripped
                 spool[i] = self.spool_applied
+                wake[i] = self.wake_ns * 1e-9
+                late[i] = self.wake_late_ns * 1e-9
                 trace.publish(i + 1)
 
     return TracedRigNode

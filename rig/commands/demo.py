@@ -56,6 +56,20 @@ MAX_REARMS = 1000
 EXCITE_TAIL_S = 0.5  # passive rest kept after an excitation (--excite)
 
 
+def fault_line(fault: dict[str, Any]) -> str:
+    """The summary's line of one fault: code, reason, and for SENSOR_STALE /
+    OVERRUN_STREAK whether the host's lateness explains it (rig/service/host_lateness.py;
+    the reason already carries the "(host lateness: ...)" phrase when it does)."""
+    line = f"fault at {fault['time_s']:.3f} s: {fault['code']} ({fault['reason']})"
+    hl = fault.get("host_lateness")
+    if hl and not hl["attributed"] and fault["code"] in ("SENSOR_STALE", "OVERRUN_STREAK"):
+        rig = (f", emulated rig at most {hl['rig_late_ms']:.1f} ms late"
+               if hl["rig_checked"] else "")
+        line += (f" (not host lateness: loop at most {hl['loop_late_ms']:.1f} ms late"
+                 f"{rig} over {hl['window_ticks']} ticks, budget {hl['budget_ms']:g} ms)")
+    return line
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
                                                     lo_open=True),
@@ -369,7 +383,7 @@ def run(args: argparse.Namespace) -> int:
         if tr.state is LifecycleState.FAULT:
             faults.append({"tick": tr.tick, "time_s": trace.count / rate,
                            "code": tr.fault_code.name, "detail": tr.fault_detail,
-                           "reason": tr.reason})
+                           "reason": tr.reason, "host_lateness": tr.host_lateness})
 
     service.loop.lifecycle.add_listener(on_transition)
     progress = _Progress(cfg, trace, service, arm_tick, enabled=not args.quiet)
@@ -438,7 +452,7 @@ def run(args: argparse.Namespace) -> int:
               f"it back {ls.get('behind_s', 0.0):.2f} s in {ls.get('stalls', 0):.0f} stalls); "
               "the lateness and step-time rows are the lockstep clock's (0)", file=out)
     for f in faults:
-        print(f"fault at {f['time_s']:.3f} s: {f['code']} ({f['reason']})", file=out)
+        print(fault_line(f), file=out)
     if active.get("bypass_open_fraction", 0.0) > 0.5:
         print(f"note: the controller was engaged for only "
               f"{100 * (1 - active['bypass_open_fraction']):.0f} % of the second "

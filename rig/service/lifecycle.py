@@ -48,11 +48,18 @@ class Transition:
     reason: str
     fault_code: FaultCode = FaultCode.NONE
     fault_detail: int = 0
+    #: into FAULT: the lateness measured around the fault
+    #: (:meth:`rig.service.host_lateness.HostLateness.as_dict`), else None
+    host_lateness: dict[str, object] | None = None
 
     def as_dict(self) -> dict[str, object]:
-        return {"tick": self.tick, "t_ns": self.t_ns, "from": self.previous.name,
-                "to": self.state.name, "reason": self.reason,
-                "fault": self.fault_code.name, "detail": self.fault_detail}
+        d: dict[str, object] = {
+            "tick": self.tick, "t_ns": self.t_ns, "from": self.previous.name,
+            "to": self.state.name, "reason": self.reason,
+            "fault": self.fault_code.name, "detail": self.fault_detail}
+        if self.host_lateness is not None:
+            d["host_lateness"] = self.host_lateness
+        return d
 
 
 @dataclass(frozen=True)
@@ -82,6 +89,8 @@ class Lifecycle:
         self.fault_tick = -1
         self.fault_detail = 0
         self.fault_message = ""
+        #: the latched fault's host-lateness record (None: none latched / not assessed)
+        self.fault_host_lateness: dict[str, object] | None = None
         self.transitions = 0
         self._listeners: list[Listener] = []
 
@@ -95,8 +104,9 @@ class Lifecycle:
 
     # ------------------------------------------------------------------ transitions
     def _go(self, state: LifecycleState, tick: int, t_ns: int, reason: str,
-            code: FaultCode = FaultCode.NONE, detail: int = 0) -> None:
-        tr = Transition(tick, t_ns, self.state, state, reason, code, detail)
+            code: FaultCode = FaultCode.NONE, detail: int = 0,
+            host_lateness: dict[str, object] | None = None) -> None:
+        tr = Transition(tick, t_ns, self.state, state, reason, code, detail, host_lateness)
         self.state = state
         self.valve_enabled = state is LifecycleState.ACTIVE
         self.transitions += 1
@@ -130,16 +140,18 @@ class Lifecycle:
         return CommandResult(False, self.state, f"cannot disarm from {self.state.name}")
 
     def fault(self, code: FaultCode, tick: int, t_ns: int, detail: int = 0,
-              message: str = "") -> bool:
-        """Latch ``code`` (from INACTIVE or ACTIVE).  True if this call latched it."""
+              message: str = "", host_lateness: dict[str, object] | None = None) -> bool:
+        """Latch ``code`` (from INACTIVE or ACTIVE).  True if this call latched it.
+        ``host_lateness``: the lateness measured around it (kept and recorded)."""
         if self.state in (LifecycleState.FAULT, LifecycleState.STOPPING):
             return False
         self.fault_code = code
         self.fault_tick = tick
         self.fault_detail = detail & 0xFF
         self.fault_message = message or code.name
+        self.fault_host_lateness = host_lateness
         self._go(LifecycleState.FAULT, tick, t_ns, f"fault {code.name}: {self.fault_message}",
-                 code, self.fault_detail)
+                 code, self.fault_detail, host_lateness)
         return True
 
     def reset(self, tick: int, t_ns: int, condition: FaultCode,
@@ -159,6 +171,7 @@ class Lifecycle:
         self.fault_tick = -1
         self.fault_detail = 0
         self.fault_message = ""
+        self.fault_host_lateness = None
         return CommandResult(True, self.state, f"reset, cleared {cleared.name}")
 
     def stop(self, tick: int, t_ns: int, reason: str = "shutdown") -> None:

@@ -58,6 +58,7 @@ from rig.recording.codec import TickLayout
 from rig.rt.pacing import LOOP_SPIN_NS, Pacer, TickPacer
 from rig.rt.sdnotify import SdNotifier
 from rig.service.hardware import RigIO
+from rig.service.host_lateness import PeerLateness, assess
 from rig.service.lifecycle import CommandResult, Lifecycle, Transition
 from rig.service.safety import DETAIL_SEND, FaultMonitor
 from rig.service.seams import ForceLoop, Recorder, Runtime, Telemetry, Viewer
@@ -183,6 +184,12 @@ class ControlLoop:
         self.weight_set = int(cfg.design.weight_set if weight_set is None else weight_set)
         #: not '' = every arm is refused with this reason (a failed required host check)
         self.arm_blocker = ""
+        #: how late the peer (the emulated rig) was, asked when a SENSOR_STALE latches
+        #: (rig/service/host_lateness.py); None: no peer to ask (a real rig)
+        self.peer_lateness: PeerLateness | None = None
+        #: the rig's drive watchdog [ns] when known (the emulated rig's), for attributing a
+        #: RIG_WATCHDOG to the loop's lateness; 0: unknown
+        self.peer_watchdog_ns = 0
 
         if recorder is not None:
             recorder.set_tick_layout(tick_record_layout(runtime))
@@ -565,7 +572,17 @@ class ControlLoop:
             return
         if not message:
             message = self._describe(code, detail)
-        lc.fault(code, self.tick_count, now_ns, detail, message)
+        host_lateness: dict[str, object] | None = None
+        try:        # the attribution never stands in the way of the latch
+            cause = assess(code, detail, self.tick_count, now_ns, self.timing,
+                           stale_ticks=self.monitor.stale_ticks, peer=self.peer_lateness,
+                           watchdog_ns=self.peer_watchdog_ns)
+            host_lateness = cause.as_dict()
+            if cause.attributed:
+                message = f"{message} ({cause.phrase()})"
+        except Exception:
+            log.exception("host-lateness attribution failed")
+        lc.fault(code, self.tick_count, now_ns, detail, message, host_lateness)
         self.pi.reset()
         self._send_fault_report(now_ns, self.tick_count)
 
@@ -665,6 +682,7 @@ class ControlLoop:
             "fault_tick": lc.fault_tick,
             "fault_detail": lc.fault_detail,
             "fault_message": lc.fault_message,
+            "fault_host_lateness": lc.fault_host_lateness,
             "condition": self.monitor.condition.name,
             "estimator_degraded": bool(self.bank_flags & _DEGRADED),
             "estimator_degradations": self.degradations,

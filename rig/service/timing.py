@@ -19,7 +19,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["TimingStats", "histogram_percentile_us"]
+__all__ = ["RECENT_TICKS", "TimingStats", "histogram_percentile_us"]
+
+#: ticks of skipped-deadline counts kept for :meth:`TimingStats.recent_window` (the
+#: lateness itself is in the lateness ring)
+RECENT_TICKS = 64
 
 
 def histogram_percentile_us(hist: np.ndarray, q: float) -> float:
@@ -50,6 +54,8 @@ class TimingStats:
         self.lateness_hist = np.zeros(hist_max_us + 1, dtype=np.int64)
         self.step_hist = np.zeros(hist_max_us + 1, dtype=np.int64)
         self._cum = np.zeros(hist_max_us + 1, dtype=np.int64)
+        #: deadlines skipped after each of the last RECENT_TICKS ticks (index: tick % size)
+        self.recent_skipped = np.zeros(RECENT_TICKS, dtype=np.int64)
         self.reset()
 
     def reset(self) -> None:
@@ -57,7 +63,9 @@ class TimingStats:
         self.step_ring[:] = 0
         self.lateness_hist[:] = 0
         self.step_hist[:] = 0
+        self.recent_skipped[:] = 0
         self.count = 0
+        self._ended = 0             # ticks whose end_tick ran
         self._index = 0
         self.max_lateness_ns = 0
         self.max_step_ns = 0
@@ -83,10 +91,12 @@ class TimingStats:
             self.overrun_streak = 0
         if lateness_ns > self.miss_threshold_ns:
             self.misses += 1
+        self.recent_skipped[self.count % RECENT_TICKS] = 0
         self.count += 1
 
     def end_tick(self, step_ns: int) -> None:
         """Record the step time of the tick started by :meth:`start_tick`.  O(1)."""
+        self._ended += 1
         i = self._index
         self.step_ring[i] = step_ns
         self._index = i + 1 if i + 1 < self.ring_size else 0
@@ -102,7 +112,10 @@ class TimingStats:
         self.end_tick(step_ns)
 
     def add_skipped(self, n: int) -> None:
+        """``n`` deadlines were skipped after the last tick (a stall)."""
         self.skipped += n
+        if self.count:
+            self.recent_skipped[(self.count - 1) % RECENT_TICKS] += n
 
     def lateness_p99_us(self) -> float:
         """Whole-run p99 lateness from the histogram, in a preallocated buffer (us)."""
@@ -113,6 +126,24 @@ class TimingStats:
         return float(np.searchsorted(self._cum, rank, side="left"))
 
     # ------------------------------------------------------------------ off the hot path
+    def recent_window(self, ticks: int) -> tuple[int, int, int]:
+        """The loop's lateness over its last ``ticks`` ticks (the current one included,
+        at most ``min(RECENT_TICKS, ring_size)``): ``(max_late_ns, ago, skipped)`` -- the
+        worst wake-up lateness (a stall shows as one late wake-up, the deadlines it
+        swallowed are then skipped), how many ticks before the current one it was, and
+        the deadlines skipped after the window's ticks.  For fault attribution (rare):
+        may allocate."""
+        n = max(0, min(int(ticks), self.count, RECENT_TICKS, self.ring_size))
+        if n == 0:
+            return 0, 0, 0
+        # the current tick's lateness is at _index while its end_tick has not run yet
+        newest = self._index if self.count > self._ended else self._index - 1
+        back = np.arange(n)
+        late = self.lateness_ring[(newest - back) % self.ring_size]
+        skipped = int(self.recent_skipped[(self.count - 1 - back) % RECENT_TICKS].sum())
+        ago = int(np.argmax(late))
+        return int(late[ago]), ago, skipped
+
     def recent(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the last min(count, ring_size) samples, oldest first (ns)."""
         n = min(self.count, self.ring_size)
