@@ -26,6 +26,7 @@ import zenoh
 
 from controller.config import TelemetryConfig
 from rig.operator_commands import OPERATOR_COMMANDS, brief, validate_command
+from rig.rate_limit import TokenBucket
 from rig.recording.schema import encode_json
 
 __all__ = ["MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "SESSION_ATTEMPTS", "TelemetryPublisher",
@@ -41,6 +42,11 @@ SESSION_ATTEMPTS = 5
 MAX_ARGUMENT_BYTES = 1024
 #: error texts in command replies are cut to this length (never echo large input)
 MAX_ERROR_CHARS = 200
+#: the error replies of a query over the rate limit ([telemetry] status_queries_per_s,
+#: commands_per_s)
+_RATE_LIMITED_STATUS = json.dumps({"error": "rate limited: too many status queries"})
+_RATE_LIMITED_COMMAND = json.dumps({"accepted": False,
+                                    "error": "rate limited: too many commands"})
 _RUST_SOURCE = re.compile(r" at /\S+\.rs:\d+\.?")
 
 
@@ -121,6 +127,10 @@ class TelemetryPublisher:
         self.dropped = 0
         self.published = 0
         self.commands_received = 0
+        # Zenoh (1.x Python) tells a queryable nothing about who asked, and a put's
+        # source_info is what the sender claims: the limits are over all peers together
+        self._status_limit = TokenBucket(cfg.status_queries_per_s, cfg.status_burst)
+        self._command_limit = TokenBucket(cfg.commands_per_s, cfg.command_burst)
         self.attempts = 0              # attempts to open the session so far
         self.state = "connecting"
         self.error: str | None = None  # why the session is not up (last failure)
@@ -179,7 +189,9 @@ class TelemetryPublisher:
                 "endpoints": list(self.cfg.endpoints), "listen": self.cfg.listen,
                 "published": self.published, "dropped": self.dropped,
                 "commands_enabled": self.cfg.commands_enabled,
-                "commands_received": self.commands_received}
+                "commands_received": self.commands_received,
+                "status_refused": self._status_limit.refused,
+                "commands_refused": self._command_limit.refused}
 
     def close(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
@@ -314,6 +326,9 @@ class TelemetryPublisher:
 
     def _on_status(self, query: zenoh.Query) -> None:
         # the reply goes out on the concrete key, whatever the query's key expression
+        if not self._status_limit.take():
+            query.reply_err(_RATE_LIMITED_STATUS)
+            return
         try:
             query.reply(self._key("status"), encode_json(self._status()),
                         encoding=zenoh.Encoding.APPLICATION_JSON)
@@ -354,6 +369,9 @@ class TelemetryPublisher:
         name = self._command_name(str(query.key_expr))
         if name is None:
             return
+        if not self._command_limit.take():
+            query.reply_err(_RATE_LIMITED_COMMAND, encoding=zenoh.Encoding.APPLICATION_JSON)
+            return
         payload = query.payload.to_bytes() if query.payload is not None else b""
         ok, reply = self._handle(name, payload)
         if ok:
@@ -364,8 +382,8 @@ class TelemetryPublisher:
 
     def _on_command_put(self, sample: zenoh.Sample) -> None:
         name = self._command_name(str(sample.key_expr))
-        if name is None:
-            return
+        if name is None or not self._command_limit.take():
+            return        # over the limit: dropped unread, no acknowledgement
         _, reply = self._handle(name, sample.payload.to_bytes())
         leaf = name if name in OPERATOR_COMMANDS else "invalid"
         if self._session is not None:
