@@ -15,7 +15,7 @@ Two defences (docs/foxglove.md):
    CRITICAL, at which it never logs), so no SDK record reaches Python at all; it must
    run before the first server starts (the SDK takes only the first setting).  The
    SDK's own ``FOXGLOVE_LOG_LEVEL`` environment variable overrides it (for debugging the
-   SDK).
+   SDK); set but empty it is removed (the SDK would take it as set).
 2. :class:`ClientTextFilter`, installed on every SDK logger by :func:`install_filter`,
    guards whatever is forwarded all the same: control characters escaped and the text
    capped (:func:`rig.terminal.safe`, :data:`MAX_CHARS`), at most :data:`BURST` records
@@ -28,6 +28,7 @@ Two defences (docs/foxglove.md):
 from __future__ import annotations
 
 import logging
+import os
 import re
 import threading
 import time
@@ -36,7 +37,7 @@ from typing import Final
 
 from rig.terminal import safe
 
-__all__ = ["BURST", "GLOBAL_BURST", "MAX_CHARS", "SDK_LOGGERS", "WINDOW_S",
+__all__ = ["BURST", "GLOBAL_BURST", "MAX_CHARS", "SDK_LEVEL_ENV", "SDK_LOGGERS", "WINDOW_S",
            "ClientTextFilter", "install_filter", "keep_sdk_logs_out"]
 
 #: the SDK's logger names (its Rust log targets, ``grep -a`` of the extension module of
@@ -52,6 +53,8 @@ SDK_LOGGERS: Final = (
     "tungstenite.protocol.frame.frame", "tokio_tungstenite.compat",
     "tokio_tungstenite.handshake",
 )
+#: the SDK's own environment variable that overrides :func:`keep_sdk_logs_out`
+SDK_LEVEL_ENV: Final = "FOXGLOVE_LOG_LEVEL"
 #: longest SDK log text passed on (escaped), characters
 MAX_CHARS: Final = 300
 #: rate-limit window, seconds
@@ -177,6 +180,8 @@ def keep_sdk_logs_out() -> None:
         if _sdk_level_set:
             return
         _sdk_level_set = True
+        if os.environ.get(SDK_LEVEL_ENV) == "":
+            del os.environ[SDK_LEVEL_ENV]   # the SDK takes "" as set (and forwards)
         root = logging.getLogger()
         handlers, level = list(root.handlers), root.level
         try:

@@ -40,11 +40,12 @@ def attack(**env: str) -> dict[str, Any]:
     return out
 
 
-def test_sdk_records_stay_out_of_python_logging() -> None:
+@pytest.mark.parametrize("env", [{}, {"FOXGLOVE_LOG_LEVEL": ""}], ids=["unset", "empty"])
+def test_sdk_records_stay_out_of_python_logging(env: dict[str, str]) -> None:
     """By default the SDK forwards nothing: a flood of invalid messages, forged op names,
     a 100 KB op and 10,000 unknown subscriptions leave no record at all; the service's
     own logging is untouched and the view serves the next client."""
-    out = attack()
+    out = attack(**env)
     sdk = [r for r in out["records"] if r["name"].startswith(SDK_PREFIXES)]
     assert sdk == []
     assert any(r["name"] == "rig.foxglove_server" and r["level"] == "INFO"
@@ -145,3 +146,48 @@ def test_flush_logs_what_the_window_held_back(caplog: pytest.LogCaptureFixture) 
         filt.flush(log)
         filt.flush(log)        # nothing more held back: no second line
     assert len(caplog.records) == 1 and "47 more" in caplog.records[0].getMessage()
+
+
+def test_attacked_demo_logs_a_few_escaped_lines_and_runs_without_fault() -> None:
+    """``rig demo --timing lockstep --foxglove PORT`` with the SDK forwarding its ERROR
+    records (FOXGLOVE_LOG_LEVEL=ERROR) attacked by a real client: the demo's stderr (its
+    log) holds a few escaped, capped SDK lines and a summary instead of one per message,
+    no forged line of its own, and the run ends without a fault with every tick run."""
+    from tests.support.foxglove_attack import FORGED
+    from tests.test_foxglove import SUBPROTOCOLS, connect_when_up, free_port
+    from tests.test_foxglove import demo as start_demo
+
+    port = free_port()
+    os.environ["FOXGLOVE_LOG_LEVEL"] = "ERROR"      # inherited by the demo only
+    try:
+        proc = start_demo("--duration", "4", "--timing", "lockstep", "--no-record",
+                          "--foxglove", f"127.0.0.1:{port}")
+    finally:
+        del os.environ["FOXGLOVE_LOG_LEVEL"]
+    try:
+        with connect_when_up(f"ws://127.0.0.1:{port}", proc) as ws:
+            assert ws.subprotocol in SUBPROTOCOLS
+            junk = (["{"] * FLOOD
+                    + [json.dumps({"op": f"sub\n{FAKE_LINE}\n{i}"}) for i in range(FORGED)]
+                    + [json.dumps({"op": "x" * 100_000})]
+                    + [json.dumps({"op": "subscribe", "subscriptions": [
+                        {"id": i, "channelId": 900_000 + i} for i in range(UNKNOWN)]})])
+            for m in junk:
+                ws.send(m)
+        out, err = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err[-3000:]
+    lines = err.splitlines()
+    sdk = [ln for ln in lines if ln.split(" ", 2)[1:2] and
+           ln.split(" ", 2)[1].startswith(SDK_PREFIXES)]
+    assert not any(ln.startswith("ERROR rig.service") for ln in lines), err[-3000:]
+    assert all(len(ln) <= MAX_CHARS + 400 for ln in sdk)
+    assert 0 < len(sdk) < 100, "\n".join(sdk[:20])
+    assert any("not logged" in ln for ln in lines), "\n".join(sdk[:20])
+    summary = json.loads(out)
+    assert summary["faults"] == [], summary["faults"]
+    assert summary["foxglove"]["state"] == "stopped"
+    assert summary["timing"]["ticks"] >= 4 * 1000 * 0.9
