@@ -42,6 +42,9 @@ SESSION_ATTEMPTS = 5
 MAX_ARGUMENT_BYTES = 1024
 #: error texts in command replies are cut to this length (never echo large input)
 MAX_ERROR_CHARS = 200
+#: status queries are answered from a status built on the publisher thread at most
+#: this long ago [s] (a query never calls the status provider itself)
+STATUS_REFRESH_S = 0.2
 #: the error replies of a query over the rate limit ([telemetry] status_queries_per_s,
 #: commands_per_s)
 _RATE_LIMITED_STATUS = json.dumps({"error": "rate limited: too many status queries"})
@@ -97,8 +100,10 @@ def zenoh_config(cfg: TelemetryConfig) -> zenoh.Config:
 class TelemetryPublisher:
     """Publish loop snapshots over Zenoh from a thread of its own.
 
-    ``status_provider()`` answers ``<prefix>/status`` queries (called on a Zenoh thread:
-    return a fresh dict of plain values).  ``command_handler(name, args) -> str`` is only
+    ``status_provider()`` is called on the publisher thread every
+    :data:`STATUS_REFRESH_S` (return a fresh dict of plain values); ``<prefix>/status``
+    queries get its last result, encoded once (within ``[telemetry]``
+    ``status_queries_per_s`` / ``status_burst``).  ``command_handler(name, args) -> str`` is only
     wired when ``cfg.commands_enabled``; it runs on a Zenoh thread, must not block (queue
     the command for the loop) and raises ``ValueError`` to reject a command.
     ``on_state(state, error)`` is called on the publisher thread at every change of
@@ -129,6 +134,8 @@ class TelemetryPublisher:
         self.commands_received = 0
         # Zenoh (1.x Python) tells a queryable nothing about who asked, and a put's
         # source_info is what the sender claims: the limits are over all peers together
+        self._status_reply: tuple[bool, bytes] | None = None   # (ok, JSON) for queries
+        self._status_at = 0.0
         self._status_limit = TokenBucket(cfg.status_queries_per_s, cfg.status_burst)
         self._command_limit = TokenBucket(cfg.commands_per_s, cfg.command_burst)
         self.attempts = 0              # attempts to open the session so far
@@ -275,6 +282,7 @@ class TelemetryPublisher:
             log.info("telemetry: Zenoh session up (%s %s, key prefix %r)",
                      "listening on" if self.cfg.listen else "connecting to",
                      ", ".join(self.cfg.endpoints), self._prefix)
+            self._refresh_status()
             self._connected.set()
             return True
         return False
@@ -284,8 +292,10 @@ class TelemetryPublisher:
             self._finished.set()
             return
         while not self._stop.is_set():
+            if time.monotonic() - self._status_at >= STATUS_REFRESH_S:
+                self._refresh_status()
             try:
-                snap = self._q.get(timeout=0.1)
+                snap = self._q.get(timeout=STATUS_REFRESH_S / 2)
             except queue.Empty:
                 continue
             try:
@@ -324,17 +334,27 @@ class TelemetryPublisher:
         status["telemetry"] = self.status()
         return status
 
+    def _refresh_status(self) -> tuple[bool, bytes]:
+        """Build the status reply now (the publisher thread, every STATUS_REFRESH_S):
+        (ok, JSON bytes), kept for the queries until the next refresh."""
+        try:
+            reply = (True, encode_json(self._status()))
+        except Exception as exc:
+            reply = (False, json.dumps(
+                {"error": _cap(f"status: {type(exc).__name__}: {exc}")}).encode())
+        self._status_reply, self._status_at = reply, time.monotonic()
+        return reply
+
     def _on_status(self, query: zenoh.Query) -> None:
         # the reply goes out on the concrete key, whatever the query's key expression
         if not self._status_limit.take():
             query.reply_err(_RATE_LIMITED_STATUS)
             return
-        try:
-            query.reply(self._key("status"), encode_json(self._status()),
-                        encoding=zenoh.Encoding.APPLICATION_JSON)
-        except Exception as exc:
-            query.reply_err(json.dumps(
-                {"error": _cap(f"status: {type(exc).__name__}: {exc}")}))
+        ok, body = self._status_reply or self._refresh_status()   # None: before the first
+        if ok:
+            query.reply(self._key("status"), body, encoding=zenoh.Encoding.APPLICATION_JSON)
+        else:
+            query.reply_err(body)
 
     def _command_name(self, key: str) -> str | None:
         """The command of a ``<prefix>/cmd/<name>`` key; None for a key expression with
