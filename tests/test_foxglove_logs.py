@@ -154,8 +154,8 @@ def test_attacked_demo_logs_a_few_escaped_lines_and_runs_without_fault() -> None
     log) holds a few escaped, capped SDK lines and a summary instead of one per message,
     no forged line of its own, and the run ends without a fault with every tick run."""
     from tests.support.foxglove_attack import FORGED
-    from tests.test_foxglove import SUBPROTOCOLS, connect_when_up, free_port
-    from tests.test_foxglove import demo as start_demo
+    from tests.support.foxglove_demo import SUBPROTOCOLS, connect_when_up, free_port
+    from tests.support.foxglove_demo import demo as start_demo
 
     port = free_port()
     os.environ["FOXGLOVE_LOG_LEVEL"] = "ERROR"      # inherited by the demo only

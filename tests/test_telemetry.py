@@ -776,7 +776,13 @@ def test_every_operator_command_end_to_end(port: int) -> None:
         assert wait_for(lambda: rig.late_ticks == 0 and loop.timing.overrun_streak == 0, 30)
         assert cmd("reset") == (True, {"command": "reset", "accepted": True,
                                        "result": "reset, cleared OVERRUN_STREAK"})
-        assert wait_for(lambda: status().get("health") == "ok", 60), status()
+        reset_tick = loop.tick_count
+
+        def warm_again() -> bool:     # a status built after the reset (it may be 0.2 s old)
+            st = status()
+            return st.get("tick", -1) > reset_tick and st.get("health") == "ok"
+
+        assert wait_for(warm_again, 60), status()
         acks: list[dict[str, Any]] = []
         sub = s2.declare_subscriber("rig/ack/arm",
                                     lambda smp: acks.append(json.loads(smp.payload.to_bytes())))
