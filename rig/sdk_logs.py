@@ -78,7 +78,7 @@ def _client_and_kind(text: str) -> tuple[str, str]:
     client = m.group() if m else "-"
     rest = text if m is None else text[:m.start()] + "CLIENT" + text[m.end():]
     cut = rest.find(":", rest.find("CLIENT") + 6 if m else 0)
-    kind = re.sub(r"\d+", "N", rest if cut < 0 else rest[:cut])[:60]
+    kind = re.sub(r"\d+", "N", (rest if cut < 0 else rest[:cut])[:120])[:60]
     return client, kind
 
 
