@@ -603,6 +603,14 @@ class TelemetryConfig:
     rate_hz: float = _f(50.0, lo=0.1, hi=1000.0)
     queue_size: int = _f(256, lo=1, hi=1_000_000)
     commands_enabled: bool = _f(False)
+    status_queries_per_s: float = _f(20.0, lo=0.1, hi=10_000.0,
+                                     doc="status queries answered per second, all peers "
+                                         "together; the rest get an error reply")
+    status_burst: int = _f(20, lo=1, hi=100_000, doc="status queries answered at once")
+    commands_per_s: float = _f(10.0, lo=0.1, hi=1000.0,
+                               doc="operator commands taken per second, all peers "
+                                   "together; the rest are refused unread")
+    command_burst: int = _f(20, lo=1, hi=10_000, doc="operator commands taken at once")
     zenoh_config_file: str = _f("", doc="json5 file merged first (TLS, access_control); "
                                 "mode/endpoints/scouting above override it")
 

@@ -13,23 +13,36 @@ bayes          the bank blended by Bayesian MMAE probabilities              BAYE
 moving         the moving bank (models switched along the tire curve)       MOVING
 =============  ==========================================================  ===========
 
-The rig service runs the bank modes (:data:`BANK_MODES`; the wire carries them as
-:class:`rig.wire.protocol.Blending`); the offline simulator runs all of
-:data:`CONTROLLER_MODES`.
+The rig service runs the bank modes (:data:`BANK_MODES`, coded as :class:`Blending`);
+the offline simulator runs all of :data:`CONTROLLER_MODES`.  This module owns the mode
+names and the runtime's codes (recordings and operator commands use them); the CAN wire
+has its own numbers (the DBC ``VAL_`` table, ``rig.wire.protocol.Blending``) and
+``rig.wire_modes`` maps one onto the other.
 """
 
 from __future__ import annotations
 
+from enum import IntEnum
 from types import MappingProxyType
 from typing import Final
 
-from rig.wire.protocol import Blending
+__all__ = ["BANK_MODES", "CONTROLLER_MODES", "REFERENCE_MODES", "Blending", "blending_of",
+           "mode_of"]
 
-__all__ = ["BANK_MODES", "CONTROLLER_MODES", "REFERENCE_MODES", "blending_of", "mode_of"]
+
+class Blending(IntEnum):
+    """The bank's blending modes as the runtime step codes them (the ``blending`` of
+    recordings, status and the operator command's integer form).  Not the wire's
+    numbers: ``rig.wire_modes`` maps these to the DBC's."""
+
+    FUZZY = 0
+    BAYES = 1
+    MOVING = 2
+    LQG = 3
 
 #: modes that need no estimator bank, in the order tables show them
 REFERENCE_MODES: Final = ("passive", "zero-force", "skyhook")
-#: bank modes -> the blending the runtime step uses (and the DBC value on the wire)
+#: bank modes -> the blending the runtime step uses
 BANK_MODES: Final = MappingProxyType({
     "lqg": Blending.LQG,
     "fuzzy": Blending.FUZZY,
@@ -41,7 +54,7 @@ CONTROLLER_MODES: Final = (*REFERENCE_MODES, *BANK_MODES)
 
 
 def blending_of(mode: str | int) -> Blending:
-    """Bank mode name (``"fuzzy"``) or wire value (0..3) -> :class:`Blending`.
+    """Bank mode name (``"fuzzy"``) or mode code (0..3) -> :class:`Blending`.
     ValueError names the allowed values."""
     if isinstance(mode, int) and not isinstance(mode, bool):
         if mode in Blending._value2member_map_:
@@ -53,6 +66,6 @@ def blending_of(mode: str | int) -> Blending:
 
 
 def mode_of(blending: Blending | int) -> str:
-    """:class:`Blending` (or its wire value) -> the mode name users type."""
+    """:class:`Blending` (or its code) -> the mode name users type."""
     b = Blending(int(blending))
     return next(name for name, value in BANK_MODES.items() if value is b)

@@ -18,6 +18,8 @@ A server that cannot start (port in use, address not on this computer) leaves th
 view ``failed`` with a one-line :attr:`FoxgloveView.error`; the service goes on without
 it.  Clients can only subscribe: the server advertises no client-publish, parameter or
 service capability, so whatever a client sends is refused by the SDK (docs/foxglove.md).
+What the SDK would log about it stays out of Python logging, and is escaped, capped and
+rate-limited if forwarded all the same (``rig.sdk_logs``).
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from rig.recording.schema import (
     schema_bytes,
     split_record,
 )
+from rig.sdk_logs import install_filter, keep_sdk_logs_out
 
 __all__ = ["LIVE_TOPICS", "SUBPROTOCOL", "FoxgloveView"]
 
@@ -94,6 +97,8 @@ class FoxgloveView:
         self._thread: threading.Thread | None = None
         self._server: Any = None
         self._channels: dict[str, foxglove.Channel] = {}
+        keep_sdk_logs_out()                  # before the first server: rig.sdk_logs
+        self._log_filter = install_filter()
         self._context = context = foxglove.Context()   # channels close with it
         try:
             self._server = foxglove.start_server(
@@ -226,6 +231,7 @@ class FoxgloveView:
                 server.stop()
             except Exception as exc:
                 log.warning("foxglove view: stopping the server: %s", _one_line(exc))
+        self._log_filter.flush(log)
         if self.state == "serving":
             self.state = "stopped"
 

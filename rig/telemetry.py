@@ -26,6 +26,7 @@ import zenoh
 
 from controller.config import TelemetryConfig
 from rig.operator_commands import OPERATOR_COMMANDS, brief, validate_command
+from rig.rate_limit import TokenBucket
 from rig.recording.schema import encode_json
 
 __all__ = ["MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "SESSION_ATTEMPTS", "TelemetryPublisher",
@@ -41,6 +42,14 @@ SESSION_ATTEMPTS = 5
 MAX_ARGUMENT_BYTES = 1024
 #: error texts in command replies are cut to this length (never echo large input)
 MAX_ERROR_CHARS = 200
+#: status queries are answered from a status built on the publisher thread at most
+#: this long ago [s] (a query never calls the status provider itself)
+STATUS_REFRESH_S = 0.2
+#: the error replies of a query over the rate limit ([telemetry] status_queries_per_s,
+#: commands_per_s)
+_RATE_LIMITED_STATUS = json.dumps({"error": "rate limited: too many status queries"})
+_RATE_LIMITED_COMMAND = json.dumps({"accepted": False,
+                                    "error": "rate limited: too many commands"})
 _RUST_SOURCE = re.compile(r" at /\S+\.rs:\d+\.?")
 
 
@@ -91,8 +100,10 @@ def zenoh_config(cfg: TelemetryConfig) -> zenoh.Config:
 class TelemetryPublisher:
     """Publish loop snapshots over Zenoh from a thread of its own.
 
-    ``status_provider()`` answers ``<prefix>/status`` queries (called on a Zenoh thread:
-    return a fresh dict of plain values).  ``command_handler(name, args) -> str`` is only
+    ``status_provider()`` is called on the publisher thread every
+    :data:`STATUS_REFRESH_S` (return a fresh dict of plain values); ``<prefix>/status``
+    queries get its last result, encoded once (within ``[telemetry]``
+    ``status_queries_per_s`` / ``status_burst``).  ``command_handler(name, args) -> str`` is only
     wired when ``cfg.commands_enabled``; it runs on a Zenoh thread, must not block (queue
     the command for the loop) and raises ``ValueError`` to reject a command.
     ``on_state(state, error)`` is called on the publisher thread at every change of
@@ -121,6 +132,12 @@ class TelemetryPublisher:
         self.dropped = 0
         self.published = 0
         self.commands_received = 0
+        # Zenoh (1.x Python) tells a queryable nothing about who asked, and a put's
+        # source_info is what the sender claims: the limits are over all peers together
+        self._status_reply: tuple[bool, bytes] | None = None   # (ok, JSON) for queries
+        self._status_at = 0.0
+        self._status_limit = TokenBucket(cfg.status_queries_per_s, cfg.status_burst)
+        self._command_limit = TokenBucket(cfg.commands_per_s, cfg.command_burst)
         self.attempts = 0              # attempts to open the session so far
         self.state = "connecting"
         self.error: str | None = None  # why the session is not up (last failure)
@@ -179,7 +196,9 @@ class TelemetryPublisher:
                 "endpoints": list(self.cfg.endpoints), "listen": self.cfg.listen,
                 "published": self.published, "dropped": self.dropped,
                 "commands_enabled": self.cfg.commands_enabled,
-                "commands_received": self.commands_received}
+                "commands_received": self.commands_received,
+                "status_refused": self._status_limit.refused,
+                "commands_refused": self._command_limit.refused}
 
     def close(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
@@ -263,6 +282,7 @@ class TelemetryPublisher:
             log.info("telemetry: Zenoh session up (%s %s, key prefix %r)",
                      "listening on" if self.cfg.listen else "connecting to",
                      ", ".join(self.cfg.endpoints), self._prefix)
+            self._refresh_status()
             self._connected.set()
             return True
         return False
@@ -272,8 +292,10 @@ class TelemetryPublisher:
             self._finished.set()
             return
         while not self._stop.is_set():
+            if time.monotonic() - self._status_at >= STATUS_REFRESH_S:
+                self._refresh_status()
             try:
-                snap = self._q.get(timeout=0.1)
+                snap = self._q.get(timeout=STATUS_REFRESH_S / 2)
             except queue.Empty:
                 continue
             try:
@@ -312,14 +334,27 @@ class TelemetryPublisher:
         status["telemetry"] = self.status()
         return status
 
+    def _refresh_status(self) -> tuple[bool, bytes]:
+        """Build the status reply now (the publisher thread, every STATUS_REFRESH_S):
+        (ok, JSON bytes), kept for the queries until the next refresh."""
+        try:
+            reply = (True, encode_json(self._status()))
+        except Exception as exc:
+            reply = (False, json.dumps(
+                {"error": _cap(f"status: {type(exc).__name__}: {exc}")}).encode())
+        self._status_reply, self._status_at = reply, time.monotonic()
+        return reply
+
     def _on_status(self, query: zenoh.Query) -> None:
         # the reply goes out on the concrete key, whatever the query's key expression
-        try:
-            query.reply(self._key("status"), encode_json(self._status()),
-                        encoding=zenoh.Encoding.APPLICATION_JSON)
-        except Exception as exc:
-            query.reply_err(json.dumps(
-                {"error": _cap(f"status: {type(exc).__name__}: {exc}")}))
+        if not self._status_limit.take():
+            query.reply_err(_RATE_LIMITED_STATUS)
+            return
+        ok, body = self._status_reply or self._refresh_status()   # None: before the first
+        if ok:
+            query.reply(self._key("status"), body, encoding=zenoh.Encoding.APPLICATION_JSON)
+        else:
+            query.reply_err(body)
 
     def _command_name(self, key: str) -> str | None:
         """The command of a ``<prefix>/cmd/<name>`` key; None for a key expression with
@@ -354,6 +389,9 @@ class TelemetryPublisher:
         name = self._command_name(str(query.key_expr))
         if name is None:
             return
+        if not self._command_limit.take():
+            query.reply_err(_RATE_LIMITED_COMMAND, encoding=zenoh.Encoding.APPLICATION_JSON)
+            return
         payload = query.payload.to_bytes() if query.payload is not None else b""
         ok, reply = self._handle(name, payload)
         if ok:
@@ -364,8 +402,8 @@ class TelemetryPublisher:
 
     def _on_command_put(self, sample: zenoh.Sample) -> None:
         name = self._command_name(str(sample.key_expr))
-        if name is None:
-            return
+        if name is None or not self._command_limit.take():
+            return        # over the limit: dropped unread, no acknowledgement
         _, reply = self._handle(name, sample.payload.to_bytes())
         leaf = name if name in OPERATOR_COMMANDS else "invalid"
         if self._session is not None:

@@ -7,10 +7,9 @@ import argparse
 
 import pytest
 
-from controller.modes import BANK_MODES, CONTROLLER_MODES, blending_of, mode_of
+from controller.modes import BANK_MODES, CONTROLLER_MODES, Blending, blending_of, mode_of
 from rig.argtypes import bind_config
 from rig.cli import build_parser
-from rig.wire.protocol import Blending
 
 SERVICE_COMMANDS = ("run", "demo")
 OFFLINE_COMMANDS = ("sim", "montecarlo")

@@ -24,7 +24,7 @@ from typing import Any
 import jsonschema
 import pytest
 from mcap.reader import make_reader
-from websockets.exceptions import ConnectionClosed, InvalidHandshake
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
 from controller.config import ConfigError, default_config, parse_config
@@ -43,41 +43,15 @@ from rig.recording.schema import (
     LogLevel,
     log_message,
 )
+from tests.support.foxglove_demo import (
+    SUBPROTOCOLS,
+    connect_when_up,
+    demo,
+    free_port,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
-SUBPROTOCOL = "foxglove.websocket.v1"
-#: foxglove-sdk 0.30 names the same protocol (same messages and opcodes) foxglove.sdk.v1
-#: and refuses a handshake that offers only the old name; a client offers both
-SUBPROTOCOLS = [SUBPROTOCOL, "foxglove.sdk.v1"]
 MUST_ADVERTISE = {TOPIC_SIGNALS, TOPIC_INTERNALS, TOPIC_TIMING, TOPIC_LOG}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def demo(*args: str) -> subprocess.Popen[str]:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen(
-        [sys.executable, "-m", "rig.cli", "demo", "-q", "--json", "--no-telemetry",
-         "--no-realtime", *args],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def connect_when_up(url: str, proc: subprocess.Popen[str], timeout_s: float = 90.0
-                    ) -> ClientConnection:
-    """The demo designs its bank before the server starts: retry until it answers."""
-    end = time.monotonic() + timeout_s
-    while True:
-        try:
-            return connect(url, subprotocols=SUBPROTOCOLS,  # type: ignore[arg-type]
-                           open_timeout=2.0)
-        except (OSError, InvalidHandshake, TimeoutError):
-            if proc.poll() is not None or time.monotonic() > end:
-                raise
-            time.sleep(0.2)
 
 
 def message_data(frame: bytes) -> tuple[int, int, bytes]:

@@ -758,7 +758,8 @@ def test_every_operator_command_end_to_end(port: int) -> None:
         assert ok and svc.runtime.noise_index == svc.design.noise_index(0, 0), body
         assert cmd("blending", {"blending": "bayes"}) == (
             True, {"command": "blending", "accepted": True, "result": "blending 1"})
-        assert svc.runtime.blending == 1 and status()["blending"] == 1
+        assert svc.runtime.blending == 1      # the status follows within STATUS_REFRESH_S
+        assert wait_for(lambda: status().get("blending") == 1, 10), status()
         ok, body = cmd("blending", {"blending": "kalman"})
         assert not ok and "allowed lqg, fuzzy, bayes, moving" in body["error"]
         assert cmd("weight_set", {"weight_set": 2})[0] and loop.weight_set == 2
@@ -769,13 +770,19 @@ def test_every_operator_command_end_to_end(port: int) -> None:
         assert ok and body["result"] == "nothing to reset in INACTIVE"
         rig.late_ticks = 2 * rig.cfg.safety.overrun_streak     # an overrun streak
         assert wait_for(lambda: loop.lifecycle.state.name == "FAULT", 30)
-        assert status()["fault"] == "OVERRUN_STREAK"
+        assert wait_for(lambda: status().get("fault") == "OVERRUN_STREAK", 10), status()
         ok, body = cmd("arm")
         assert not ok and body["error"] == "cannot arm from FAULT"
         assert wait_for(lambda: rig.late_ticks == 0 and loop.timing.overrun_streak == 0, 30)
         assert cmd("reset") == (True, {"command": "reset", "accepted": True,
                                        "result": "reset, cleared OVERRUN_STREAK"})
-        assert wait_for(lambda: status().get("health") == "ok", 60), status()
+        reset_tick = loop.tick_count
+
+        def warm_again() -> bool:     # a status built after the reset (it may be 0.2 s old)
+            st = status()
+            return st.get("tick", -1) > reset_tick and st.get("health") == "ok"
+
+        assert wait_for(warm_again, 60), status()
         acks: list[dict[str, Any]] = []
         sub = s2.declare_subscriber("rig/ack/arm",
                                     lambda smp: acks.append(json.loads(smp.payload.to_bytes())))
@@ -929,3 +936,46 @@ def test_acl_viewers_can_only_read(tmp_path: Path, port: int) -> None:
     assert not any(b"SPOOFED" in data for _, data in inside)
     assert [b["lifecycle"] for _, b in statuses] == ["INACTIVE"]
     assert seen == ["disarm"]
+
+
+def test_status_and_commands_are_rate_limited(port: int) -> None:
+    """[telemetry] status_burst / commands_per_s ...: over the limit a status query gets a
+    short error reply and the provider is not called, a command query an error reply and
+    a command put nothing, and the handler is not called; the counts are in the status.
+    The buckets' clock is frozen (counts, not timing)."""
+    from rig.rate_limit import TokenBucket
+
+    r = Rig(port, commands_enabled=True, status_queries_per_s=0.5, status_burst=3,
+            commands_per_s=0.5, command_burst=2)
+    assert (r.tp._status_limit.burst, r.tp._command_limit.burst) == (3, 2)
+    assert r.tp._status_limit.rate_per_s == r.tp._command_limit.rate_per_s == 0.5
+    r.tp._status_limit = TokenBucket(0.5, 3, clock=lambda: 0.0)
+    r.tp._command_limit = TokenBucket(0.5, 2, clock=lambda: 0.0)
+    calls: list[str] = []
+    provider = r.tp._status_provider
+    r.tp._status_provider = lambda: calls.append(threading.current_thread().name) or provider()
+    assert r.tp.wait_connected(10), r.tp.error
+    s2 = client_session(port)
+    try:
+        replies: list[tuple[bool, dict[str, Any]]] = []
+        assert wait_for(lambda: bool(replies.extend(query(s2, "rig/status")) or replies))
+        for _ in range(20):
+            replies.extend(query(s2, "rig/status"))
+        assert [ok for ok, _ in replies].count(True) == 3
+        # built on the publisher thread, never on a Zenoh thread per query
+        assert calls and set(calls) == {"rig-telemetry"}
+        refused = [body for ok, body in replies if not ok]
+        assert refused and all(b == {"error": "rate limited: too many status queries"}
+                               for b in refused)
+        got = [query(s2, "rig/cmd/arm") for _ in range(5)]
+        assert [g[0][0] for g in got] == [True, True, False, False, False]
+        assert got[-1][0][1]["error"] == "rate limited: too many commands"
+        for _ in range(5):
+            s2.put("rig/cmd/arm", "{}")
+        assert wait_for(lambda: r.tp._command_limit.refused >= 8)
+        assert len(r.commands) == 2 and r.tp.commands_received == 2
+        st = r.tp.status()
+        assert st["status_refused"] == len(refused) and st["commands_refused"] == 8
+    finally:
+        s2.close()
+        r.tp.close()

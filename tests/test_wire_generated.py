@@ -262,3 +262,26 @@ def test_bit_flags_are_the_dbc_attribute(tmp_path: Path) -> None:
         generated_flags("A,B,C,D,E")
     with pytest.raises(ValueError, match=r"SensorStatus: BitFlags bit names \['B-C'\] are not"):
         generated_flags("A,B-C")
+
+
+def test_blending_wire_map_is_complete_and_one_to_one() -> None:
+    """The controller owns the mode names (``controller.modes.Blending``), the DBC the
+    wire numbers (``rig.wire.protocol.Blending``); ``rig.wire_modes`` maps every one of
+    each onto exactly one of the other, and the ControllerStatus codec carries them."""
+    from controller.modes import BANK_MODES
+    from controller.modes import Blending as ModeBlending
+    from rig.wire.protocol import Blending as WireBlending
+    from rig.wire_modes import TO_WIRE, from_wire, to_wire
+
+    assert set(TO_WIRE) == set(ModeBlending)
+    assert set(TO_WIRE.values()) == set(WireBlending)
+    assert len(set(TO_WIRE.values())) == len(TO_WIRE)
+    assert set(BANK_MODES.values()) == set(ModeBlending)
+    for mode in ModeBlending:
+        assert from_wire(to_wire(mode)) is mode
+        assert TO_WIRE[mode].name == mode.name   # same meaning, spelled alike
+    dbc: Any = cantools.database.load_file(str(DBC_PATH))
+    choices = dbc.get_message_by_name("ControllerStatus").get_signal_by_name("Blending").choices
+    assert {int(v) for v in choices} == {int(w) for w in WireBlending}
+    with pytest.raises(ValueError):
+        from_wire(max(WireBlending) + 1)

@@ -35,8 +35,8 @@ import numba as nb
 import numpy as np
 
 from controller.config import MAX_COMPUTE_DELAY_TICKS
+from controller.modes import Blending
 from controller.runtime.layout import BufferLayout
-from rig.wire.protocol import Blending
 
 __all__ = ["Blending", "StepFlag"]
 

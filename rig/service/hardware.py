@@ -32,6 +32,7 @@ from rig.wire.protocol import (
     RigStatus,
     SensorData,
 )
+from rig.wire_modes import to_wire
 
 __all__ = ["RigIO", "bus_exception_note"]
 
@@ -175,10 +176,11 @@ class RigIO:
     def write_status(self, now_ns: int, tick: int, lifecycle: int, active_fault: int,
                      overruns: int, blending: int, weight_set: int,
                      jitter_p99_s: float) -> bool:
-        """ControllerStatus heartbeat."""
+        """ControllerStatus heartbeat (``blending``: the controller's mode code, sent as
+        the DBC's value, ``rig.wire_modes``)."""
         msg = self._status_msg
         CONTROLLER_STATUS.encode(msg.data, self._tx_status, lifecycle, active_fault,
-                                 overruns & 0xFFFF, blending & 0xF, weight_set & 0xF,
+                                 overruns & 0xFFFF, to_wire(blending), weight_set & 0xF,
                                  min(jitter_p99_s, 0.065535))
         self._tx_status += 1
         return self._send(msg, now_ns, tick)

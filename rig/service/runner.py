@@ -281,7 +281,8 @@ class Service:
                 f"({rec.dropped} items lost)")
 
     def status(self) -> dict[str, Any]:
-        """Status for the telemetry's ``status`` queryable (runs on a Zenoh thread)."""
+        """Status for the telemetry's ``status`` queryable (runs on the telemetry
+        publisher thread every ``rig.telemetry.STATUS_REFRESH_S``, and for ``--json``)."""
         s = self.loop.status()
         s["realtime"] = self.realtime_report.as_dict()
         s["recording"] = str(self.recording_path) if self.recording_path else None
