@@ -246,3 +246,37 @@ def test_replay_of_the_mf4_log_equals_the_asc_equivalent(run: RunData, mf4: Path
     recorded = _expected(run, "force_ref_n")
     n = len(recorded)
     np.testing.assert_array_equal(res_mf4.force_ref_n[:n], recorded)
+
+
+# ---------------------------------------------------------------------------- batches
+
+
+def test_export_in_batches_equals_one_batch(recording: Path, work: Path) -> None:
+    from rig.export.stream import export_run
+
+    outs = {}
+    for n in (10**9, 37):
+        mf4, pq_dir = work / f"b{n}.mf4", work / f"b{n}"
+        pq_dir.mkdir()
+        assert export_run(recording, "mf4", mf4, batch_ticks=n).batches > (n == 37)
+        export_run(recording, "parquet", pq_dir, batch_ticks=n)
+        outs[n] = (mf4, pq_dir)
+    (one, one_pq), (many, many_pq) = outs[10**9], outs[37]
+    assert pq.ParquetFile(many_pq / table_file(TOPIC_SIGNALS)).num_row_groups > 1
+    for name in sorted(p.name for p in one_pq.iterdir()):
+        a, b = pq.read_table(one_pq / name), pq.read_table(many_pq / name)
+        assert a.schema.equals(b.schema, check_metadata=True), name
+        for col in a.column_names:      # NaN too: bit for bit
+            x, y = a[col].to_numpy(), b[col].to_numpy()
+            assert (x.tobytes() == y.tobytes() if x.dtype.kind in "fiub"
+                    else x.tolist() == y.tolist()), (name, col)
+    with MDF(str(one)) as m1, MDF(str(many)) as m2:
+        assert len(m1.groups) == len(m2.groups)
+        for gi, group in enumerate(m1.groups):
+            assert m2.groups[gi].channel_group.acq_name == group.channel_group.acq_name
+            for ci, ch in enumerate(group.channels):
+                s1, s2 = m1.get(ch.name, gi, ci), m2.get(ch.name, gi, ci)
+                assert s1.samples.dtype == s2.samples.dtype, ch.name
+                assert s1.samples.tobytes() == s2.samples.tobytes(), ch.name
+                assert s1.timestamps.tobytes() == s2.timestamps.tobytes(), ch.name
+                assert s1.unit == s2.unit

@@ -56,28 +56,19 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         refuse("export", problem)
         return 2
-    from rig.export import run_tables
-    from rig.recording.run_data import read_run
+    from rig.export.stream import export_run
 
     t_start = time.perf_counter()
-    data = read_run(args.run)
-    if not data.complete:
-        print(f"rig export: INCOMPLETE RECORDING (exporting what was read): "
-              f"{safe(data.stopped_at)}", file=sys.stderr)
-    tables = run_tables(data)
-    if args.format == "mf4":
-        from rig.export.mf4 import write_mf4
-
-        with staged_file(out) as stage:
-            write_mf4(tables, stage, comment=f"rig export of {Path(args.run).name}")
-    else:
-        from rig.export.parquet import write_parquet
-
-        with staged_dir(out) as stage:
-            write_parquet(tables, stage)
+    stage_of = staged_file if args.format == "mf4" else staged_dir
+    with stage_of(out) as stage:
+        summary = export_run(args.run, args.format, stage,
+                             comment=f"rig export of {Path(args.run).name}")
+    if not summary.run.complete:
+        print(f"rig export: INCOMPLETE RECORDING (exported what was read): "
+              f"{safe(summary.run.stopped_at)}", file=sys.stderr)
     elapsed = time.perf_counter() - t_start
-    print(f"wrote {out} ({args.format}): {len(data.records)} tick records in "
-          f"{len(tables.topics)} topics, {len(tables.can)} CAN frames, {elapsed:.2f} s")
-    if tables.skipped:
-        print(f"not numeric, left out: {', '.join(tables.skipped)}")
+    print(f"wrote {out} ({args.format}): {summary.records} tick records in "
+          f"{summary.topics} topics, {summary.frames} CAN frames, {elapsed:.2f} s")
+    if summary.skipped:
+        print(f"not numeric, left out: {', '.join(summary.skipped)}")
     return 0

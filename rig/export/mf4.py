@@ -25,7 +25,7 @@ from asammdf.blocks.v4_constants import BUS_TYPE_CAN, SOURCE_BUS
 from rig.export.tables import CAN_DATA_BYTES, CanLog, RunTables
 from rig.wire.generate import DBC_PATH
 
-__all__ = ["BUS_CHANNEL", "write_mf4"]
+__all__ = ["BUS_CHANNEL", "Mf4Stream", "write_mf4"]
 
 #: ``CAN_DataFrame.BusChannel`` of every frame (the rig has one bus)
 BUS_CHANNEL: Final = 1
@@ -55,30 +55,63 @@ def _bus_signal(can: CanLog, rows: np.ndarray[Any, Any], event: str,
                   attachment=attachment, comment=f"{event} of /can/rx and /can/tx")
 
 
-def write_mf4(tables: RunTables, path: str | Path, *, comment: str = "") -> None:
-    """Write ``tables`` to the new MF4 file ``path`` (the caller stages and renames)."""
-    mdf = MDF(version="4.10")
-    try:
-        mdf.header.start_time = datetime.fromtimestamp(tables.start_wall_ns * 1e-9, UTC)
-        mdf.header.comment = comment or "rig export"
+class Mf4Stream:
+    """An MF4 file built batch by batch (:meth:`add`: the first batch of a group
+    appends it, later ones extend it), written by :meth:`save`."""
+
+    def __init__(self, start_wall_ns: int, *, comment: str = "") -> None:
+        self.mdf = MDF(version="4.10")
+        self.mdf.header.start_time = datetime.fromtimestamp(start_wall_ns * 1e-9, UTC)
+        self.mdf.header.comment = comment or "rig export"
+        self.groups: dict[str, int] = {}     # acquisition name -> group index
+        dbc = DBC_PATH.read_bytes()
+        self._attachment = (dbc, Path(DBC_PATH.name), md5(dbc).digest())
+
+    def add(self, tables: RunTables) -> None:
         for table in tables.topics:
             t_s = tables.seconds(table.t_ns)
+            if self._extend(table.topic, [t_s, table.tick, *table.columns.values()]):
+                continue
             sigs = [Signal(samples=table.tick, timestamps=t_s, name="tick",
                            comment="loop tick number")]
             sigs += [Signal(samples=col, timestamps=t_s, name=name, unit=unit)
                      for (name, col), unit in zip(table.columns.items(),
                                                   table.units.values(), strict=True)]
-            mdf.append(sigs, acq_name=table.topic, comment=table.topic)
+            self._append(table.topic, sigs, table.topic)
         can = tables.can
-        if len(can):
-            dbc = DBC_PATH.read_bytes()
-            attachment = (dbc, Path(DBC_PATH.name), md5(dbc).digest())
-            t_s = tables.seconds(can.t_ns)
-            for event, rows in (("CAN_DataFrame", ~can.is_error_frame),
-                                ("CAN_ErrorFrame", can.is_error_frame)):
-                if rows.any():
-                    mdf.append(_bus_signal(can, rows, event, t_s, attachment),
-                               acq_name=event, comment=f"{event} /can/rx + /can/tx")
-        mdf.save(Path(path), overwrite=True, compression=2)
+        t_s = tables.seconds(can.t_ns)
+        for event, rows in (("CAN_DataFrame", ~can.is_error_frame),
+                            ("CAN_ErrorFrame", can.is_error_frame)):
+            if not rows.any():
+                continue
+            sig = _bus_signal(can, rows, event, t_s, self._attachment)
+            if not self._extend(event, [sig.timestamps, sig.samples]):
+                self._append(event, [sig], f"{event} /can/rx + /can/tx")
+
+    def _append(self, name: str, sigs: list[Signal], comment: str) -> None:
+        self.mdf.append(sigs, acq_name=name, comment=comment)
+        self.groups[name] = len(self.mdf.groups) - 1
+
+    def _extend(self, name: str, arrays: list[np.ndarray[Any, Any]]) -> bool:
+        index = self.groups.get(name)
+        if index is None:
+            return False
+        self.mdf.extend(index, [(a, None) for a in arrays])
+        return True
+
+    def save(self, path: str | Path) -> None:
+        """Write the new MF4 file ``path`` (the caller stages and renames)."""
+        self.mdf.save(Path(path), overwrite=True, compression=2)
+
+    def close(self) -> None:
+        self.mdf.close()
+
+
+def write_mf4(tables: RunTables, path: str | Path, *, comment: str = "") -> None:
+    """Write ``tables`` to the new MF4 file ``path`` (the caller stages and renames)."""
+    out = Mf4Stream(tables.start_wall_ns, comment=comment)
+    try:
+        out.add(tables)
+        out.save(path)
     finally:
-        mdf.close()
+        out.close()

@@ -14,9 +14,9 @@ from typing import Final
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from rig.export.tables import CanLog, RunTables
+from rig.export.tables import CanLog, RunTables, TopicTable
 
-__all__ = ["CAN_FILE", "table_file", "write_parquet"]
+__all__ = ["CAN_FILE", "ParquetStream", "table_file", "write_parquet"]
 
 CAN_FILE: Final = "can.parquet"
 
@@ -47,27 +47,51 @@ def _can_table(can: CanLog, tables: RunTables) -> pa.Table:
     }).replace_schema_metadata(_time_fields(tables))
 
 
+def _topic_table(table: TopicTable, tables: RunTables) -> pa.Table:
+    fields = [pa.field("t_s", pa.float64(), metadata={"unit": "s"}),
+              pa.field("t_ns", pa.int64(), metadata={"unit": "ns"}),
+              pa.field("tick", pa.int64())]
+    arrays = [pa.array(tables.seconds(table.t_ns)), pa.array(table.t_ns),
+              pa.array(table.tick)]
+    for (name, col), unit in zip(table.columns.items(), table.units.values(),
+                                 strict=True):
+        arr = pa.array(col)
+        fields.append(pa.field(name, arr.type, metadata={"unit": unit} if unit else None))
+        arrays.append(arr)
+    schema = pa.schema(fields, metadata={**_time_fields(tables),
+                                         b"topic": table.topic.encode()})
+    return pa.Table.from_arrays(arrays, schema=schema)
+
+
+class ParquetStream:
+    """The Parquet files of a run built batch by batch (:meth:`add`), one row group
+    per batch, into the (new, empty) directory ``out_dir``."""
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out = Path(out_dir)
+        self.writers: dict[str, pq.ParquetWriter] = {}
+
+    def add(self, tables: RunTables) -> None:
+        for table in tables.topics:
+            self._write(table_file(table.topic), _topic_table(table, tables))
+        if len(tables.can) or CAN_FILE not in self.writers:
+            self._write(CAN_FILE, _can_table(tables.can, tables))
+
+    def _write(self, name: str, table: pa.Table) -> None:
+        writer = self.writers.get(name)
+        if writer is None:
+            writer = self.writers[name] = pq.ParquetWriter(self.out / name, table.schema)
+        writer.write_table(table)
+
+    def close(self) -> list[Path]:
+        """Finish the files; returns them."""
+        for writer in self.writers.values():
+            writer.close()
+        return [self.out / name for name in self.writers]
+
+
 def write_parquet(tables: RunTables, out_dir: str | Path) -> list[Path]:
     """Write the tables into the (new, empty) directory ``out_dir``; returns the files."""
-    out = Path(out_dir)
-    written = []
-    for table in tables.topics:
-        fields = [pa.field("t_s", pa.float64(), metadata={"unit": "s"}),
-                  pa.field("t_ns", pa.int64(), metadata={"unit": "ns"}),
-                  pa.field("tick", pa.int64())]
-        arrays = [pa.array(tables.seconds(table.t_ns)), pa.array(table.t_ns),
-                  pa.array(table.tick)]
-        for (name, col), unit in zip(table.columns.items(), table.units.values(),
-                                     strict=True):
-            arr = pa.array(col)
-            fields.append(pa.field(name, arr.type, metadata={"unit": unit} if unit else None))
-            arrays.append(arr)
-        schema = pa.schema(fields, metadata={**_time_fields(tables),
-                                             b"topic": table.topic.encode()})
-        path = out / table_file(table.topic)
-        pq.write_table(pa.Table.from_arrays(arrays, schema=schema), path)
-        written.append(path)
-    path = out / CAN_FILE
-    pq.write_table(_can_table(tables.can, tables), path)
-    written.append(path)
-    return written
+    out = ParquetStream(out_dir)
+    out.add(tables)
+    return out.close()

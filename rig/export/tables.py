@@ -28,7 +28,8 @@ from rig.recording.schema import (
     TOPIC_TIMING,
 )
 
-__all__ = ["CAN_DATA_BYTES", "CanLog", "RunTables", "TopicTable", "run_tables", "unit_of"]
+__all__ = ["CAN_DATA_BYTES", "CanLog", "RunTables", "TableSchema", "TopicTable", "clock_offset_ns",
+           "run_tables", "unit_of"]
 
 #: classic CAN: at most 8 data bytes (the loop runs classic CAN, docs/recording.md)
 CAN_DATA_BYTES: Final = 8
@@ -138,30 +139,117 @@ def _can_log(run: RunData) -> CanLog:
         is_extended_id=np.array([f.is_extended_id for f in frames], dtype=np.bool_))
 
 
+class TableSchema:
+    """The columns of a run, decided over all of its tick records (observed batch by
+    batch, :meth:`observe`): a key's kind (scalar, list of a width, or left out) and
+    each column's dtype are what :func:`_column` / :func:`_list_columns` give for the
+    whole run at once, whatever the batches."""
+
+    def __init__(self) -> None:
+        self.widths: dict[str, int | None] = {}   # key -> None scalar, n list, -1 out
+        self.floats: set[str] = set()             # columns with a None or a float
+        self.seen: set[str] = set()               # keys with a value (not None)
+        self.batches = 0
+        self.t0_ns: int | None = None
+        self.has_can = {False: False, True: False}  # is_error_frame -> any
+
+    def observe(self, run: RunData) -> None:
+        records = run.records
+        keys: dict[str, None] = {}
+        for r in records:
+            keys.update(dict.fromkeys(r.data))
+        for key in self.widths.keys() - keys:       # absent in this batch: None
+            self._float_all(key)
+        for key in keys:
+            if key in _NOT_FIELDS:
+                continue
+            if key not in self.widths:
+                self.widths[key] = None
+                if self.batches:                    # absent in the earlier batches
+                    self._float_all(key)
+            self._observe(key, [r.data.get(key) for r in records])
+        firsts = [r.t_ns for r in records[:1]] + [f.t_ns for f in run.frames[:1]]
+        if firsts and self.t0_ns is None:
+            self.t0_ns = min(firsts)
+        for f in run.frames:
+            self.has_can[f.is_error_frame] = True
+        self.batches += 1
+
+    def _float_all(self, key: str) -> None:
+        self.floats.add(key)
+        self.floats.update(f"{key}[{i}]" for i in range(max(self.widths[key] or 0, 0)))
+
+    def _observe(self, key: str, values: list[Any]) -> None:
+        width = self.widths[key]
+        if width == -1 or all(v is None for v in values):
+            if width != -1:
+                self._float_all(key)
+            return
+        col = _column(values)
+        if col is not None:
+            if key in self.seen and width is not None:     # a list before
+                self.widths[key] = -1
+                return
+            self.seen.add(key)
+            if col.dtype != np.int64:
+                self.floats.add(key)
+            return
+        cols = _list_columns(key, values)
+        n = len(cols) if cols is not None else -1
+        if cols is None or (key in self.seen and width != n):
+            self.widths[key] = -1
+            return
+        self.seen.add(key)
+        self.widths[key] = n
+        if key in self.floats:                     # a None before the width was known
+            self.floats.update(cols)
+        self.floats.update(name for name, c in cols.items() if c.dtype != np.int64)
+
+    @property
+    def skipped(self) -> list[str]:
+        return [k for k, w in self.widths.items() if w == -1]
+
+    def columns(self, key: str) -> list[str]:
+        """The columns of ``key`` (none when it is left out)."""
+        width = self.widths[key]
+        if width == -1:
+            return []
+        return [key] if width is None else [f"{key}[{i}]" for i in range(width)]
+
+    def tables(self, run: RunData, start_wall_offset_ns: int = 0) -> RunTables:
+        """The columns of the batch ``run`` with the run's kinds and dtypes."""
+        records = run.records
+        t_ns = np.array([r.t_ns for r in records], dtype=np.int64)
+        tick = np.array([r.tick for r in records], dtype=np.int64)
+        tables = {t: TopicTable(t, t_ns, tick) for t in (TOPIC_SIGNALS, TOPIC_INTERNALS,
+                                                         TOPIC_TIMING)}
+        for key, width in self.widths.items():
+            if width == -1:
+                continue
+            values = [r.data.get(key) for r in records]
+            cols = tables[_topic_of(key)].columns
+            if width is None:
+                cols[key] = self._array(key, values)
+                continue
+            for i, name in enumerate(self.columns(key)):
+                cols[name] = self._array(name, [None if v is None else v[i]
+                                                for v in values])
+        t0 = self.t0_ns or 0
+        return RunTables(topics=[t for t in tables.values() if t.columns],
+                         can=_can_log(run), t0_ns=t0,
+                         start_wall_ns=t0 + start_wall_offset_ns, skipped=self.skipped)
+
+    def _array(self, name: str, values: list[Any]) -> NDArray[Any]:
+        return np.array(values, dtype=np.float64 if name in self.floats else np.int64)
+
+
+def clock_offset_ns(run: RunData) -> int:
+    """Loop clock -> wall clock (the recording's ``rig`` metadata)."""
+    return int(run.metadata.get("rig", {}).get("clock_offset_ns", "0") or 0)
+
+
 def run_tables(run: RunData) -> RunTables:
     """The columns of ``run`` (see the module docstring)."""
-    records = run.records
-    keys: dict[str, None] = {}
-    for r in records:
-        keys.update(dict.fromkeys(r.data))
-    t_ns = np.array([r.t_ns for r in records], dtype=np.int64)
-    tick = np.array([r.tick for r in records], dtype=np.int64)
-    tables = {t: TopicTable(t, t_ns, tick) for t in (TOPIC_SIGNALS, TOPIC_INTERNALS,
-                                                     TOPIC_TIMING)}
-    skipped: list[str] = []
-    for key in keys:
-        if key in _NOT_FIELDS:
-            continue
-        values = [r.data.get(key) for r in records]
-        col = _column(values)
-        cols = {key: col} if col is not None else _list_columns(key, values)
-        if cols is None:
-            skipped.append(key)
-            continue
-        tables[_topic_of(key)].columns.update(cols)
-    can = _can_log(run)
-    firsts = [int(a[0]) for a in (t_ns, can.t_ns) if a.size]
-    t0 = min(firsts) if firsts else 0
-    offset = int(run.metadata.get("rig", {}).get("clock_offset_ns", "0") or 0)
-    return RunTables(topics=[t for t in tables.values() if t.columns], can=can, t0_ns=t0,
-                     start_wall_ns=t0 + offset, skipped=skipped)
+    schema = TableSchema()
+    schema.observe(run)
+    return schema.tables(run, clock_offset_ns(run))

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
@@ -39,7 +39,8 @@ from rig.recording.schema import (
     event_from_message,
 )
 
-__all__ = ["CanFrameRecord", "EventRecord", "RunData", "TickRecord", "read_run"]
+__all__ = ["STREAM_BATCH_TICKS", "CanFrameRecord", "EventRecord", "RunData", "TickRecord",
+           "read_run", "stream_run"]
 
 #: the messages of a tick record, in the order the writer writes them (signals first,
 #: carrying PARTS_KEY)
@@ -212,10 +213,7 @@ def _decode(topics: dict[str, _Topic], run: RunData) -> None:
     idx = index.tolist()
     tick_records = []
     for i, q in zip(idx[:at[1]], rec_q.tolist(), strict=True):
-        data = records[q][0]
-        for key in data.get("nonfinite", ()):
-            data[key] = _none_for_nonfinite(data.get(key))
-        tick_records.append(TickRecord(i, data.pop("t_ns"), data["tick"], data))
+        tick_records.append(_tick_record(i, records[q][0]))
     run.records = tick_records
     frames = [_frame(i, m, True) for i, m in zip(idx[at[1]:at[2]], rx.msgs, strict=True)]
     frames += [_frame(i, m, False) for i, m in zip(idx[at[2]:at[3]], tx.msgs, strict=True)]
@@ -226,6 +224,13 @@ def _decode(topics: dict[str, _Topic], run: RunData) -> None:
                                   strict=True)]
 
 
+def _tick_record(index: int, data: dict[str, Any]) -> TickRecord:
+    """The merged messages of a tick record as a :class:`TickRecord`."""
+    for key in data.get("nonfinite", ()):
+        data[key] = _none_for_nonfinite(data.get(key))
+    return TickRecord(index, data.pop("t_ns"), data["tick"], data)
+
+
 def _none_for_nonfinite(value: Any) -> Any:
     """:data:`NONFINITE_NUMBER` (in a key listed in ``nonfinite``) -> None, in lists too."""
     if isinstance(value, list):
@@ -233,9 +238,11 @@ def _none_for_nonfinite(value: Any) -> Any:
     return None if value == NONFINITE_NUMBER else value
 
 
-def _records(topics: dict[str, _Topic]) -> dict[int, list[Any]]:
-    """Tick records by item number: [merged data, messages expected, messages read]."""
-    records: dict[int, list[Any]] = {}
+def _records(topics: dict[str, _Topic],
+             records: dict[int, list[Any]] | None = None) -> dict[int, list[Any]]:
+    """Tick records by item number: [merged data, messages expected, messages read]
+    (merged into ``records``, the records still open, when given)."""
+    records = {} if records is None else records
     for topic in _RECORD_TOPICS:
         part = topics[topic]
         for q, msg in zip(part.sequence().tolist(), part.msgs, strict=True):
@@ -257,3 +264,92 @@ def _frame(index: int, msg: dict[str, Any], is_rx: bool) -> CanFrameRecord:
                           bytes.fromhex(msg["data"]), is_rx,
                           bool(msg.get("error_frame", False)),
                           bool(msg.get("extended_id", False)))
+
+
+#: default batch of :func:`stream_run`: 10 s of ticks at 1 kHz
+STREAM_BATCH_TICKS: Final = 10_000
+
+
+def stream_run(path: str | Path, on_batch: Callable[[RunData], None], *,
+               batch_ticks: int = STREAM_BATCH_TICKS, follow_segments: bool = True
+               ) -> RunData:
+    """Read a recording as :func:`read_run` does, handing out the tick records and
+    frames in batches of at least ``batch_ticks`` records (at chunk boundaries), in
+    recording order, decoded by the same code: the concatenation of the batches'
+    ``records`` / ``frames`` is ``read_run``'s, except that ``index`` is the item's
+    MCAP sequence number (unwrapped), not its rank.  Events are not read.  Memory:
+    one batch plus one chunk, whatever the length of the run.
+
+    Returns the run's metadata, segments, ``complete``, ``stopped_at`` (no items).
+    Raises as :func:`read_run`."""
+    path = Path(path)
+    scan = ScanResult()
+    sequences = _Sequences()
+    topics = {t: _Topic(t, scan, sequences) for t in _TOPICS if t != TOPIC_EVENTS}
+    batch = _Batch(topics, on_batch, scan)
+
+    def after_chunk() -> None:
+        batch.take()
+        if batch.ready(batch_ticks):
+            batch.flush(final=False)
+
+    with _collector_paused():
+        scan_recording(path, dict(topics), follow_segments=follow_segments, result=scan,
+                       after_chunk=after_chunk, replayable=False)
+        batch.take()
+        run = RunData(metadata=scan.metadata, attachments=scan.attachments,
+                      segments=scan.segments, complete=scan.complete,
+                      stopped_at=scan.stopped_at, notes=scan.notes)
+        try:
+            dropped = batch.flush(final=True)
+        except (KeyError, TypeError, AttributeError, ValueError) as exc:
+            raise RecordingError(f"{path}: malformed message payload "
+                                 f"({type(exc).__name__}: {exc})") from exc
+    if dropped:
+        run.stopped_at = f"{run.stopped_at}; {dropped}"
+    return run
+
+
+class _Batch:
+    """The open tick records and the frames read since the last batch."""
+
+    def __init__(self, topics: dict[str, _Topic], on_batch: Callable[[RunData], None],
+                 scan: ScanResult) -> None:
+        self.topics, self.on_batch, self.scan = topics, on_batch, scan
+        self.records: dict[int, list[Any]] = {}
+        self.frames: list[CanFrameRecord] = []
+
+    def take(self) -> None:
+        """Move the topics' messages (one chunk) into the batch."""
+        _records(self.topics, self.records)
+        for topic, is_rx in ((TOPIC_CAN_RX, True), (TOPIC_CAN_TX, False)):
+            part = self.topics[topic]
+            self.frames += [_frame(q, m, is_rx) for q, m in
+                            zip(part.sequence().tolist(), part.msgs, strict=True)]
+        for part in self.topics.values():
+            part.msgs, part.seqs = [], []
+
+    def ready(self, batch_ticks: int) -> bool:
+        return len(self.records) > batch_ticks
+
+    def flush(self, *, final: bool) -> str:
+        """Hand out the records (all but the last one, which the next chunk may
+        continue, unless ``final``) and the frames; returns the note on a torn last
+        record dropped (a recording cut by a crash), else ''."""
+        dropped = ""
+        keep = sorted(self.records)
+        if not final and keep:
+            keep = keep[:-1]
+        elif keep and not self.scan.complete:
+            data, expected, seen = self.records[keep[-1]]
+            if seen < expected:
+                del self.records[keep.pop()]
+                dropped = (f"dropped torn record of tick {data['tick']} "
+                           f"({seen}/{expected} parts)")
+        records = [_tick_record(q, self.records.pop(q)[0]) for q in keep]
+        self.frames.sort(key=lambda f: f.index)
+        frames, self.frames = self.frames, []
+        if records or frames:
+            self.on_batch(RunData(frames=frames, records=records,
+                                  metadata=self.scan.metadata, segments=self.scan.segments))
+        return dropped
