@@ -223,7 +223,8 @@ def run_sleeper(seconds: float, realtime: bool, switch_interval_s: float = 0.000
     return {"_lat_us": late / 1000.0, "_step_us": np.zeros(0), "skipped": skipped,
             "faults": [], "rig_late_ticks": 0, "rig_max_lateness_us": math.nan,
             "rig_resyncs": 0, "rig_watchdog_trips": 0, "rig_error": None,
-            "dropped_recording": 0, "dropped_telemetry": 0,
+            "dropped_recording": 0, "dropped_telemetry": 0, "foxglove": {},
+            "client_messages": 0,
             "realtime": report.as_dict() if report else None, "rig_realtime": None}
 
 
