@@ -16,7 +16,7 @@
 # The first line says which of these runs here.
 #
 # Environment: SOCKETCAN_MODE=auto|native|uml (default auto), SOCKETCAN_TIMEOUT_S (guest
-# time limit, default 900), SOCKETCAN_UML_MEM (default 1536M), SOCKETCAN_ALLOW_SKIP=1,
+# time limit, default 900), SOCKETCAN_UML_MEM (default 3G), SOCKETCAN_ALLOW_SKIP=1,
 # SOCKETCAN_XSTATE_FIX=auto|on|off (default auto: preload the fix when the host needs it).
 # Exit status: the suite's (pytest's) exit status; 1 on any infrastructure failure.
 set -uo pipefail
@@ -26,7 +26,7 @@ repo=$(cd "$here/../.." && pwd)
 py="$repo/.venv/bin/python"
 mode=${SOCKETCAN_MODE:-auto}
 timeout_s=${SOCKETCAN_TIMEOUT_S:-900}
-uml_mem=${SOCKETCAN_UML_MEM:-1536M}
+uml_mem=${SOCKETCAN_UML_MEM:-3G}
 # the UML kernel and its module tree (Debian's user-mode-linux; tests substitute a fake)
 uml_kernel=${SOCKETCAN_UML_KERNEL:-linux}
 uml_modules_root=${SOCKETCAN_UML_MODULES:-/usr/lib/uml/modules}
@@ -190,6 +190,15 @@ run_uml() {
         skip_or_fail "paths with blanks cannot go on the UML kernel command line: $repo";;
     esac
 
+    # UML maps the guest processes' pages into its host processes one mapping at a time:
+    # the kernel default of 65530 mappings per process runs out with a 3 GB guest ("UML ran
+    # out of memory on the host side"); raised for the run where we may (root)
+    local maps
+    maps=$(sysctl -n vm.max_map_count 2>/dev/null || echo 0)
+    if ((maps < 262144)) && [[ $(id -u) == 0 ]]; then
+        sysctl -q -w vm.max_map_count=262144 2>/dev/null \
+            && say "vm.max_map_count raised from $maps to 262144 for the guest"
+    fi
     say "booting user-mode-linux $(basename "$modules") (mem=$uml_mem, limit ${timeout_s} s)"
     local preload=()
     ((xstate_fix)) && preload=(env "LD_PRELOAD=$xstate_lib")
