@@ -28,6 +28,7 @@ from hypothesis import strategies as st
 from controller.config import config_to_toml, default_config
 from rig import argtypes, strict_json
 from rig.cli import SUBCOMMANDS, build_parser, main
+from tests.support.mcap_edit import rewrite
 
 pytestmark = pytest.mark.timeout(300)
 ROOT = Path(__file__).resolve().parents[1]
@@ -88,36 +89,6 @@ def recording(files: dict[str, Path], design_file: Path) -> Path:
 
     return record_emulated_run(files["dir"] / "run.mcap", 0.3, cfg=CFG,
                                design_bytes=design_file.read_bytes())
-
-
-def _rewrite(src: Path, dst: Path, topic: str, change: Any) -> Path:
-    """Copy the recording ``src`` to ``dst`` with the first payload on ``topic`` changed
-    (a malformed message that still has valid MCAP framing and CRCs)."""
-    from mcap.reader import make_reader
-    from mcap.writer import Writer
-
-    with src.open("rb") as f, dst.open("wb") as g:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        assert summary is not None
-        w = Writer(g)
-        w.start(profile="", library="test")
-        for sc in summary.schemas.values():
-            w.register_schema(sc.name, sc.encoding, sc.data)
-        chans = {c.id: w.register_channel(c.topic, c.message_encoding, c.schema_id)
-                 for c in summary.channels.values()}
-        for m in reader.iter_metadata():
-            w.add_metadata(m.name, m.metadata)
-        for a in reader.iter_attachments():
-            w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
-        done = False
-        for _, ch, msg in reader.iter_messages(log_time_order=False):
-            data = msg.data
-            if ch.topic == topic and not done:
-                data, done = change(data), True
-            w.add_message(chans[ch.id], msg.log_time, data, msg.publish_time, msg.sequence)
-        w.finish()
-    return dst
 
 
 def _without(*keys: str) -> Any:
@@ -352,7 +323,7 @@ def test_report_on_a_malformed_payload(topics: tuple[str, ...], change: Any, fra
                                        capsys: pytest.CaptureFixture[str]) -> None:
     path = recording
     for i, topic in enumerate(topics):
-        path = _rewrite(path, tmp_path / f"bad{i}.mcap", topic, change)
+        path = rewrite(path, tmp_path / f"bad{i}.mcap", topic, change)
     _one_line_exit_2(["report", str(path), "--out", str(tmp_path / "report")], capsys,
                      "rig report:", fragment)
     assert not (tmp_path / "report" / "index.html").exists()
@@ -361,7 +332,7 @@ def test_report_on_a_malformed_payload(topics: tuple[str, ...], change: Any, fra
 def test_report_tolerates_ill_typed_values(recording: Path, tmp_path: Path) -> None:
     from rig.report import load_series
 
-    bad = _rewrite(recording, tmp_path / "bad.mcap", "/controller/internals",
+    bad = rewrite(recording, tmp_path / "bad.mcap", "/controller/internals",
                    lambda d: json.dumps({**json.loads(d), "q": 5,
                                          "firing_weight": {"a": 1}}).encode())
     s = load_series(bad)
