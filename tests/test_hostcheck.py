@@ -19,7 +19,7 @@ import pytest
 
 from controller.config import ConfigError, default_config, parse_config
 from rig.cli import main as rig_main
-from rig.rt import cyclictest, hostcheck
+from rig.rt import cyclictest
 from rig.rt.hostcheck import Budget, HostCheck, Latency, measure_wakeup, summarise, verdict
 from rig.service.runner import Service, ServiceOptions
 
@@ -207,8 +207,3 @@ def test_failing_host_check_reports_and_refuses_to_arm_when_required(
         assert "\n" not in said["arm"]
     else:
         assert "host check" not in said["arm"]
-
-
-def test_host_holds_budget_is_a_bool(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(hostcheck, "check_host", _failing_check)
-    assert hostcheck.host_holds_budget(CFG, 0.1) is False

@@ -34,7 +34,7 @@ from controller.config import RigConfig
 from rig.rt.pacing import LOOP_SPIN_NS, Pacer
 from rig.rt.realtime import RealtimeReport, RealtimeRequest, apply_realtime, restore_gc
 
-__all__ = ["Budget", "HostCheck", "Latency", "Verdict", "check_host", "host_holds_budget",
+__all__ = ["Budget", "HostCheck", "Latency", "Verdict", "check_host",
            "measure_wakeup", "summarise", "verdict"]
 
 DOCS = "docs/deploy.md"
@@ -224,10 +224,3 @@ def check_host(cfg: RigConfig, seconds: float, realtime: RealtimeRequest | None 
     rt = report.as_dict()
     return HostCheck(lat, budget, verdict(lat, budget, realtime=rt, kernel=kernel), rt,
                      seconds, kernel)
-
-
-def host_holds_budget(cfg: RigConfig, seconds: float = 1.0,
-                      realtime: RealtimeRequest | None = None) -> bool:
-    """True when a ``seconds`` check (see :func:`check_host`) passes: for callers that
-    only choose (e.g. a ``rig demo --timing auto``)."""
-    return check_host(cfg, seconds, realtime).ok
