@@ -167,11 +167,14 @@ uml_way() {  # the first line of a UML run
 
 uml_pid=""
 run_dir=""
+restore_max_map_count=""
 cleanup_uml() {
     if [[ -n $uml_pid ]] && kill -0 "$uml_pid" 2>/dev/null; then
         # UML was started with setsid: its helper processes share its process group.
         kill -KILL -- "-$uml_pid" 2>/dev/null || kill -KILL "$uml_pid" 2>/dev/null
     fi
+    [[ -n $restore_max_map_count ]] \
+        && sysctl -q -w vm.max_map_count="$restore_max_map_count" 2>/dev/null
     [[ -n $run_dir && ${SOCKETCAN_KEEP_RUN_DIR:-0} != 1 ]] && rm -rf "$run_dir"
 }
 
@@ -197,7 +200,8 @@ run_uml() {
     maps=$(sysctl -n vm.max_map_count 2>/dev/null || echo 0)
     if ((maps < 262144)) && [[ $(id -u) == 0 ]]; then
         sysctl -q -w vm.max_map_count=262144 2>/dev/null \
-            && say "vm.max_map_count raised from $maps to 262144 for the guest"
+            && restore_max_map_count=$maps \
+            && say "vm.max_map_count raised from $maps to 262144 for the guest (restored after)"
     fi
     say "booting user-mode-linux $(basename "$modules") (mem=$uml_mem, limit ${timeout_s} s)"
     local preload=()
