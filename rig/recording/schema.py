@@ -188,6 +188,10 @@ INTERNALS_SCHEMA: Final = _obj(
         "x_post": {**_NUM_ARRAY, "description": "(J, 4) estimates, flat row-major: "
                    "model j at [4j, 4j + 4)"},
         "xf": _NUM_ARRAY,
+        "stop_contact_s": {**_NUM, "description": "bump-stop contact time in the "
+                           "stop-contact monitor's window [s]"},
+        "stop_degraded": {"type": "boolean", "description": "the stop-contact monitor has "
+                          "the bank on its travel-conservative law"},
         "nonfinite": _NONFINITE_KEYS,
     },
     [],
