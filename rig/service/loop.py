@@ -585,7 +585,7 @@ class ControlLoop:
         or re-armed (controller/stop_contact.py; not faults): count, log (degrade / re-arm,
         at most every 1000th) and record a note with the contact time in the window."""
         changed = flags ^ self.bank_flags
-        contact_s = float(getattr(self.rt, "stop_contact_s", 0.0))
+        contact_s = float(self.rt.stop_contact_s)
         if changed & _STOP_CONTACT:
             if flags & _STOP_CONTACT:
                 self.stop_contact_episodes += 1
@@ -702,7 +702,7 @@ class ControlLoop:
                 "flags": self.bank_flags,
                 "blending": self.blending,
                 "weight_set": self.weight_set,
-                "stop_contact_s": float(getattr(rt, "stop_contact_s", 0.0)),
+                "stop_contact_s": float(rt.stop_contact_s),
                 "stop_degraded": self.stop_degraded,
             },
             "timing": {
