@@ -562,6 +562,32 @@ class SafetyConfig:
     estimator_authority_ramp_s: float = _f(0.05, lo=0.0, hi=10.0,
                                            doc="force authority ramps 1 -> 0 (degrade) and "
                                                "0 -> 1 (re-arm) over this time")
+    stop_contact_band_m: float = _f(0.0, lo=0.0, hi=0.1,
+                                    doc="stop-contact monitor: an LVDT reading within this of "
+                                        "a bump stop (design.bump_stop_centre_lvdt_m +/- "
+                                        "vehicle.rattlespace_travel_m) counts as contact "
+                                        "(0 = on the stop; docs/design.md §9.8)")
+    stop_contact_window_s: float = _f(2.0, lo=0.0, hi=600.0, lo_open=True,
+                                      doc="time constant of the exponential window of the "
+                                          "stop-contact time (contact seconds, older ones "
+                                          "fading with this time constant)")
+    stop_contact_budget_s: float = _f(0.03, lo=0.0, hi=600.0, lo_open=True,
+                                      doc="stop-contact time in the window above which the "
+                                          "bank degrades to its travel-conservative law")
+    stop_contact_rearm_level_s: float = _f(0.01, lo=0.0, hi=600.0,
+                                           doc="stop-degraded: the window's contact time must "
+                                               "stay below this for stop_contact_rearm_s to "
+                                               "re-arm (< stop_contact_budget_s)")
+    stop_contact_rearm_s: float = _f(1.0, lo=0.0, hi=600.0,
+                                     doc="stop-degraded: time below the re-arm level needed "
+                                         "to re-arm")
+    stop_contact_degrade: bool = _f(True, doc="above the budget the bank degrades (false: "
+                                              "the monitor only reports)")
+    stop_contact_authority: float = _f(0.0, lo=0.0, hi=1.0,
+                                       doc="force authority of the travel-conservative law "
+                                           "(0 = zero force reference: the passive "
+                                           "suspension); ramps over "
+                                           "estimator_authority_ramp_s")
     force_range_n: float = _f(15000.0, lo=1.0, hi=1e6)
     heartbeat_hz: float = _f(10.0, lo=0.1, hi=1000.0)
     frozen_ticks: int = _f(50, lo=2, hi=100000,
@@ -809,6 +835,15 @@ def _cross_checks(cfg: RigConfig) -> None:
                           f"< vehicle.rattlespace_travel_m = "
                           f"{cfg.vehicle.rattlespace_travel_m} (the barrier must leave "
                           "travel to move in)")
+    sa = cfg.safety
+    if sa.stop_contact_rearm_level_s >= sa.stop_contact_budget_s:
+        raise ConfigError("safety.stop_contact_rearm_level_s", sa.stop_contact_rearm_level_s,
+                          f"< safety.stop_contact_budget_s = {sa.stop_contact_budget_s} "
+                          "(the re-arm level lies below the degrade level)")
+    if sa.stop_contact_band_m >= cfg.vehicle.rattlespace_travel_m:
+        raise ConfigError("safety.stop_contact_band_m", sa.stop_contact_band_m,
+                          f"< vehicle.rattlespace_travel_m = "
+                          f"{cfg.vehicle.rattlespace_travel_m}")
     fz = cfg.fuzzy
     if len(fz.universe) != 2 or fz.universe[0] >= fz.universe[1]:
         raise ConfigError("fuzzy.universe", fz.universe, "[lo, hi] with lo < hi")

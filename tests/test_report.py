@@ -37,6 +37,7 @@ from rig.report import (
     run_metrics,
     write_report,
 )
+from rig.report.page import _summary_table
 from rig.report.plots import (
     DPI,
     MAX_PLOT_POINTS,
@@ -321,6 +322,32 @@ def test_tracking_splits_the_reference_near_no_rule_fired_ticks() -> None:
     none = force_tracking(_synthetic(2000.0 * np.sin(2 * np.pi * 3.0 * t), np.zeros_like(t),
                                      np.zeros_like(t)))
     assert none.no_fire_share == 0.0 and math.isnan(none.ref_rms_above_near_no_fire_n)
+
+
+def test_stop_contact_row_counts_time_episodes_and_degradations(work: Path) -> None:
+    """The stop-contact rows: time with the LVDT beyond a stop, episodes split by the
+    monitor's gap, degradations as STOP_DEGRADED rising edges; per phase and whole run,
+    and on the page."""
+    n = 3000
+    hi = CFG.design.bump_stop_centre_lvdt_m + CFG.vehicle.rattlespace_travel_m
+    rs = np.zeros(n)
+    rs[100:130] = hi + 0.005              # episode 1: 30 ms on the compression stop
+    rs[140:150] = hi + 0.002              # 10 ms later: the same episode (gap 50 ms)
+    rs[1000:1020] = -hi - 0.003           # episode 2, rebound stop
+    rs[2500:2505] = hi + 0.001            # episode 3
+    flags = np.zeros(n, np.int64)
+    flags[1000:1800] = int(StepFlag.STOP_DEGRADED)
+    flags[2600:2700] = int(StepFlag.STOP_DEGRADED | StepFlag.STOP_CONTACT)
+    s = _synthetic(np.zeros(n), np.zeros(n), rs, flags)
+    contact_s = (30 + 10 + 20 + 5) * 1e-3
+    m = run_metrics(s)
+    assert m["stop_contact_s"] == pytest.approx(contact_s)
+    assert (m["stop_contact_episodes"], m["stop_degradations"]) == (3, 2)
+    ph = phase_metrics(s)
+    assert ph["active"]["stop_contact_s"] == pytest.approx(contact_s)
+    assert ph["passive"]["stop_contact_episodes"] == 0.0
+    page = _summary_table(ph)
+    assert "time on the bump stops (LVDT)" in page and "stop-contact degradations" in page
 
 
 def test_short_active_phase_skips_the_analysis_but_not_the_page(work: Path,

@@ -16,6 +16,7 @@ EXPECTED = {
     ("design", "airborne_filter_wheel_force_intensity"): 0.0,
     ("fuzzy", "statistic"): "raw",
     ("fuzzy", "no_fire_fallback"): "passive",
+    ("safety", "stop_contact_degrade"): False,     # reports, does not degrade (§9.8)
 }
 
 

@@ -27,8 +27,11 @@ MMAE probabilities (:mod:`controller.runtime.bayes`); MOVING -- fuzzy within the
 (:mod:`controller.runtime.moving_bank`); LQG -- one model, the plain LQG.  The blended force is
 multiplied by the force authority of the estimator monitor (:mod:`controller.monitor`:
 the window sum of min q against its chi-square levels; DEGRADED ramps it to 0, re-arming
-ramps it back), then by the end-stop guard (:mod:`controller.stop_guard`: a force toward a
-bump stop fades to 0 over ``design.stop_guard_m`` before it).
+ramps it back) and by that of the stop-contact monitor (:mod:`controller.stop_contact`:
+the LVDT reading's contact time with the bump stops over an exponential window against a
+budget; STOP_DEGRADED ramps it to ``safety.stop_contact_authority``), then by the end-stop
+guard (:mod:`controller.stop_guard`: a force toward a bump stop fades to 0 over
+``design.stop_guard_m`` before it).
 
 Bayesian probabilities, raw firing weights and smoothed q are kept for every running
 filter in every mode (telemetry; a switch of blending starts warm).
@@ -105,6 +108,14 @@ from controller.runtime.kernels import (
     F_SB,
     F_SB_DF,
     F_SB_V,
+    F_SC_AUTH,
+    F_SC_BAND,
+    F_SC_BUDGET,
+    F_SC_DECAY,
+    F_SC_FLOOR,
+    F_SC_REARM,
+    F_SC_TICK,
+    F_SC_TIME,
     F_SCR,
     F_SDECAY,
     F_SFLIM,
@@ -173,6 +184,16 @@ from controller.runtime.kernels import (
     I_QGRID,
     I_RECOMP,
     I_SB_TICKS,
+    I_SC_DEG,
+    I_SC_DEGTICKS,
+    I_SC_EPISODES,
+    I_SC_GAP,
+    I_SC_NDEG,
+    I_SC_OK,
+    I_SC_ON,
+    I_SC_QUIET,
+    I_SC_RECOVER,
+    I_SC_TICKS,
     I_SENTINEL,
     I_SINCE_RECENTRE,
     I_SINCE_SWITCH,
@@ -226,6 +247,7 @@ from controller.runtime.kernels import (
     firing_weight,
     servo_update,
     stop_barrier,
+    stop_contact,
     stop_guard,
 )
 from controller.runtime.layout import SlotValue
@@ -244,6 +266,7 @@ from controller.runtime.moving_bank import (
 )
 from controller.stop_barrier import BARRIER_SIZE
 from controller.stop_barrier import stop_barrier as stop_barrier_parameters
+from controller.stop_contact import StopContactSettings, stop_contact_settings
 
 __all__ = ["BankRuntime", "Blending", "StepFlag", "config_of", "default_single_model"]
 
@@ -610,8 +633,9 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         _restart_nonfinite(mat, st, fv, iv, nact, wsum)
     # ---- estimator monitor (docs/design.md §9), human-body filter, guard, spool model
     flags |= _monitor(fv, iv, qmin, e_min)
+    flags |= stop_contact(fv, iv, rattlespace_m)
     flags |= _human_filter(fv, xf0, xf1, accel_mps2)
-    out = stop_guard(fv, out * fv[F_AUTH], rattlespace_m)
+    out = stop_guard(fv, out * (fv[F_AUTH] * fv[F_SC_AUTH]), rattlespace_m)
     out = stop_barrier(fv, iv, out, rattlespace_m)
     if not math.isfinite(out):
         out = 0.0
@@ -701,6 +725,8 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_SB_V] = np.nan
     fv[F_MON_SUM] = 0.0
     fv[F_AUTH] = 1.0
+    fv[F_SC_TIME] = 0.0
+    fv[F_SC_AUTH] = 1.0
     fv[F_AMEAN] = 0.0
     for i in range(MAX_DELAY):
         fv[F_PEND + i] = 0.0
@@ -724,8 +750,10 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     for idx in (I_MODE, I_SINCE_SWITCH, I_SINCE_RECENTRE, I_PROBE_PTR, I_PROBE_CNT,
                 I_FLAGS, I_NUPD, I_NSWITCH, I_NLEARN, I_NRECENTRE, I_TICK, I_NLIFT_LOAD,
                 I_LPTR, I_LCNT, I_MON_PTR, I_MON_DEG, I_MON_OK, I_MON_BAD,
-                I_MON_NDEG, I_MON_DEGTICKS, I_SB_TICKS):
+                I_MON_NDEG, I_MON_DEGTICKS, I_SB_TICKS, I_SC_DEG, I_SC_OK, I_SC_TICKS,
+                I_SC_EPISODES, I_SC_NDEG, I_SC_DEGTICKS):
         iv[idx] = 0
+    iv[I_SC_QUIET] = iv[I_SC_GAP]      # no contact yet: the first contact tick opens an episode
     iv[I_MON_CNT] = -iv[I_MON_N]
     iv[I_SENTINEL] = -1
     iv[I_CENTRE] = iv[I_SINGLE]
@@ -870,6 +898,9 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_AUTH_STEP] = mon.authority_step
     fv[F_UNUSE_R] = 1.0 / mon.rattlespace_bound_m
     fv[F_UNUSE_A] = 1.0 / mon.accel_bound_mps2
+    sc = stop_contact_settings(cfg, dt)
+    fv[F_SC_DECAY], fv[F_SC_TICK], fv[F_SC_BAND] = sc.decay, sc.tick_s, sc.band_m
+    fv[F_SC_BUDGET], fv[F_SC_REARM], fv[F_SC_FLOOR] = sc.budget_s, sc.rearm_level_s, sc.authority
     fv[F_TFLOOR] = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
     fv[F_LOFF] = mb.liftoff_load_fraction
     fv[F_LON] = mb.liftoff_load_fraction / mb.hysteresis_ratio
@@ -913,6 +944,10 @@ def _int_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _Ta
     iv[I_MON_RING] = t.monitor_ring
     iv[I_MON_RECOVER] = mon.rearm_ticks
     iv[I_MON_MAXBAD] = mon.window_ticks
+    sc = stop_contact_settings(cfg, dt)
+    iv[I_SC_ON] = int(sc.degrade)
+    iv[I_SC_RECOVER] = sc.rearm_ticks
+    iv[I_SC_GAP] = sc.episode_gap_ticks
     iv[I_FALLBACK] = (FALLBACK_BEST if cfg.fuzzy.no_fire_fallback == "best_model"
                       else FALLBACK_PASSIVE)
     iv[I_QGRID] = t.grid
@@ -971,6 +1006,7 @@ class BankRuntime:
         x_init = np.asarray(design.equilibrium[self.single_model], dtype=float)
         mon = monitor_settings(cfg_, dt, MEAS_DIM)
         self.monitor = mon
+        self.stop_contact_settings: StopContactSettings = stop_contact_settings(cfg_, dt)
         if design.compute_delay_ticks > MAX_DELAY:
             raise ValueError(f"design compute delay {design.compute_delay_ticks} ticks: the "
                              f"runtime supports at most {MAX_DELAY}")
@@ -1123,6 +1159,19 @@ class BankRuntime:
             return 0.0
         return float(self._fv[F_MON_SUM]) / n
 
+    stop_contact_s = SlotValue(
+        "_fv", F_SC_TIME, float,
+        "Stop-contact time in the monitor's exponential window [s] (controller/stop_contact.py).")
+
+    stop_degraded = SlotValue(
+        "_iv", I_SC_DEG, bool,
+        "The stop-contact monitor has the bank on its travel-conservative law (STOP_DEGRADED).")
+
+    stop_authority = SlotValue(
+        "_fv", F_SC_AUTH, float,
+        "The stop-contact monitor's force authority: 1 armed, ramping to "
+        "safety.stop_contact_authority while stop-degraded.")
+
     bump_stop_force = SlotValue(
         "_fv", F_STOP, float,
         "The bump-stop force of the last tick, from the LVDT reading [N].")
@@ -1149,7 +1198,11 @@ class BankRuntime:
                 "degraded_ticks": int(iv[I_MON_DEGTICKS]),
                 "unusable_ticks": int(iv[I_MON_BAD]),
                 "load_liftoffs": int(iv[I_NLIFT_LOAD]),
-                "stop_barrier_ticks": int(iv[I_SB_TICKS])}
+                "stop_barrier_ticks": int(iv[I_SB_TICKS]),
+                "stop_contact_ticks": int(iv[I_SC_TICKS]),
+                "stop_contact_episodes": int(iv[I_SC_EPISODES]),
+                "stop_degradations": int(iv[I_SC_NDEG]),
+                "stop_degraded_ticks": int(iv[I_SC_DEGTICKS])}
 
     def snapshot(self) -> dict[str, Any]:
         """Copies of the state (for tests and telemetry; allocates)."""

@@ -12,7 +12,7 @@ the runtime packs its data into six buffers instead of ~30 named arrays:
 ``active`` (J,) bool: the filters that run this tick.
 ``fv`` float: scalar parameters, then scalar state (incl. the moving bank's tire-contact
     test, F_LOFF..F_LC, the bump-stop input F_BS_*, the estimator monitor F_MON_*, the
-    end-stop guard F_GUARD_*, the end-stop barrier F_SB*), then
+    end-stop guard F_GUARD_*, the end-stop barrier F_SB*, the stop-contact monitor F_SC_*), then
     the fuzzy table, the residual-history histogram, the tire-load estimator's rings of
     the last 2Δ+1 rattlespace and acceleration samples and the monitor's window ring, at
     offsets stored in ``iv`` (the rings follow the histogram).
@@ -46,14 +46,21 @@ class StepFlag(IntFlag):
 
     NONFINITE_* and DIVERGED (the estimate is unusable) are faults.  DEGRADED is not: the
     innovation statistics say the models do not fit, and the bank runs its conservative
-    law (force authority ramped to zero) until they recover (docs/design.md §9)."""
+    law (force authority ramped to zero) until they recover (docs/design.md §9).
+    STOP_DEGRADED is not either: the stop-contact time in its window is above the budget
+    and the bank runs its travel-conservative law until it re-arms (§9.8)."""
 
     NONFINITE_INPUT = 1
     NONFINITE_STATE = 2
     NO_RULE_FIRED = 4
     DIVERGED = 8
     DEGRADED = 16
+    STOP_DEGRADED = 32      # the stop-contact monitor has the bank on its travel-conservative law
+    STOP_CONTACT = 64       # the tick lies in a bump-stop contact episode (a read-out, no fault)
 
+
+_STOP_DEGRADED = int(StepFlag.STOP_DEGRADED)
+_STOP_CONTACT = int(StepFlag.STOP_CONTACT)
 
 MEAS_DIM = 2            # m, measurement dimension [rattlespace_abs, accel]
 Q_MAX = 1.0e12          # likelihood quotients are clamped here (keeps smoothing finite)
@@ -174,6 +181,15 @@ F_GUARD_S = FV.slot()  # end-stop guard: factor applied to the force of the last
 F_SB = FV.slot(9)  # end-stop barrier: StopBarrier.as_array() (stop_barrier.py; M = 0: off)
 F_SB_DF = FV.slot()  # end-stop barrier: force added in the last tick [N] (read-out)
 F_SB_V = FV.slot()  # end-stop barrier: low-passed LVDT rate [m/s] (state; NaN after reset)
+# --- fv: stop-contact monitor (controller/stop_contact.py, docs/design.md §9.8)
+F_SC_DECAY = FV.slot()  # λ of the exponential window, per tick
+F_SC_TICK = FV.slot()  # contact time one contact tick adds [s]
+F_SC_BAND = FV.slot()  # contact band in front of each stop [m]
+F_SC_BUDGET = FV.slot()  # degrade when the window's contact time exceeds this [s]
+F_SC_REARM = FV.slot()  # re-arm when it stays below this for I_SC_RECOVER ticks [s]
+F_SC_FLOOR = FV.slot()  # force authority of the travel-conservative law
+F_SC_TIME = FV.slot()  # contact time in the window [s] (state)
+F_SC_AUTH = FV.slot()  # the monitor's force authority in [F_SC_FLOOR, 1] (state)
 FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
@@ -229,6 +245,17 @@ I_MON_BAD = IV.slot()  # consecutive ticks with an unusable estimate (state)
 I_MON_NDEG = IV.slot()  # degradations since reset (state)
 I_MON_DEGTICKS = IV.slot()  # ticks spent degraded since reset (state)
 I_SB_TICKS = IV.slot()  # ticks in which the end-stop barrier changed the force since reset (state)
+# --- iv: stop-contact monitor (docs/design.md §9.8)
+I_SC_ON = IV.slot()  # 1: degrade above the budget; 0: report only
+I_SC_RECOVER = IV.slot()  # ticks below the re-arm level needed to re-arm
+I_SC_GAP = IV.slot()  # ticks without contact that end an episode
+I_SC_DEG = IV.slot()  # 1 while stop-degraded (state)
+I_SC_OK = IV.slot()  # consecutive ticks below the re-arm level (state)
+I_SC_QUIET = IV.slot()  # ticks since the last contact tick (state)
+I_SC_TICKS = IV.slot()  # contact ticks since reset (state)
+I_SC_EPISODES = IV.slot()  # contact episodes since reset (state)
+I_SC_NDEG = IV.slot()  # stop degradations since reset (state)
+I_SC_DEGTICKS = IV.slot()  # ticks spent stop-degraded since reset (state)
 IV_ACT = IV.size  # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
 IV_HEAD = IV.size  # iv has IV_HEAD + J entries
 
@@ -320,6 +347,51 @@ def stop_guard(fv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
         s = min(max(s, 0.0), 1.0)
     fv[F_GUARD_S] = s
     return force_n * s
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def stop_contact(fv: np.ndarray, iv: np.ndarray, rattlespace_m: float) -> int:
+    """The stop-contact monitor, once per tick (controller/stop_contact.py): contact
+    time in the exponential window ``F_SC_TIME``, episodes, degrade above ``F_SC_BUDGET``
+    (when ``I_SC_ON``), re-arm after ``I_SC_RECOVER`` ticks below ``F_SC_REARM``; the
+    monitor's force authority ``F_SC_AUTH`` ramps toward ``F_SC_FLOOR`` while degraded and
+    back to 1 after (the estimator monitor's step ``F_AUTH_STEP``).  Returns the flag bits
+    (STOP_DEGRADED, STOP_CONTACT)."""
+    flags = 0
+    band = fv[F_SC_BAND]
+    e = fv[F_SC_DECAY] * fv[F_SC_TIME]
+    if rattlespace_m > fv[F_BS_HI] - band or rattlespace_m < fv[F_BS_LO] + band:
+        e += fv[F_SC_TICK]
+        iv[I_SC_TICKS] += 1
+        if iv[I_SC_QUIET] >= iv[I_SC_GAP]:
+            iv[I_SC_EPISODES] += 1
+        iv[I_SC_QUIET] = 0
+    elif iv[I_SC_QUIET] < iv[I_SC_GAP]:
+        iv[I_SC_QUIET] += 1
+    if iv[I_SC_QUIET] < iv[I_SC_GAP]:
+        flags |= _STOP_CONTACT
+    fv[F_SC_TIME] = e
+    if iv[I_SC_DEG] == 0:
+        if e > fv[F_SC_BUDGET] and iv[I_SC_ON] != 0:
+            iv[I_SC_DEG] = 1
+            iv[I_SC_OK] = 0
+            iv[I_SC_NDEG] += 1
+    elif e < fv[F_SC_REARM]:
+        iv[I_SC_OK] += 1
+        if iv[I_SC_OK] >= iv[I_SC_RECOVER]:
+            iv[I_SC_DEG] = 0
+    else:
+        iv[I_SC_OK] = 0
+    auth = fv[F_SC_AUTH]
+    if iv[I_SC_DEG] != 0:
+        flags |= _STOP_DEGRADED
+        iv[I_SC_DEGTICKS] += 1
+        auth -= fv[F_AUTH_STEP]
+        fv[F_SC_AUTH] = auth if auth > fv[F_SC_FLOOR] else fv[F_SC_FLOOR]
+    else:
+        auth += fv[F_AUTH_STEP]
+        fv[F_SC_AUTH] = auth if auth < 1.0 else 1.0
+    return flags
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

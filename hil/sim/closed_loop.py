@@ -170,14 +170,22 @@ class BankController:
     def diagnostics(self) -> dict[str, float]:
         """Fractions of ticks in which no fuzzy rule fired (fallback force used) and in
         which the estimator monitor had the bank degraded (conservative law), the
-        number of degradations, and the fraction of ticks in which the end-stop barrier
-        limited the force (docs/design.md §9.7)."""
+        number of degradations, the fraction of ticks in which the end-stop barrier
+        limited the force (docs/design.md §9.7), and the stop-contact monitor's view
+        (§9.8): contact time by the LVDT reading [s], contact episodes, stop degradations
+        and the fraction of ticks stop-degraded (the plant's own time on the stops is
+        ``bump_stop_time_s``)."""
         n = self.ticks
         c = self.rt.counters()
+        dt = self.rt.stop_contact_settings.tick_s
         return {"no_rule_fired_fraction": self.no_rule_ticks / n if n else 0.0,
                 "degraded_fraction": self.degraded_ticks / n if n else 0.0,
                 "degradations": float(c["degradations"]),
-                "stop_barrier_fraction": c["stop_barrier_ticks"] / n if n else 0.0}
+                "stop_barrier_fraction": c["stop_barrier_ticks"] / n if n else 0.0,
+                "stop_contact_measured_s": c["stop_contact_ticks"] * dt,
+                "stop_contact_episodes": float(c["stop_contact_episodes"]),
+                "stop_degradations": float(c["stop_degradations"]),
+                "stop_degraded_fraction": c["stop_degraded_ticks"] / n if n else 0.0}
 
     @property
     def firing_weight(self) -> FloatArray:

@@ -121,12 +121,21 @@ def _headline(rows: Sequence[Row]) -> list[str]:
             _f(mean_of(sel, "rattlespace_peak_m_ratio")),
             _f(mean_of(sel, "tire_load_rms_ratio_ratio")),
             _f(100 * mean_of(sel, "time_off_ground_fraction"), 2),
+            _f(mean_of(sel, "bump_stop_time_s"), 2), _stop_degradations(sel),
             _f(mean_of(sel, "force_rms_n"), 4), _f(mean_of(sel, "hydraulic_power_mean_w"), 3),
             str(int(sum(float(r["unstable"]) + float(r["n_faults"]) for r in sel)))])
     return _table(["controller-weights", "absorbed power (seed range)", "Wk RMS",
                    "rattlespace RMS", "rattlespace peak", "dyn. tire load RMS",
-                   "off ground [%]", "force RMS [N]", "hydr. power [W]",
-                   "unstable+faults"], body)
+                   "off ground [%]", "stop contact [s]", "stop degradations",
+                   "force RMS [N]", "hydr. power [W]", "unstable+faults"], body)
+
+
+def _stop_degradations(sel: Sequence[Row]) -> str:
+    """Stop-contact degradations summed over the runs (docs/design.md §9.8); "–" for
+    controllers without the monitor (passive, skyhook, full-state LQ)."""
+    if not all("stop_degradations" in r for r in sel):
+        return "–"
+    return str(int(sum(float(r["stop_degradations"]) for r in sel)))
 
 
 def _ap_rs(sel: Sequence[Row]) -> str:
@@ -177,13 +186,14 @@ def _mc(rows: Sequence[Row]) -> list[str]:
                          f"{_f(ap.mean())} ± {_f(ap.std(), 2)}",
                          f"{_f(ap.min(), 2)}–{_f(ap.max(), 2)}",
                          f"{_f(rs.mean())} ± {_f(rs.std(), 2)}", _f(1000 * pk.max()),
+                         _f(mean_of(sel, "bump_stop_time_s"), 2), _stop_degradations(sel),
                          _f(100 * mean_of(sel, "no_rule_fired_fraction"), 2)
                          if all("no_rule_fired_fraction" in r for r in sel) else "–",
                          str(int(sum(float(r["unstable"]) for r in sel))),
                          str(int(sum(float(r["n_faults"]) > 0 for r in sel)))])
     return _table(["spread", "controller", "runs", "absorbed power", "min–max",
-                   "rattlespace RMS", "max peak [mm]", "no rule fired [%]", "unstable",
-                   "faulted"], body)
+                   "rattlespace RMS", "max peak [mm]", "stop contact [s]",
+                   "stop degradations", "no rule fired [%]", "unstable", "faulted"], body)
 
 
 def _mismatch(rows: Sequence[Row]) -> list[str]:

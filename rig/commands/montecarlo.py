@@ -21,7 +21,7 @@ MAX_RUNS = 10_000
 
 SUMMARY_KEYS = ("absorbed_power", "accel_rms_mps2", "wk_rms_mps2", "rattlespace_rms_m",
                 "rattlespace_peak_m", "tire_load_rms_ratio", "time_off_ground_fraction",
-                "force_rms_n", "n_faults", "unstable")
+                "bump_stop_time_s", "force_rms_n", "n_faults", "unstable")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -29,6 +29,7 @@ TABLE_METRICS = (
     ("rattlespace_peak_m", "rs_pk_mm", "{:.1f}"),
     ("tire_load_rms_ratio", "tire_dyn", "{:.3f}"),
     ("time_off_ground_fraction", "off_gnd", "{:.3f}"),
+    ("bump_stop_time_s", "stop_s", "{:.3f}"),
     ("force_rms_n", "F_rms_N", "{:.0f}"),
     ("hydraulic_power_mean_w", "hyd_W", "{:.0f}"),
     ("n_faults", "faults", "{:.0f}"),

@@ -188,6 +188,10 @@ INTERNALS_SCHEMA: Final = _obj(
         "x_post": {**_NUM_ARRAY, "description": "(J, 4) estimates, flat row-major: "
                    "model j at [4j, 4j + 4)"},
         "xf": _NUM_ARRAY,
+        "stop_contact_s": {**_NUM, "description": "bump-stop contact time in the "
+                           "stop-contact monitor's window [s]"},
+        "stop_degraded": {"type": "boolean", "description": "the stop-contact monitor has "
+                          "the bank on its travel-conservative law"},
         "nonfinite": _NONFINITE_KEYS,
     },
     [],
@@ -315,7 +319,7 @@ def _text(value: Any, limit: int = 300) -> str:
 def log_message(wall_ns: int, tick: int, kind: str, detail: Any) -> dict[str, Any]:
     """The ``foxglove.Log`` message of one event (``kind``/``detail`` as on
     ``/rig/events``).  Levels: a latched fault ERROR; a refused command, a bus exception
-    or a degraded estimator WARNING; everything else INFO."""
+    or a degraded estimator or stop-contact monitor WARNING; everything else INFO."""
     level = LogLevel.INFO
     code = kind
     d = detail if isinstance(detail, Mapping) else {}
@@ -346,6 +350,14 @@ def log_message(wall_ns: int, tick: int, kind: str, detail: Any) -> dict[str, An
         code = "ESTIMATOR_DEGRADED" if degraded else "estimator_rearmed"
         message = (f"estimator {d['estimator']} ({d.get('degradations', 0)} so far)"
                    + (f": {FAULT_DESCRIPTIONS['ESTIMATOR_DEGRADED']}" if degraded else ""))
+    elif kind == "note" and "stop_contact" in d:
+        what = str(d["stop_contact"])
+        level = LogLevel.WARNING if what == "degraded" else LogLevel.INFO
+        code = f"stop_contact_{what.replace('-', '')}"
+        message = (f"bump-stop contact {what}: {d.get('contact_s_in_window', 0.0):.3f} s "
+                   "in the window"
+                   + (": travel-conservative law until the contact fades"
+                      if what == "degraded" else ""))
     else:
         message = _text(detail)
     sec, nsec = divmod(max(int(wall_ns), 0), 1_000_000_000)

@@ -8,7 +8,11 @@ from :mod:`controller.metrics` run over the whole series and are then averaged p
 * ISO 2631 Wk-weighted RMS acceleration, acceleration RMS, rattlespace RMS / peak;
 * measured actuator force RMS, force reference RMS as computed and as applied, force
   tracking error RMS (applied reference minus measured force, while active);
-* loop wake-up lateness percentiles, compute-time p99 and overrun ticks.
+* loop wake-up lateness percentiles, compute-time p99 and overrun ticks;
+* bump-stop contact: time with the LVDT reading on a stop (the stop-contact monitor's
+  contact test, :mod:`controller.stop_contact`, on the recorded configuration), contact
+  episodes, and the stop-contact monitor's degradations (StepFlag.STOP_DEGRADED rising
+  edges in ``/controller/internals.flags``).
 
 "Passive" is every tick with the valve off (:attr:`~rig.report.series.Phase.PASSIVE` and
 :attr:`~rig.report.series.Phase.FAULT`: the bypass is open either way).
@@ -20,12 +24,15 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
 from controller.metrics import filter_signal, wk_tf
+from controller.runtime.kernels import StepFlag
+from controller.stop_contact import EPISODE_GAP_S
 from rig.report.series import Phase, RunSeries
 
-__all__ = ["SUMMARY_ROWS", "SummaryRow", "phase_metrics", "run_metrics"]
+__all__ = ["SUMMARY_ROWS", "SummaryRow", "phase_metrics", "run_metrics", "stop_contact"]
 
 
 @dataclass(frozen=True)
@@ -59,6 +66,12 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "N", "/rig/signals.force_ref_n", ratio=False),
     SummaryRow("tracking_error_rms_n", "force tracking error RMS", "N",
                "/rig/signals.force_ref_n − force_meas_n", ratio=False),
+    SummaryRow("stop_contact_s", "time on the bump stops (LVDT)", "s",
+               "/rig/signals.rattlespace_m", 3, ratio=False),
+    SummaryRow("stop_contact_episodes", "bump-stop contact episodes", "",
+               "/rig/signals.rattlespace_m", 6, ratio=False),
+    SummaryRow("stop_degradations", "stop-contact degradations", "",
+               "/controller/internals.flags", 6, ratio=False),
     SummaryRow("no_rule_fired_pct", "ticks on which no fuzzy rule fired", "%",
                "/controller/internals.flags", 3, ratio=False),
     SummaryRow("lateness_p50_us", "wake-up lateness p50", "µs", "/rig/timing.wake_late_s"),
@@ -84,6 +97,30 @@ def _max(x: FloatArray) -> float:
     return float(x.max()) if x.size else math.nan
 
 
+def stop_contact(s: RunSeries, mask: NDArray[np.bool_] | None = None
+                 ) -> tuple[float, int, int]:
+    """(time with the LVDT reading on a bump stop [s], contact episodes, stop-contact
+    degradations) over the ticks of ``mask`` (default: all).  Contact and episodes follow
+    the runtime's monitor (controller/stop_contact.py): beyond the stop less
+    ``safety.stop_contact_band_m``; an episode starts on a contact tick after at least
+    ``EPISODE_GAP_S`` without contact."""
+    cfg = s.cfg
+    centre, travel = cfg.design.bump_stop_centre_lvdt_m, cfg.vehicle.rattlespace_travel_m
+    band = cfg.safety.stop_contact_band_m
+    rs = s.signals["rattlespace_m"]
+    m = np.ones(rs.size, dtype=bool) if mask is None else mask
+    with np.errstate(invalid="ignore"):
+        contact = ((rs > centre + travel - band) | (rs < centre - travel + band)) & m
+    idx = np.flatnonzero(contact)
+    gap = max(1, round(EPISODE_GAP_S / s.dt_s))
+    episodes = int(idx.size > 0) + int(np.count_nonzero(np.diff(idx) - 1 >= gap))
+    f = s.flags
+    deg = (f >= 0) & ((f & int(StepFlag.STOP_DEGRADED)) != 0) if f.size == rs.size \
+        else np.zeros(rs.size, dtype=bool)
+    rises = deg & ~np.r_[False, deg[:-1]] & m
+    return float(idx.size * s.dt_s), episodes, int(np.count_nonzero(rises))
+
+
 def _filtered(s: RunSeries) -> tuple[FloatArray, FloatArray]:
     """Sprung acceleration through F(s) and through ISO 2631 Wk, over the whole run."""
     acc = np.nan_to_num(s.signals["sprung_accel_mps2"])
@@ -103,6 +140,7 @@ def run_metrics(s: RunSeries) -> dict[str, float | int | str]:
     acc_f, acc_wk = _filtered(s)
     late = s.timing["wake_late_s"] * 1e6
     faults = [e for e in s.events if e.get("kind") == "fault"]
+    contact_s, episodes, stop_deg = stop_contact(s)
     return {
         "duration_s": float(s.t_s[-1] + dt) if s.t_s.size else 0.0,
         "ticks": int(s.tick.size),
@@ -118,6 +156,9 @@ def run_metrics(s: RunSeries) -> dict[str, float | int | str]:
         "lateness_p50_us": _pct(late, 50), "lateness_p99_us": _pct(late, 99),
         "lateness_max_us": _max(late),
         "compute_p99_us": _pct(s.timing["compute_s"] * 1e6, 99),
+        "stop_contact_s": contact_s,
+        "stop_contact_episodes": episodes,
+        "stop_degradations": stop_deg,
         "faults": len(faults),
         "recording": "complete" if s.scan.complete else f"incomplete: {s.scan.stopped_at}",
     }
@@ -133,6 +174,7 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
     out: dict[str, dict[str, float]] = {}
     for name, m in (("passive", ~active), ("active", active)):
         late = s.timing["wake_late_s"][m] * 1e6
+        contact_s, episodes, stop_deg = stop_contact(s, m)
         phases = (Phase.ACTIVE,) if name == "active" else (Phase.PASSIVE, Phase.FAULT)
         out[name] = {
             "time_s": sum(s.time_in(p) for p in phases),        # by the loop clock
@@ -150,6 +192,9 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "lateness_max_us": _max(late),
             "compute_p99_us": _pct(s.timing["compute_s"][m] * 1e6, 99),
             "overrun_ticks": float(np.nansum(s.timing["overrun"][m])),
+            "stop_contact_s": contact_s,
+            "stop_contact_episodes": float(episodes),
+            "stop_degradations": float(stop_deg),
             "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
                                   if m.any() and np.any(s.flags[m] >= 0) else math.nan),
         }

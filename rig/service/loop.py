@@ -79,6 +79,9 @@ _NONE = FaultCode.NONE
 _ACTIVE = LifecycleState.ACTIVE
 _DEGRADED = int(StepFlag.DEGRADED)
 _DIVERGED = int(StepFlag.DIVERGED)
+_STOP_DEGRADED = int(StepFlag.STOP_DEGRADED)
+_STOP_CONTACT = int(StepFlag.STOP_CONTACT)
+_STOP_BITS = _STOP_DEGRADED | _STOP_CONTACT
 _FAULT = LifecycleState.FAULT
 _STOPPING = LifecycleState.STOPPING
 
@@ -116,6 +119,8 @@ TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("weight_set", "int", "weight_set"),
     ("x_post", "array", "rt.x_post"),
     ("xf", "array", "rt.xf"),
+    ("stop_contact_s", "float", "rt.stop_contact_s"),
+    ("stop_degraded", "bool", "stop_degraded"),
 )
 
 
@@ -264,6 +269,9 @@ class ControlLoop:
         self.enable, self.spool_cmd = 0, 0.0   # the safe command until the first tick
         self.bank_flags = 0
         self.degradations = 0           # times the bank's monitor degraded (not faults)
+        self.stop_degradations = 0      # times the stop-contact monitor degraded (not faults)
+        self.stop_contact_episodes = 0  # bump-stop contact episodes seen
+        self._episode_start_tick = -1   # tick the current contact episode started (-1: none)
         self.good_ticks = 0          # consecutive ticks with a good SensorData since reset
         self.exceptions = 0
         self.last_exception = ""
@@ -454,6 +462,8 @@ class ControlLoop:
                 flags = int(rt.flags)
                 if (flags ^ self.bank_flags) & _DEGRADED:
                     self._on_degraded_change(flags, now_ns, tick)
+                if (flags ^ self.bank_flags) & _STOP_BITS:
+                    self._on_stop_contact_change(flags, now_ns, tick)
                 self.bank_flags = flags
                 if self.excitation_state == "playing":
                     # the bank is not in the loop while the excitation plays (and is
@@ -565,6 +575,40 @@ class ControlLoop:
                            {"estimator": "degraded" if degraded else "re-armed",
                             "degradations": self.degradations})
 
+    @property
+    def stop_degraded(self) -> bool:
+        """The stop-contact monitor has the bank on its travel-conservative law."""
+        return bool(self.bank_flags & _STOP_DEGRADED)
+
+    def _on_stop_contact_change(self, flags: int, now_ns: int, tick: int) -> None:
+        """A bump-stop contact episode began or ended, or the stop-contact monitor degraded
+        or re-armed (controller/stop_contact.py; not faults): count, log (degrade / re-arm,
+        at most every 1000th) and record a note with the contact time in the window."""
+        changed = flags ^ self.bank_flags
+        contact_s = float(self.rt.stop_contact_s)
+        if changed & _STOP_CONTACT:
+            if flags & _STOP_CONTACT:
+                self.stop_contact_episodes += 1
+                self._episode_start_tick = tick
+            elif self._episode_start_tick >= 0:
+                self._record_event(now_ns, tick, "note", {
+                    "stop_contact": "episode", "episodes": self.stop_contact_episodes,
+                    "start_tick": self._episode_start_tick,
+                    "contact_s_in_window": contact_s})
+                self._episode_start_tick = -1
+        if changed & _STOP_DEGRADED:
+            degraded = bool(flags & _STOP_DEGRADED)
+            if degraded:
+                self.stop_degradations += 1
+            if self.stop_degradations % 1000 == 1 or not degraded:
+                log.warning("stop contact %s (%.3f s in the window; %d degradations so far)",
+                            "over budget: travel-conservative law" if degraded
+                            else "re-armed", contact_s, self.stop_degradations)
+            self._record_event(now_ns, tick, "note", {
+                "stop_contact": "degraded" if degraded else "re-armed",
+                "contact_s_in_window": contact_s,
+                "stop_degradations": self.stop_degradations})
+
     def _latch(self, code: FaultCode, detail: int, now_ns: int, message: str = "") -> None:
         """Latch FAULT (if not already) and send the FaultReport now."""
         lc = self.lifecycle
@@ -658,6 +702,8 @@ class ControlLoop:
                 "flags": self.bank_flags,
                 "blending": self.blending,
                 "weight_set": self.weight_set,
+                "stop_contact_s": float(rt.stop_contact_s),
+                "stop_degraded": self.stop_degraded,
             },
             "timing": {
                 "wake_late_s": self.lateness_ns * 1e-9,
@@ -686,6 +732,9 @@ class ControlLoop:
             "condition": self.monitor.condition.name,
             "estimator_degraded": bool(self.bank_flags & _DEGRADED),
             "estimator_degradations": self.degradations,
+            "stop_degraded": self.stop_degraded,
+            "stop_degradations": self.stop_degradations,
+            "stop_contact_episodes": self.stop_contact_episodes,
             "health": self.health_problem() or "ok",
             "tick": self.tick_count,
             "blending": self.blending,

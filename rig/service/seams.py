@@ -32,6 +32,7 @@ class Runtime(Protocol):
     active: np.ndarray
     x_post: np.ndarray
     xf: np.ndarray
+    stop_contact_s: float       # stop-contact time in the monitor's window [s]
 
     def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float: ...
     def reset(self) -> None: ...

@@ -33,6 +33,7 @@ from controller.monitor import monitor_settings
 from controller.road_noise import nearest_noise_entry
 from controller.runtime import moving_bank
 from controller.runtime.kernels import MEAS_DIM, Q_MAX, QS_INIT, Blending, StepFlag
+from controller.stop_contact import contact_time_update, stop_contact_settings
 from controller.stop_guard import stop_guard_scale
 
 __all__ = ["ReferenceBank", "bayes_update_numpy"]
@@ -95,6 +96,7 @@ class ReferenceBank:
         self.mon = monitor_settings(c, dt, MEAS_DIM)
         self.stop_k, self.stop_lo, self.stop_hi = (float(v) for v in d.bump_stop)
         self.guard_width = c.design.stop_guard_m
+        self.sc = stop_contact_settings(c, dt)
         self.t_floor = moving_bank.chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
         self.load_off = mb.liftoff_load_fraction               # lift-off reference
         self.load_on = mb.liftoff_load_fraction / mb.hysteresis_ratio   # touch-down reference
@@ -153,6 +155,13 @@ class ReferenceBank:
         self.n_degradations = 0
         self.stop_force = 0.0
         self.guard = 1.0
+        self.contact_s = 0.0                  # stop-contact time in the window [s]
+        self.contact_ticks: list[int] = []    # ticks with contact since reset
+        self.stop_degraded = False
+        self.stop_rearm_count = 0
+        self.stop_authority = 1.0
+        self.n_stop_degradations = 0
+        self.tick = 0
         self.active = np.zeros(J, dtype=bool)
         self.xf = np.zeros(2)
         self.xv = 0.0
@@ -345,7 +354,8 @@ class ReferenceBank:
         else:
             self.xf = np.zeros(2)
             flags |= StepFlag.NONFINITE_STATE
-        out *= self.authority
+        flags |= self._stop_contact(rattlespace_m)
+        out *= self.authority * self.stop_authority
         self.guard = stop_guard_scale(out, rattlespace_m, self.stop_lo, self.stop_hi,
                                       self.guard_width)
         out *= self.guard
@@ -357,7 +367,39 @@ class ReferenceBank:
             self._tire_load_update(rattlespace_m, accel_mps2)
             self._supervise()
         self.flags = flags
+        self.tick += 1
         return out
+
+    def _stop_contact(self, rattlespace_m: float) -> StepFlag:
+        """controller/stop_contact.py: contact beyond a stop less the band, the window's
+        contact time, episodes by the gap since the last contact tick, degrade / re-arm
+        and the authority ramp toward the travel-conservative law."""
+        sc, flags = self.sc, StepFlag(0)
+        contact = (rattlespace_m > self.stop_hi - sc.band_m
+                   or rattlespace_m < self.stop_lo + sc.band_m)
+        self.contact_s = contact_time_update(self.contact_s, contact, sc)
+        if contact:
+            self.contact_ticks.append(self.tick)
+        if self.contact_ticks and self.tick - self.contact_ticks[-1] < sc.episode_gap_ticks:
+            flags |= StepFlag.STOP_CONTACT
+        if not self.stop_degraded:
+            if sc.degrade and self.contact_s > sc.budget_s:
+                self.stop_degraded = True
+                self.stop_rearm_count = 0
+                self.n_stop_degradations += 1
+        elif self.contact_s < sc.rearm_level_s:
+            self.stop_rearm_count += 1
+            if self.stop_rearm_count >= sc.rearm_ticks:
+                self.stop_degraded = False
+        else:
+            self.stop_rearm_count = 0
+        step = self.mon.authority_step
+        if self.stop_degraded:
+            flags |= StepFlag.STOP_DEGRADED
+            self.stop_authority = max(sc.authority, self.stop_authority - step)
+        else:
+            self.stop_authority = min(1.0, self.stop_authority + step)
+        return flags
 
     def _monitor(self, q_min: float, e_min: float) -> StepFlag:
         """controller/monitor.py written with a Python list as the window: the sum of the
