@@ -1,108 +1,157 @@
-"""``rig export`` of a 10-minute run: read the recording (``read_run``), build the
-columns (``rig.export.run_tables``), write MF4 (asammdf) and Parquet (pyarrow).
+"""``rig export`` of a 10-minute run: per format, the median wall time of a few exports,
+its ratio to the run's duration, the output size, the export's peak RSS and the median
+of each stage (:data:`rig.export.stream.STAGES`).
 
-The 10-minute recording is synthesised: the tick records and CAN frames of a short
-stepped run against the emulated rig (:func:`hil.stepped_run.record_emulated_run`, every
-record with the bank's internals) repeated with shifted ticks and times, written by the
-recorder as the loop writes them.  ``--quick``: 10 s, one repetition.
+The recording is a real one: 600 s of the loop against the emulated rig, tick-stepped
+in-process (:func:`hil.stepped_run.record_emulated_run`: the same ``ControlLoop`` and
+``RunRecorder`` as ``rig demo --record``, default configuration, rough course, armed
+after 0.1 s; about a minute to build), cached under ``build/export-bench/`` (the name
+carries the recording format version; delete the directory to rebuild it).  Each export
+runs in a child process of its own (``--child``), as ``rig export`` would, so that its
+peak RSS (``ru_maxrss``) is its own; the runs are interleaved between the formats.
+``--quick``: a 20 s recording, one export per format.
 
-    .venv/bin/python -m bench.export_bench [--quick]
+    .venv/bin/python -m bench.export_bench [--quick] [--runs N]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import json
+import shutil
 import statistics
-import tempfile
+import subprocess
+import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
-
-from controller.config import config_to_toml, default_config
+from typing import Any, Final
 
 NAME = "export"
-TITLE = "rig export of a synthesised run: medians [s] per stage"
-PERIOD_NS = 1_000_000
+TITLE = "rig export of a recorded run (each export in a child process)"
+ROOT: Final = Path(__file__).resolve().parent.parent
+CACHE: Final = ROOT / "build" / "export-bench"
+#: the formats of ``rig export``
+FORMATS: Final = ("mf4", "parquet")
+FULL_S, QUICK_S = 600.0, 20.0
+FULL_RUNS = 3
 
 
-def _synthesise(path: Path, seconds: float, work: Path) -> None:
+def recording(seconds: float) -> tuple[Path, float | None]:
+    """The cached recording of ``seconds`` (built now if missing) and the seconds it
+    took to build (None: it was cached)."""
+    from rig.recording.schema import RECORDING_FORMAT_VERSION
+
+    path = CACHE / f"stepped-{seconds:g}s-format{RECORDING_FORMAT_VERSION}.mcap"
+    if path.exists():
+        return path, None
     from hil.stepped_run import record_emulated_run
-    from rig.recording.recorder import RunRecorder
-    from rig.recording.run_data import read_run
 
-    src = read_run(record_emulated_run(work / "template.mcap", 1.0))
-    cfg = default_config()
-    per_tick: dict[int, list[Any]] = {}
-    for f in src.frames:
-        per_tick.setdefault(f.tick, []).append(f)
-    n_src = len(src.records)
-    rec = RunRecorder(path, cfg.recording, config_toml=config_to_toml(cfg), design_bytes=None,
-                      metadata={"source": "bench.export_bench"}, clock="stepped",
-                      clock_offset_ns=1_700_000_000_000_000_000, blocking=True)
-    try:
-        for k in range(round(seconds * 1e9 / PERIOD_NS)):
-            r = src.records[k % n_src]
-            t_ns = 1_000_000_000 + k * PERIOD_NS
-            for f in per_tick.get(r.tick, ()):
-                rec.can_frame(t_ns, k, f.arbitration_id, f.data, f.is_rx)
-            rec.tick(t_ns, {**r.data, "tick": k})
-    finally:
-        rec.close()
-
-
-def _timed(fn: Callable[[], Any]) -> tuple[float, Any]:
+    CACHE.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial")
+    partial.unlink(missing_ok=True)
     t = time.perf_counter()
-    out = fn()
-    return time.perf_counter() - t, out
+    record_emulated_run(partial, seconds)
+    built_s = time.perf_counter() - t
+    partial.rename(path)
+    return path, built_s
 
 
-def run(quick: bool = False) -> list[dict[str, Any]]:
-    from rig.export import run_tables
-    from rig.export.mf4 import write_mf4
-    from rig.export.parquet import write_parquet
-    from rig.recording.run_data import read_run
+def _size_mb(path: Path) -> float:
+    if path.is_dir():
+        return sum(p.stat().st_size for p in path.iterdir()) / 1e6
+    return path.stat().st_size / 1e6
 
-    seconds, repeats = (10.0, 1) if quick else (600.0, 3)
-    with tempfile.TemporaryDirectory(prefix="export-bench-") as d:
-        work = Path(d)
-        src = work / "run.mcap"
-        t_rec, _ = _timed(lambda: _synthesise(src, seconds, work))
-        mcap_mb = sum(p.stat().st_size for p in work.glob("run*.mcap")) / 1e6
-        times: dict[str, list[float]] = {"read_run": [], "run_tables": [], "write mf4": [],
-                                         "write parquet": []}
-        sizes: dict[str, float] = {}
-        for i in range(repeats):
-            dt, data = _timed(lambda: read_run(src))
-            times["read_run"].append(dt)
-            dt, tables = _timed(lambda d=data: run_tables(d))
-            times["run_tables"].append(dt)
-            mf4 = work / f"out{i}.mf4"
-            times["write mf4"].append(_timed(lambda t=tables, p=mf4: write_mf4(t, p))[0])
-            pq_dir = work / f"pq{i}"
-            pq_dir.mkdir()
-            times["write parquet"].append(
-                _timed(lambda t=tables, p=pq_dir: write_parquet(t, p))[0])
-            sizes = {"write mf4": mf4.stat().st_size / 1e6,
-                     "write parquet": sum(p.stat().st_size for p in pq_dir.iterdir()) / 1e6}
-            n_ticks, n_frames = len(data.records), len(tables.can)
-            del data, tables
-    rows: list[dict[str, Any]] = [{"stage": "synthesise (recorder)", "median_s": t_rec,
-                                   "us_per_tick": t_rec / n_ticks * 1e6, "out_MB": mcap_mb,
-                                   "repeats": 1}]
-    for stage, ts in times.items():
-        med = statistics.median(ts)
-        rows.append({"stage": stage, "median_s": med, "us_per_tick": med / n_ticks * 1e6,
-                     "out_MB": sizes.get(stage), "repeats": len(ts)})
-    for fmt in ("mf4", "parquet"):
-        total = sum(statistics.median(times[s]) for s in ("read_run", "run_tables",
-                                                          f"write {fmt}"))
-        rows.append({"stage": f"= rig export --format {fmt}", "median_s": total,
-                     "us_per_tick": total / n_ticks * 1e6, "out_MB": sizes[f"write {fmt}"],
-                     "repeats": repeats})
-    for r in rows:
-        r["ticks"], r["frames"] = n_ticks, n_frames
+
+def _clear(out: Path) -> None:
+    if out.is_dir():
+        shutil.rmtree(out)
+    else:
+        out.unlink(missing_ok=True)
+
+
+def export_once(src: Path, fmt: str, out: Path) -> dict[str, Any]:
+    """One export in a child process: its figures (:func:`child`) and the command's
+    wall time with the interpreter's start and the imports (``cmd_s``)."""
+    _clear(out)
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "bench.export_bench", "--child", fmt,
+                           str(src), str(out)], cwd=ROOT, capture_output=True, text=True,
+                          check=False)
+    cmd_s = time.perf_counter() - t
+    if proc.returncode:
+        raise RuntimeError(f"export {fmt} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    figures: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    figures["cmd_s"] = cmd_s
+    figures["out_MB"] = _size_mb(out)
+    return figures
+
+
+def child(fmt: str, src: str, out: str) -> None:
+    """Run one export (``export_run``, as ``rig export`` does, without the staging) and
+    print its figures as a JSON line: wall seconds, seconds per stage, peak RSS after
+    the imports and at the end [MB] (``ru_maxrss``, this process)."""
+    import resource
+
+    from rig.export.stream import export_run
+
+    importlib.import_module(f"rig.export.{fmt}")    # the writer's imports, counted apart
+    if fmt != "mf4":
+        Path(out).mkdir()
+
+    def peak_mb() -> float:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3  # KiB on Linux
+
+    imports_mb = peak_mb()
+    t = time.perf_counter()
+    summary = export_run(src, fmt, out, comment="bench.export_bench")
+    wall_s = time.perf_counter() - t
+    print(json.dumps({"wall_s": wall_s, "stage_s": summary.stage_s, "imports_MB": imports_mb,
+                      "peak_MB": peak_mb(), "records": summary.records,
+                      "frames": summary.frames, "batches": summary.batches}))
+
+
+def run(quick: bool = False, runs: int | None = None) -> list[dict[str, Any]]:
+    from rig.export.stream import STAGES
+
+    seconds = QUICK_S if quick else FULL_S
+    runs = runs or (1 if quick else FULL_RUNS)
+    src, built_s = recording(seconds)
+    out_dir = CACHE / "out"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict[str, list[dict[str, Any]]] = {fmt: [] for fmt in FORMATS}
+    for _ in range(runs):                             # interleaved: same drift for all
+        for fmt in FORMATS:
+            out = out_dir / (f"run.{fmt}" if fmt == "mf4" else fmt)
+            results[fmt].append(export_once(src, fmt, out))
+    stage_cols = [f"{stage}_s" for stage in STAGES]
+    cols = ["format", "runs", "median_s", "x_duration", "cmd_s", *stage_cols, "out_MB",
+            "peak_RSS_MB", "imports_RSS_MB", "note"]
+    rows: list[dict[str, Any]] = [dict.fromkeys(cols) | {
+        "format": "(recording)", "runs": 1, "median_s": built_s, "out_MB": _size_mb(src),
+        "note": f"{seconds:g} s stepped run, {'built now' if built_s else 'cached'}"}]
+    for fmt, figs in results.items():
+        med = statistics.median(f["wall_s"] for f in figs)
+        row: dict[str, Any] = dict.fromkeys(cols) | {
+            "format": fmt, "runs": len(figs), "median_s": med, "x_duration": med / seconds,
+            "cmd_s": statistics.median(f["cmd_s"] for f in figs),
+            "out_MB": statistics.median(f["out_MB"] for f in figs),
+            "peak_RSS_MB": max(f["peak_MB"] for f in figs),
+            "imports_RSS_MB": statistics.median(f["imports_MB"] for f in figs),
+            "note": (f"{figs[0]['records']} ticks, {figs[0]['frames']} frames, "
+                     f"{figs[0]['batches']} batches")}
+        for stage, col in zip(STAGES, stage_cols, strict=True):
+            row[col] = statistics.median(f["stage_s"][stage] for f in figs)
+        rows.append(row)
     return rows
+
+
+def notes(rows: list[dict[str, Any]]) -> list[str]:
+    return ["median_s: export_run in the child (cmd_s: the whole command with the "
+            "interpreter's start and imports); x_duration: median_s / the run's duration; "
+            "peak_RSS_MB: the child's ru_maxrss (max over the runs), imports_RSS_MB: "
+            "the same right after the imports; *_s: per-stage medians "
+            "(rig.export.stream.STAGES)"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,9 +159,18 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--runs", type=int, help=f"exports per format (default {FULL_RUNS}, "
+                                            "1 with --quick)")
+    p.add_argument("--child", nargs=3, metavar=("FORMAT", "SRC", "OUT"),
+                   help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.child:
+        child(*args.child)
+        return 0
     print(f"{NAME}: {TITLE}")
-    print(generic_table(run(quick=args.quick)))
+    rows = run(quick=args.quick, runs=args.runs)
+    print(generic_table(rows))
+    print("\n".join(notes(rows)))
     return 0
 
 

@@ -26,7 +26,7 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from controller.config import RigConfig, host_problem
 from controller.files import regular_file_problem
@@ -34,7 +34,11 @@ from controller.modes import BANK_MODES
 from rig.output_paths import new_file_problem, output_dir_problem, recording_target_problem
 from rig.terminal import safe
 
+if TYPE_CHECKING:
+    from rig.rt.realtime import RealtimeRequest
+
 __all__ = [
+    "DEFAULT_RT_PRIORITY",
     "MAX_OFFLINE_S",
     "MAX_SERVICE_S",
     "OneLineParser",
@@ -43,6 +47,7 @@ __all__ = [
     "add_batch_options",
     "add_controller_option",
     "add_foxglove_option",
+    "add_realtime_options",
     "add_weights_option",
     "bind_config",
     "cluster",
@@ -56,6 +61,7 @@ __all__ = [
     "output_file",
     "overwrite_problem",
     "real",
+    "realtime_request",
     "recording_target",
     "road",
     "rt_priority",
@@ -291,6 +297,37 @@ def cpu(text: str) -> int:
     if not 0 <= value < n:
         _fail(f"{text}: this machine has CPUs 0..{n - 1}")
     return value
+
+
+#: ``--rt-priority``'s default: the loop thread's SCHED_FIFO priority
+DEFAULT_RT_PRIORITY = 50
+
+
+def add_realtime_options(parser: argparse.ArgumentParser, *, host_check: bool = False
+                         ) -> None:
+    """``--no-realtime``, ``--rt-priority P`` and ``--cpu N`` (repeatable): the loop's
+    real-time set-up as ``rig run`` asks for it (:func:`realtime_request`);
+    ``host_check``: the help of ``rig check-host``, which measures with the same set-up."""
+    parser.add_argument("--no-realtime", action="store_true",
+                        help="measure without the real-time set-up" if host_check else
+                        "skip the real-time set-up (SCHED_FIFO, mlockall, gc freeze...)")
+    parser.add_argument("--rt-priority", type=rt_priority, default=DEFAULT_RT_PRIORITY,
+                        metavar="P",
+                        help="SCHED_FIFO priority, as `rig run` (0 = none)" if host_check
+                        else "SCHED_FIFO priority of the loop thread (0 = none)")
+    parser.add_argument("--cpu", type=cpu, action="append", default=None, metavar="N",
+                        help="pin to CPU N (repeatable), as `rig run`" if host_check
+                        else "pin the loop to CPU N (repeatable)")
+
+
+def realtime_request(args: argparse.Namespace) -> RealtimeRequest | None:
+    """The set-up the options of :func:`add_realtime_options` ask for (None:
+    ``--no-realtime``)."""
+    from rig.rt.realtime import RealtimeRequest
+
+    if args.no_realtime:
+        return None
+    return RealtimeRequest(fifo_priority=args.rt_priority, cpus=tuple(args.cpu or ()))
 
 
 # ---------------------------------------------------------------------------- files

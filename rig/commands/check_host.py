@@ -19,12 +19,7 @@ from rig import argtypes, strict_json
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=argtypes.real(0.0, 3600.0, "s", lo_open=True),
                    default=10.0, metavar="N", help="measure for N seconds (default 10)")
-    p.add_argument("--rt-priority", type=argtypes.rt_priority, default=50, metavar="P",
-                   help="SCHED_FIFO priority, as `rig run` (0 = none)")
-    p.add_argument("--cpu", type=argtypes.cpu, action="append", default=None, metavar="N",
-                   help="pin to CPU N (repeatable), as `rig run`")
-    p.add_argument("--no-realtime", action="store_true",
-                   help="measure without the real-time set-up")
+    argtypes.add_realtime_options(p, host_check=True)
     p.add_argument("--no-cyclictest", action="store_true",
                    help="do not run cyclictest alongside")
     p.add_argument("--json", action="store_true", help="print the result as strict JSON")
@@ -37,12 +32,10 @@ def _us(x: float) -> str:
 def run(args: argparse.Namespace) -> int:
     from rig.rt import cyclictest
     from rig.rt.hostcheck import Latency, check_host
-    from rig.rt.realtime import RealtimeRequest
 
     cfg = load_config(args.config)
     cpus = tuple(args.cpu or ())
-    rt = None if args.no_realtime else RealtimeRequest(fifo_priority=args.rt_priority,
-                                                       cpus=cpus)
+    rt = argtypes.realtime_request(args)
     ct: cyclictest.CyclictestRun | str | None = None
     if not args.no_cyclictest:
         ct = cyclictest.start(args.seconds, round(cfg.sample_time_s * 1e6),

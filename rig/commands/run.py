@@ -49,12 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     argtypes.add_foxglove_option(p)
     argtypes.add_controller_option(p, tuple(BANK_MODES), "fuzzy")
     argtypes.add_weights_option(p, None)
-    p.add_argument("--no-realtime", action="store_true",
-                   help="skip the real-time set-up (SCHED_FIFO, mlockall, gc freeze...)")
-    p.add_argument("--rt-priority", type=argtypes.rt_priority, default=50, metavar="P",
-                   help="SCHED_FIFO priority of the loop thread (0 = none)")
-    p.add_argument("--cpu", type=argtypes.cpu, action="append", default=None, metavar="N",
-                   help="pin the loop to CPU N (repeatable)")
+    argtypes.add_realtime_options(p)
     p.add_argument("--json", action="store_true",
                    help="print the final status as strict JSON (null for a non-finite value)")
     p.add_argument("-v", "--verbose", action="store_true")
@@ -62,7 +57,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from rig.recording.recorder import RecorderStartError
-    from rig.rt.realtime import RealtimeRequest
     from rig.rt.stop_signals import StopSignals
     from rig.service.runner import Service, ServiceOptions
 
@@ -70,8 +64,7 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     cfg = argtypes.with_foxglove(load_config(args.config), args.foxglove)
-    rt = None if args.no_realtime else RealtimeRequest(
-        fifo_priority=args.rt_priority, cpus=tuple(args.cpu or ()))
+    rt = argtypes.realtime_request(args)
     opts = ServiceOptions(
         design_path=args.design, interface=args.interface, channel=args.channel,
         arm=args.arm or args.excite, duration_s=args.duration, excite=args.excite,

@@ -8,14 +8,23 @@ plus the writers' buffers, whatever the length of the run."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Final
 
 from rig.export.tables import RunTables, TableSchema, clock_offset_ns
 from rig.recording.run_data import STREAM_BATCH_TICKS, RunData, stream_run
 
-__all__ = ["ExportSummary", "export_run"]
+__all__ = ["STAGES", "ExportSummary", "export_run"]
+
+#: the stages of an export, in order, as :attr:`ExportSummary.stage_s` names them:
+#: ``scan`` the first pass (read, decode, decide the columns), ``read`` the second
+#: pass's reading and decoding, ``columns`` laying the batches out as columns,
+#: ``write`` handing them to the writer, ``finish`` the writer's last step (MF4: the
+#: file is compressed and written; Parquet: the files are closed)
+STAGES: Final = ("scan", "read", "columns", "write", "finish")
 
 
 @dataclass
@@ -26,6 +35,8 @@ class ExportSummary:
     topics: int = 0
     batches: int = 0
     skipped: list[str] = field(default_factory=list)
+    #: wall seconds per stage (:data:`STAGES`)
+    stage_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
 
 
 def export_run(src: str | Path, fmt: str, out: str | Path, *, comment: str = "",
@@ -33,16 +44,20 @@ def export_run(src: str | Path, fmt: str, out: str | Path, *, comment: str = "",
     """Export the recording ``src`` as ``fmt`` (``mf4``: the new file ``out``;
     ``parquet``: into the new, empty directory ``out``)."""
     schema = TableSchema()
+    t = time.perf_counter()
     head = stream_run(src, schema.observe, batch_ticks=batch_ticks)
     offset = clock_offset_ns(head)
     summary = ExportSummary(head, skipped=schema.skipped)
+    summary.stage_s["scan"] = time.perf_counter() - t
     if fmt == "mf4":
         from rig.export.mf4 import Mf4Stream
 
         mf4 = Mf4Stream((schema.t0_ns or 0) + offset, comment=comment)
         try:
             _stream(src, schema, offset, mf4.add, summary, batch_ticks)
+            t = time.perf_counter()
             mf4.save(out)
+            summary.stage_s["finish"] = time.perf_counter() - t
         finally:
             mf4.close()
     else:
@@ -52,19 +67,30 @@ def export_run(src: str | Path, fmt: str, out: str | Path, *, comment: str = "",
         try:
             _stream(src, schema, offset, pq.add, summary, batch_ticks)
         finally:
+            t = time.perf_counter()
             pq.close()
+            summary.stage_s["finish"] = time.perf_counter() - t
     return summary
 
 
 def _stream(src: str | Path, schema: TableSchema, offset: int,
             add: Callable[[RunTables], None],
             summary: ExportSummary, batch_ticks: int) -> None:
+    stage_s = summary.stage_s
+
     def on_batch(batch: RunData) -> None:
+        t0 = time.perf_counter()
         tables = schema.tables(batch, offset)
+        t1 = time.perf_counter()
         add(tables)
+        t2 = time.perf_counter()
+        stage_s["columns"] += t1 - t0
+        stage_s["write"] += t2 - t1
         summary.records += len(batch.records)
         summary.frames += len(batch.frames)
         summary.topics = max(summary.topics, len(tables.topics))
         summary.batches += 1
 
+    t = time.perf_counter()
     stream_run(src, on_batch, batch_ticks=batch_ticks)
+    stage_s["read"] = time.perf_counter() - t - stage_s["columns"] - stage_s["write"]

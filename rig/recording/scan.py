@@ -9,18 +9,20 @@ Python API :func:`rig.recording.run_data.read_run` (every frame, record and even
 objects).  It names what is wrong with a file (not an MCAP, foreign, another format
 version, missing channels, truncated or corrupt at byte N, damaged summary or closing
 magic, a missing or foreign segment of a run) and reads a truncated file up to its last
-complete chunk (docs/recording.md, "Reading"; docs/replay.md, "The scanner").
+complete chunk (docs/recording.md, "Reading"; docs/replay.md, "The scanner").  A file
+is read record by record: memory holds one chunk, whatever the size of the file.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import struct
 import zlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, BinaryIO, Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -294,44 +296,55 @@ class _Segment:
         self.res.complete = False
         self.res.stopped_at = why
 
-    def _read(self) -> bytes:
-        """The file, after its first 8 bytes were found to be the MCAP magic (a device
-        or a large file of something else is never read whole)."""
+    def _open(self) -> tuple[BinaryIO, int]:
+        """The file, positioned after its first 8 bytes (found to be the MCAP magic: a
+        device or a large file of something else is never read), and its size (the
+        bytes read when it is cut inside the magic)."""
         path = self.path
         try:
             f = open_regular(path)
         except NotRegularFileError as exc:
             raise RecordingError(str(exc)) from None
-        with f:
+        try:
             magic = f.read(len(MCAP_MAGIC))
             if len(magic) < len(MCAP_MAGIC) and MCAP_MAGIC.startswith(magic):
-                return magic                  # cut inside the magic (scan() says so)
+                return f, len(magic)          # cut inside the magic (scan() says so)
             if magic != MCAP_MAGIC:
                 raise RecordingError(f"{path}: not an MCAP file (first bytes {magic!r}, "
                                      f"expected {MCAP_MAGIC!r})")
-            return magic + f.read()
+            return f, os.fstat(f.fileno()).st_size
+        except BaseException:
+            f.close()
+            raise
 
     def scan(self) -> None:
+        f, size = self._open()
+        with f:
+            self._scan(f, size)
+
+    def _scan(self, f: BinaryIO, size: int) -> None:
+        """Read the records one at a time (memory: one record, i.e. one chunk, whatever
+        the size of the file), the data section's CRC running over them."""
         path = self.path
-        buf = self._read()
-        size = len(buf)
         res = self.res
-        view = memoryview(buf)
         pending: bytes | None = None          # a decompressed chunk awaiting its indexes
-        index: dict[int, NDArray[np.uint64]] = {}
+        index: dict[int, NDArray[np.uint64]] | None = {}  # None: an index is unusable
         off = 8
+        data_crc = zlib.crc32(MCAP_MAGIC)     # of bytes 0 .. off
         if size < off:
             self._stop(f"truncated at byte {size} of {size}: inside the opening magic")
             return
         while off < size:
-            if off + 9 > size:
+            head = f.read(9) if off + 9 <= size else b""
+            if len(head) < 9:
                 self._stop(f"truncated at byte {off} of {size}: incomplete record header")
                 break
-            op, ln = _REC.unpack_from(buf, off)
+            op, ln = _REC.unpack(head)
             start = off + 9
             end = start + ln
             name = _OP_NAMES.get(op, f"opcode 0x{op:02x}")
-            if end > size:
+            body = f.read(ln) if end <= size else b""
+            if len(body) < ln:               # past the end (or the file shrank meanwhile)
                 self._stop(f"truncated at byte {off} of {size}: {name} record of {ln} bytes "
                            "runs past the end of the file")
                 break
@@ -339,57 +352,62 @@ class _Segment:
                 assert self.chain is not None
                 self._refuse(self.chain.check_head(path, None))
                 return
+            crc_before, data_crc = data_crc, zlib.crc32(body, zlib.crc32(head, data_crc))
             try:
                 if op == _OP_MESSAGE_INDEX:
-                    if pending is not None:
-                        (cid,) = _U16.unpack_from(buf, start)
-                        (nbytes,) = _U32.unpack_from(buf, start + 2)
-                        pairs = np.frombuffer(buf, dtype="<u8", count=nbytes // 8,
-                                              offset=start + 6)
-                        index[cid] = pairs[1::2]
+                    if pending is not None and index is not None:
+                        (cid,) = _U16.unpack_from(body, 0)
+                        (nbytes,) = _U32.unpack_from(body, 2)
+                        if 6 + nbytes > ln:   # no CRC on indexes: walk the chunk
+                            index = None
+                        else:
+                            pairs = np.frombuffer(body, dtype="<u8", count=nbytes // 8,
+                                                  offset=6)
+                            index[cid] = pairs[1::2]
                     off = end
                     continue
                 if pending is not None:       # the chunk's indexes are complete
                     self._chunk(pending, index)
                     pending = None
+                if op == _OP_DATA_END:
+                    self._data_end(f, size, body, crc_before, off, end)
+                    return
                 if op == _OP_CHUNK:
-                    _, _, usize, crc = _CHUNK.unpack_from(buf, start)
-                    compression, o = _str(view, start + 28)
-                    (rlen,) = _U64.unpack_from(buf, o)
-                    raw = _decompress(compression, view[o + 8:o + 8 + rlen], usize)
+                    _, _, usize, crc = _CHUNK.unpack_from(body, 0)
+                    compression, o = _str(body, 28)
+                    (rlen,) = _U64.unpack_from(body, o)
+                    raw = _decompress(compression, memoryview(body)[o + 8:o + 8 + rlen],
+                                      usize)
                     if len(raw) != usize:
                         raise ValueError(f"decompressed {len(raw)} bytes, header says {usize}")
                     if crc and zlib.crc32(raw) != crc:
                         raise ValueError("CRC mismatch")
                     pending, index = raw, {}
                 elif op == _OP_MESSAGE:
-                    res.messages += self._walk(bytes(buf[off:end]))
+                    res.messages += self._walk(head + body)
                 elif op == _OP_CHANNEL:
-                    self._channel(view, start)
+                    self._channel(body, 0)
                 elif op == _OP_HEADER:
-                    res.profile, o = _str(view, start)
-                    res.library, _ = _str(view, o)
+                    res.profile, o = _str(body, 0)
+                    res.library, _ = _str(body, o)
                 elif op == _OP_METADATA:
-                    mname, o = _str(view, start)
-                    if not self._metadata(mname, _str_map(view, o)[0]):
+                    mname, o = _str(body, 0)
+                    if not self._metadata(mname, _str_map(body, o)[0]):
                         return
                 elif op == _OP_ATTACHMENT and self.first:
-                    aname, o = _str(view, start + 16)
-                    _, o = _str(view, o)
-                    (dlen,) = _U64.unpack_from(buf, o)
+                    aname, o = _str(body, 16)
+                    _, o = _str(body, o)
+                    (dlen,) = _U64.unpack_from(body, o)
                     dend = o + 8 + dlen
-                    if dend + 4 > end:
+                    if dend + 4 > ln:
                         raise ValueError("attachment data runs past its record")
-                    (acrc,) = _U32.unpack_from(buf, dend)
-                    if acrc and zlib.crc32(view[start:dend]) != acrc:
+                    (acrc,) = _U32.unpack_from(body, dend)
+                    if acrc and zlib.crc32(memoryview(body)[:dend]) != acrc:
                         why = f"CRC mismatch in its Attachment record at byte {off}"
                         res.damaged_attachments[aname] = why
                         res.notes.append(f"attachment '{aname}' damaged ({why}): not used")
                     else:
-                        res.attachments[aname] = bytes(buf[o + 8:dend])
-                elif op == _OP_DATA_END:
-                    self._data_end(buf, off, end)
-                    return
+                        res.attachments[aname] = body[o + 8:dend]
                 elif op == _OP_FOOTER:
                     self.footer = True
                     return
@@ -411,16 +429,19 @@ class _Segment:
             except Exception as exc:
                 self._stop(f"corrupt chunk before byte {off} ({type(exc).__name__}: {exc})")
 
-    def _data_end(self, buf: bytes, off: int, end: int) -> None:
-        """At the DataEnd record (every chunk handed out): the data-section CRC, then
-        the Footer, its summary CRC and the closing magic (rig.recording.segments)."""
-        (crc,) = _U32.unpack_from(buf, off + 9)
-        if crc and zlib.crc32(memoryview(buf)[:off]) != crc:
+    def _data_end(self, f: BinaryIO, size: int, body: bytes, data_crc: int, off: int,
+                  end: int) -> None:
+        """At the DataEnd record at ``off`` (every chunk handed out): the data-section
+        CRC (``data_crc``: of the bytes before it), then the Footer, its summary CRC and
+        the closing magic (rig.recording.segments)."""
+        (crc,) = _U32.unpack_from(body, 0)
+        if crc and data_crc != crc:
             self._stop(f"data section damaged (CRC mismatch over bytes 0-{off}): the "
                        "chunks passed their own CRCs and were read, a record between them "
                        "(metadata, attachment, index) is damaged")
             return
-        tail = tail_problem(lambda o, n: buf[o:o + n], len(buf), end)
+        fd = f.fileno()
+        tail = tail_problem(lambda o, n: os.pread(fd, n, o), size, end)
         if tail:
             self._stop(f"{tail}; every chunk before it was read")
             return
