@@ -331,7 +331,10 @@ class TelemetryPublisher:
 
     def _status(self) -> dict[str, Any]:
         status = dict(self._status_provider())
-        status["telemetry"] = self.status()
+        # the provider's own telemetry entry (e.g. the telemetry process's) stays, the
+        # session's state on top
+        mine = status.get("telemetry")
+        status["telemetry"] = {**(mine if isinstance(mine, dict) else {}), **self.status()}
         return status
 
     def _refresh_status(self) -> tuple[bool, bytes]:
