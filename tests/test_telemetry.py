@@ -674,8 +674,13 @@ def test_every_operator_command_end_to_end(port: int) -> None:
         return got[0]
 
     def status() -> dict[str, Any]:
-        got = query(s2, "rig/status")
-        return got[0][1] if got else {}
+        """A status reply (waiting out the per-peer rate limit of status queries)."""
+        end = time.monotonic() + 10.0
+        while True:
+            got = query(s2, "rig/status")
+            if (got and got[0][0]) or time.monotonic() > end:
+                return got[0][1] if got else {}
+            time.sleep(0.1)
 
     try:
         assert svc.telemetry.wait_connected(10), svc.telemetry.error
@@ -920,4 +925,43 @@ def test_status_and_commands_are_rate_limited(port: int) -> None:
         assert st["status_refused"] == len(refused) and st["commands_refused"] == 8
     finally:
         s2.close()
+        r.tp.close()
+
+
+def test_peer_buckets_give_each_peer_its_share() -> None:
+    """rig.rate_limit.PeerBuckets (clock frozen: counts, not timing): a peer that used up
+    its burst is refused while another still gets its own; past MAX_PEERS the newcomers
+    share one bucket, so memory stays bounded."""
+    from rig.rate_limit import MAX_PEERS, OVERFLOW_PEER, PeerBuckets
+
+    b = PeerBuckets(1.0, 2, clock=lambda: 0.0)
+    assert [b.take("a") for _ in range(4)] == [True, True, False, False]
+    assert [b.take("b") for _ in range(3)] == [True, True, False]
+    assert b.refused == {"a": 2, "b": 1}
+    for i in range(MAX_PEERS):
+        b.take(f"p{i}")
+    assert len(b._buckets) == MAX_PEERS + 1 and OVERFLOW_PEER in b._buckets
+
+
+def test_status_queries_are_limited_per_peer(port: int) -> None:
+    """A client flooding status queries on one key expression uses up its own share
+    ([telemetry] status_queries_per_peer_s / status_peer_burst); a query on another key
+    expression (no source id: Zenoh 1.x's default) is still answered."""
+    from rig.rate_limit import PeerBuckets
+
+    r = Rig(port, status_queries_per_peer_s=0.1, status_peer_burst=2, status_burst=1000)
+    r.tp._status_peers = PeerBuckets(0.1, 2, clock=lambda: 0.0)
+    assert r.tp.wait_connected(10), r.tp.error
+    s2, s3 = client_session(port), client_session(port)
+    try:
+        assert wait_for(lambda: r.tp._status_reply is not None)
+        flood = [ok for _ in range(10) for ok, _ in query(s2, "rig/status")]
+        assert flood.count(True) == 2 and flood.count(False) == 8
+        other = [ok for ok, _ in query(s3, "rig/*")]
+        assert other == [True]
+        st = r.tp.status()
+        assert st["status_refused_per_peer"] == {"key:rig/status": 8}
+    finally:
+        s2.close()
+        s3.close()
         r.tp.close()
