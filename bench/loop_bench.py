@@ -10,10 +10,14 @@ that is not counted):
 2. ``rec`` / ``tel``: the MCAP recording (writer process) or the Zenoh telemetry
    (loopback) on;
 3. ``rec+tel``: both on;
-4. ``fox``: the live Foxglove view (rig/foxglove_server.py) serving, no client;
-   ``fox+client``: with a client (``bench.foxglove_client``, its own process) subscribed
-   to every channel and reading; ``fox+stalled``: with a client that subscribed and
-   never reads again; ``rec+tel+fox+client``: everything on;
+4. ``fox``: the live Foxglove view (in the telemetry process, rig/telemetry_process)
+   serving, no client; ``fox+client``: with a client (``bench.foxglove_client``, its own
+   process) subscribed to every channel and reading; ``fox+stalled``: with a client
+   that subscribed and never reads again; ``fox+flood``: with a client flooding invalid
+   messages, forged op names and subscriptions of 10,000 unknown channels;
+   ``tel+zflood``: the Zenoh telemetry with a client sending 1,000 status queries/s
+   (``bench.zenoh_status_flood``); ``rec+tel+fox+client``: everything on (the issue's
+   "at most 1.1 x the bare loop's step p99");
 5. ``sleeper``: no loop and no rig, a bare SCHED_FIFO thread with the loop's real-time
    set-up that only sleeps to the same absolute 1 ms deadlines: the floor the machine
    gives any real-time task, measured in the same rounds.
@@ -50,15 +54,18 @@ import numpy as np
 
 WARM_S = 0.5
 SEGMENT_S = 10.0
-#: case -> (recording, telemetry, foxglove view, its client: "" none, "read", "stalled")
+#: case -> (recording, telemetry, foxglove view, the client: "" none, "read", "stalled",
+#: "flood" (Foxglove clients), "zflood" (a Zenoh status flood))
 CASES = {"bare": (False, False, False, ""), "rec": (True, False, False, ""),
          "tel": (False, True, False, ""), "rec+tel": (True, True, False, ""),
          "fox": (False, False, True, ""), "fox+client": (False, False, True, "read"),
          "fox+stalled": (False, False, True, "stalled"),
+         "fox+flood": (False, False, True, "flood"),
+         "tel+zflood": (False, True, False, "zflood"),
          "rec+tel+fox+client": (True, True, True, "read")}
-#: foxglove case -> the case it is compared with (the same without the view)
+#: client case -> the case it is compared with (the same without the client or view)
 FOX_BASE = {"fox": "bare", "fox+client": "bare", "fox+stalled": "bare",
-            "rec+tel+fox+client": "rec+tel"}
+            "fox+flood": "fox", "tel+zflood": "tel", "rec+tel+fox+client": "bare"}
 SLEEPER = "sleeper"     # the bare SCHED_FIFO sleeper (no loop, no rig)
 LATE_US = 500.0         # a period woken later than this counts as late
 
@@ -85,15 +92,16 @@ def _harness(cfg: Any, design_path: str, road_s: float, rig_cpus: tuple[int, ...
 
 
 def _start_client(port: int, mode: str) -> Any:
-    """``bench.foxglove_client`` in its own process, subscribed when this returns."""
+    """``bench.foxglove_client`` (or ``bench.zenoh_status_flood`` for ``zflood``) in its
+    own process, subscribed (connected) when this returns."""
     import subprocess
 
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "bench.foxglove_client", str(port),
-         *(["--stalled"] if mode == "stalled" else [])],
-        stdout=subprocess.PIPE, text=True)
+    cmd = (["bench.zenoh_status_flood", str(port)] if mode == "zflood" else
+           ["bench.foxglove_client", str(port),
+            *([f"--{mode}"] if mode in ("stalled", "flood") else [])])
+    proc = subprocess.Popen([sys.executable, "-m", *cmd], stdout=subprocess.PIPE, text=True)
     line = proc.stdout.readline() if proc.stdout is not None else ""
-    if not line.startswith("subscribed"):
+    if not line.startswith(("subscribed", "connected")):
         proc.kill()
         proc.wait()
         raise RuntimeError(f"foxglove bench client did not subscribe: {line!r}")
@@ -148,7 +156,9 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
     svc.loop.lifecycle.add_listener(
         lambda tr: faults.append(tr.fault_code.name) if tr.state is LifecycleState.FAULT
         else None)
-    client_proc = _start_client(svc.foxglove.port, client) if client else None
+    port = (int(cfg.telemetry.endpoints[0].rsplit(":", 1)[1]) if client == "zflood"
+            else svc.foxglove.port if client else 0)
+    client_proc = _start_client(port, client) if client else None
     try:
         res = h.run(on_tick=on_tick)
     finally:
@@ -157,7 +167,7 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
             client_proc.terminate()              # our own child, by its PID
             out, _ = client_proc.communicate(timeout=30)
             for line in out.splitlines():
-                if line.startswith("messages "):
+                if line.startswith(("messages ", "queries ")):
                     client_messages = int(line.split()[1])
     lat, step = svc.loop.timing.recent()
     rig = res.rig_stats
@@ -478,13 +488,22 @@ def format_report(res: dict[str, Any]) -> str:
                f"step p99 {full['step_p99_us']:.1f} vs {bare['step_p99_us']:.1f} us "
                f"(x{res['p99_step_ratio']:.2f}; median of the {res['rounds']} rounds' "
                f"ratios x{res['p99_step_ratio_median_of_rounds']:.2f}); goal: at most x1.10")
+    if "rec+tel+fox+client" in cases:
+        c = cases["rec+tel+fox+client"]
+        ratio = _ratio(c["step_p99_us"], bare["step_p99_us"])
+        out.append(f"rec+tel+fox+client vs bare: step p99 {c['step_p99_us']:.1f} vs "
+                   f"{bare['step_p99_us']:.1f} us (x{ratio:.2f}; goal: at most x1.10, "
+                   f"{'met' if ratio <= 1.1 else 'NOT met'}), lateness p99 "
+                   f"{c['lateness_p99_us']:.1f} vs {bare['lateness_p99_us']:.1f} us")
     for name, r in res.get("foxglove_vs_off", {}).items():
         c = cases[name]
         out.append(f"{name} vs {r['base']}: lateness p99 x{r['lateness_p99_ratio']:.2f}, "
                    f"step p99 x{r['step_p99_ratio']:.2f}, periods late "
-                   f"{r['periods_late_pct']:.3f} vs {r['base_periods_late_pct']:.3f} %; "
+                   f"{r['periods_late_pct']:.3f} vs {r['base_periods_late_pct']:.3f} %, "
+                   f"faults {len(c['faults'])} vs {len(cases[r['base']]['faults'])}; "
                    f"view published {c['fox_published']:.0f}, dropped "
-                   f"{c['fox_dropped']:.0f}, client received {c['client_messages']:.0f}")
+                   f"{c['fox_dropped']:.0f}, client received / sent "
+                   f"{c['client_messages']:.0f}")
     sleeper = cases.get(SLEEPER)
     for name, c in cases.items():
         if name == SLEEPER:

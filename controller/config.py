@@ -637,6 +637,17 @@ class TelemetryConfig:
                                doc="operator commands taken per second, all peers "
                                    "together; the rest are refused unread")
     command_burst: int = _f(20, lo=1, hi=10_000, doc="operator commands taken at once")
+    status_queries_per_peer_s: float = _f(
+        10.0, lo=0.1, hi=10_000.0,
+        doc="status queries answered per second to one peer (its Zenoh id when the query "
+            "names one, else the key expression it used), within status_queries_per_s")
+    status_peer_burst: int = _f(10, lo=1, hi=100_000,
+                                doc="status queries answered to one peer at once")
+    commands_per_peer_s: float = _f(5.0, lo=0.1, hi=1000.0,
+                                    doc="operator commands taken per second from one peer, "
+                                        "within commands_per_s")
+    command_peer_burst: int = _f(10, lo=1, hi=10_000,
+                                 doc="operator commands taken from one peer at once")
     zenoh_config_file: str = _f("", doc="json5 file merged first (TLS, access_control); "
                                 "mode/endpoints/scouting above override it")
 

@@ -146,6 +146,24 @@ class FoxgloveView:
             return False
         return True
 
+    def offer_packed(self, item: bytes) -> bool:
+        """Queue one tick record packed already (an ``ITEM_TICK`` of the layout, as the
+        telemetry process gets it from the loop); False when dropped."""
+        if self._thread is None:
+            return False
+        try:
+            self._queue.put_nowait(("tick", item))
+        except queue.Full:
+            self.dropped += 1
+            return False
+        return True
+
+    def set_layout(self, layout: TickLayout) -> None:
+        """The tick records that follow have this layout (the publisher thread decodes
+        each record with the decoder of the moment it takes it)."""
+        self._packer = TickPacker(layout)
+        self._decoder = TickDecoder(layout)
+
     def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool:
         """Queue one event (lifecycle, fault, command, note); False when dropped."""
         if self._thread is None:

@@ -26,11 +26,11 @@ import zenoh
 
 from controller.config import TelemetryConfig
 from rig.operator_commands import OPERATOR_COMMANDS, brief, validate_command
-from rig.rate_limit import TokenBucket
+from rig.rate_limit import PeerBuckets, TokenBucket
 from rig.recording.schema import encode_json
 
 __all__ = ["MAX_ARGUMENT_BYTES", "MAX_ERROR_CHARS", "SESSION_ATTEMPTS", "TelemetryPublisher",
-           "zenoh_config"]
+           "peer_of", "zenoh_config"]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +51,16 @@ _RATE_LIMITED_STATUS = json.dumps({"error": "rate limited: too many status queri
 _RATE_LIMITED_COMMAND = json.dumps({"accepted": False,
                                     "error": "rate limited: too many commands"})
 _RUST_SOURCE = re.compile(r" at /\S+\.rs:\d+\.?")
+
+
+def peer_of(source_info: Any, key_expr: object) -> str:
+    """Who a query or put comes from, for the per-peer limits: the Zenoh id of its
+    source when it names one (``source_info``, what the sender claims), else the key
+    expression it used (a flood of one client uses one or a few)."""
+    sid = getattr(source_info, "source_id", None) if source_info is not None else None
+    if sid is not None:
+        return _cap(f"zid:{sid}", 80)
+    return _cap(f"key:{key_expr}", 80)
 
 
 def _cap(text: str, limit: int = MAX_ERROR_CHARS) -> str:
@@ -132,12 +142,14 @@ class TelemetryPublisher:
         self.dropped = 0
         self.published = 0
         self.commands_received = 0
-        # Zenoh (1.x Python) tells a queryable nothing about who asked, and a put's
-        # source_info is what the sender claims: the limits are over all peers together
+        # a query or put is let through by its peer's bucket (peer_of), then by the
+        # bucket of all peers together: one peer flooding uses up its own share only
         self._status_reply: tuple[bool, bytes] | None = None   # (ok, JSON) for queries
         self._status_at = 0.0
         self._status_limit = TokenBucket(cfg.status_queries_per_s, cfg.status_burst)
         self._command_limit = TokenBucket(cfg.commands_per_s, cfg.command_burst)
+        self._status_peers = PeerBuckets(cfg.status_queries_per_peer_s, cfg.status_peer_burst)
+        self._command_peers = PeerBuckets(cfg.commands_per_peer_s, cfg.command_peer_burst)
         self.attempts = 0              # attempts to open the session so far
         self.state = "connecting"
         self.error: str | None = None  # why the session is not up (last failure)
@@ -191,14 +203,18 @@ class TelemetryPublisher:
 
     def status(self) -> dict[str, Any]:
         """State of the telemetry itself (plain values; any thread)."""
+        status_peers, command_peers = self._status_peers.refused, self._command_peers.refused
         return {"state": self.state, "error": self.error, "attempts": self.attempts,
                 "session_attempts": self.session_attempts,
                 "endpoints": list(self.cfg.endpoints), "listen": self.cfg.listen,
                 "published": self.published, "dropped": self.dropped,
                 "commands_enabled": self.cfg.commands_enabled,
                 "commands_received": self.commands_received,
-                "status_refused": self._status_limit.refused,
-                "commands_refused": self._command_limit.refused}
+                "status_refused": self._status_limit.refused + sum(status_peers.values()),
+                "commands_refused": (self._command_limit.refused
+                                     + sum(command_peers.values())),
+                "status_refused_per_peer": _most(status_peers),
+                "commands_refused_per_peer": _most(command_peers)}
 
     def close(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
@@ -331,7 +347,10 @@ class TelemetryPublisher:
 
     def _status(self) -> dict[str, Any]:
         status = dict(self._status_provider())
-        status["telemetry"] = self.status()
+        # the provider's own telemetry entry (e.g. the telemetry process's) stays, the
+        # session's state on top
+        mine = status.get("telemetry")
+        status["telemetry"] = {**(mine if isinstance(mine, dict) else {}), **self.status()}
         return status
 
     def _refresh_status(self) -> tuple[bool, bytes]:
@@ -347,7 +366,7 @@ class TelemetryPublisher:
 
     def _on_status(self, query: zenoh.Query) -> None:
         # the reply goes out on the concrete key, whatever the query's key expression
-        if not self._status_limit.take():
+        if not (self._status_peers.take(_query_peer(query)) and self._status_limit.take()):
             query.reply_err(_RATE_LIMITED_STATUS)
             return
         ok, body = self._status_reply or self._refresh_status()   # None: before the first
@@ -389,7 +408,7 @@ class TelemetryPublisher:
         name = self._command_name(str(query.key_expr))
         if name is None:
             return
-        if not self._command_limit.take():
+        if not (self._command_peers.take(_query_peer(query)) and self._command_limit.take()):
             query.reply_err(_RATE_LIMITED_COMMAND, encoding=zenoh.Encoding.APPLICATION_JSON)
             return
         payload = query.payload.to_bytes() if query.payload is not None else b""
@@ -402,10 +421,24 @@ class TelemetryPublisher:
 
     def _on_command_put(self, sample: zenoh.Sample) -> None:
         name = self._command_name(str(sample.key_expr))
-        if name is None or not self._command_limit.take():
+        if name is None or not (
+                self._command_peers.take(peer_of(sample.source_info, sample.key_expr))
+                and self._command_limit.take()):
             return        # over the limit: dropped unread, no acknowledgement
         _, reply = self._handle(name, sample.payload.to_bytes())
         leaf = name if name in OPERATOR_COMMANDS else "invalid"
         if self._session is not None:
             self._session.put(self._key(f"ack/{leaf}"), json.dumps(reply),
                               encoding=zenoh.Encoding.APPLICATION_JSON)
+
+
+def _query_peer(query: zenoh.Query) -> str:
+    try:
+        return peer_of(query.source_info, query.key_expr)
+    except Exception:          # a query without the fields: one peer of its own
+        return "key:?"
+
+
+def _most(refused: Mapping[str, int], n: int = 8) -> dict[str, int]:
+    """The ``n`` peers refused most (the status stays small however many peers)."""
+    return dict(sorted(refused.items(), key=lambda kv: -kv[1])[:n])

@@ -29,6 +29,7 @@ from controller.stop_contact import EPISODE_GAP_S, stop_contact_settings
 from hil.sim.closed_loop import BankController, cached_design, run_closed_loop, simulate
 from hil.sim.roads import Road, make_road
 from rig.service.loop import TICK_RECORD_FIELDS
+from rig.telemetry_process.child import snapshot_of
 from tests.support.loop_harness import LoopHarness, make_harness
 
 CFG = default_config()
@@ -181,7 +182,8 @@ def test_loop_records_episodes_and_degradations(armed: LoopHarness) -> None:
     keys = [k for k, kind, _ in TICK_RECORD_FIELDS if kind != "array"]
     rec = dict(zip(keys, scalars, strict=True))
     assert rec["stop_contact_s"] == 0.05 and rec["stop_degraded"] is True
-    assert h.loop.status()["stop_degraded"] and h.loop.snapshot()["state"]["stop_degraded"]
+    assert h.loop.status()["stop_degraded"]
+    assert snapshot_of(0, rec, h.loop.status())["state"]["stop_degraded"] is True
     h.rt.stop_contact_s = 0.0
     h.rt.flags = 0
     h.step()

@@ -6,7 +6,6 @@ import json
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -24,6 +23,7 @@ from controller.config import TelemetryConfig, default_config
 from rig.operator_commands import OPERATOR_COMMANDS as COMMANDS
 from rig.operator_commands import validate_command
 from rig.telemetry import TelemetryPublisher, zenoh_config
+from tests.support.stepped_service import SteppedService
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)
@@ -654,74 +654,16 @@ def test_a_failing_session_is_reported_and_given_up(case: str, tmp_path: Path,
 # ---------------------------------------------------------------------------- the service
 
 
-class _SteppedService:
-    """The service's loop stepped tick by tick against the emulated rig on a virtual
-    bus, in a thread: commands over Zenoh reach the loop as they would live, while no
-    real-time deadline depends on the machine's load (lateness is given, not measured).
-    """
-
-    def __init__(self, port: int) -> None:
-        import uuid
-
-        from controller.artifact import load_design, save_design
-        from hil.node import RigNode
-        from hil.sim.closed_loop import cached_design
-        from hil.sim.roads import make_road
-        from rig.bus.core import open_bus
-        from rig.service.runner import Service, ServiceOptions
-
-        cfg = default_config().replace(telemetry={
-            "endpoints": [f"tcp/127.0.0.1:{port}"], "commands_enabled": True})
-        self.cfg = cfg
-        channel = f"tel-e2e-{uuid.uuid4().hex}"
-        self.rig_bus = open_bus(cfg.can, role="rig", interface="virtual", channel=channel)
-        self.ctl_bus = open_bus(cfg.can, role="controller", interface="virtual",
-                                channel=channel)
-        self.node = RigNode(self.rig_bus, cfg,
-                            make_road("rough-course", 11.176, 30.0, cfg.sample_time_s))
-        self._design_dir = Path(tempfile.mkdtemp(prefix="tel-e2e-"))
-        design = self._design_dir / "design.npz"
-        save_design(cached_design(cfg), design)
-        load_design(design, cfg)
-        self.svc = Service(cfg, ServiceOptions(
-            design_path=str(design), recording=False, telemetry=True, realtime=None,
-            install_signal_handlers=False), bus=self.ctl_bus)
-        self.svc.command_timeout_s = 30.0      # the stepping thread may be descheduled
-        self.late_ticks = 0                    # ticks to come with an overrun
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._step, daemon=True)
-        self._thread.start()
-
-    def _step(self) -> None:
-        loop = self.svc.loop
-        period = loop.period_ns
-        t = time.monotonic_ns()
-        while not self._stop.is_set():
-            self.node.tick()
-            late = 0
-            if self.late_ticks:
-                self.late_ticks -= 1
-                late = 5 * period
-            loop.tick(t, late)
-            t += period
-            if loop.tick_count % 20 == 0:
-                time.sleep(0.001)              # let the Zenoh threads in
-
-    def close(self) -> None:
-        import shutil
-
-        self._stop.set()
-        self._thread.join(10)
-        self.svc.close()
-        self.rig_bus.shutdown()
-        self.ctl_bus.shutdown()
-        shutil.rmtree(self._design_dir, ignore_errors=True)
+def _stepped_service(port: int) -> SteppedService:
+    cfg = default_config().replace(telemetry={
+        "endpoints": [f"tcp/127.0.0.1:{port}"], "commands_enabled": True})
+    return SteppedService(cfg)
 
 
 def test_every_operator_command_end_to_end(port: int) -> None:
     """Every command of ``rig.telemetry.COMMANDS`` from a second Zenoh session through
     the service's handler into the running loop, accepted and refused."""
-    rig = _SteppedService(port)
+    rig = _stepped_service(port)
     svc, loop = rig.svc, rig.svc.loop
     s2 = client_session(port)
 
@@ -732,8 +674,13 @@ def test_every_operator_command_end_to_end(port: int) -> None:
         return got[0]
 
     def status() -> dict[str, Any]:
-        got = query(s2, "rig/status")
-        return got[0][1] if got else {}
+        """A status reply (waiting out the per-peer rate limit of status queries)."""
+        end = time.monotonic() + 10.0
+        while True:
+            got = query(s2, "rig/status")
+            if (got and got[0][0]) or time.monotonic() > end:
+                return got[0][1] if got else {}
+            time.sleep(0.1)
 
     try:
         assert svc.telemetry.wait_connected(10), svc.telemetry.error
@@ -978,4 +925,43 @@ def test_status_and_commands_are_rate_limited(port: int) -> None:
         assert st["status_refused"] == len(refused) and st["commands_refused"] == 8
     finally:
         s2.close()
+        r.tp.close()
+
+
+def test_peer_buckets_give_each_peer_its_share() -> None:
+    """rig.rate_limit.PeerBuckets (clock frozen: counts, not timing): a peer that used up
+    its burst is refused while another still gets its own; past MAX_PEERS the newcomers
+    share one bucket, so memory stays bounded."""
+    from rig.rate_limit import MAX_PEERS, OVERFLOW_PEER, PeerBuckets
+
+    b = PeerBuckets(1.0, 2, clock=lambda: 0.0)
+    assert [b.take("a") for _ in range(4)] == [True, True, False, False]
+    assert [b.take("b") for _ in range(3)] == [True, True, False]
+    assert b.refused == {"a": 2, "b": 1}
+    for i in range(MAX_PEERS):
+        b.take(f"p{i}")
+    assert len(b._buckets) == MAX_PEERS + 1 and OVERFLOW_PEER in b._buckets
+
+
+def test_status_queries_are_limited_per_peer(port: int) -> None:
+    """A client flooding status queries on one key expression uses up its own share
+    ([telemetry] status_queries_per_peer_s / status_peer_burst); a query on another key
+    expression (no source id: Zenoh 1.x's default) is still answered."""
+    from rig.rate_limit import PeerBuckets
+
+    r = Rig(port, status_queries_per_peer_s=0.1, status_peer_burst=2, status_burst=1000)
+    r.tp._status_peers = PeerBuckets(0.1, 2, clock=lambda: 0.0)
+    assert r.tp.wait_connected(10), r.tp.error
+    s2, s3 = client_session(port), client_session(port)
+    try:
+        assert wait_for(lambda: r.tp._status_reply is not None)
+        flood = [ok for _ in range(10) for ok, _ in query(s2, "rig/status")]
+        assert flood.count(True) == 2 and flood.count(False) == 8
+        other = [ok for ok, _ in query(s3, "rig/*")]
+        assert other == [True]
+        st = r.tp.status()
+        assert st["status_refused_per_peer"] == {"key:rig/status": 8}
+    finally:
+        s2.close()
+        s3.close()
         r.tp.close()

@@ -62,7 +62,7 @@ from rig.recording.schema import (
 from rig.recording.segments import SEGMENT_END_NAME, segment_path
 
 __all__ = ["CONFIG_ATTACHMENT", "DESIGN_ATTACHMENT", "METADATA_NAME", "McapRunSink", "main",
-           "segment_path"]
+           "segment_path", "stay_out_of_the_loops_way"]
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
@@ -361,8 +361,9 @@ def _online_cpus() -> set[int]:
     return cpus
 
 
-def _stay_out_of_the_loops_way() -> None:
-    """Ignore the stop signals (the loop process ends the writer), drop a real-time
+def stay_out_of_the_loops_way() -> None:
+    """Ignore the stop signals (the loop process ends the writer; the telemetry process
+    too, rig.telemetry_process.child), drop a real-time
     policy inherited from the loop, and leave the loop's CPUs when it is pinned to some
     (systemd ``CPUAffinity=``) and others exist."""
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -379,7 +380,7 @@ def _stay_out_of_the_loops_way() -> None:
 
 
 def main() -> int:
-    _stay_out_of_the_loops_way()
+    stay_out_of_the_loops_way()
     status = _Status(sys.stdout)
     fd = sys.stdin.fileno()
     try:

@@ -10,8 +10,8 @@ skipped and counted).
 The parts, ros2_control-style: the hardware interface
 :class:`rig.service.hardware.RigIO` reads the rig's frames and writes the controller's
 (``read`` / ``write_*``); the update is the runtime bank's step and the PI force loop
-(the ``Runtime`` and ``ForceLoop`` seams of :mod:`rig.service.seams`, with the recorder,
-telemetry and viewer seams); :class:`ControlLoop` is the
+(the ``Runtime`` and ``ForceLoop`` seams of :mod:`rig.service.seams`, with the recorder
+and telemetry seams); :class:`ControlLoop` is the
 manager: lifecycle, fault monitor, operator commands (:mod:`rig.operator_commands`), pacing and
 the outputs (recording, telemetry).
 
@@ -27,9 +27,11 @@ Per tick, in this order (latency from sensor frame to valve command kept short):
 5. ACTIVE: PI force loop -> spool; otherwise the safe command (Enable=0, spool 0);
 6. send ValveCommand (with SensorCounterEcho); heartbeat ControllerStatus at
    ``cfg.safety.heartbeat_hz`` (FaultReport repeated with it while latched);
-7. systemd watchdog ping, telemetry snapshot (``cfg.telemetry.rate_hz``), the
-   recording and the live Foxglove view (``cfg.foxglove.rate_hz``; non-blocking,
-   bounded queues on their own threads / process).
+7. systemd watchdog ping, the recording (its writer process) and the telemetry
+   process (the packed tick record every ``telemetry_every`` ticks: Zenoh and the live
+   Foxglove view; :mod:`rig.telemetry_process`), both non-blocking pipes that drop and
+   count; every ``telemetry_every`` ticks the telemetry process's operator commands are
+   taken (at most one, validated again) and the process's losses recorded.
 
 An exception anywhere in 2-6 is caught: EXCEPTION fault, safe command.  A recording or
 telemetry hand-off that raises is counted (``output_errors``, in ``status()``) and
@@ -61,7 +63,7 @@ from rig.service.hardware import RigIO
 from rig.service.host_lateness import PeerLateness, assess
 from rig.service.lifecycle import CommandResult, Lifecycle, Transition
 from rig.service.safety import DETAIL_SEND, FaultMonitor
-from rig.service.seams import ForceLoop, Recorder, Runtime, Telemetry, Viewer
+from rig.service.seams import ForceLoop, Recorder, Runtime, Telemetry
 from rig.service.timing import TimingStats
 from rig.wire.protocol import (
     DecodeStatus,
@@ -171,17 +173,17 @@ class ControlLoop:
         self.rt = runtime
         self.pi = force_loop
         self._recorder = recorder
+        #: the telemetry process (Zenoh and the live Foxglove view), fed every
+        #: ``telemetry_every`` ticks (its ``tick_every``)
         self.telemetry = telemetry
-        #: the live Foxglove view (set by the service), fed every ``viewer_every`` ticks
-        self.viewer: Viewer | None = None
-        self.viewer_every = max(1, round(cfg.design.sample_rate_hz / cfg.foxglove.rate_hz))
         self.notifier = notifier
         self.clock_ns = clock_ns
         self.period_ns = round(1e9 / cfg.design.sample_rate_hz)
         self.spin_ns = int(spin_ns)
         rate = cfg.design.sample_rate_hz
         self.heartbeat_every = max(1, round(rate / cfg.safety.heartbeat_hz))
-        self.telemetry_every = max(1, round(rate / cfg.telemetry.rate_hz))
+        self.telemetry_every = (max(1, round(rate / cfg.telemetry.rate_hz))
+                                if telemetry is None else telemetry.tick_every)
         #: ticks of good sensor data the estimator needs after a reset before arming
         self.warmup_ticks = (round(cfg.safety.arm_warmup_s * rate) if warmup_ticks is None
                              else warmup_ticks)
@@ -388,8 +390,6 @@ class ControlLoop:
         self._record_event(tr.t_ns, tr.tick, "fault" if tr.state is _FAULT else "lifecycle",
                            tr.as_dict())
         try:
-            if self.telemetry is not None:
-                self.telemetry.offer(self.snapshot())
             if self.notifier is not None:
                 self.notifier.status(f"{tr.state.name}: {tr.reason}")
         except Exception as exc:
@@ -419,17 +419,22 @@ class ControlLoop:
         self.excitation_index = i + 1
         return float(exc[i])
 
+    def record_note(self, detail: Any) -> None:
+        """A ``note`` event at the current tick (e.g. the telemetry process was lost);
+        the loop thread's, or before the loop runs."""
+        self._record_event(self.t_ns, self.tick_count, "note", detail)
+
     def _record_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> None:
-        """An event to the recording and the live view; a failing output never disturbs
-        the loop."""
+        """An event to the recording and the telemetry process; a failing output never
+        disturbs the loop."""
         if self.recorder is not None:
             try:
                 self.recorder.event(t_ns, tick, kind, detail)
             except Exception as exc:
                 self._on_output_error(exc)
-        if self.viewer is not None:
+        if self.telemetry is not None:
             try:
-                self.viewer.offer_event(t_ns, tick, kind, detail)
+                self.telemetry.offer_event(t_ns, tick, kind, detail)
             except Exception as exc:
                 self._on_output_error(exc)
 
@@ -512,18 +517,17 @@ class ControlLoop:
             self.lateness_p99_us = timing.lateness_p99_us()
         try:
             rec = self._recorder
-            viewer = self.viewer
-            view = viewer is not None and tick % self.viewer_every == 0
-            if rec is not None or view:
+            tel = self.telemetry
+            feed = tel is not None and tick % self.telemetry_every == 0
+            if rec is not None or feed:
                 scalars, arrays = self._tick_record(now_ns)
                 if rec is not None:
                     rec.tick_values(now_ns, scalars, arrays)
-                if view:
-                    viewer.offer_tick(now_ns, scalars, arrays)  # type: ignore[union-attr]
+                if feed:
+                    tel.offer_tick(now_ns, scalars, arrays)  # type: ignore[union-attr]
+                    tel.poll(self)                           # type: ignore[union-attr]
             else:
                 self._last_wake_ns = now_ns
-            if self.telemetry is not None and tick % self.telemetry_every == 0:
-                self.telemetry.offer(self.snapshot())
         except Exception as exc:    # the outputs never stop the control loop
             self._on_output_error(exc)
         self.tick_count = tick + 1
@@ -673,54 +677,8 @@ class ControlLoop:
         self.telemetry_dropped = tel.dropped if tel is not None else 0
         return self._record_scalars(self), self._record_arrays(self)
 
-    def snapshot(self) -> dict[str, Any]:
-        """Telemetry snapshot (``cfg.telemetry.rate_hz`` and at every transition).
-
-        Layout agreed with ``rig.telemetry`` (docs/service.md, docs/telemetry.md):
-        ``tick``, ``t_ns``, ``lifecycle``, ``fault`` and the sub-objects ``state`` and
-        ``timing`` (plain Python values; built only at the telemetry rate)."""
-        lc = self.lifecycle
-        timing = self.timing
-        rt = self.rt
-        return {
-            "tick": self.tick_count,
-            "t_ns": self.t_ns,
-            "lifecycle": lc.state.name,
-            "fault": None if lc.fault_code is _NONE else {
-                "code": lc.fault_code.name, "tick": lc.fault_tick,
-                "detail": lc.fault_detail, "message": lc.fault_message},
-            "state": {
-                "rattlespace_m": self.rattlespace_m,
-                "sprung_accel_mps2": self.accel_mps2,
-                "force_meas_n": self.force_meas_n,
-                "force_ref_n": self.force_ref_n,
-                "spool_cmd": self.spool_cmd,
-                "valve_enable": self.enable,
-                "sensor_counter": self.sensor_counter,
-                "firing_weight": rt.firing_weight.tolist(),
-                "q": rt.q.tolist(),
-                "flags": self.bank_flags,
-                "blending": self.blending,
-                "weight_set": self.weight_set,
-                "stop_contact_s": float(rt.stop_contact_s),
-                "stop_degraded": self.stop_degraded,
-            },
-            "timing": {
-                "wake_late_s": self.lateness_ns * 1e-9,
-                "compute_s": self.step_ns * 1e-9,
-                "lateness_p99_s": self.lateness_p99_us * 1e-6,
-                "max_lateness_s": timing.max_lateness_ns * 1e-9,
-                "max_compute_s": timing.max_step_ns * 1e-9,
-                "overruns": timing.overruns,
-                "misses": timing.misses,
-                "skipped": timing.skipped,
-                "dropped_recording": (self.recorder.dropped
-                                      if self.recorder is not None else 0),
-            },
-        }
-
     def status(self) -> dict[str, Any]:
-        """Full status (off the hot path: the telemetry thread's status provider)."""
+        """Full status (off the hot path: built by the telemetry link's status thread)."""
         lc = self.lifecycle
         return {
             "lifecycle": lc.state.name,
@@ -748,7 +706,6 @@ class ControlLoop:
             "timing": self.timing.summary(),
             "dropped_recording": self.recorder.dropped if self.recorder is not None else 0,
             "dropped_telemetry": self.telemetry.dropped if self.telemetry is not None else 0,
-            "dropped_foxglove": self.viewer.dropped if self.viewer is not None else 0,
         }
 
     # ------------------------------------------------------------------ pacing

@@ -1,10 +1,12 @@
 """The controller service: everything built from the configuration, run until told to stop.
 
 ``Service(cfg, ServiceOptions(...))`` loads the design artifact (or designs the bank at
-start), opens the bus, the recording (MCAP, own thread) and the telemetry (Zenoh, own
-thread), starts the live Foxglove view when ``cfg.foxglove.enabled`` (own thread; a port
-that cannot be served is one line in the log and ``status()["foxglove"]``), and builds
-the :class:`rig.service.loop.ControlLoop`.  :meth:`Service.run`:
+start), opens the bus, the recording (MCAP, its writer process), builds the
+:class:`rig.service.loop.ControlLoop` and starts the telemetry process
+(:mod:`rig.telemetry_process`) when the Zenoh telemetry or the live Foxglove view is on:
+every surface a network client can reach lives there, none in this process (a port
+that cannot be served is one line in the log and ``status()["telemetry"]`` /
+``status()["foxglove"]``; a lost process is restarted).  :meth:`Service.run`:
 
 1. real-time set-up of the loop thread (best effort, reported: :mod:`rig.rt.realtime`);
 2. systemd ``READY=1`` (+ ``STATUS=``), the loop then pings ``WATCHDOG=1`` itself at half
@@ -123,8 +125,8 @@ class Service:
         self.bus: Any = None
         self.notifier: Any = None
         self.recorder: Any = None
+        #: the telemetry process (rig.telemetry_process.link.TelemetryLink), or None
         self.telemetry: Any = None
-        self.foxglove: Any = None
         self.loop: Any = None
         self._closed = False
         #: called once the shutdown frames (safe valve command, SHUTDOWN report) are out
@@ -202,26 +204,20 @@ class Service:
                                        clock_ns=self.clock or time.monotonic_ns)
         self.runtime, self.force_loop = self.loop.rt, self.loop.pi
         telemetry_on = cfg.telemetry.enabled if opts.telemetry is None else opts.telemetry
-        if telemetry_on:
-            from rig.telemetry import TelemetryPublisher
-
-            self.telemetry = TelemetryPublisher(cfg.telemetry, self.status,
-                                                self.command_handler,
-                                                on_state=self._telemetry_state)
-            self.loop.telemetry = self.telemetry
-        if cfg.foxglove.enabled:
-            from rig.foxglove_server import FoxgloveView
+        if telemetry_on or cfg.foxglove.enabled:
             from rig.service.loop import tick_record_layout
+            from rig.telemetry_process.link import TelemetryLink
 
-            # a server that cannot start is reported (status, log) and left out
-            self.foxglove = FoxgloveView(
-                cfg.foxglove, tick_record_layout(self.runtime),
-                clock_offset_ns=getattr(self.recorder, "clock_offset_ns", None))
-            if self.foxglove.state == "serving":
-                self.loop.viewer = self.foxglove
-            else:
-                self.notifier.set_note("foxglove", self.foxglove.error)
-        #: how long a telemetry command waits for the loop to apply it [s]
+            # the telemetry process: a session or server that cannot start is reported
+            # (status, log, systemd STATUS=) and control goes on without it
+            self.telemetry = TelemetryLink(
+                cfg, tick_record_layout(self.runtime), zenoh=telemetry_on,
+                foxglove=cfg.foxglove.enabled, status_provider=self.status,
+                clock_offset_ns=getattr(self.recorder, "clock_offset_ns", None),
+                on_note=self.notifier.set_note)
+            self.loop.telemetry = self.telemetry
+            self.loop.telemetry_every = self.telemetry.tick_every
+        #: how long :meth:`command_handler` waits for the loop to apply a command [s]
         self.command_timeout_s = 0.05
         self._arm_pending = opts.arm
         arm_after_s = max(opts.arm_after_s, cfg.excitation.rest_s) if opts.excite \
@@ -238,9 +234,7 @@ class Service:
         self._closed = True
         steps: list[tuple[str, Callable[[], None]]] = []
         if self.telemetry is not None:
-            steps.append(("telemetry", self.telemetry.close))
-        if self.foxglove is not None:
-            steps.append(("foxglove view", self.foxglove.close))
+            steps.append(("telemetry process", self.telemetry.close))
         if self.recorder is not None:
             steps.append(("recording", self._discard_recording))
         if self.bus is not None and self._own_bus:
@@ -280,9 +274,17 @@ class Service:
         return (f"recording {rec.base_path} FAILED, it is incomplete: {rec.error} "
                 f"({rec.dropped} items lost)")
 
+    @property
+    def foxglove(self) -> Any:
+        """The live view as the telemetry process reports it (``state``, ``url``,
+        ``port``, ``error``, ``status()``), None when it is off."""
+        tel = self.telemetry
+        return tel.foxglove if tel is not None and tel.foxglove_on else None
+
     def status(self) -> dict[str, Any]:
-        """Status for the telemetry's ``status`` queryable (runs on the telemetry
-        publisher thread every ``rig.telemetry.STATUS_REFRESH_S``, and for ``--json``)."""
+        """The service's status (the telemetry link's status thread builds it every
+        ``rig.telemetry_process.feed.STATUS_PERIOD_S`` for ``rig/status`` queries, which
+        the telemetry process answers; and ``--json``)."""
         s = self.loop.status()
         s["realtime"] = self.realtime_report.as_dict()
         s["recording"] = str(self.recording_path) if self.recording_path else None
@@ -297,17 +299,11 @@ class Service:
         or stopped."""
         return {"state": "off"} if self.foxglove is None else self.foxglove.status()
 
-    def _telemetry_state(self, state: str, error: str | None) -> None:
-        """Telemetry thread: a failing session shows in systemd's STATUS= (and the log,
-        by the publisher) while control goes on."""
-        if state == "connected":
-            self.notifier.set_note("telemetry", None)
-        elif state in ("retrying", "failed"):
-            self.notifier.set_note("telemetry", f"{state.upper()}: {error}")
-
     def command_handler(self, name: str, args: dict[str, Any]) -> str:
-        """Telemetry command (validated by ``rig.telemetry.validate_command``) -> the
-        loop (waits up to ``command_timeout_s``); ValueError when refused."""
+        """An operator command from this process (validated JSON arguments,
+        ``rig.operator_commands.validate_command``) -> the loop (waits up to
+        ``command_timeout_s``); ValueError when refused.  The telemetry process's
+        commands take the loop's own path instead (``TelemetryLink.poll``)."""
         res = self.loop.request(name, loop_argument(name, args),
                                 timeout_s=self.command_timeout_s)
         if not res.accepted:
@@ -428,8 +424,6 @@ class Service:
                 log.exception("after-shutdown callback")
         if self.telemetry is not None:
             self.telemetry.close()
-        if self.foxglove is not None:
-            self.foxglove.close()
         if self.recorder is not None:
             self.recorder.close()
             if self.recorder.error:

@@ -4,9 +4,9 @@
 Structural types (``typing.Protocol``), so the service, replay, the benches and the tests
 plug in the real parts or their own without inheriting anything: the controller runtime
 (``controller.runtime.bank.BankRuntime``), the PI force loop
-(``controller.runtime.force_loop.PIForceLoop``), the run recorder, the Zenoh telemetry publisher and
-the live Foxglove view.  Every call the loop makes on a recorder, publisher or view is
-non-blocking: they queue and drop (and count) instead of waiting.
+(``controller.runtime.force_loop.PIForceLoop``), the run recorder and the telemetry
+process (Zenoh and the live Foxglove view).  Every call the loop makes on a recorder or
+the telemetry is non-blocking: they queue and drop (and count) instead of waiting.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 
 from rig.recording.codec import TickLayout
 
-__all__ = ["ForceLoop", "Recorder", "Runtime", "Telemetry", "Viewer"]
+__all__ = ["ForceLoop", "Recorder", "Runtime", "Telemetry"]
 
 
 class Runtime(Protocol):
@@ -63,17 +63,13 @@ class Recorder(Protocol):
 
 
 class Telemetry(Protocol):
-    """``rig.telemetry.TelemetryPublisher`` as the loop uses it."""
+    """``rig.telemetry_process.link.TelemetryLink`` (the telemetry process) as the loop
+    uses it: every call is the loop thread's and never blocks."""
 
     @property
     def dropped(self) -> int: ...
-    def offer(self, snapshot: Any) -> bool: ...
-
-
-class Viewer(Protocol):
-    """``rig.foxglove_server.FoxgloveView`` as the loop uses it (never blocks)."""
-
     @property
-    def dropped(self) -> int: ...
+    def tick_every(self) -> int: ...
     def offer_tick(self, t_ns: int, scalars: Any, arrays: Any) -> bool: ...
     def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool: ...
+    def poll(self, loop: Any) -> None: ...
