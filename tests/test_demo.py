@@ -46,14 +46,17 @@ def test_demo_short_run_json(tmp_path: Path) -> None:
     assert passive["ticks"] == 1500
     assert passive["bypass_open_fraction"] == 1.0 and passive["force_rms_n"] < 50.0
     assert summary["armed_at_s"] is not None and 1.5 <= summary["armed_at_s"] < 2.5
-    assert active["force_rms_n"] > 100.0            # the actuator works when ACTIVE
+    host_timing = {"SENSOR_COUNTER", "SENSOR_STALE", "OVERRUN_STREAK", "RIG_WATCHDOG"}
+    if not summary["faults"]:
+        # the actuator works when ACTIVE (a host-timing fault, allowed below, ends the
+        # active half early with the valve bypassed: its force RMS then says nothing)
+        assert active["force_rms_n"] > 100.0
     assert active["bypass_open_fraction"] < 1.0
     assert summary["final_state"] == "STOPPING"
     # the emulated rig ran in its own process and sent back its counters
     # a busy machine may stall either process long enough to lose sensor frames or miss
     # deadlines even with this patient configuration: those faults are the monitor doing
     # its job (tested deterministically elsewhere); no other fault may appear
-    host_timing = {"SENSOR_COUNTER", "SENSOR_STALE", "OVERRUN_STREAK", "RIG_WATCHDOG"}
     assert {f["code"] for f in summary["faults"]} <= host_timing, summary["faults"]
     assert summary["rig_error"] is None
     assert summary["rig"]["ticks"] >= 3000 and summary["rig"]["watchdog_trips"] == 0
