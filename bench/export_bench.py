@@ -11,7 +11,7 @@ runs in a child process of its own (``--child``), as ``rig export`` would, so th
 peak RSS (``ru_maxrss``) is its own; the runs are interleaved between the formats.
 ``--quick``: a 20 s recording, one export per format.
 
-    .venv/bin/python -m bench.export_bench [--quick] [--runs N]
+    .venv/bin/python -m bench.export_bench [--quick] [--runs N] [--formats mf4,csv]
 """
 
 from __future__ import annotations
@@ -31,8 +31,6 @@ NAME = "export"
 TITLE = "rig export of a recorded run (each export in a child process)"
 ROOT: Final = Path(__file__).resolve().parent.parent
 CACHE: Final = ROOT / "build" / "export-bench"
-#: the formats of ``rig export``
-FORMATS: Final = ("mf4", "parquet")
 FULL_S, QUICK_S = 600.0, 20.0
 FULL_RUNS = 3
 
@@ -96,7 +94,7 @@ def child(fmt: str, src: str, out: str) -> None:
     from rig.export.stream import export_run
 
     importlib.import_module(f"rig.export.{fmt}")    # the writer's imports, counted apart
-    if fmt != "mf4":
+    if fmt != "mf4":                                  # parquet, csv: a directory
         Path(out).mkdir()
 
     def peak_mb() -> float:
@@ -111,17 +109,21 @@ def child(fmt: str, src: str, out: str) -> None:
                       "frames": summary.frames, "batches": summary.batches}))
 
 
-def run(quick: bool = False, runs: int | None = None) -> list[dict[str, Any]]:
+def run(quick: bool = False, runs: int | None = None,
+        formats: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
+    from rig.commands.export import FORMATS
     from rig.export.stream import STAGES
+
+    formats = formats or FORMATS
 
     seconds = QUICK_S if quick else FULL_S
     runs = runs or (1 if quick else FULL_RUNS)
     src, built_s = recording(seconds)
     out_dir = CACHE / "out"
     out_dir.mkdir(parents=True, exist_ok=True)
-    results: dict[str, list[dict[str, Any]]] = {fmt: [] for fmt in FORMATS}
+    results: dict[str, list[dict[str, Any]]] = {fmt: [] for fmt in formats}
     for _ in range(runs):                             # interleaved: same drift for all
-        for fmt in FORMATS:
+        for fmt in formats:
             out = out_dir / (f"run.{fmt}" if fmt == "mf4" else fmt)
             results[fmt].append(export_once(src, fmt, out))
     stage_cols = [f"{stage}_s" for stage in STAGES]
@@ -161,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--runs", type=int, help=f"exports per format (default {FULL_RUNS}, "
                                             "1 with --quick)")
+    p.add_argument("--formats", help="comma-separated (default: every format of rig export)")
     p.add_argument("--child", nargs=3, metavar=("FORMAT", "SRC", "OUT"),
                    help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -168,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
         child(*args.child)
         return 0
     print(f"{NAME}: {TITLE}")
-    rows = run(quick=args.quick, runs=args.runs)
+    rows = run(quick=args.quick, runs=args.runs,
+               formats=tuple(args.formats.split(",")) if args.formats else None)
     print(generic_table(rows))
     print("\n".join(notes(rows)))
     return 0

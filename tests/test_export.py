@@ -20,6 +20,7 @@ from controller.config import default_config
 from hil.stepped_run import record_emulated_run
 from rig.cli import main
 from rig.export import run_tables, unit_of
+from rig.export.csv import CAN_CSV, csv_file
 from rig.export.parquet import CAN_FILE, table_file
 from rig.recording.run_data import RunData, read_run
 from rig.recording.schema import SIGNAL_KEYS, TIMING_KEYS, TOPIC_SIGNALS, TOPIC_TIMING
@@ -59,6 +60,13 @@ def mf4(recording: Path, work: Path) -> Path:
 def parquet_dir(recording: Path, work: Path) -> Path:
     out = work / "parquet"
     assert main(["export", str(recording), "--format", "parquet", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def csv_dir(recording: Path, work: Path) -> Path:
+    out = work / "csv"
+    assert main(["export", str(recording), "--format", "csv", "--out", str(out)]) == 0
     return out
 
 
@@ -188,6 +196,34 @@ def test_parquet_reads_with_pandas(run: RunData, parquet_dir: Path) -> None:
     assert frames["id"].tolist() == [f.arbitration_id for f in run.frames]
 
 
+def test_csv_tables_equal_read_run(run: RunData, csv_dir: Path) -> None:
+    pd = pytest.importorskip("pandas")
+    tables = {t.topic: t for t in run_tables(run).topics}
+    assert sorted(p.name for p in csv_dir.iterdir()) == sorted(
+        [CAN_CSV, *(csv_file(t) for t in tables)])
+    for topic, table in tables.items():
+        df = pd.read_csv(csv_dir / csv_file(topic), engine="pyarrow")  # exact floats
+        assert list(df.columns) == ["t_s", "t_ns", "tick", *table.columns]
+        assert df["t_ns"].tolist() == [r.t_ns for r in run.records]
+        assert df["tick"].tolist() == [r.tick for r in run.records]
+        for name in table.columns:
+            key, _, idx = name.partition("[")
+            want = _expected(run, key)
+            if idx:
+                want = want[:, int(idx.rstrip("]"))]
+            np.testing.assert_array_equal(df[name].to_numpy(np.float64), want)
+
+
+def test_csv_can_table_equals_the_frames(run: RunData, csv_dir: Path) -> None:
+    pd = pytest.importorskip("pandas")
+    df = pd.read_csv(csv_dir / CAN_CSV, dtype={"data": str}, keep_default_na=False)
+    assert list(zip(df["id"], [bytes.fromhex(d) for d in df["data"]],
+                    [d == "rx" for d in df["direction"]], strict=True)) == _frames(run)
+    assert df["dlc"].tolist() == [len(f.data) for f in run.frames]
+    assert df["t_ns"].tolist() == [f.t_ns for f in run.frames]
+    assert df["error_frame"].tolist() == [f.is_error_frame for f in run.frames]
+
+
 # ---------------------------------------------------------------------------- refusals
 
 
@@ -205,7 +241,7 @@ def test_existing_output_needs_force_and_failure_leaves_nothing(
     assert ".mf4 file" in capsys.readouterr().err
     assert main(["export", str(work / "none.mcap"), "--format", "mf4", "--out",
                  str(work / "y.mf4")]) == 2
-    assert main(["export", str(recording), "--format", "csv", "--out", "z"]) == 2
+    assert main(["export", str(recording), "--format", "xlsx", "--out", "z"]) == 2
     capsys.readouterr()
     not_mcap = work / "notes.mcap"
     not_mcap.write_text("hello")
@@ -260,8 +296,15 @@ def test_export_in_batches_equals_one_batch(recording: Path, work: Path) -> None
         pq_dir.mkdir()
         assert export_run(recording, "mf4", mf4, batch_ticks=n).batches > (n == 37)
         export_run(recording, "parquet", pq_dir, batch_ticks=n)
-        outs[n] = (mf4, pq_dir)
-    (one, one_pq), (many, many_pq) = outs[10**9], outs[37]
+        csv_dir = work / f"b{n}-csv"
+        csv_dir.mkdir()
+        export_run(recording, "csv", csv_dir, batch_ticks=n)
+        outs[n] = (mf4, pq_dir, csv_dir)
+    (one, one_pq, one_csv), (many, many_pq, many_csv) = outs[10**9], outs[37]
+    assert sorted(p.name for p in one_csv.iterdir()) == sorted(
+        p.name for p in many_csv.iterdir())
+    for path in one_csv.iterdir():
+        assert path.read_bytes() == (many_csv / path.name).read_bytes(), path.name
     assert pq.ParquetFile(many_pq / table_file(TOPIC_SIGNALS)).num_row_groups > 1
     for name in sorted(p.name for p in one_pq.iterdir()):
         a, b = pq.read_table(one_pq / name), pq.read_table(many_pq / name)

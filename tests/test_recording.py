@@ -416,6 +416,26 @@ def test_a_torn_record_is_dropped_whole(tmp_path: Path) -> None:
     assert torn >= 3
 
 
+def test_the_scanner_holds_a_chunk_not_the_file(tmp_path: Path) -> None:
+    """scan_recording reads a file record by record: what it allocates at most while
+    scanning a recording of many small chunks is far below the file's size (it read
+    each segment whole before: twice the file at the peak)."""
+    import tracemalloc
+
+    path = tmp_path / "long.mcap"
+    with recorder(path, chunk_bytes=4096, blocking=True) as rec:
+        write_mixed(rec, 3000)
+    size = path.stat().st_size
+    tracemalloc.start()
+    try:
+        res = scan_recording(path, {TOPIC_SIGNALS: lambda payloads, seqs: None})
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert res.complete and res.messages > 9000
+    assert size > 200_000 and peak < size / 4, (size, peak)
+
+
 def test_another_format_version_is_refused_before_anything_is_read(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A recording of another format version is refused in one line naming both

@@ -1,12 +1,12 @@
-"""``rig export RUN.mcap --format mf4|parquet --out PATH [--force]``: a recording for
+"""``rig export RUN.mcap --format mf4|parquet|csv --out PATH [--force]``: a recording for
 measurement tools (docs/recording.md, "Export").
 
 ``mf4``: one ASAM MDF 4 file, a channel group per tick topic (SI units) and the CAN bus
 log as ``CAN_DataFrame`` bus-logging groups (CANape, asammdf, python-can decode it with
 ``rig/wire/rig.dbc``, attached).  ``parquet``: a directory with a file per tick topic
-and ``can.parquet``.  The output is written under a hidden name next to it and renamed
-when complete (a failure leaves no partial output); an existing output is replaced only
-with ``--force``.
+and ``can.parquet``; ``csv``: the same tables as CSV files.  The output is written under
+a hidden name next to it and renamed when complete (a failure leaves no partial output);
+an existing output is replaced only with ``--force``.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from rig import argtypes
 from rig.output_paths import new_file_problem, output_dir_problem, staged_dir, staged_file
 from rig.terminal import refuse, safe
 
-FORMATS: Final = ("mf4", "parquet")
+FORMATS: Final = ("mf4", "parquet", "csv")
 MF4_SUFFIX: Final = ".mf4"
 
 
@@ -30,9 +30,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="recording (.mcap, its first segment)")
     p.add_argument("--format", required=True, choices=FORMATS,
                    help="mf4: one ASAM MDF 4 file (signals + CAN bus log); parquet: a "
-                        "directory, one file per topic + can.parquet")
+                        "directory, one file per topic + can.parquet; csv: the same as "
+                        "CSV files")
     p.add_argument("--out", metavar="PATH", required=True,
-                   help=f"mf4: a {MF4_SUFFIX} file; parquet: a directory")
+                   help=f"mf4: a {MF4_SUFFIX} file; parquet, csv: a directory")
     p.add_argument("--force", action="store_true",
                    help="replace an existing output")
 

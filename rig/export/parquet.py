@@ -16,7 +16,7 @@ import pyarrow.parquet as pq
 
 from rig.export.tables import CanLog, RunTables, TopicTable
 
-__all__ = ["CAN_FILE", "ParquetStream", "table_file", "write_parquet"]
+__all__ = ["CAN_FILE", "ParquetStream", "can_table", "table_file", "topic_table", "write_parquet"]
 
 CAN_FILE: Final = "can.parquet"
 
@@ -31,7 +31,8 @@ def _time_fields(tables: RunTables) -> dict[bytes, bytes]:
             b"t0_ns": str(tables.t0_ns).encode()}
 
 
-def _can_table(can: CanLog, tables: RunTables) -> pa.Table:
+def can_table(can: CanLog, tables: RunTables) -> pa.Table:
+    """The frames of a batch as an Arrow table (the columns of ``can.parquet``)."""
     data = [bytes(row[:n]) for row, n in zip(can.data, can.dlc, strict=True)]
     return pa.table({
         "t_s": pa.array(tables.seconds(can.t_ns)),
@@ -47,7 +48,9 @@ def _can_table(can: CanLog, tables: RunTables) -> pa.Table:
     }).replace_schema_metadata(_time_fields(tables))
 
 
-def _topic_table(table: TopicTable, tables: RunTables) -> pa.Table:
+def topic_table(table: TopicTable, tables: RunTables) -> pa.Table:
+    """A tick topic's batch as an Arrow table (``t_s``, ``t_ns``, ``tick``, the fields
+    with their units in the field metadata)."""
     fields = [pa.field("t_s", pa.float64(), metadata={"unit": "s"}),
               pa.field("t_ns", pa.int64(), metadata={"unit": "ns"}),
               pa.field("tick", pa.int64())]
@@ -73,9 +76,9 @@ class ParquetStream:
 
     def add(self, tables: RunTables) -> None:
         for table in tables.topics:
-            self._write(table_file(table.topic), _topic_table(table, tables))
+            self._write(table_file(table.topic), topic_table(table, tables))
         if len(tables.can) or CAN_FILE not in self.writers:
-            self._write(CAN_FILE, _can_table(tables.can, tables))
+            self._write(CAN_FILE, can_table(tables.can, tables))
 
     def _write(self, name: str, table: pa.Table) -> None:
         writer = self.writers.get(name)

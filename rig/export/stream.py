@@ -1,10 +1,11 @@
 """``rig export`` in bounded memory: the recording is read twice in batches
 (:func:`rig.recording.run_data.stream_run`, ``read_run``'s decoders): the first pass
 decides the columns over the whole run (:class:`~rig.export.tables.TableSchema`), the
-second lays each batch out and appends it to the MF4 (:class:`~rig.export.mf4.Mf4Stream`)
-or the Parquet files (:class:`~rig.export.parquet.ParquetStream`, a row group per
-batch).  Peak memory: one batch (``batch_ticks`` records as objects and as columns)
-plus the writers' buffers, whatever the length of the run."""
+second lays each batch out and appends it to the MF4 (:class:`~rig.export.mf4.Mf4Stream`),
+the Parquet files (:class:`~rig.export.parquet.ParquetStream`, a row group per batch) or
+the CSV files (:class:`~rig.export.csv.CsvStream`).  Peak memory: one batch
+(``batch_ticks`` records as objects and as columns) plus the writers' buffers, whatever
+the length of the run."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ __all__ = ["STAGES", "ExportSummary", "export_run"]
 #: ``scan`` the first pass (read, decode, decide the columns), ``read`` the second
 #: pass's reading and decoding, ``columns`` laying the batches out as columns,
 #: ``write`` handing them to the writer, ``finish`` the writer's last step (MF4: the
-#: file is compressed and written; Parquet: the files are closed)
+#: file is compressed and written; Parquet, CSV: the files are closed)
 STAGES: Final = ("scan", "read", "columns", "write", "finish")
 
 
@@ -42,7 +43,7 @@ class ExportSummary:
 def export_run(src: str | Path, fmt: str, out: str | Path, *, comment: str = "",
                batch_ticks: int = STREAM_BATCH_TICKS) -> ExportSummary:
     """Export the recording ``src`` as ``fmt`` (``mf4``: the new file ``out``;
-    ``parquet``: into the new, empty directory ``out``)."""
+    ``parquet``, ``csv``: into the new, empty directory ``out``)."""
     schema = TableSchema()
     t = time.perf_counter()
     head = stream_run(src, schema.observe, batch_ticks=batch_ticks)
@@ -61,14 +62,15 @@ def export_run(src: str | Path, fmt: str, out: str | Path, *, comment: str = "",
         finally:
             mf4.close()
     else:
+        from rig.export.csv import CsvStream
         from rig.export.parquet import ParquetStream
 
-        pq = ParquetStream(out)
+        files = ParquetStream(out) if fmt == "parquet" else CsvStream(out)
         try:
-            _stream(src, schema, offset, pq.add, summary, batch_ticks)
+            _stream(src, schema, offset, files.add, summary, batch_ticks)
         finally:
             t = time.perf_counter()
-            pq.close()
+            files.close()
             summary.stage_s["finish"] = time.perf_counter() - t
     return summary
 
