@@ -265,6 +265,15 @@ class TelemetryLink:
         return self._settled.wait(timeout_s)
 
     @property
+    def error(self) -> str | None:
+        """Why the Zenoh session is not up (as the process reported it), or why the
+        process is down."""
+        error = self.zenoh_status.get("error")
+        if error is None and self.process_state == "lost":
+            return self.last_loss
+        return None if error is None else str(error)
+
+    @property
     def pid(self) -> int | None:
         child = self._child
         return None if child is None or not child.alive else child.proc.pid
@@ -289,11 +298,9 @@ class TelemetryLink:
         self._closing.set()
         child = self._child
         if child is not None:
-            if child.alive:
+            if child.alive and not child.pending:
+                # never waits: a process that does not read gets its stdin closed instead
                 with contextlib.suppress(OSError):
-                    os.set_blocking(child.fd, True)
-                    if child.pending:
-                        os.write(child.fd, child.pending)
                     os.write(child.fd, encode_end())
             with contextlib.suppress(OSError):
                 assert child.proc.stdin is not None
