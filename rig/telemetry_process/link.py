@@ -112,6 +112,11 @@ class _FoxgloveReport:
         return int(self._link.foxglove_status.get("port") or 0)
 
     @property
+    def subprotocol(self) -> str:
+        """The WebSocket subprotocol the view serves (the SDK's, as the process said)."""
+        return str(self._link.foxglove_status.get("subprotocol") or "")
+
+    @property
     def error(self) -> str | None:
         error = self._link.foxglove_status.get("error")
         return None if error is None else str(error)
