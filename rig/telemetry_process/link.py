@@ -15,7 +15,7 @@ pipe, as :class:`rig.recording.recorder.RunRecorder` feeds its writer:
   record: the process answers ``rig/status`` queries from it and never calls into the
   loop process;
 - operator commands come back as JSON lines on the process's stdout.  A supervisor
-  thread reads them (at most one read every 2 ms, lines over :data:`MAX_LINE_BYTES`
+  thread reads them (at most 8 KiB every 5 ms, lines over :data:`MAX_LINE_BYTES`
   dropped) into a bounded queue; the loop thread takes at most one per
   :meth:`TelemetryLink.poll`, validates it again (:func:`rig.operator_commands.validate_command`)
   and applies it; the reply goes back on the feed.  Nothing the process sends is
@@ -65,7 +65,11 @@ RESTART_PAUSE_S: Final = 0.5
 _RESTART_PAUSE_MAX_S: Final = 8.0
 #: operator commands waiting for the loop; more are dropped (and counted)
 COMMAND_QUEUE: Final = 16
-_READ_PAUSE_S: Final = 0.002    # the supervisor's pause between two reads of the process
+#: the supervisor reads at most _READ_BYTES of the process's lines every _READ_PAUSE_S
+#: (1.6 MB/s: its state is ~2 kB/s, commands are rate-limited), so that however much a
+#: misbehaving process writes, parsing it holds this process's GIL ~2 % of the time
+_READ_BYTES: Final = 8192
+_READ_PAUSE_S: Final = 0.005
 
 
 class CommandTarget(Protocol):
@@ -406,7 +410,7 @@ class TelemetryLink:
         buf = b""
         while True:
             try:
-                data = os.read(child.out_fd, 65536)
+                data = os.read(child.out_fd, _READ_BYTES)
             except OSError:
                 data = b""
             if not data:
