@@ -251,3 +251,35 @@ def test_what_the_process_sends_back_is_checked_again() -> None:
     finally:
         link.close()
     assert link.foxglove.state == "stopped"
+
+
+def test_a_stopped_telemetry_process_costs_the_loop_drops_never_a_wait() -> None:
+    """The telemetry process stopped (SIGSTOP: it reads nothing): the feed's pipe fills
+    and every further item is dropped and counted at once; the loop side never waits.
+    Resumed, the process takes the feed again and ends cleanly at close."""
+    from controller.runtime.bank import BankRuntime
+    from hil.sim.closed_loop import cached_design
+    from rig.service.loop import tick_record_layout
+    from rig.telemetry_process.link import TelemetryLink
+    from tests.support.processes import stop_and_wait_stopped
+
+    cfg = default_config().replace(foxglove={"enabled": True, "port": 0})
+    layout = tick_record_layout(BankRuntime(cached_design(cfg), cfg=cfg))
+    link = TelemetryLink(cfg, layout, zenoh=False, foxglove=True, status_provider=dict,
+                         pipe_bytes=4096)
+    try:
+        pid = link.pid
+        assert pid is not None and link.foxglove.state == "serving"
+        stop_and_wait_stopped(pid)
+        try:
+            taken = [link.offer_event(k, k, "note", {"k": k, "pad": "x" * 100})
+                     for k in range(5000)]
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert taken.count(False) == link.dropped > 0
+        assert taken.count(True) == link.sent > 0
+        assert link.offer_event(0, 0, "note", {}) or wait_for(
+            lambda: link.offer_event(0, 0, "note", {}), 30)     # it reads again
+    finally:
+        link.close()
+    assert link.foxglove.state == "stopped" and link.status()["process"]["losses"] == 0
