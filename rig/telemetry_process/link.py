@@ -315,10 +315,13 @@ class TelemetryLink:
                 assert child.proc.stdin is not None
                 child.proc.stdin.close()
             try:
-                child.proc.wait(timeout_s)
+                rc = child.proc.wait(timeout_s)
             except subprocess.TimeoutExpired:
                 log.warning("telemetry process did not end within %.0f s: killed", timeout_s)
                 self._kill(child)
+            else:
+                if rc != 0 and child.alive:
+                    log.warning("telemetry process ended with exit status %d", rc)
         self._supervisor.join(5.0)
         self._status_thread.join(5.0)
         self.process_state = "stopped"
