@@ -504,4 +504,11 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # in lockstep the run ends with the loop's turns, not with stdin: the control thread
+    # may still be blocked reading stdin, and a normal interpreter exit then aborts on
+    # its buffer's lock ("Fatal Python error: _enter_buffered_busy"); nothing is left
+    # to clean up (the final status is out, the bus closed)
+    os._exit(code)

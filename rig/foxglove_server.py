@@ -229,7 +229,8 @@ class FoxgloveView:
         return {"state": self.state, "url": self.url if self.state == "serving" else None,
                 "host": self.cfg.host, "port": self.port, "error": self.error,
                 "published": self.published, "dropped": self.dropped,
-                "malformed": self.malformed, "rate_hz": self.cfg.rate_hz}
+                "malformed": self.malformed, "rate_hz": self.cfg.rate_hz,
+                "subprotocol": SUBPROTOCOL}
 
     def close(self) -> None:
         """Publish what is queued, stop the thread and the server (idempotent)."""

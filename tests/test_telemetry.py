@@ -24,30 +24,17 @@ from rig.operator_commands import OPERATOR_COMMANDS as COMMANDS
 from rig.operator_commands import validate_command
 from rig.telemetry import TelemetryPublisher, zenoh_config
 from tests.support.stepped_service import SteppedService
+from tests.support.zenoh_client import client_session, free_port, query, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def tcfg(port: int, **kw: Any) -> TelemetryConfig:
     base = default_config().telemetry
     return replace(base, endpoints=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False, **kw)
 
-
-def client_session(port: int) -> zenoh.Session:
-    """A second, independent session connecting to the publisher (no listener)."""
-    c = zenoh.Config()
-    c.insert_json5("mode", '"peer"')
-    c.insert_json5("listen/endpoints", "[]")
-    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(c)
 
 
 def snapshot(k: int) -> dict[str, Any]:
@@ -59,14 +46,6 @@ def snapshot(k: int) -> dict[str, Any]:
         "timing": {"wake_late_s": 1e-5 * k, "dropped_recording": 0},
     }
 
-
-def wait_for(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return pred()
 
 
 class Rig:
@@ -188,15 +167,6 @@ def test_subprocess_subscriber_receives_state(rig: Rig, port: int) -> None:
             proc.kill()  # our own child, by handle (PID)
             proc.wait()
 
-
-def query(session: zenoh.Session, key: str, payload: str | None = None
-          ) -> list[tuple[bool, dict[str, Any]]]:
-    out = []
-    for r in session.get(key, payload=payload, timeout=3.0):
-        answer = r.ok if r.ok is not None else r.err
-        assert answer is not None
-        out.append((r.ok is not None, json.loads(answer.payload.to_bytes())))
-    return out
 
 
 def test_status_queryable_answers(rig: Rig, port: int) -> None:

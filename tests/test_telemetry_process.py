@@ -189,3 +189,97 @@ def test_demo_under_never_reading_clients_and_a_status_flood(tmp_path: Path) -> 
     assert tel["status_refused"] >= replies["err"] and tel["process"]["state"] == "running"
     assert status["fault"] == "NONE"
     assert not any(ln.startswith("ERROR rig.service") for ln in err.splitlines()), err[-3000:]
+
+
+def test_what_the_process_sends_back_is_checked_again() -> None:
+    """The telemetry process faces the network, so the loop process trusts nothing it
+    sends: lines that are no JSON or no known event are dropped and counted, a command
+    with an unknown name (a forged log line in it) or a bad argument is refused by the
+    loop side's own validation before the loop sees it, and more than COMMAND_QUEUE
+    waiting commands are dropped.  Only a valid command reaches the loop, one per poll."""
+    import json
+
+    from controller.runtime.bank import BankRuntime
+    from hil.sim.closed_loop import cached_design
+    from rig.service.lifecycle import CommandResult
+    from rig.service.loop import tick_record_layout
+    from rig.telemetry_process.link import COMMAND_QUEUE, TelemetryLink
+    from rig.wire.protocol import LifecycleState
+
+    cfg = default_config().replace(foxglove={"enabled": True, "port": 0})
+    layout = tick_record_layout(BankRuntime(cached_design(cfg), cfg=cfg))
+    applied: list[tuple[str, Any]] = []
+
+    class Loop:
+        def request(self, name: str, argument: Any = None, timeout_s: float | None = 1.0
+                    ) -> CommandResult:
+            assert timeout_s is None          # applied at once, in the loop's thread
+            applied.append((name, argument))
+            return CommandResult(True, LifecycleState.INACTIVE, "ok")
+
+        def record_note(self, detail: Any) -> None:
+            raise AssertionError(detail)
+
+    link = TelemetryLink(cfg, layout, zenoh=False, foxglove=True, status_provider=dict)
+    try:
+        assert link.foxglove.state == "serving"
+        child = link._child
+        assert child is not None
+        bad = [b"not json", b'{"no": "event"}', b'{"event": "shout"}',
+               b'{"event": "command", "id": "x", "name": "arm"}']
+        for line in bad:
+            link._on_line(child, line)
+        assert link.lines_dropped == len(bad)
+        commands = [
+            {"name": "arm\nERROR rig.service.lifecycle: ACTIVE -> FAULT (forged)", "args": {}},
+            {"name": "weight_set", "args": {"weight_set": "2; rm -rf"}},
+            {"name": "road", "args": {"speed_mps": 1e999, "roughness_gd": 1e-6}},
+            {"name": "blending", "args": "fuzzy"},
+            {"name": "disarm", "args": {}},
+        ]
+        for i, c in enumerate(commands):
+            link._on_line(child, json.dumps({"event": "command", "id": i, **c}).encode())
+        for _ in range(len(commands)):
+            link.poll(Loop())
+        assert applied == [("disarm", None)]
+        for i in range(COMMAND_QUEUE + 4):
+            link._on_line(child, json.dumps(
+                {"event": "command", "id": 100 + i, "name": "arm", "args": {}}).encode())
+        assert link.commands_dropped == 4
+        link.poll(Loop())
+        assert applied[-1] == ("arm", None) and len(applied) == 2   # one per poll
+    finally:
+        link.close()
+    assert link.foxglove.state == "stopped"
+
+
+def test_a_stopped_telemetry_process_costs_the_loop_drops_never_a_wait() -> None:
+    """The telemetry process stopped (SIGSTOP: it reads nothing): the feed's pipe fills
+    and every further item is dropped and counted at once; the loop side never waits.
+    Resumed, the process takes the feed again and ends cleanly at close."""
+    from controller.runtime.bank import BankRuntime
+    from hil.sim.closed_loop import cached_design
+    from rig.service.loop import tick_record_layout
+    from rig.telemetry_process.link import TelemetryLink
+    from tests.support.processes import stop_and_wait_stopped
+
+    cfg = default_config().replace(foxglove={"enabled": True, "port": 0})
+    layout = tick_record_layout(BankRuntime(cached_design(cfg), cfg=cfg))
+    link = TelemetryLink(cfg, layout, zenoh=False, foxglove=True, status_provider=dict,
+                         pipe_bytes=4096)
+    try:
+        pid = link.pid
+        assert pid is not None and link.foxglove.state == "serving"
+        stop_and_wait_stopped(pid)
+        try:
+            taken = [link.offer_event(k, k, "note", {"k": k, "pad": "x" * 100})
+                     for k in range(5000)]
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert taken.count(False) == link.dropped > 0
+        assert taken.count(True) == link.sent > 0
+        assert link.offer_event(0, 0, "note", {}) or wait_for(
+            lambda: link.offer_event(0, 0, "note", {}), 30)     # it reads again
+    finally:
+        link.close()
+    assert link.foxglove.state == "stopped" and link.status()["process"]["losses"] == 0

@@ -351,9 +351,8 @@ def run(args: argparse.Namespace) -> int:
         stop=stop, rig_start_ticks=WARM_TICKS, max_speedup=args.max_speedup)
     service, trace = harness.service, harness.trace
     if service.foxglove is not None and service.foxglove.state == "serving":
-        from rig.foxglove_server import SUBPROTOCOL  # the SDK only when the view is on
         print(f"rig demo: Foxglove view on {service.foxglove.url} (WebSocket "
-              f"subprotocol {SUBPROTOCOL}; docs/foxglove.md)", file=sys.stderr)
+              f"subprotocol {service.foxglove.subprotocol}; docs/foxglove.md)", file=sys.stderr)
     faults: list[dict[str, Any]] = []
     state = {"rearms": 0, "armed_at": -1}
 

@@ -89,9 +89,8 @@ def run(args: argparse.Namespace) -> int:
     if service.recording_path is not None:
         refuse("run", f"recording to {service.recording_path}")
     if service.foxglove is not None and service.foxglove.state == "serving":
-        from rig.foxglove_server import SUBPROTOCOL  # the SDK only when the view is on
         refuse("run", f"Foxglove view on {service.foxglove.url} (WebSocket "
-               f"subprotocol {SUBPROTOCOL}; docs/foxglove.md)")
+               f"subprotocol {service.foxglove.subprotocol}; docs/foxglove.md)")
     code = service.run()
     if service.ticks_run == 0:
         print(f"rig run: stopped by {service.stop_signal or 'request'} before the control "

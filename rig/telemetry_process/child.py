@@ -22,6 +22,7 @@ loop's process only sees a slower feed (dropped and counted) or a lost process
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import logging
@@ -62,6 +63,9 @@ log = logging.getLogger(__name__)
 
 #: how long a command waits for the loop's reply [s]
 COMMAND_TIMEOUT_S = 2.0
+#: the process's nice increment: on a busy computer (and where the loop has no real-time
+#: policy) the network's work yields the CPU to the loop's process
+NICE = 10
 _STATE_EVERY_S = 1.0
 _STATE_KEYS = ("rattlespace_m", "sprung_accel_mps2", "force_meas_n", "force_ref_n",
                "spool_cmd", "valve_enable", "sensor_counter", "firing_weight", "q", "flags",
@@ -263,6 +267,8 @@ class _Process:
 
 def main() -> int:
     stay_out_of_the_loops_way()
+    with contextlib.suppress(OSError):
+        os.nice(NICE)
     out = _Out(sys.stdout)
     fd = sys.stdin.fileno()
     try:

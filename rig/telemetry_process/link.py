@@ -15,7 +15,7 @@ pipe, as :class:`rig.recording.recorder.RunRecorder` feeds its writer:
   record: the process answers ``rig/status`` queries from it and never calls into the
   loop process;
 - operator commands come back as JSON lines on the process's stdout.  A supervisor
-  thread reads them (at most one read every 2 ms, lines over :data:`MAX_LINE_BYTES`
+  thread reads them (at most 8 KiB every 5 ms, lines over :data:`MAX_LINE_BYTES`
   dropped) into a bounded queue; the loop thread takes at most one per
   :meth:`TelemetryLink.poll`, validates it again (:func:`rig.operator_commands.validate_command`)
   and applies it; the reply goes back on the feed.  Nothing the process sends is
@@ -65,7 +65,11 @@ RESTART_PAUSE_S: Final = 0.5
 _RESTART_PAUSE_MAX_S: Final = 8.0
 #: operator commands waiting for the loop; more are dropped (and counted)
 COMMAND_QUEUE: Final = 16
-_READ_PAUSE_S: Final = 0.002    # the supervisor's pause between two reads of the process
+#: the supervisor reads at most _READ_BYTES of the process's lines every _READ_PAUSE_S
+#: (1.6 MB/s: its state is ~2 kB/s, commands are rate-limited), so that however much a
+#: misbehaving process writes, parsing it holds this process's GIL ~2 % of the time
+_READ_BYTES: Final = 8192
+_READ_PAUSE_S: Final = 0.005
 
 
 class CommandTarget(Protocol):
@@ -110,6 +114,11 @@ class _FoxgloveReport:
     @property
     def port(self) -> int:
         return int(self._link.foxglove_status.get("port") or 0)
+
+    @property
+    def subprotocol(self) -> str:
+        """The WebSocket subprotocol the view serves (the SDK's, as the process said)."""
+        return str(self._link.foxglove_status.get("subprotocol") or "")
 
     @property
     def error(self) -> str | None:
@@ -265,6 +274,15 @@ class TelemetryLink:
         return self._settled.wait(timeout_s)
 
     @property
+    def error(self) -> str | None:
+        """Why the Zenoh session is not up (as the process reported it), or why the
+        process is down."""
+        error = self.zenoh_status.get("error")
+        if error is None and self.process_state == "lost":
+            return self.last_loss
+        return None if error is None else str(error)
+
+    @property
     def pid(self) -> int | None:
         child = self._child
         return None if child is None or not child.alive else child.proc.pid
@@ -289,20 +307,21 @@ class TelemetryLink:
         self._closing.set()
         child = self._child
         if child is not None:
-            if child.alive:
+            if child.alive and not child.pending:
+                # never waits: a process that does not read gets its stdin closed instead
                 with contextlib.suppress(OSError):
-                    os.set_blocking(child.fd, True)
-                    if child.pending:
-                        os.write(child.fd, child.pending)
                     os.write(child.fd, encode_end())
             with contextlib.suppress(OSError):
                 assert child.proc.stdin is not None
                 child.proc.stdin.close()
             try:
-                child.proc.wait(timeout_s)
+                rc = child.proc.wait(timeout_s)
             except subprocess.TimeoutExpired:
                 log.warning("telemetry process did not end within %.0f s: killed", timeout_s)
                 self._kill(child)
+            else:
+                if rc != 0 and child.alive:
+                    log.warning("telemetry process ended with exit status %d", rc)
         self._supervisor.join(5.0)
         self._status_thread.join(5.0)
         self.process_state = "stopped"
@@ -394,7 +413,7 @@ class TelemetryLink:
         buf = b""
         while True:
             try:
-                data = os.read(child.out_fd, 65536)
+                data = os.read(child.out_fd, _READ_BYTES)
             except OSError:
                 data = b""
             if not data:
