@@ -498,9 +498,23 @@ class EmulatorConfig:
                             "position (zeroed at rest, as on a rig), 'nominal' = M g / K of "
                             "the configured rig (a mis-zeroed sensor when they differ)")
 
+    ballast_step_time_s: float = _f(0.0, lo=0.0, hi=1e7,
+                                    doc="run time at which ballast is put on (or taken "
+                                        "off) the sprung mass [s]; 0 = no ballast change "
+                                        "(docs/hil.md)")
+    ballast_step_scale: float = _f(1.0, lo=0.25, hi=4.0,
+                                   doc="sprung mass after the ballast change / before it "
+                                       "(1.3: +30 % ballast; 1 = no change)")
+
+    @property
+    def has_ballast_step(self) -> bool:
+        """True when the emulated rig's sprung mass changes during a run."""
+        return self.ballast_step_time_s > 0.0 and self.ballast_step_scale != 1.0
+
     @property
     def is_nominal(self) -> bool:
-        """True when the emulated plant is the configured one."""
+        """True when the emulated plant is the configured one (before any ballast change:
+        see :attr:`has_ballast_step`)."""
         return (self.sprung_mass_scale == self.unsprung_mass_scale == self.spring_rate_scale
                 == self.damping_scale == self.tire_stiffness_scale == 1.0
                 and self.ride_height_offset_m == 0.0)
