@@ -309,6 +309,24 @@ class DesignConfig:
     stop_barrier_rate_per_s: float = _f(5.0, lo=0.0, hi=1e4, lo_open=True,
                                         doc="end-stop barrier: gamma of the barrier "
                                             "condition dh/dt >= -gamma h [1/s]")
+    mass_estimator_window_s: float = _f(2.0, lo=0.0, hi=600.0,
+                                        doc="sprung-mass estimator: time constant of the "
+                                            "exponential forgetting of its least squares on "
+                                            "the body equation M a = F + K z + C z' [s] (0 = "
+                                            "off: the estimate stays the configured mass; "
+                                            "docs/design.md §10)")
+    mass_estimator_band_hz: list[float] = _f([0.5, 10.0], lo=0.0, hi=1e4, lo_open=True,
+                                             max_len=2, len_why="[low, high]",
+                                             doc="sprung-mass estimator: [low, high] corners "
+                                                 "of the band-pass (2nd-order high-pass and "
+                                                 "2nd-order low-pass) applied alike to both "
+                                                 "sides of the body equation [Hz]")
+    mass_estimator_min_accel_mps2: float = _f(0.05, lo=0.0, hi=100.0,
+                                              doc="sprung-mass estimator: it updates only while "
+                                                  "the windowed RMS of the band-passed "
+                                                  "acceleration exceeds this; below it the rig "
+                                                  "is too quiet to tell the mass, and the "
+                                                  "estimate holds")
     actuator_model: str = _f("hydraulic", choices=("hydraulic", "ideal"),
                              doc="plant the LQ gains are designed on: 'hydraulic' = plant + "
                                  "linearised servo-valve/actuator under the PI's proportional "
@@ -823,6 +841,12 @@ def _cross_checks(cfg: RigConfig) -> None:
                           f"< vehicle.rattlespace_travel_m = "
                           f"{cfg.vehicle.rattlespace_travel_m} (the barrier must leave "
                           "travel to move in)")
+    band = d.mass_estimator_band_hz
+    nyquist = 0.5 * d.sample_rate_hz
+    if len(band) != 2 or not 0.0 < band[0] < band[1] < 0.5 * nyquist:
+        raise ConfigError("design.mass_estimator_band_hz", band,
+                          f"[low, high] with 0 < low < high < {0.5 * nyquist:g} Hz (a quarter "
+                          "of the sample rate)")
     fz = cfg.fuzzy
     if len(fz.universe) != 2 or fz.universe[0] >= fz.universe[1]:
         raise ConfigError("fuzzy.universe", fz.universe, "[lo, hi] with lo < hi")

@@ -56,6 +56,7 @@ from numpy.typing import NDArray
 from controller.arrays import FloatArray
 from controller.artifact import Design
 from controller.config import RigConfig, default_config, parse_config
+from controller.mass_estimator import ME_EST, ME_NUPD, ME_SIZE, mass_estimator_parameters
 from controller.monitor import MonitorSettings, monitor_settings
 from controller.plant import static_tire_deflection_m
 from controller.road_noise import nearest_noise_entry
@@ -93,6 +94,8 @@ from controller.runtime.kernels import (
     F_LOAD,
     F_LOFF,
     F_LON,
+    F_ME,
+    F_MES,
     F_MON_REARM,
     F_MON_SUM,
     F_MON_THR,
@@ -224,6 +227,8 @@ from controller.runtime.kernels import (
     activate,
     deactivate,
     firing_weight,
+    mass_estimate,
+    mass_estimate_reset,
     servo_update,
     stop_barrier,
     stop_guard,
@@ -573,6 +578,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     blend = iv[I_BLEND]
     sentinel = iv[I_SENTINEL] if blend == _MOVING and iv[I_MODE] == MODE_AIR else -1
     u_in, y0, y1 = _measurements(fv, rattlespace_m, accel_mps2, force_meas_n)
+    mass_estimate(fv, u_in, rattlespace_m, accel_mps2)
     xf0 = fv[F_XF]
     xf1 = fv[F_XF + 1]
     alpha = fv[F_ALPHA]
@@ -702,6 +708,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_MON_SUM] = 0.0
     fv[F_AUTH] = 1.0
     fv[F_AMEAN] = 0.0
+    mass_estimate_reset(fv)
     for i in range(MAX_DELAY):
         fv[F_PEND + i] = 0.0
     for i in range(4):
@@ -859,6 +866,7 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_PFLOOR] = cfg.bayes.probability_floor
     fv[F_BS_K], fv[F_BS_LO], fv[F_BS_HI] = design.bump_stop
     fv[F_GUARD_W] = cfg.design.stop_guard_m
+    fv[F_ME:F_ME + ME_SIZE] = mass_estimator_parameters(cfg)
     fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
         cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()
     aw = cfg.design.accel_mean_window_s
@@ -1136,6 +1144,12 @@ class BankRuntime:
         "limiting; > 0 away from the compression stop); counters()['stop_barrier_ticks'] "
         "counts the ticks it limited (stop_barrier.py).")
 
+    sprung_mass_est_kg = SlotValue(
+        "_fv", F_MES + ME_EST, float,
+        "The sprung-mass estimate [kg] (controller/mass_estimator.py: band-passed least "
+        "squares on the body equation; the configured mass until the rig has moved enough "
+        "to tell, held while it is quiet).")
+
     @property
     def bias_estimate(self) -> tuple[float, float]:
         """Blended measurement-bias estimates (rattlespace [m], acceleration [m/s^2])."""
@@ -1149,7 +1163,8 @@ class BankRuntime:
                 "degraded_ticks": int(iv[I_MON_DEGTICKS]),
                 "unusable_ticks": int(iv[I_MON_BAD]),
                 "load_liftoffs": int(iv[I_NLIFT_LOAD]),
-                "stop_barrier_ticks": int(iv[I_SB_TICKS])}
+                "stop_barrier_ticks": int(iv[I_SB_TICKS]),
+                "mass_estimate_updates": int(self._fv[F_MES + ME_NUPD])}
 
     def snapshot(self) -> dict[str, Any]:
         """Copies of the state (for tests and telemetry; allocates)."""

@@ -35,6 +35,31 @@ import numba as nb
 import numpy as np
 
 from controller.config import MAX_COMPUTE_DELAY_TICKS
+from controller.mass_estimator import (
+    ME_C,
+    ME_EST,
+    ME_HI,
+    ME_HP,
+    ME_HPA,
+    ME_HPY,
+    ME_INV_DT,
+    ME_K,
+    ME_LAMBDA,
+    ME_LO,
+    ME_LP,
+    ME_LPA,
+    ME_LPY,
+    ME_M0,
+    ME_NSEEN,
+    ME_NUPD,
+    ME_SAA,
+    ME_SAY,
+    ME_SETTLE,
+    ME_SIZE,
+    ME_SMIN,
+    ME_STATE_SIZE,
+    ME_ZPREV,
+)
 from controller.modes import Blending
 from controller.runtime.layout import BufferLayout
 
@@ -174,6 +199,8 @@ F_GUARD_S = FV.slot()  # end-stop guard: factor applied to the force of the last
 F_SB = FV.slot(9)  # end-stop barrier: StopBarrier.as_array() (stop_barrier.py; M = 0: off)
 F_SB_DF = FV.slot()  # end-stop barrier: force added in the last tick [N] (read-out)
 F_SB_V = FV.slot()  # end-stop barrier: low-passed LVDT rate [m/s] (state; NaN after reset)
+F_ME = FV.slot(ME_SIZE)  # sprung-mass estimator: mass_estimator_parameters() (λ = 0: off)
+F_MES = FV.slot(ME_STATE_SIZE)  # sprung-mass estimator: state (controller/mass_estimator.py)
 FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
@@ -426,3 +453,66 @@ def servo_update(fv: np.ndarray, nd: int, force_ref_n: float, force_meas_n: floa
         fv[F_PEND] = s
     a = fv[F_SDECAY]
     fv[F_XV] = a * fv[F_XV] + (1.0 - a) * applied
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _biquad(fv: np.ndarray, c: int, s: int, x: float) -> float:
+    """Direct form II transposed biquad: coefficients fv[c:c+5] (b0, b1, b2, a1, a2),
+    state fv[s:s+2]."""
+    y = fv[c] * x + fv[s]
+    fv[s] = fv[c + 1] * x - fv[c + 3] * y + fv[s + 1]
+    fv[s + 1] = fv[c + 2] * x - fv[c + 4] * y
+    return y
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def mass_estimate(fv: np.ndarray, force_n: float, rattlespace_m: float,
+                  accel_mps2: float) -> None:
+    """One tick of the sprung-mass estimator (controller/mass_estimator.py, the plain
+    reference ``MassEstimator``): band-passed least squares with forgetting on
+    M a = F + F_bs + K z + C z'; the estimate in ``fv[F_MES + S_EST]``."""
+    p = F_ME
+    s = F_MES
+    if not (fv[p + ME_LAMBDA] > 0.0):      # off: the estimate stays the configured mass
+        return
+    hp = p + ME_HP
+    lp = p + ME_LP
+    k = fv[p + ME_K]
+    if math.isnan(fv[s + ME_ZPREV]):        # first sample: the high-passes at steady state
+        fv[s + ME_ZPREV] = rattlespace_m
+        y0 = force_n + k * rattlespace_m
+        fv[s + ME_HPA] = (fv[hp + 1] + fv[hp + 2]) * accel_mps2
+        fv[s + ME_HPA + 1] = fv[hp + 2] * accel_mps2
+        fv[s + ME_HPY] = (fv[hp + 1] + fv[hp + 2]) * y0
+        fv[s + ME_HPY + 1] = fv[hp + 2] * y0
+    zdot = (rattlespace_m - fv[s + ME_ZPREV]) * fv[p + ME_INV_DT]
+    fv[s + ME_ZPREV] = rattlespace_m
+    y = force_n + k * rattlespace_m + fv[p + ME_C] * zdot
+    phi = _biquad(fv, lp, s + ME_LPA, _biquad(fv, hp, s + ME_HPA, accel_mps2))
+    yb = _biquad(fv, lp, s + ME_LPY, _biquad(fv, hp, s + ME_HPY, y))
+    if fv[s + ME_NSEEN] < fv[p + ME_SETTLE]:    # the band-pass settling after a reset
+        fv[s + ME_NSEEN] += 1.0
+        return
+    lam = fv[p + ME_LAMBDA]
+    saa = lam * fv[s + ME_SAA] + phi * phi
+    say = lam * fv[s + ME_SAY] + phi * yb
+    if not (math.isfinite(saa) and math.isfinite(say)):     # restart the fit
+        fv[s + ME_ZPREV] = np.nan
+        fv[s + ME_SAA] = 0.0
+        fv[s + ME_SAY] = 0.0
+        return
+    fv[s + ME_SAA] = saa
+    fv[s + ME_SAY] = say
+    if saa > fv[p + ME_SMIN]:
+        fv[s + ME_EST] = min(max(say / saa, fv[p + ME_LO]), fv[p + ME_HI])
+        fv[s + ME_NUPD] += 1.0
+
+
+@nb.njit(cache=True, nogil=True)
+def mass_estimate_reset(fv: np.ndarray) -> None:
+    """The estimator's state after a reset: no data, the estimate the configured mass."""
+    s = F_MES
+    for i in range(ME_STATE_SIZE):
+        fv[s + i] = 0.0
+    fv[s + ME_ZPREV] = np.nan
+    fv[s + ME_EST] = fv[F_ME + ME_M0]

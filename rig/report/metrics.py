@@ -59,6 +59,8 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "N", "/rig/signals.force_ref_n", ratio=False),
     SummaryRow("tracking_error_rms_n", "force tracking error RMS", "N",
                "/rig/signals.force_ref_n − force_meas_n", ratio=False),
+    SummaryRow("sprung_mass_est_kg", "sprung-mass estimate at the end of the phase", "kg",
+               "/controller/internals.sprung_mass_est_kg", ratio=False),
     SummaryRow("no_rule_fired_pct", "ticks on which no fuzzy rule fired", "%",
                "/controller/internals.flags", 3, ratio=False),
     SummaryRow("lateness_p50_us", "wake-up lateness p50", "µs", "/rig/timing.wake_late_s"),
@@ -82,6 +84,11 @@ def _pct(x: FloatArray, q: float) -> float:
 def _max(x: FloatArray) -> float:
     x = x[np.isfinite(x)]
     return float(x.max()) if x.size else math.nan
+
+
+def _last(x: FloatArray) -> float:
+    x = x[np.isfinite(x)]
+    return float(x[-1]) if x.size else math.nan
 
 
 def _filtered(s: RunSeries) -> tuple[FloatArray, FloatArray]:
@@ -119,6 +126,7 @@ def run_metrics(s: RunSeries) -> dict[str, float | int | str]:
         "lateness_max_us": _max(late),
         "compute_p99_us": _pct(s.timing["compute_s"] * 1e6, 99),
         "faults": len(faults),
+        "sprung_mass_est_kg (end)": _last(s.sprung_mass_est_kg),
         "recording": "complete" if s.scan.complete else f"incomplete: {s.scan.stopped_at}",
     }
 
@@ -150,6 +158,8 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "lateness_max_us": _max(late),
             "compute_p99_us": _pct(s.timing["compute_s"][m] * 1e6, 99),
             "overrun_ticks": float(np.nansum(s.timing["overrun"][m])),
+            "sprung_mass_est_kg": (_last(s.sprung_mass_est_kg[m])
+                                   if s.sprung_mass_est_kg.size == m.size else math.nan),
             "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
                                   if m.any() and np.any(s.flags[m] >= 0) else math.nan),
         }

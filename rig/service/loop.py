@@ -114,6 +114,7 @@ TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("flags", "int", "bank_flags"),
     ("blending", "int", "blending"),
     ("weight_set", "int", "weight_set"),
+    ("sprung_mass_est_kg", "float", "rt.sprung_mass_est_kg"),
     ("x_post", "array", "rt.x_post"),
     ("xf", "array", "rt.xf"),
 )
@@ -658,6 +659,7 @@ class ControlLoop:
                 "flags": self.bank_flags,
                 "blending": self.blending,
                 "weight_set": self.weight_set,
+                "sprung_mass_est_kg": float(rt.sprung_mass_est_kg),
             },
             "timing": {
                 "wake_late_s": self.lateness_ns * 1e-9,
