@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import ipaddress
+import itertools
 import json
 import math
 import re
@@ -225,6 +226,14 @@ class DesignConfig:
     tire_damping_scales: list[float] = _f([1.0], lo=0.0, hi=10.0, max_len=16,
                                           len_why="one model per deflection and scale",
                                           doc="grid factor on Ct (1 = nominal only)")
+    sprung_mass_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=16,
+                                         len_why="one layer of tire models per scale",
+                                         doc="sprung-mass layers of the bank (x "
+                                             "vehicle.sprung_mass_kg): the tire models are "
+                                             "designed once per layer, and the bank runs the "
+                                             "layer nearest the sprung-mass estimate "
+                                             "(docs/design.md §11; [1.0] = the configured "
+                                             "mass only)")
     weight_set: int = _f(1, lo=1, hi=15, doc="index into weight_sets (1-based)")
     weight_sets: list[list[float]] = _f([[1.0, 1e2, 1e-8, 1.0], [1e1, 1e-1, 1e-8, 1.0]],
                                         lo=0.0, hi=1e12, max_len=15,
@@ -856,12 +865,18 @@ def _cross_checks(cfg: RigConfig) -> None:
         t = getattr(fz, name)
         if len(t) != 3 or not (t[0] <= t[1] <= t[2]) or t[0] == t[2]:
             raise ConfigError(f"fuzzy.{name}", t, "3 numbers a <= peak <= c with a < c")
-    n_models = len(pts) * len(d.tire_damping_scales) + int(d.include_airborne_model)
+    ms = d.sprung_mass_scales
+    if not ms or any(b <= a for a, b in itertools.pairwise(ms)):
+        raise ConfigError("design.sprung_mass_scales", ms, "at least one scale, strictly "
+                          "increasing")
+    n_models = (len(pts) * len(d.tire_damping_scales) * len(ms)
+                + int(d.include_airborne_model))
     if n_models > MAX_BANK_MODELS:
         raise ConfigError("design.linearisation_deflections_m", pts,
                           f"at most {MAX_BANK_MODELS} models in the bank: "
                           f"{len(pts)} deflections x {len(d.tire_damping_scales)} "
-                          f"tire_damping_scales{' + airborne' * d.include_airborne_model} "
+                          f"tire_damping_scales x {len(ms)} sprung_mass_scales"
+                          f"{' + airborne' * d.include_airborne_model} "
                           f"= {n_models} (every model's filter runs each tick)")
     n_noise = len(cfg.noise.speeds_mps) * len(cfg.noise.road_roughness_gd)
     if n_models * n_noise > MAX_BANK_TABLE_ENTRIES:

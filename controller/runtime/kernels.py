@@ -109,6 +109,9 @@ V_KF = VEC.slot(2)  # human-filter part of the LQ gain
 V_AIR = VEC.slot()  # 1.0 for an airborne model, else 0.0
 V_LLC = VEC.slot()  # log-likelihood constant -(m/2) log 2π - ½ log|F|
 V_KA = VEC.slot(3 + MAX_DELAY)  # actuator part of the gain (spool, force, w, pending)
+V_YSTAT = VEC.slot()  # model's static rattlespace minus the configured one, M_l g / K - M g / K [m]
+V_LAYER = VEC.slot()  # sprung-mass layer of the model (-1: airborne)
+V_MASS = VEC.slot()  # sprung mass of the model's layer [kg]
 VEC_COLS = VEC.size
 # --- st columns
 ST = BufferLayout("st")
@@ -199,6 +202,7 @@ F_GUARD_S = FV.slot()  # end-stop guard: factor applied to the force of the last
 F_SB = FV.slot(9)  # end-stop barrier: StopBarrier.as_array() (stop_barrier.py; M = 0: off)
 F_SB_DF = FV.slot()  # end-stop barrier: force added in the last tick [N] (read-out)
 F_SB_V = FV.slot()  # end-stop barrier: low-passed LVDT rate [m/s] (state; NaN after reset)
+F_LHYST = FV.slot()  # layer hysteresis: switch when |log(est / M_new)| + this < |log(est / M_cur)|
 F_ME = FV.slot(ME_SIZE)  # sprung-mass estimator: mass_estimator_parameters() (λ = 0: off)
 F_MES = FV.slot(ME_STATE_SIZE)  # sprung-mass estimator: state (controller/mass_estimator.py)
 FV_HEAD = FV.size  # the fuzzy table starts here
@@ -256,6 +260,16 @@ I_MON_BAD = IV.slot()  # consecutive ticks with an unusable estimate (state)
 I_MON_NDEG = IV.slot()  # degradations since reset (state)
 I_MON_DEGTICKS = IV.slot()  # ticks spent degraded since reset (state)
 I_SB_TICKS = IV.slot()  # ticks in which the end-stop barrier changed the force since reset (state)
+# --- iv: sprung-mass layers (controller/runtime/mass_layers.py)
+I_NLAYER = IV.slot()  # number of sprung-mass layers (1: no scheduling)
+I_NTIRE = IV.slot()  # on-ground models per layer (model j of layer l is l * NTIRE + t)
+I_LAYER0 = IV.slot()  # layer after a reset (nearest the configured mass)
+I_SINGLE0 = IV.slot()  # single model after a reset
+I_LDWELL = IV.slot()  # ticks a layer is kept at least
+I_LAYER = IV.slot()  # layer the bank runs (state)
+I_LCAND = IV.slot()  # layer the estimate prefers to the running one (state)
+I_LSINCE = IV.slot()  # ticks I_LCAND has been preferred in a row (state)
+I_NLAYERSW = IV.slot()  # layer changes since reset (state)
 IV_ACT = IV.size  # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
 IV_HEAD = IV.size  # iv has IV_HEAD + J entries
 
