@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import ipaddress
+import itertools
 import json
 import math
 import re
@@ -225,6 +226,14 @@ class DesignConfig:
     tire_damping_scales: list[float] = _f([1.0], lo=0.0, hi=10.0, max_len=16,
                                           len_why="one model per deflection and scale",
                                           doc="grid factor on Ct (1 = nominal only)")
+    sprung_mass_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=16,
+                                         len_why="one layer of tire models per scale",
+                                         doc="sprung-mass layers of the bank (x "
+                                             "vehicle.sprung_mass_kg): the tire models are "
+                                             "designed once per layer, and the bank runs the "
+                                             "layer nearest the sprung-mass estimate "
+                                             "(docs/design.md §11; [1.0] = the configured "
+                                             "mass only)")
     weight_set: int = _f(1, lo=1, hi=15, doc="index into weight_sets (1-based)")
     weight_sets: list[list[float]] = _f([[1.0, 1e2, 1e-8, 1.0], [1e1, 1e-1, 1e-8, 1.0]],
                                         lo=0.0, hi=1e12, max_len=15,
@@ -309,6 +318,24 @@ class DesignConfig:
     stop_barrier_rate_per_s: float = _f(5.0, lo=0.0, hi=1e4, lo_open=True,
                                         doc="end-stop barrier: gamma of the barrier "
                                             "condition dh/dt >= -gamma h [1/s]")
+    mass_estimator_window_s: float = _f(2.0, lo=0.0, hi=600.0,
+                                        doc="sprung-mass estimator: time constant of the "
+                                            "exponential forgetting of its least squares on "
+                                            "the body equation M a = F + K z + C z' [s] (0 = "
+                                            "off: the estimate stays the configured mass; "
+                                            "docs/design.md §10)")
+    mass_estimator_band_hz: list[float] = _f([0.5, 10.0], lo=0.0, hi=1e4, lo_open=True,
+                                             max_len=2, len_why="[low, high]",
+                                             doc="sprung-mass estimator: [low, high] corners "
+                                                 "of the band-pass (2nd-order high-pass and "
+                                                 "2nd-order low-pass) applied alike to both "
+                                                 "sides of the body equation [Hz]")
+    mass_estimator_min_accel_mps2: float = _f(0.05, lo=0.0, hi=100.0,
+                                              doc="sprung-mass estimator: it updates only while "
+                                                  "the windowed RMS of the band-passed "
+                                                  "acceleration exceeds this; below it the rig "
+                                                  "is too quiet to tell the mass, and the "
+                                                  "estimate holds")
     actuator_model: str = _f("hydraulic", choices=("hydraulic", "ideal"),
                              doc="plant the LQ gains are designed on: 'hydraulic' = plant + "
                                  "linearised servo-valve/actuator under the PI's proportional "
@@ -498,9 +525,23 @@ class EmulatorConfig:
                             "position (zeroed at rest, as on a rig), 'nominal' = M g / K of "
                             "the configured rig (a mis-zeroed sensor when they differ)")
 
+    ballast_step_time_s: float = _f(0.0, lo=0.0, hi=1e7,
+                                    doc="run time at which ballast is put on (or taken "
+                                        "off) the sprung mass [s]; 0 = no ballast change "
+                                        "(docs/hil.md)")
+    ballast_step_scale: float = _f(1.0, lo=0.25, hi=4.0,
+                                   doc="sprung mass after the ballast change / before it "
+                                       "(1.3: +30 % ballast; 1 = no change)")
+
+    @property
+    def has_ballast_step(self) -> bool:
+        """True when the emulated rig's sprung mass changes during a run."""
+        return self.ballast_step_time_s > 0.0 and self.ballast_step_scale != 1.0
+
     @property
     def is_nominal(self) -> bool:
-        """True when the emulated plant is the configured one."""
+        """True when the emulated plant is the configured one (before any ballast change:
+        see :attr:`has_ballast_step`)."""
         return (self.sprung_mass_scale == self.unsprung_mass_scale == self.spring_rate_scale
                 == self.damping_scale == self.tire_stiffness_scale == 1.0
                 and self.ride_height_offset_m == 0.0)
@@ -855,6 +896,12 @@ def _cross_checks(cfg: RigConfig) -> None:
         raise ConfigError("safety.stop_contact_band_m", sa.stop_contact_band_m,
                           f"< vehicle.rattlespace_travel_m = "
                           f"{cfg.vehicle.rattlespace_travel_m}")
+    band = d.mass_estimator_band_hz
+    nyquist = 0.5 * d.sample_rate_hz
+    if len(band) != 2 or not 0.0 < band[0] < band[1] < 0.5 * nyquist:
+        raise ConfigError("design.mass_estimator_band_hz", band,
+                          f"[low, high] with 0 < low < high < {0.5 * nyquist:g} Hz (a quarter "
+                          "of the sample rate)")
     fz = cfg.fuzzy
     if len(fz.universe) != 2 or fz.universe[0] >= fz.universe[1]:
         raise ConfigError("fuzzy.universe", fz.universe, "[lo, hi] with lo < hi")
@@ -864,12 +911,18 @@ def _cross_checks(cfg: RigConfig) -> None:
         t = getattr(fz, name)
         if len(t) != 3 or not (t[0] <= t[1] <= t[2]) or t[0] == t[2]:
             raise ConfigError(f"fuzzy.{name}", t, "3 numbers a <= peak <= c with a < c")
-    n_models = len(pts) * len(d.tire_damping_scales) + int(d.include_airborne_model)
+    ms = d.sprung_mass_scales
+    if not ms or any(b <= a for a, b in itertools.pairwise(ms)):
+        raise ConfigError("design.sprung_mass_scales", ms, "at least one scale, strictly "
+                          "increasing")
+    n_models = (len(pts) * len(d.tire_damping_scales) * len(ms)
+                + int(d.include_airborne_model))
     if n_models > MAX_BANK_MODELS:
         raise ConfigError("design.linearisation_deflections_m", pts,
                           f"at most {MAX_BANK_MODELS} models in the bank: "
                           f"{len(pts)} deflections x {len(d.tire_damping_scales)} "
-                          f"tire_damping_scales{' + airborne' * d.include_airborne_model} "
+                          f"tire_damping_scales x {len(ms)} sprung_mass_scales"
+                          f"{' + airborne' * d.include_airborne_model} "
                           f"= {n_models} (every model's filter runs each tick)")
     n_noise = len(cfg.noise.speeds_mps) * len(cfg.noise.road_roughness_gd)
     if n_models * n_noise > MAX_BANK_TABLE_ENTRIES:

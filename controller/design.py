@@ -15,6 +15,7 @@ Derivations: docs/design.md.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,7 +39,7 @@ from controller.plant import LinearModel, model_family
 from controller.road_noise import noise_table_entries
 
 __all__ = ["FUZZY_GRID_POINTS", "ModelDesign", "bump_stop_input", "design_bank",
-           "design_models", "measurement_noise_cov"]
+           "design_models", "layer_config", "measurement_noise_cov"]
 
 
 #: Points of the tabulated firing-weight curve over the universe of q.
@@ -68,18 +69,41 @@ def bump_stop_input(cfg: RigConfig) -> FloatArray:
     return np.array([k, c - v.rattlespace_travel_m, c + v.rattlespace_travel_m])
 
 
+def layer_config(cfg: RigConfig, mass_scale: float) -> RigConfig:
+    """The configuration of one sprung-mass layer: the vehicle's sprung mass x scale."""
+    if mass_scale == 1.0:
+        return cfg
+    return cfg.replace(vehicle={"sprung_mass_kg": cfg.vehicle.sprung_mass_kg * mass_scale})
+
+
+def _model_design(model: LinearModel, cfg: RigConfig) -> ModelDesign:
+    fm = filter_model(model, cfg)
+    return ModelDesign(model, fm, discretize_filter_model(fm, cfg.sample_time_s))
+
+
 def design_models(cfg: RigConfig) -> list[ModelDesign]:
+    """The bank's models: the tire family of :func:`controller.plant.model_family` once per
+    sprung-mass layer (``design.sprung_mass_scales``, layer major; with more than one
+    layer the names carry ``_M<scale>``), then the airborne model (configured mass)."""
+    scales = cfg.design.sprung_mass_scales
+    if list(scales) == [1.0]:
+        return [_model_design(model, cfg) for model in model_family(cfg)]
     out = []
-    for model in model_family(cfg):
-        fm = filter_model(model, cfg)
-        out.append(ModelDesign(model, fm, discretize_filter_model(fm, cfg.sample_time_s)))
+    for scale in scales:
+        cfg_l = layer_config(cfg, scale)
+        out += [_model_design(dataclasses.replace(model, name=f"{model.name}_M{scale:g}"),
+                              cfg_l)
+                for model in model_family(cfg_l) if not model.airborne]
+    out += [_model_design(model, cfg) for model in model_family(cfg) if model.airborne]
     return out
 
 
 def _grid_index(cfg: RigConfig, j: int, airborne: bool) -> tuple[int, int]:
+    """(deflection, damping scale) index of model j within its sprung-mass layer."""
     if airborne:
         return (-1, -1)
     n_scale = len(cfg.design.tire_damping_scales)
+    j %= n_scale * len(cfg.design.linearisation_deflections_m)
     return (j // n_scale, j % n_scale)
 
 

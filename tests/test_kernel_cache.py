@@ -41,7 +41,7 @@ def test_changed_sources_drop_the_cached_kernels(tmp_path: Path,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     pkg = tmp_path / "runtime"
     (pkg / "__pycache__").mkdir(parents=True)
-    for name in kernel_cache.KERNEL_SOURCES:
+    for name in (*kernel_cache.KERNEL_SOURCES, *kernel_cache.KERNEL_CONSTANT_SOURCES):
         (pkg / name).write_text(f"# {name}\n")
     (pkg / "__init__.py").write_text("")
     monkeypatch.setattr(controller.runtime, "__file__", str(pkg / "__init__.py"))
@@ -57,3 +57,7 @@ def test_changed_sources_drop_the_cached_kernels(tmp_path: Path,
     (pkg / "layout.py").write_text("# changed\n")
     assert kernel_cache.drop_stale_kernel_cache() is True
     assert not cached.exists() and not moving.exists()
+    cached.write_text("x")      # the estimator's offsets are compiled into the kernels
+    (tmp_path / "mass_estimator.py").write_text("# changed\n")
+    assert kernel_cache.drop_stale_kernel_cache() is True
+    assert not cached.exists()

@@ -55,7 +55,7 @@ pytestmark = pytest.mark.timeout(300)
 CFG = default_config()
 DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "wire" / "rig.dbc"))
 PLOTS = ["summary.png", "rattlespace.png", "acceleration.png", "force.png",
-         "force_tracking.png", "models.png", "lifecycle.png", "timing.png"]
+         "force_tracking.png", "models.png", "sprung_mass.png", "lifecycle.png", "timing.png"]
 #: the fixture run: passive, active, an overrun-streak fault, reset, active again
 ARM_S, LATE_TICK, RESET_TICK, REARM_TICK, SECONDS = 0.4, 2000, 2600, 2700, 4.0
 
@@ -131,10 +131,23 @@ def test_each_model_has_its_own_colour_and_legend(report: Path, recording: Path)
 
 def test_every_time_plot_shades_the_phases_alike(report: Path) -> None:
     for name in ("rattlespace.png", "acceleration.png", "force.png", "models.png",
-                 "lifecycle.png", "timing.png"):
+                 "sprung_mass.png", "lifecycle.png", "timing.png"):
         img = mpimg.imread(report.parent / name)
         for phase in Phase:
             assert _pixels_near(img, _shade(PHASE_COLOURS[phase]), tol=3) > 200, (name, phase)
+
+
+def test_sprung_mass_estimate_is_a_row_and_a_plot(report: Path, recording: Path) -> None:
+    """The controller's mass estimate of every tick is read back; the table shows the
+    last one of each phase; the page has the plot."""
+    s = load_series(recording)
+    m = s.sprung_mass_est_kg
+    assert m.size == s.t_s.size and np.all(np.isfinite(m))
+    active = s.phase == Phase.ACTIVE
+    assert phase_metrics(s)["active"]["sprung_mass_est_kg"] == m[active][-1]
+    html = report.read_text()
+    assert "sprung-mass estimate at the end of the phase" in html
+    assert "sprung_mass.png" in html
 
 
 def test_long_series_envelope_keeps_every_extreme() -> None:

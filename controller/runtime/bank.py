@@ -59,6 +59,7 @@ from numpy.typing import NDArray
 from controller.arrays import FloatArray
 from controller.artifact import Design
 from controller.config import RigConfig, default_config, parse_config
+from controller.mass_estimator import ME_EST, ME_NUPD, ME_SIZE, mass_estimator_parameters
 from controller.monitor import MonitorSettings, monitor_settings
 from controller.plant import static_tire_deflection_m
 from controller.road_noise import nearest_noise_entry
@@ -92,10 +93,13 @@ from controller.runtime.kernels import (
     F_HWIDTH,
     F_LC,
     F_LH,
+    F_LHYST,
     F_LINVG,
     F_LOAD,
     F_LOFF,
     F_LON,
+    F_ME,
+    F_MES,
     F_MON_REARM,
     F_MON_SUM,
     F_MON_THR,
@@ -153,9 +157,14 @@ from controller.runtime.kernels import (
     I_HIST,
     I_J,
     I_K,
+    I_LAYER,
+    I_LAYER0,
+    I_LCAND,
     I_LCNT,
     I_LD,
+    I_LDWELL,
     I_LPTR,
+    I_LSINCE,
     I_MINLEARN,
     I_MODE,
     I_MON_BAD,
@@ -172,11 +181,14 @@ from controller.runtime.kernels import (
     I_NACT,
     I_NB,
     I_NG,
+    I_NLAYER,
+    I_NLAYERSW,
     I_NLEARN,
     I_NLIFT_LOAD,
     I_NPROBE,
     I_NRECENTRE,
     I_NSWITCH,
+    I_NTIRE,
     I_NUPD,
     I_PROBE,
     I_PROBE_CNT,
@@ -198,6 +210,7 @@ from controller.runtime.kernels import (
     I_SINCE_RECENTRE,
     I_SINCE_SWITCH,
     I_SINGLE,
+    I_SINGLE0,
     I_TICK,
     I_WCURVE,
     IV_ACT,
@@ -237,20 +250,26 @@ from controller.runtime.kernels import (
     V_FINV,
     V_KA,
     V_KF,
+    V_LAYER,
     V_LLC,
     V_LOGDET,
+    V_MASS,
+    V_YSTAT,
     VEC_COLS,
     Blending,
     StepFlag,
     activate,
     deactivate,
     firing_weight,
+    mass_estimate,
+    mass_estimate_reset,
     servo_update,
     stop_barrier,
     stop_contact,
     stop_guard,
 )
 from controller.runtime.layout import SlotValue
+from controller.runtime.mass_layers import layer_table, mass_schedule
 from controller.runtime.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
@@ -269,6 +288,11 @@ from controller.stop_barrier import stop_barrier as stop_barrier_parameters
 from controller.stop_contact import StopContactSettings, stop_contact_settings
 
 __all__ = ["BankRuntime", "Blending", "StepFlag", "config_of", "default_single_model"]
+
+#: sprung-mass layers: another layer must be preferred this long in a row [s] ...
+LAYER_DWELL_S = 1.0
+#: ... and left for one nearer the estimate by more than this in log mass (about 2 %)
+LAYER_HYSTERESIS = 0.02
 
 
 _FUZZY = int(Blending.FUZZY)
@@ -397,7 +421,7 @@ def _filter_update(j: int, mat: np.ndarray, vec: np.ndarray, st: np.ndarray,
     ``fv[F_SCR:+4]``, the next prior to ``fv[F_SCR+4:+8]`` until accepted.  Returns the
     likelihood quotient q (NaN when any result is not finite: the caller rejects the
     update), the innovation (r0 [m], r1 [m/s^2]), the updated biases and the control u."""
-    y0j = y0 - st[j, S_BR]
+    y0j = y0 - st[j, S_BR] + vec[j, V_YSTAT]
     y1j = y1 - st[j, S_BA]
     r0 = y0j - fv[F_YOFF] - vec[j, V_D] * u_in
     r1 = y1j - fv[F_YOFF + 1] - vec[j, V_D + 1] * u_in
@@ -596,6 +620,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     blend = iv[I_BLEND]
     sentinel = iv[I_SENTINEL] if blend == _MOVING and iv[I_MODE] == MODE_AIR else -1
     u_in, y0, y1 = _measurements(fv, rattlespace_m, accel_mps2, force_meas_n)
+    mass_estimate(fv, u_in, rattlespace_m, accel_mps2)
+    mass_schedule(st, active, fv, iv, nbr, vec, mat, fv[F_MES + ME_EST], blend)
     xf0 = fv[F_XF]
     xf1 = fv[F_XF + 1]
     alpha = fv[F_ALPHA]
@@ -688,10 +714,17 @@ def bank_configure(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.
         if centre < 0:
             centre = single
         enter_moving(st, active, fv, iv, nbr, vec, mat, centre)
-    else:
+    else:                   # the running layer's models and the airborne model
+        n_run = 0
         for j in range(J):
-            if not active[j]:
-                activate(j, st, active, fv, iv, mat, QS_INIT, 1.0 / J)
+            if vec[j, V_LAYER] < 0.0 or vec[j, V_LAYER] == iv[I_LAYER]:
+                n_run += 1
+        for j in range(J):
+            if vec[j, V_LAYER] < 0.0 or vec[j, V_LAYER] == iv[I_LAYER]:
+                if not active[j]:
+                    activate(j, st, active, fv, iv, mat, QS_INIT, 1.0 / n_run)
+            elif active[j]:
+                deactivate(j, st, active, iv)
     total = 0.0
     for j in range(J):
         if active[j]:
@@ -728,6 +761,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_SC_TIME] = 0.0
     fv[F_SC_AUTH] = 1.0
     fv[F_AMEAN] = 0.0
+    mass_estimate_reset(fv)
     for i in range(MAX_DELAY):
         fv[F_PEND + i] = 0.0
     for i in range(4):
@@ -756,6 +790,11 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     iv[I_SC_QUIET] = iv[I_SC_GAP]      # no contact yet: the first contact tick opens an episode
     iv[I_MON_CNT] = -iv[I_MON_N]
     iv[I_SENTINEL] = -1
+    iv[I_LAYER] = iv[I_LAYER0]
+    iv[I_SINGLE] = iv[I_SINGLE0]
+    iv[I_LSINCE] = 0
+    iv[I_LCAND] = -1
+    iv[I_NLAYERSW] = 0
     iv[I_CENTRE] = iv[I_SINGLE]
     bank_configure(mat, vec, st, active, fv, iv, nbr, blend)
     n = 0
@@ -792,15 +831,30 @@ def config_of(design: Design) -> RigConfig:
     return parse_config(tomllib.loads(str(text)))
 
 
+def _layers(design: Design, cfg: RigConfig) -> tuple[FloatArray, NDArray[np.int64], int]:
+    v = cfg.vehicle
+    return layer_table(design.equilibrium, design.airborne, v.suspension_stiffness_n_per_m,
+                       v.gravity_mps2)
+
+
+def _nominal_layer(masses: FloatArray, cfg: RigConfig) -> int:
+    """The sprung-mass layer nearest the configured mass (the bank's layer after a reset)."""
+    m = cfg.vehicle.sprung_mass_kg
+    return int(np.argmin(np.abs(np.log(masses / m)))) if np.all(masses > 0.0) else 0
+
+
 def default_single_model(design: Design, cfg: RigConfig) -> int:
-    """The on-ground model whose linearisation deflection is nearest the static tire
-    deflection (ties: damping scale nearest 1)."""
+    """The on-ground model of the sprung-mass layer nearest the configured mass whose
+    linearisation deflection is nearest the static tire deflection (ties: damping scale
+    nearest 1)."""
     x2s = static_tire_deflection_m(cfg)
     defl = cfg.design.linearisation_deflections_m
     scales = cfg.design.tire_damping_scales
+    masses, layer, _ = _layers(design, cfg)
+    home = _nominal_layer(masses, cfg)
     best, key_best = -1, (math.inf, math.inf)
     for j in range(design.n_models):
-        if design.airborne[j]:
+        if design.airborne[j] or layer[j] != home:
             continue
         di, si = int(design.grid_index[j, 0]), int(design.grid_index[j, 1])
         key = (abs(defl[di] - x2s), abs(scales[si] - 1.0))
@@ -811,9 +865,16 @@ def default_single_model(design: Design, cfg: RigConfig) -> int:
     return best
 
 
-def _pack(design: Design) -> tuple[FloatArray, FloatArray]:
+def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
     """Packed per-model tables for every (noise entry, weight set): (S, W, J, 4, MAT_COLS)
     and (S, W, J, VEC_COLS)."""
+    masses, layer, _ = _layers(design, cfg)
+    ystat = np.where(design.airborne, 0.0,
+                     design.equilibrium[:, 0] - design.equilibrium[:, 1]
+                     - design.static_rattlespace_m)
+    ystat = np.where(np.isfinite(ystat), ystat, 0.0)
+    if len(masses) == 1:            # one layer: every model as designed for (bit for bit)
+        ystat[:] = 0.0
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
     mat = np.zeros((S, W, J, 4, MAT_COLS))
     vec = np.zeros((S, W, J, VEC_COLS))
@@ -839,6 +900,9 @@ def _pack(design: Design) -> tuple[FloatArray, FloatArray]:
             v[:, V_AIR] = design.airborne.astype(float)
             v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
                            for ld in design.innovation_logdet[:, s]]
+            v[:, V_YSTAT] = ystat
+            v[:, V_LAYER] = layer
+            v[:, V_MASS] = np.where(layer >= 0, masses[np.maximum(layer, 0)], 0.0)
     return mat, vec
 
 
@@ -887,6 +951,8 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_PFLOOR] = cfg.bayes.probability_floor
     fv[F_BS_K], fv[F_BS_LO], fv[F_BS_HI] = design.bump_stop
     fv[F_GUARD_W] = cfg.design.stop_guard_m
+    fv[F_ME:F_ME + ME_SIZE] = mass_estimator_parameters(cfg)
+    fv[F_LHYST] = LAYER_HYSTERESIS
     fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
         cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()
     aw = cfg.design.accel_mean_window_s
@@ -956,7 +1022,13 @@ def _int_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _Ta
     iv[I_NB] = HIST_BINS
     iv[I_MINLEARN] = max(1, int(_history_ticks(cfg, dt) // 4))
     iv[I_RECOMP] = HIST_RECOMPUTE_TICKS
-    iv[I_NPROBE] = max(0, min(n_ground - k, MAX_PROBE_CANDIDATES))
+    masses, layer, n_tire = _layers(design, cfg)
+    iv[I_NPROBE] = max(0, min(n_tire - k, MAX_PROBE_CANDIDATES))   # within the layer
+    iv[I_NLAYER] = len(masses)
+    iv[I_NTIRE] = n_tire
+    iv[I_SINGLE0] = single_model
+    iv[I_LAYER0] = max(int(layer[single_model]), 0)
+    iv[I_LDWELL] = max(1, round(LAYER_DWELL_S / dt))
     iv[I_DELAY] = design.compute_delay_ticks
     iv[I_LD] = t.load_step
     return iv
@@ -999,10 +1071,12 @@ class BankRuntime:
             raise ValueError(f"single_model {single_model!r}: must be an on-ground model "
                              f"index in [0, {J})")
         self.single_model = int(single_model)
-        self._all_mat, self._all_vec = _pack(design)
-        self._nbr = neighbour_table(design.grid_index, design.airborne)
-        n_ground = int(np.count_nonzero(~design.airborne))
-        k = min(int(cfg_.moving_bank.active_models), n_ground)
+        self._all_mat, self._all_vec = _pack(design, cfg_)
+        masses, layer, n_tire = _layers(design, cfg_)
+        #: sprung masses of the bank's layers [kg] (docs/design.md §11)
+        self.layer_masses_kg = masses
+        self._nbr = neighbour_table(design.grid_index, design.airborne, layer)
+        k = min(int(cfg_.moving_bank.active_models), n_tire)
         x_init = np.asarray(design.equilibrium[self.single_model], dtype=float)
         mon = monitor_settings(cfg_, dt, MEAS_DIM)
         self.monitor = mon
@@ -1185,6 +1259,17 @@ class BankRuntime:
         "limiting; > 0 away from the compression stop); counters()['stop_barrier_ticks'] "
         "counts the ticks it limited (stop_barrier.py).")
 
+    mass_layer = SlotValue(
+        "_iv", I_LAYER, int,
+        "The sprung-mass layer the bank runs (index into layer_masses_kg; "
+        "controller/runtime/mass_layers.py).")
+
+    sprung_mass_est_kg = SlotValue(
+        "_fv", F_MES + ME_EST, float,
+        "The sprung-mass estimate [kg] (controller/mass_estimator.py: band-passed least "
+        "squares on the body equation; the configured mass until the rig has moved enough "
+        "to tell, held while it is quiet).")
+
     @property
     def bias_estimate(self) -> tuple[float, float]:
         """Blended measurement-bias estimates (rattlespace [m], acceleration [m/s^2])."""
@@ -1202,7 +1287,9 @@ class BankRuntime:
                 "stop_contact_ticks": int(iv[I_SC_TICKS]),
                 "stop_contact_episodes": int(iv[I_SC_EPISODES]),
                 "stop_degradations": int(iv[I_SC_NDEG]),
-                "stop_degraded_ticks": int(iv[I_SC_DEGTICKS])}
+                "stop_degraded_ticks": int(iv[I_SC_DEGTICKS]),
+                "mass_estimate_updates": int(self._fv[F_MES + ME_NUPD]),
+                "layer_changes": int(iv[I_NLAYERSW])}
 
     def snapshot(self) -> dict[str, Any]:
         """Copies of the state (for tests and telemetry; allocates)."""

@@ -35,6 +35,31 @@ import numba as nb
 import numpy as np
 
 from controller.config import MAX_COMPUTE_DELAY_TICKS
+from controller.mass_estimator import (
+    ME_C,
+    ME_EST,
+    ME_HI,
+    ME_HP,
+    ME_HPA,
+    ME_HPY,
+    ME_INV_DT,
+    ME_K,
+    ME_LAMBDA,
+    ME_LO,
+    ME_LP,
+    ME_LPA,
+    ME_LPY,
+    ME_M0,
+    ME_NSEEN,
+    ME_NUPD,
+    ME_SAA,
+    ME_SAY,
+    ME_SETTLE,
+    ME_SIZE,
+    ME_SMIN,
+    ME_STATE_SIZE,
+    ME_ZPREV,
+)
 from controller.modes import Blending
 from controller.runtime.layout import BufferLayout
 
@@ -91,6 +116,9 @@ V_KF = VEC.slot(2)  # human-filter part of the LQ gain
 V_AIR = VEC.slot()  # 1.0 for an airborne model, else 0.0
 V_LLC = VEC.slot()  # log-likelihood constant -(m/2) log 2π - ½ log|F|
 V_KA = VEC.slot(3 + MAX_DELAY)  # actuator part of the gain (spool, force, w, pending)
+V_YSTAT = VEC.slot()  # model's static rattlespace minus the configured one, M_l g / K - M g / K [m]
+V_LAYER = VEC.slot()  # sprung-mass layer of the model (-1: airborne)
+V_MASS = VEC.slot()  # sprung mass of the model's layer [kg]
 VEC_COLS = VEC.size
 # --- st columns
 ST = BufferLayout("st")
@@ -190,6 +218,9 @@ F_SC_REARM = FV.slot()  # re-arm when it stays below this for I_SC_RECOVER ticks
 F_SC_FLOOR = FV.slot()  # force authority of the travel-conservative law
 F_SC_TIME = FV.slot()  # contact time in the window [s] (state)
 F_SC_AUTH = FV.slot()  # the monitor's force authority in [F_SC_FLOOR, 1] (state)
+F_LHYST = FV.slot()  # layer hysteresis: switch when |log(est / M_new)| + this < |log(est / M_cur)|
+F_ME = FV.slot(ME_SIZE)  # sprung-mass estimator: mass_estimator_parameters() (λ = 0: off)
+F_MES = FV.slot(ME_STATE_SIZE)  # sprung-mass estimator: state (controller/mass_estimator.py)
 FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
@@ -256,6 +287,16 @@ I_SC_TICKS = IV.slot()  # contact ticks since reset (state)
 I_SC_EPISODES = IV.slot()  # contact episodes since reset (state)
 I_SC_NDEG = IV.slot()  # stop degradations since reset (state)
 I_SC_DEGTICKS = IV.slot()  # ticks spent stop-degraded since reset (state)
+# --- iv: sprung-mass layers (controller/runtime/mass_layers.py)
+I_NLAYER = IV.slot()  # number of sprung-mass layers (1: no scheduling)
+I_NTIRE = IV.slot()  # on-ground models per layer (model j of layer l is l * NTIRE + t)
+I_LAYER0 = IV.slot()  # layer after a reset (nearest the configured mass)
+I_SINGLE0 = IV.slot()  # single model after a reset
+I_LDWELL = IV.slot()  # ticks a layer is kept at least
+I_LAYER = IV.slot()  # layer the bank runs (state)
+I_LCAND = IV.slot()  # layer the estimate prefers to the running one (state)
+I_LSINCE = IV.slot()  # ticks I_LCAND has been preferred in a row (state)
+I_NLAYERSW = IV.slot()  # layer changes since reset (state)
 IV_ACT = IV.size  # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
 IV_HEAD = IV.size  # iv has IV_HEAD + J entries
 
@@ -498,3 +539,66 @@ def servo_update(fv: np.ndarray, nd: int, force_ref_n: float, force_meas_n: floa
         fv[F_PEND] = s
     a = fv[F_SDECAY]
     fv[F_XV] = a * fv[F_XV] + (1.0 - a) * applied
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _biquad(fv: np.ndarray, c: int, s: int, x: float) -> float:
+    """Direct form II transposed biquad: coefficients fv[c:c+5] (b0, b1, b2, a1, a2),
+    state fv[s:s+2]."""
+    y = fv[c] * x + fv[s]
+    fv[s] = fv[c + 1] * x - fv[c + 3] * y + fv[s + 1]
+    fv[s + 1] = fv[c + 2] * x - fv[c + 4] * y
+    return y
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def mass_estimate(fv: np.ndarray, force_n: float, rattlespace_m: float,
+                  accel_mps2: float) -> None:
+    """One tick of the sprung-mass estimator (controller/mass_estimator.py, the plain
+    reference ``MassEstimator``): band-passed least squares with forgetting on
+    M a = F + F_bs + K z + C z'; the estimate in ``fv[F_MES + S_EST]``."""
+    p = F_ME
+    s = F_MES
+    if not (fv[p + ME_LAMBDA] > 0.0):      # off: the estimate stays the configured mass
+        return
+    hp = p + ME_HP
+    lp = p + ME_LP
+    k = fv[p + ME_K]
+    if math.isnan(fv[s + ME_ZPREV]):        # first sample: the high-passes at steady state
+        fv[s + ME_ZPREV] = rattlespace_m
+        y0 = force_n + k * rattlespace_m
+        fv[s + ME_HPA] = (fv[hp + 1] + fv[hp + 2]) * accel_mps2
+        fv[s + ME_HPA + 1] = fv[hp + 2] * accel_mps2
+        fv[s + ME_HPY] = (fv[hp + 1] + fv[hp + 2]) * y0
+        fv[s + ME_HPY + 1] = fv[hp + 2] * y0
+    zdot = (rattlespace_m - fv[s + ME_ZPREV]) * fv[p + ME_INV_DT]
+    fv[s + ME_ZPREV] = rattlespace_m
+    y = force_n + k * rattlespace_m + fv[p + ME_C] * zdot
+    phi = _biquad(fv, lp, s + ME_LPA, _biquad(fv, hp, s + ME_HPA, accel_mps2))
+    yb = _biquad(fv, lp, s + ME_LPY, _biquad(fv, hp, s + ME_HPY, y))
+    if fv[s + ME_NSEEN] < fv[p + ME_SETTLE]:    # the band-pass settling after a reset
+        fv[s + ME_NSEEN] += 1.0
+        return
+    lam = fv[p + ME_LAMBDA]
+    saa = lam * fv[s + ME_SAA] + phi * phi
+    say = lam * fv[s + ME_SAY] + phi * yb
+    if not (math.isfinite(saa) and math.isfinite(say)):     # restart the fit
+        fv[s + ME_ZPREV] = np.nan
+        fv[s + ME_SAA] = 0.0
+        fv[s + ME_SAY] = 0.0
+        return
+    fv[s + ME_SAA] = saa
+    fv[s + ME_SAY] = say
+    if saa > fv[p + ME_SMIN]:
+        fv[s + ME_EST] = min(max(say / saa, fv[p + ME_LO]), fv[p + ME_HI])
+        fv[s + ME_NUPD] += 1.0
+
+
+@nb.njit(cache=True, nogil=True)
+def mass_estimate_reset(fv: np.ndarray) -> None:
+    """The estimator's state after a reset: no data, the estimate the configured mass."""
+    s = F_MES
+    for i in range(ME_STATE_SIZE):
+        fv[s + i] = 0.0
+    fv[s + ME_ZPREV] = np.nan
+    fv[s + ME_EST] = fv[F_ME + ME_M0]

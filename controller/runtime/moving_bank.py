@@ -115,21 +115,24 @@ def chi2_threshold_floor(quantile: float, meas_dim: int = 2) -> float:
     return -float(meas_dim) * math.log(1.0 - quantile)
 
 
-def neighbour_table(grid_index: NDArray[np.int64], airborne: NDArray[np.bool_]
-                    ) -> NDArray[np.int64]:
+def neighbour_table(grid_index: NDArray[np.int64], airborne: NDArray[np.bool_],
+                    layer: NDArray[np.int64] | None = None) -> NDArray[np.int64]:
     """(J, n_ground): for each on-ground model c, the on-ground models ordered by grid
     distance from c (Euclidean in index steps; ties: smaller damping-index offset first,
-    then model index).  Row c starts with c itself.  Airborne rows are -1."""
+    then model index); with sprung-mass ``layer``s, c's own layer first, then the nearer
+    layers.  Row c starts with c itself.  Airborne rows are -1."""
     J = int(grid_index.shape[0])
     ground = [j for j in range(J) if not airborne[j]]
+    lay = np.zeros(J, dtype=np.int64) if layer is None else layer
     out = -np.ones((J, len(ground)), dtype=np.int64)
     for c in ground:
-        dc, sc = int(grid_index[c, 0]), int(grid_index[c, 1])
+        dc, sc, lc = int(grid_index[c, 0]), int(grid_index[c, 1]), int(lay[c])
 
-        def key(j: int, dc: int = dc, sc: int = sc) -> tuple[int, int, int]:
+        def key(j: int, dc: int = dc, sc: int = sc, lc: int = lc
+                ) -> tuple[int, int, int, int]:
             dd = int(grid_index[j, 0]) - dc
             ds = int(grid_index[j, 1]) - sc
-            return (dd * dd + ds * ds, abs(ds), j)
+            return (abs(int(lay[j]) - lc), dd * dd + ds * ds, abs(ds), j)
 
         out[c, :] = sorted(ground, key=key)
     return out

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
@@ -75,7 +76,7 @@ MAX_INNER_STEP_S = 5e-5
 TRACE_KEYS = ("rattlespace_m", "accel_mps2", "force_n", "force_ref_n", "spool_cmd",
               "spool_computed", "tire_force_n", "tire_deflection_m", "hydraulic_power_w",
               "off_ground_s", "bump_stop_s", "meas_rattlespace_m", "meas_force_n",
-              "meas_accel_mps2")
+              "meas_accel_mps2", "sprung_mass_kg", "sprung_mass_est_kg")
 
 
 class LoopController(Protocol):
@@ -166,6 +167,11 @@ class BankController:
     @property
     def fault(self) -> bool:
         return bool(self.flags & self._mask)
+
+    @property
+    def sprung_mass_est_kg(self) -> float:
+        """The bank's sprung-mass estimate [kg] (controller/mass_estimator.py)."""
+        return float(self.rt.sprung_mass_est_kg)
 
     def diagnostics(self) -> dict[str, float]:
         """Fractions of ticks in which no fuzzy rule fired (fallback force used) and in
@@ -306,8 +312,14 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
     adv = plant.advance
     meas = sensors.measure
     diag, state = plant.diag, plant.state          # updated in place by the plant
+    plant_p = plant.p                              # p[0]: the sprung mass (ballast changes)
     (t_r, t_a, t_f, t_fref, t_spool, t_comp, t_tire, t_x2, t_pow, t_off, t_bump, t_mr, t_mf,
-     t_ma) = (tr[k] for k in TRACE_KEYS)
+     t_ma, t_mass, t_mest) = (tr[k] for k in TRACE_KEYS)
+    # the controller's sprung-mass estimate, where it has one (NaN otherwise)
+    mass_est = (operator.attrgetter("sprung_mass_est_kg")
+                if controller is not None and hasattr(controller, "sprung_mass_est_kg")
+                else None)
+    t_mest[:] = math.nan
     t0 = time.perf_counter()
     for k in range(n):
         r_true, f_true, a_true = plant.true_signals()
@@ -331,6 +343,8 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
                     fref = queue.pop(0)
                 spool = pi.step(fref, rd.force_n, rd.rattlespace_m)
                 bypass = False
+            if mass_est is not None:
+                t_mest[k] = mass_est(controller)
             if weights_tr is not None and q_tr is not None:
                 weights_tr[k] = getattr(controller, "firing_weight")  # noqa: B009
                 q_tr[k] = getattr(controller, "q")  # noqa: B009
@@ -338,6 +352,7 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
         if delay_spool:
             queue.append(spool)
             spool = queue.pop(0)
+        t_mass[k] = plant_p[0]
         adv(dt, spool, bypass, height[k], velocity[k])
         t_r[k] = r_true
         t_a[k] = a_true
@@ -391,6 +406,9 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
         "tire_deflection_rms_m": float(np.sqrt(np.mean(np.square(x2_dev))))
         if x2_dev.size else math.nan,
     })
+    if mass_est is not None and n_done:     # the controller's estimate at the end / true mass
+        metrics["sprung_mass_est_ratio"] = float(tr["sprung_mass_est_kg"][-1]
+                                                 / tr["sprung_mass_kg"][-1])
     diagnostics = getattr(controller, "diagnostics", None)
     if callable(diagnostics):
         metrics.update(diagnostics())

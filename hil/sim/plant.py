@@ -16,6 +16,12 @@ Forces (positions from the unloaded springs, gravity acts):
     M x3'   =  F_s - M g
     m x4'   = -F_s + f_tire - m g
 
+A ballast change (``[emulator] ballast_step_time_s`` > 0, ``ballast_step_scale``) multiplies
+M by the scale once the plant's run time reaches the step time: the ballast joins the body
+at rest (momentum kept, x3 scaled by M_before / M_after), the body sags to its new static
+equilibrium (M_after g / K + s) and the LVDT zero stays where it was set; :meth:`reset`
+takes the ballast off again.
+
 r0 = M_nom g / K_nom is the static rattlespace of the nominal rig (the bump-stop geometry
 does not move when Monte Carlo perturbs M or K).  s is the spring-preload shift: 0 unless
 ``PlantParams.ride_height_offset_m`` is given, in which case a technician has set the
@@ -252,6 +258,12 @@ class RigPlant:
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"plant parameter {name} must be positive, got {value}")
         self.substeps = int(substeps)
+        em = cfg.emulator
+        #: sprung mass before any ballast change [kg]; the change (time [s], scale) or None
+        self._mass_before_kg = float(self.p[P_M])
+        self.ballast_step: tuple[float, float] | None = (
+            (em.ballast_step_time_s, em.ballast_step_scale) if em.has_ballast_step else None)
+        self._ballast_on = False
         self.state = np.zeros(N_STATES)
         self.diag = np.zeros(N_DIAG)
         self.bypass_open = True
@@ -280,6 +292,8 @@ class RigPlant:
 
     def reset(self, state: FloatArray | None = None) -> None:
         """Static equilibrium (or ``state`` [x1..x4]), spool centred, P = 0, bypass open."""
+        self.p[P_M] = self._mass_before_kg
+        self._ballast_on = False
         self.state[:] = 0.0
         self.state[:4] = self.equilibrium() if state is None else np.asarray(state)[:4]
         self.bypass_open = True
@@ -327,6 +341,26 @@ class RigPlant:
         self.time_s += dt_s
         if self.diag[D_NONFINITE] != 0.0:
             self.nonfinite = True
+        step = self.ballast_step
+        if step is not None and not self._ballast_on and self.time_s >= step[0] - 1e-9:
+            self.change_sprung_mass(self.p[P_M] * step[1])
+            self._ballast_on = True
+
+    @property
+    def sprung_mass_kg(self) -> float:
+        """The body's mass now (after any ballast change) [kg]."""
+        return float(self.p[P_M])
+
+    def change_sprung_mass(self, mass_kg: float) -> None:
+        """Ballast on or off: the body's mass becomes ``mass_kg``; the ballast joins (or
+        leaves) the body at rest in the lab, so the body's momentum is kept.  The
+        acceleration read-out is that of the new mass."""
+        if not (math.isfinite(mass_kg) and mass_kg > 0.0):
+            raise ValueError(f"sprung mass must be positive, got {mass_kg}")
+        self.state[2] *= self.p[P_M] / mass_kg
+        self.p[P_M] = mass_kg
+        fs, _ = self._forces_now(0.0)
+        self.diag[D_ACCEL] = fs / mass_kg - self.p[P_G]
 
     # ------------------------------------------------------------------ signals
     @property

@@ -185,6 +185,8 @@ INTERNALS_SCHEMA: Final = _obj(
         "blending": {"type": "integer", "minimum": 0,
                      "description": "bank mode code (controller.modes.Blending)"},
         "weight_set": {"type": "integer"},
+        "sprung_mass_est_kg": {**_NUM, "description": "the controller's sprung-mass "
+                               "estimate [kg] (controller/mass_estimator.py)"},
         "x_post": {**_NUM_ARRAY, "description": "(J, 4) estimates, flat row-major: "
                    "model j at [4j, 4j + 4)"},
         "xf": _NUM_ARRAY,

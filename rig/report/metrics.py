@@ -72,6 +72,8 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "/rig/signals.rattlespace_m", 6, ratio=False),
     SummaryRow("stop_degradations", "stop-contact degradations", "",
                "/controller/internals.flags", 6, ratio=False),
+    SummaryRow("sprung_mass_est_kg", "sprung-mass estimate at the end of the phase", "kg",
+               "/controller/internals.sprung_mass_est_kg", ratio=False),
     SummaryRow("no_rule_fired_pct", "ticks on which no fuzzy rule fired", "%",
                "/controller/internals.flags", 3, ratio=False),
     SummaryRow("lateness_p50_us", "wake-up lateness p50", "µs", "/rig/timing.wake_late_s"),
@@ -119,6 +121,9 @@ def stop_contact(s: RunSeries, mask: NDArray[np.bool_] | None = None
         else np.zeros(rs.size, dtype=bool)
     rises = deg & ~np.r_[False, deg[:-1]] & m
     return float(idx.size * s.dt_s), episodes, int(np.count_nonzero(rises))
+def _last(x: FloatArray) -> float:
+    x = x[np.isfinite(x)]
+    return float(x[-1]) if x.size else math.nan
 
 
 def _filtered(s: RunSeries) -> tuple[FloatArray, FloatArray]:
@@ -160,6 +165,7 @@ def run_metrics(s: RunSeries) -> dict[str, float | int | str]:
         "stop_contact_episodes": episodes,
         "stop_degradations": stop_deg,
         "faults": len(faults),
+        "sprung_mass_est_kg (end)": _last(s.sprung_mass_est_kg),
         "recording": "complete" if s.scan.complete else f"incomplete: {s.scan.stopped_at}",
     }
 
@@ -195,6 +201,8 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "stop_contact_s": contact_s,
             "stop_contact_episodes": float(episodes),
             "stop_degradations": float(stop_deg),
+            "sprung_mass_est_kg": (_last(s.sprung_mass_est_kg[m])
+                                   if s.sprung_mass_est_kg.size == m.size else math.nan),
             "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
                                   if m.any() and np.any(s.flags[m] >= 0) else math.nan),
         }

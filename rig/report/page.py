@@ -31,7 +31,7 @@ MAX_EVENT_ROWS = 500
 _SECTIONS = (  # section heading, figures in it
     ("Ride", ("rattlespace.png", "acceleration.png")),
     ("Force", ("force.png", "force_tracking.png")),
-    ("Controller bank", ("models.png",)),
+    ("Controller bank", ("models.png", "sprung_mass.png")),
     ("Lifecycle and loop timing", ("lifecycle.png", "timing.png")),
     ("Replay", ("comparison.png",)),
 )

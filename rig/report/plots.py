@@ -182,7 +182,7 @@ def render_all(d: PlotInput, out: Path) -> list[Figure]:
     matplotlib.use("Agg")
     makers: list[Callable[[PlotInput, Path], Figure | None]] = [
         _summary, _rattlespace, _acceleration, _force, _force_tracking, _models,
-        _lifecycle, _timing, _comparison]
+        _sprung_mass, _lifecycle, _timing, _comparison]
     return [f for make in makers if (f := make(d, out)) is not None]
 
 
@@ -484,6 +484,31 @@ def _models(d: PlotInput, out: Path) -> Figure | None:
         f"normalised blending weights actually used (sum 1 unless no rule fired); mean "
         f"while active: {rows}. q is each model's likelihood quotient (log scale; small "
         f"q: the model explains the measurements).")
+
+
+def _sprung_mass(d: PlotInput, out: Path) -> Figure | None:
+    """The controller's sprung-mass estimate over the run, against the configured mass."""
+    s = d.s
+    m = s.sprung_mass_est_kg
+    if m.size != s.t_s.size or not np.isfinite(m).any():
+        return None
+    fig, ax = _subplots(1, 1, height=2.6)
+    handles = [_line(ax, s.t_s, m, color="C0", lw=1.1, label="estimate")]
+    nominal = s.cfg.vehicle.sprung_mass_kg
+    handles.append(ax.axhline(nominal, color="k", ls="--", lw=0.8,
+                              label=f"configured {nominal:g} kg"))
+    _time_axes(ax, s)
+    ax.set_ylabel("sprung mass [kg]")
+    _title_and_legend(ax, "/controller/internals.sprung_mass_est_kg",
+                      [*handles, *phase_handles(s)])
+    _save(fig, out, "sprung_mass.png")
+    fin = m[np.isfinite(m)]
+    return Figure(
+        "sprung_mass.png", "Sprung-mass estimate", ("/controller/internals.sprung_mass_est_kg",),
+        f"What the controller believes the body weighs (least squares on the body equation "
+        f"M a = F + K z + C z', docs/design.md §10): {_fmt(fin[-1], 4)} kg at the end, "
+        f"{_fmt(float(fin.min()), 4)}–{_fmt(float(fin.max()), 4)} kg over the run, against "
+        f"the configured {nominal:g} kg. It holds while the rig is too quiet to tell.")
 
 
 def _lifecycle(d: PlotInput, out: Path) -> Figure:

@@ -15,10 +15,14 @@ from pathlib import Path
 
 import controller.runtime
 
-__all__ = ["KERNEL_SOURCES", "drop_stale_kernel_cache"]
+__all__ = ["KERNEL_CONSTANT_SOURCES", "KERNEL_SOURCES", "drop_stale_kernel_cache"]
 
 #: the sources compiled into the bank's step (controller/runtime/)
-KERNEL_SOURCES = ("bank.py", "kernels.py", "layout.py", "moving_bank.py", "bayes.py")
+KERNEL_SOURCES = ("bank.py", "kernels.py", "layout.py", "moving_bank.py", "bayes.py",
+                  "mass_layers.py")
+#: sources outside controller/runtime/ whose constants the kernels compile in (the
+#: sprung-mass estimator's parameter and state offsets), relative to it
+KERNEL_CONSTANT_SOURCES = ("../mass_estimator.py",)
 _STAMP = "bank_kernels.sha256"
 
 
@@ -29,7 +33,8 @@ def drop_stale_kernel_cache() -> bool:
     here = Path(controller.runtime.__file__).resolve().parent
     cache_dir = here / "__pycache__"
     try:
-        blob = b"".join((here / f).read_bytes() for f in KERNEL_SOURCES)
+        blob = b"".join((here / f).read_bytes()
+                        for f in (*KERNEL_SOURCES, *KERNEL_CONSTANT_SOURCES))
         digest = hashlib.sha256(blob).hexdigest()
         stamp = cache_dir / _STAMP
         if stamp.exists() and stamp.read_text() == digest:

@@ -119,6 +119,7 @@ TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("flags", "int", "bank_flags"),
     ("blending", "int", "blending"),
     ("weight_set", "int", "weight_set"),
+    ("sprung_mass_est_kg", "float", "rt.sprung_mass_est_kg"),
     ("x_post", "array", "rt.x_post"),
     ("xf", "array", "rt.xf"),
     ("stop_contact_s", "float", "rt.stop_contact_s"),

@@ -1,0 +1,122 @@
+"""Sprung-mass layers of the bank (issue 22, docs/design.md §11): the scheduler that runs
+the layer nearest the sprung-mass estimate.
+
+The design holds the tire models once per sprung-mass layer (``design.sprung_mass_scales``,
+layer major: model j of layer l is ``l * NTIRE + t``, the airborne model last).  The bank
+runs one layer at a time: fuzzy and Bayes blend that layer's tire models (and the airborne
+model), the single LQG is that layer's counterpart of the configured single model, the
+moving bank walks within the layer.  :func:`mass_schedule` moves to the layer nearest the
+estimate (in log mass) once that layer has been nearer than the current one by more than
+the hysteresis ``F_LHYST`` for ``I_LDWELL`` ticks in a row (the estimate dips for a few
+tenths of a second just after a ballast change: the weight the spring does not carry yet
+passes the band-pass as a transient); the newcomers start bumpless from the blended
+deviation and biases (:func:`controller.runtime.kernels.activate`), as the moving bank's
+do.
+
+:func:`layer_table` derives the layers from a design's model equilibria (the static
+rattlespace M g / K of each model), so the artifact needs no field of its own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.arrays import FloatArray
+from controller.runtime import kernels as kern
+from controller.runtime.moving_bank import enter_moving
+
+__all__ = ["layer_table", "mass_schedule", "model_in_layer"]
+
+_MOVING = int(kern.Blending.MOVING)
+
+
+def layer_table(equilibrium: FloatArray, airborne: NDArray[np.bool_], stiffness_n_per_m: float,
+                gravity_mps2: float) -> tuple[FloatArray, NDArray[np.int64], int]:
+    """(layer masses [kg] ascending, layer of each model (-1 airborne), on-ground models
+    per layer) from the models' equilibria; ValueError unless the on-ground models are
+    layer major with the same number per layer."""
+    ground = np.flatnonzero(~airborne)
+    layer = -np.ones(airborne.shape[0], dtype=np.int64)
+    if gravity_mps2 <= 0.0 or ground.size == 0:
+        layer[ground] = 0
+        return np.array([math.nan]), layer, int(ground.size)
+    mass = (equilibrium[ground, 0] - equilibrium[ground, 1]) * stiffness_n_per_m / gravity_mps2
+    masses = np.unique(np.round(mass, 6))
+    idx = np.searchsorted(masses, np.round(mass, 6))
+    n_tire = ground.size // masses.size
+    expected = np.repeat(np.arange(masses.size), n_tire)
+    if ground.size != n_tire * masses.size or not np.array_equal(idx, expected) \
+            or not np.array_equal(ground, np.arange(ground.size)):
+        raise ValueError("the design's sprung-mass layers are not layer major with one "
+                         "tire family each (controller.design.design_models)")
+    layer[ground] = idx
+    return masses, layer, n_tire
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def model_in_layer(j: int, layer: int, iv: np.ndarray) -> int:
+    """Model j's counterpart (same tire model) in ``layer``; the airborne model is its own."""
+    n = iv[kern.I_NTIRE]
+    if j >= n * iv[kern.I_NLAYER]:
+        return j
+    return layer * n + j % n
+
+
+@nb.njit(cache=True, nogil=True)
+def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
+                  nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray, mass_est_kg: float,
+                  blend: int) -> None:
+    """Move the bank to the layer nearest ``mass_est_kg`` (see the module docstring)."""
+    nl = iv[kern.I_NLAYER]
+    if nl <= 1:
+        return
+    if not (mass_est_kg > 0.0):
+        return
+    n = iv[kern.I_NTIRE]
+    cur = iv[kern.I_LAYER]
+    d_cur = abs(math.log(mass_est_kg / vec[cur * n, kern.V_MASS]))
+    best = cur
+    d_best = d_cur
+    for lay in range(nl):
+        d = abs(math.log(mass_est_kg / vec[lay * n, kern.V_MASS]))
+        if d < d_best:
+            best = lay
+            d_best = d
+    if best == cur or d_best + fv[kern.F_LHYST] >= d_cur:
+        iv[kern.I_LSINCE] = 0           # no candidate
+        return
+    if best != iv[kern.I_LCAND]:
+        iv[kern.I_LCAND] = best
+        iv[kern.I_LSINCE] = 0
+    iv[kern.I_LSINCE] += 1
+    if iv[kern.I_LSINCE] < iv[kern.I_LDWELL]:
+        return                          # not preferred long enough yet
+    if blend == _MOVING and iv[kern.I_MODE] == kern.MODE_AIR:
+        return                          # change layers on the ground
+    iv[kern.I_LAYER] = best
+    iv[kern.I_LSINCE] = 0
+    iv[kern.I_NLAYERSW] += 1
+    iv[kern.I_SINGLE] = model_in_layer(iv[kern.I_SINGLE0], best, iv)
+    if blend == _MOVING:
+        centre = model_in_layer(iv[kern.I_CENTRE], best, iv)
+        for j in range(n * nl):
+            if active[j]:
+                kern.deactivate(j, st, active, iv)
+        enter_moving(st, active, fv, iv, nbr, vec, mat, centre)
+        return
+    k = 0
+    for j in range(n * nl):
+        if active[j]:
+            k += 1
+    for t in range(n):
+        old = cur * n + t
+        new = best * n + t
+        if active[old]:
+            p = st[old, kern.S_P]
+            kern.deactivate(old, st, active, iv)
+            kern.activate(new, st, active, fv, iv, mat, kern.QS_INIT, p if p > 0.0 else 1.0 / k)
+    kern.normalise_probabilities(st, iv)

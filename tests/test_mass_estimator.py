@@ -1,0 +1,129 @@
+"""Sprung-mass estimator (controller/mass_estimator.py, docs/design.md §10): the kernel
+is the plain recursion, the fit is exact on data that obey the body equation, it holds on
+a quiet rig, and in closed loop on the thesis course it finds the mass of the emulated rig
+and follows a ballast change."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from controller.config import ConfigError, default_config
+from controller.mass_estimator import MassEstimator, mass_estimator_parameters
+from controller.runtime.bank import BankRuntime
+from hil.sim.closed_loop import cached_design, simulate
+from hil.sim.roads import make_road
+
+CFG = default_config()
+V = CFG.vehicle
+DT = CFG.sample_time_s
+COURSE_SPEED_MPS = 11.176
+
+
+def _body_data(mass_kg: float, n: int, seed: int, offset_n: float = 0.0
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(force [N], LVDT [m], acceleration [m/s^2]) that obey M a = F + K z + C z' exactly
+    (z' the backward difference), z band-limited random motion; ``offset_n``: a constant
+    force (a ballast's weight before the LVDT is re-zeroed, a load-cell offset)."""
+    rng = np.random.default_rng(seed)
+    b, a = signal.butter(2, [0.5, 5.0], btype="bandpass", fs=1.0 / DT)
+    z = 0.01 * signal.lfilter(b, a, rng.standard_normal(n)) / 0.05
+    zdot = np.diff(z, prepend=z[0]) / DT
+    acc = 0.5 * signal.lfilter(b, a, rng.standard_normal(n)) / 0.05
+    force = mass_kg * acc - V.suspension_stiffness_n_per_m * z \
+        - V.suspension_damping_ns_per_m * zdot - offset_n
+    return force, z, acc
+
+
+def test_fit_is_exact_on_the_body_equation_despite_a_constant_offset() -> None:
+    est = MassEstimator(mass_estimator_parameters(CFG))
+    force, z, acc = _body_data(380.0, 20_000, seed=1, offset_n=1500.0)
+    for f, r, a in zip(force, z, acc, strict=True):
+        est.step(f, r, a)
+    assert est.estimate_kg == pytest.approx(380.0, rel=1e-3)
+
+
+def test_kernel_is_the_plain_recursion() -> None:
+    """The bank's estimate (numba kernel, fed the load-cell force plus the bump-stop force
+    it computes) equals :class:`MassEstimator` on the same readings, tick by tick."""
+    rt = BankRuntime(cached_design(CFG), cfg=CFG)
+    ref = MassEstimator(mass_estimator_parameters(CFG))
+    force, z, acc = _body_data(620.0, 6000, seed=2)
+    got, want = [], []
+    for f, r, a in zip(force, z, acc, strict=True):
+        rt.step(r, a, f)
+        got.append(rt.sprung_mass_est_kg)
+        want.append(ref.step(f + rt.bump_stop_force, r, a))
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    assert got[-1] == pytest.approx(620.0, rel=1e-2)
+    assert rt.counters()["mass_estimate_updates"] == ref.updates > 0
+    rt.reset()
+    assert rt.sprung_mass_est_kg == V.sprung_mass_kg
+    assert rt.counters()["mass_estimate_updates"] == 0
+
+
+def test_quiet_rig_holds_the_estimate_and_off_is_the_configured_mass() -> None:
+    est = MassEstimator(mass_estimator_parameters(CFG))
+    force, z, acc = _body_data(430.0, 10_000, seed=3)
+    for f, r, a in zip(force, z, acc, strict=True):
+        est.step(f, r, a)
+    held = est.estimate_kg
+    rng = np.random.default_rng(4)              # at rest: sensor noise only, wrong "force"
+    counts = []
+    for _ in range(2):      # the old information fades below the gate, then nothing updates
+        for _ in range(30_000):
+            est.step(200.0 * rng.standard_normal(), 5e-5 * rng.standard_normal(),
+                     0.01 * rng.standard_normal())
+        counts.append(est.updates)
+    assert counts[1] == counts[0]
+    assert est.estimate_kg == pytest.approx(held, rel=0.02)   # 40 x the load-cell noise
+    off = MassEstimator(mass_estimator_parameters(
+        CFG.replace(design={"mass_estimator_window_s": 0.0})))
+    for f, r, a in zip(force, z, acc, strict=True):
+        off.step(f, r, a)
+    assert off.estimate_kg == V.sprung_mass_kg and off.updates == 0
+
+
+def test_bad_band_names_the_key() -> None:
+    for band in ([2.0, 1.0], [0.0, 5.0], [1.0, 400.0], [1.0]):
+        with pytest.raises(ConfigError, match=r"design\.mass_estimator_band_hz"):
+            CFG.replace(design={"mass_estimator_band_hz": band})
+
+
+def _estimate_run(emulator: dict[str, float], duration_s: float, controller: str = "fuzzy"
+                  ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+    road = make_road("rough-course", COURSE_SPEED_MPS, duration_s, DT, 1)
+    res = simulate(CFG.replace(emulator=emulator), road, controller, 1, seed=1,
+                   design=cached_design(CFG))
+    return res.traces["sprung_mass_est_kg"], res.traces["sprung_mass_kg"], res.metrics
+
+
+def test_estimate_within_5_percent_after_10_s_on_the_thesis_course() -> None:
+    """Emulated rig 0.7 x the configured mass, the controller designed for 1.0 x."""
+    est, true, metrics = _estimate_run({"sprung_mass_scale": 0.7}, 12.0)
+    assert np.all(true == pytest.approx(0.7 * V.sprung_mass_kg))
+    err = np.abs(est / true - 1.0)
+    assert err[round(10.0 / DT):].max() < 0.05
+    assert err[0] == pytest.approx(1.0 / 0.7 - 1.0)      # it started from the configured mass
+    assert metrics["sprung_mass_est_ratio"] == pytest.approx(1.0, abs=0.05)
+
+
+def test_estimate_follows_a_30_percent_ballast_step_within_5_s_without_fault() -> None:
+    est, true, metrics = _estimate_run({"ballast_step_time_s": 4.0,
+                                        "ballast_step_scale": 1.3}, 9.5)
+    k = round(4.0 / DT)
+    assert true[k - 1] == V.sprung_mass_kg and true[k + 1] == pytest.approx(
+        1.3 * V.sprung_mass_kg)
+    err = np.abs(est / true - 1.0)
+    assert err[k - round(1.0 / DT):k - 1].max() < 0.05
+    assert err[k + 1] > 0.2                        # the step is news to the estimator
+    assert err[k + round(5.0 / DT):].max() < 0.05
+    assert metrics["n_faults"] == 0
+
+
+def test_passive_run_has_no_estimate() -> None:
+    road = make_road("rough-course", COURSE_SPEED_MPS, 0.5, DT, 1)
+    res = simulate(CFG, road, "passive", seed=1)
+    assert np.all(np.isnan(res.traces["sprung_mass_est_kg"]))
+    assert "sprung_mass_est_ratio" not in res.metrics

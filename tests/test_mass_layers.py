@@ -1,0 +1,97 @@
+"""Sprung-mass layers of the bank (controller/runtime/mass_layers.py, docs/design.md §11):
+the design holds the tire models once per mass layer, each exactly the design for that
+mass; the bank runs the layer nearest the sprung-mass estimate, and on a plant of another
+mass it then controls like the bank designed for that plant."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controller.config import ConfigError, RigConfig, default_config
+from controller.design import design_bank
+from controller.runtime.bank import BankRuntime
+from controller.runtime.kernels import Blending
+from controller.runtime.mass_layers import layer_table
+from hil.sim.closed_loop import BankController, cached_design, run_closed_loop
+from hil.sim.roads import make_road
+
+CFG = default_config()
+V = CFG.vehicle
+SCALES = [0.7, 1.0, 1.3]
+LAYERED = CFG.replace(design={"sprung_mass_scales": SCALES})
+DT = CFG.sample_time_s
+
+
+def test_each_layer_is_the_design_for_its_mass() -> None:
+    d = cached_design(LAYERED)
+    n_tire = len(CFG.design.linearisation_deflections_m)
+    assert d.n_models == 3 * n_tire + 1 and bool(d.airborne[-1])
+    masses, layer, n = layer_table(d.equilibrium, d.airborne, V.suspension_stiffness_n_per_m,
+                                   V.gravity_mps2)
+    np.testing.assert_allclose(masses, [350.0, 500.0, 650.0])
+    assert n == n_tire and layer.tolist() == [0] * n + [1] * n + [2] * n + [-1]
+    for i, scale in enumerate(SCALES):
+        ref = design_bank(CFG.replace(vehicle={"sprung_mass_kg": V.sprung_mass_kg * scale}))
+        rows = slice(i * n, (i + 1) * n)
+        np.testing.assert_allclose(d.lq_gain[:, rows], ref.lq_gain[:, :n], rtol=1e-9)
+        np.testing.assert_allclose(d.kalman_gain[rows], ref.kalman_gain[:n], rtol=1e-9)
+        assert all(str(name).endswith(f"_M{scale:g}") for name in d.model_names[rows])
+
+
+def test_after_a_reset_the_bank_runs_the_configured_mass_layer() -> None:
+    d = cached_design(LAYERED)
+    for blending in Blending:
+        rt = BankRuntime(d, blending=blending, cfg=LAYERED)
+        assert rt.mass_layer == 1
+        running = np.flatnonzero(rt.active)
+        assert running.size > 0 and all(3 <= j < 6 or d.airborne[j] for j in running)
+
+
+def _run(emulator: dict[str, float], mode: str, duration_s: float,
+         ctrl_cfg: RigConfig = LAYERED, seed: int = 1
+         ) -> tuple[BankController, dict[str, float], dict[str, float]]:
+    """(controller, metrics, passive metrics) on the thesis course; the plant is
+    ``ctrl_cfg``'s rig with ``emulator`` on top."""
+    road = make_road("rough-course", 11.176, duration_s, DT, seed)
+    ctrl = BankController(cached_design(ctrl_cfg), ctrl_cfg, mode, 1, road)
+    plant_cfg = ctrl_cfg.replace(emulator=emulator) if emulator else ctrl_cfg
+    res = run_closed_loop(plant_cfg, road, ctrl, seed=seed)
+    passive = run_closed_loop(plant_cfg, road, None, seed=seed)
+    return ctrl, res.metrics, passive.metrics
+
+
+@pytest.mark.parametrize("mode", ["fuzzy", "lqg", "bayes", "moving"])
+def test_on_a_light_plant_the_bank_moves_to_the_light_layer(mode: str) -> None:
+    ctrl, m, _ = _run({"sprung_mass_scale": 0.7}, mode, 4.0)
+    rt = ctrl.rt
+    assert rt.mass_layer == 0 and rt.counters()["layer_changes"] == 1
+    running = np.flatnonzero(rt.active)
+    assert all(j < 3 or rt.design.airborne[j] for j in running), running
+    assert m["n_faults"] == 0
+
+
+def test_light_plant_controlled_like_the_design_for_it() -> None:
+    """M = 0.7 x configured: the layered bank absorbs within 10 % of the bank designed for
+    350 kg, at rattlespace within 5 %; the bank designed for 500 kg is far off."""
+    _, layered, passive = _run({"sprung_mass_scale": 0.7}, "fuzzy", 20.0)
+    true_cfg = CFG.replace(vehicle={"sprung_mass_kg": 0.7 * V.sprung_mass_kg})
+    _, true, passive_true = _run({}, "fuzzy", 20.0, ctrl_cfg=true_cfg)
+    _, nominal, _ = _run({"sprung_mass_scale": 0.7}, "fuzzy", 20.0, ctrl_cfg=CFG)
+    assert passive["absorbed_power"] == pytest.approx(passive_true["absorbed_power"],
+                                                      rel=1e-6)   # the same plant
+    assert layered["absorbed_power"] == pytest.approx(true["absorbed_power"], rel=0.10)
+    assert layered["rattlespace_rms_m"] == pytest.approx(true["rattlespace_rms_m"], rel=0.05)
+    assert nominal["absorbed_power"] > 1.3 * true["absorbed_power"]
+
+
+def test_ballast_step_moves_the_bank_to_the_heavy_layer_without_fault() -> None:
+    ctrl, m, _ = _run({"ballast_step_time_s": 3.0, "ballast_step_scale": 1.3}, "fuzzy", 8.0)
+    assert ctrl.rt.mass_layer == 2 and ctrl.rt.counters()["layer_changes"] == 1
+    assert m["n_faults"] == 0
+
+
+def test_bad_scales_name_the_key() -> None:
+    for scales in ([], [1.0, 0.7], [1.0, 1.0], [0.1]):
+        with pytest.raises(ConfigError, match=r"design\.sprung_mass_scales"):
+            CFG.replace(design={"sprung_mass_scales": scales})
