@@ -3,7 +3,7 @@
 decides the columns over the whole run (:class:`~rig.export.tables.TableSchema`), the
 second lays each batch out and appends it to the MF4 (:class:`~rig.export.mf4.Mf4Stream`),
 the Parquet files (:class:`~rig.export.parquet.ParquetStream`, a row group per batch) or
-the CSV files (:class:`~rig.export.csv.CsvStream`).  Peak memory: one batch
+the CSV files (:class:`~rig.export.csv_files.CsvStream`).  Peak memory: one batch
 (``batch_ticks`` records as objects and as columns) plus the writers' buffers, whatever
 the length of the run."""
 
@@ -62,7 +62,7 @@ def export_run(src: str | Path, fmt: str, out: str | Path, *, comment: str = "",
         finally:
             mf4.close()
     else:
-        from rig.export.csv import CsvStream
+        from rig.export.csv_files import CsvStream
         from rig.export.parquet import ParquetStream
 
         files = ParquetStream(out) if fmt == "parquet" else CsvStream(out)
