@@ -421,7 +421,7 @@ def _filter_update(j: int, mat: np.ndarray, vec: np.ndarray, st: np.ndarray,
     ``fv[F_SCR:+4]``, the next prior to ``fv[F_SCR+4:+8]`` until accepted.  Returns the
     likelihood quotient q (NaN when any result is not finite: the caller rejects the
     update), the innovation (r0 [m], r1 [m/s^2]), the updated biases and the control u."""
-    y0j = y0 - st[j, S_BR] + vec[j, V_YSTAT]
+    y0j = y0 - st[j, S_BR] + vec[j, V_YSTAT]    # about the model's own static position
     y1j = y1 - st[j, S_BA]
     r0 = y0j - fv[F_YOFF] - vec[j, V_D] * u_in
     r1 = y1j - fv[F_YOFF + 1] - vec[j, V_D + 1] * u_in
@@ -628,6 +628,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     beta = fv[F_QW_ALPHA]
     nact = iv[I_NACT]
     nd = iv[I_DELAY]
+    layer = iv[I_LAYER]
     if math.isnan(fv[F_FFW]):           # first reading since reset: rate filter at rest
         fv[F_FFW] = -fv[F_FFB] * rattlespace_m
     # ---- the running filters
@@ -645,8 +646,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
             flags |= _NONFINITE_STATE
             continue
         _accept(j, st, fv, q, b_r, b_a, u, alpha, beta)
-        if j != sentinel:
-            st[j, S_CONTRIB] = 1.0
+        if j != sentinel and (vec[j, V_LAYER] < 0.0 or vec[j, V_LAYER] == layer):
+            st[j, S_CONTRIB] = 1.0          # (a warming layer's filters only run)
             e = max(abs(r0) * fv[F_UNUSE_R], abs(r1) * fv[F_UNUSE_A])
             if e < e_min:
                 e_min = e
@@ -725,6 +726,11 @@ def bank_configure(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.
                     activate(j, st, active, fv, iv, mat, QS_INIT, 1.0 / n_run)
             elif active[j]:
                 deactivate(j, st, active, iv)
+    for j in range(J):              # a warming layer starts over
+        if active[j] and vec[j, V_LAYER] >= 0.0 and vec[j, V_LAYER] != iv[I_LAYER]:
+            deactivate(j, st, active, iv)
+    iv[I_LCAND] = -1
+    iv[I_LSINCE] = 0
     total = 0.0
     for j in range(J):
         if active[j]:
@@ -869,12 +875,12 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
     """Packed per-model tables for every (noise entry, weight set): (S, W, J, 4, MAT_COLS)
     and (S, W, J, VEC_COLS)."""
     masses, layer, _ = _layers(design, cfg)
+    # each model reads the rattlespace about its own static position, M_l g / K: right for
+    # a rig whose LVDT is zeroed at rest with its ballast (one layer: 0, as before)
     ystat = np.where(design.airborne, 0.0,
                      design.equilibrium[:, 0] - design.equilibrium[:, 1]
                      - design.static_rattlespace_m)
-    ystat = np.where(np.isfinite(ystat), ystat, 0.0)
-    if len(masses) == 1:            # one layer: every model as designed for (bit for bit)
-        ystat[:] = 0.0
+    ystat = np.where(np.isfinite(ystat) & (len(masses) > 1), ystat, 0.0)
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
     mat = np.zeros((S, W, J, 4, MAT_COLS))
     vec = np.zeros((S, W, J, VEC_COLS))
@@ -900,9 +906,9 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
             v[:, V_AIR] = design.airborne.astype(float)
             v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
                            for ld in design.innovation_logdet[:, s]]
-            v[:, V_YSTAT] = ystat
             v[:, V_LAYER] = layer
             v[:, V_MASS] = np.where(layer >= 0, masses[np.maximum(layer, 0)], 0.0)
+            v[:, V_YSTAT] = ystat
     return mat, vec
 
 

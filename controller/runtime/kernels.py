@@ -116,9 +116,9 @@ V_KF = VEC.slot(2)  # human-filter part of the LQ gain
 V_AIR = VEC.slot()  # 1.0 for an airborne model, else 0.0
 V_LLC = VEC.slot()  # log-likelihood constant -(m/2) log 2π - ½ log|F|
 V_KA = VEC.slot(3 + MAX_DELAY)  # actuator part of the gain (spool, force, w, pending)
-V_YSTAT = VEC.slot()  # model's static rattlespace minus the configured one, M_l g / K - M g / K [m]
 V_LAYER = VEC.slot()  # sprung-mass layer of the model (-1: airborne)
 V_MASS = VEC.slot()  # sprung mass of the model's layer [kg]
+V_YSTAT = VEC.slot()  # model's static rattlespace minus the configured one, (M_l - M) g / K [m]
 VEC_COLS = VEC.size
 # --- st columns
 ST = BufferLayout("st")

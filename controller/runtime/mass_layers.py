@@ -13,6 +13,18 @@ passes the band-pass as a transient); the newcomers start bumpless from the blen
 deviation and biases (:func:`controller.runtime.kernels.activate`), as the moving bank's
 do.
 
+Where the LVDT reads 0: each model reads the rattlespace about its own static position
+(the reading + M_l g / K, ``V_YSTAT``), right for a rig whose LVDT is zeroed at rest with
+its ballast; after a ballast change without re-zeroing the LVDT's sag of ΔM g / K is an
+offset to the heavier layer's models, which their rattlespace-bias state takes up (as
+it is for the single-layer bank).
+
+A candidate layer's filters (the counterparts of the running ones; not in the moving
+bank, whose supervisor re-centres onto any running filter) are warmed up while the
+candidate waits out its dwell: they run without contributing to the force, the
+monitor or the probabilities, so at the change they are settled (started cold at the
+change, the new filters' q put the bank into DEGRADED for 0.6 s on the 0.7 x plant).
+
 :func:`layer_table` derives the layers from a design's model equilibria (the static
 rattlespace M g / K of each model), so the artifact needs no field of its own.
 """
@@ -66,6 +78,23 @@ def model_in_layer(j: int, layer: int, iv: np.ndarray) -> int:
     return layer * n + j % n
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _warm(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
+          mat: np.ndarray, layer: int, on: bool) -> None:
+    """Start (``on``) or stop the filters of ``layer`` that are the counterparts of the
+    running layer's running filters: they run without contributing until the layer
+    change (bumpless start from the blended deviation and biases)."""
+    n = iv[kern.I_NTIRE]
+    cur = iv[kern.I_LAYER]
+    for t in range(n):
+        if active[cur * n + t]:
+            j = layer * n + t
+            if on and not active[j]:
+                kern.activate(j, st, active, fv, iv, mat, kern.QS_INIT, 0.0)
+            elif not on and active[j]:
+                kern.deactivate(j, st, active, iv)
+
+
 @nb.njit(cache=True, nogil=True)
 def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
                   nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray, mass_est_kg: float,
@@ -86,31 +115,41 @@ def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.nda
         if d < d_best:
             best = lay
             d_best = d
+    cand = iv[kern.I_LCAND]
     if best == cur or d_best + fv[kern.F_LHYST] >= d_cur:
-        iv[kern.I_LSINCE] = 0           # no candidate
+        if cand >= 0:                   # no candidate any more: stop warming it
+            _warm(st, active, fv, iv, mat, cand, False)
+            iv[kern.I_LCAND] = -1
+        iv[kern.I_LSINCE] = 0
         return
-    if best != iv[kern.I_LCAND]:
+    if best != cand:                    # a new candidate: warm its filters up
+        if cand >= 0:
+            _warm(st, active, fv, iv, mat, cand, False)
         iv[kern.I_LCAND] = best
         iv[kern.I_LSINCE] = 0
+        if blend != _MOVING:            # (the moving bank would re-centre onto them)
+            _warm(st, active, fv, iv, mat, best, True)
     iv[kern.I_LSINCE] += 1
     if iv[kern.I_LSINCE] < iv[kern.I_LDWELL]:
         return                          # not preferred long enough yet
     if blend == _MOVING and iv[kern.I_MODE] == kern.MODE_AIR:
         return                          # change layers on the ground
+    # the change: the warm filters take over, the old layer's stop
     iv[kern.I_LAYER] = best
+    iv[kern.I_LCAND] = -1
     iv[kern.I_LSINCE] = 0
     iv[kern.I_NLAYERSW] += 1
     iv[kern.I_SINGLE] = model_in_layer(iv[kern.I_SINGLE0], best, iv)
     if blend == _MOVING:
         centre = model_in_layer(iv[kern.I_CENTRE], best, iv)
         for j in range(n * nl):
-            if active[j]:
+            if active[j] and j // n != best:
                 kern.deactivate(j, st, active, iv)
         enter_moving(st, active, fv, iv, nbr, vec, mat, centre)
         return
     k = 0
-    for j in range(n * nl):
-        if active[j]:
+    for t in range(n):
+        if active[cur * n + t]:
             k += 1
     for t in range(n):
         old = cur * n + t
@@ -118,5 +157,7 @@ def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.nda
         if active[old]:
             p = st[old, kern.S_P]
             kern.deactivate(old, st, active, iv)
-            kern.activate(new, st, active, fv, iv, mat, kern.QS_INIT, p if p > 0.0 else 1.0 / k)
+            if not active[new]:         # (not warmed: e.g. the set changed meanwhile)
+                kern.activate(new, st, active, fv, iv, mat, kern.QS_INIT, 0.0)
+            st[new, kern.S_P] = p if p > 0.0 else 1.0 / k
     kern.normalise_probabilities(st, iv)
