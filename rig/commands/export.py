@@ -6,7 +6,9 @@ log as ``CAN_DataFrame`` bus-logging groups (CANape, asammdf, python-can decode 
 ``rig/wire/rig.dbc``, attached).  ``parquet``: a directory with a file per tick topic
 and ``can.parquet``; ``csv``: the same tables as CSV files.  The output is written under
 a hidden name next to it and renamed when complete (a failure leaves no partial output);
-an existing output is replaced only with ``--force``.
+an existing output is replaced only with ``--force``.  The writers (asammdf, pyarrow)
+are the ``export`` extra of the distribution (:mod:`rig.extras`): without it the
+command says so in one line, exit status 2.
 """
 
 from __future__ import annotations

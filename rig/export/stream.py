@@ -16,9 +16,15 @@ from pathlib import Path
 from typing import Final
 
 from rig.export.tables import RunTables, TableSchema, clock_offset_ns
+from rig.extras import EXPORT, require
 from rig.recording.run_data import STREAM_BATCH_TICKS, RunData, stream_run
 
-__all__ = ["STAGES", "ExportSummary", "export_run"]
+__all__ = ["STAGES", "WRITER_MODULES", "ExportSummary", "export_run", "require_writer"]
+
+#: format -> (the module its writer needs, of the ``export`` extra; what it is called)
+WRITER_MODULES: Final = {"mf4": ("asammdf", "MF4 export"),
+                         "parquet": ("pyarrow", "Parquet export"),
+                         "csv": ("pyarrow", "CSV export")}
 
 #: the stages of an export, in order, as :attr:`ExportSummary.stage_s` names them:
 #: ``scan`` the first pass (read, decode, decide the columns), ``read`` the second
@@ -43,7 +49,10 @@ class ExportSummary:
 def export_run(src: str | Path, fmt: str, out: str | Path, *, comment: str = "",
                batch_ticks: int = STREAM_BATCH_TICKS) -> ExportSummary:
     """Export the recording ``src`` as ``fmt`` (``mf4``: the new file ``out``;
-    ``parquet``, ``csv``: into the new, empty directory ``out``)."""
+    ``parquet``, ``csv``: into the new, empty directory ``out``).  Raises
+    :class:`rig.extras.MissingExtraError` before reading anything when the format's writer is
+    not installed."""
+    require_writer(fmt)
     schema = TableSchema()
     t = time.perf_counter()
     head = stream_run(src, schema.observe, batch_ticks=batch_ticks)
@@ -73,6 +82,12 @@ def export_run(src: str | Path, fmt: str, out: str | Path, *, comment: str = "",
             files.close()
             summary.stage_s["finish"] = time.perf_counter() - t
     return summary
+
+
+def require_writer(fmt: str) -> None:
+    """Raise :class:`rig.extras.MissingExtraError` when ``fmt``'s writer is not installed."""
+    module, what = WRITER_MODULES[fmt]
+    require(module, EXPORT, what)
 
 
 def _stream(src: str | Path, schema: TableSchema, offset: int,
