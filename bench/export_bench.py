@@ -46,7 +46,8 @@ def recording(seconds: float) -> tuple[Path, float | None]:
     from hil.stepped_run import record_emulated_run
 
     CACHE.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.partial")
+    partial = path.with_name(f".{path.stem}.partial.mcap")   # a .mcap name: a file, not
+    # a directory that gets run-<UTC>.mcap (rig.recording.recorder.recording_file)
     partial.unlink(missing_ok=True)
     t = time.perf_counter()
     record_emulated_run(partial, seconds)

@@ -205,6 +205,14 @@ class TableSchema:
             self.floats.update(cols)
         self.floats.update(name for name, c in cols.items() if c.dtype != np.int64)
 
+    def layout(self) -> tuple[Any, ...]:
+        """Everything :meth:`tables` lays a batch out by: the time base, the columns in
+        order with their dtype (float or not), the keys left out.  Two schemas with equal
+        layouts give every batch the same tables."""
+        columns = tuple((name, name in self.floats) for key in self.widths
+                        for name in self.columns(key))
+        return self.t0_ns, columns, tuple(self.skipped)
+
     @property
     def skipped(self) -> list[str]:
         return [k for k, w in self.widths.items() if w == -1]
