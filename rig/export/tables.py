@@ -152,8 +152,13 @@ class TableSchema:
         self.batches = 0
         self.t0_ns: int | None = None
         self.has_can = {False: False, True: False}  # is_error_frame -> any
+        #: the columns of the batch observed last, as observed (:meth:`tables` reuses
+        #: them for that batch instead of collecting its values again)
+        self._observed: RunData | None = None
+        self._observed_cols: dict[str, NDArray[Any]] = {}
 
     def observe(self, run: RunData) -> None:
+        self._observed, self._observed_cols = run, {}
         records = run.records
         keys: dict[str, None] = {}
         for r in records:
@@ -193,6 +198,7 @@ class TableSchema:
             self.seen.add(key)
             if col.dtype != np.int64:
                 self.floats.add(key)
+            self._observed_cols[key] = col
             return
         cols = _list_columns(key, values)
         n = len(cols) if cols is not None else -1
@@ -200,6 +206,7 @@ class TableSchema:
             self.widths[key] = -1
             return
         self.seen.add(key)
+        self._observed_cols.update(cols)
         self.widths[key] = n
         if key in self.floats:                     # a None before the width was known
             self.floats.update(cols)
@@ -231,11 +238,18 @@ class TableSchema:
         tick = np.array([r.tick for r in records], dtype=np.int64)
         tables = {t: TopicTable(t, t_ns, tick) for t in (TOPIC_SIGNALS, TOPIC_INTERNALS,
                                                          TOPIC_TIMING)}
+        observed = self._observed_cols if run is self._observed else {}
+        self._observed, self._observed_cols = None, {}     # used once: free the batch
         for key, width in self.widths.items():
             if width == -1:
                 continue
-            values = [r.data.get(key) for r in records]
             cols = tables[_topic_of(key)].columns
+            names = self.columns(key)
+            if all(name in observed for name in names):
+                for name in names:
+                    cols[name] = self._as_decided(name, observed[name])
+                continue
+            values = [r.data.get(key) for r in records]
             if width is None:
                 cols[key] = self._array(key, values)
                 continue
@@ -249,6 +263,13 @@ class TableSchema:
 
     def _array(self, name: str, values: list[Any]) -> NDArray[Any]:
         return np.array(values, dtype=np.float64 if name in self.floats else np.int64)
+
+    def _as_decided(self, name: str, col: NDArray[Any]) -> NDArray[Any]:
+        """A column as :func:`_column` made it for one batch, in the run's dtype (an
+        ``int64`` column of a float column: the same values :meth:`_array` gives)."""
+        if name in self.floats and col.dtype != np.float64:
+            return col.astype(np.float64)
+        return col
 
 
 def clock_offset_ns(run: RunData) -> int:
