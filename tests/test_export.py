@@ -284,6 +284,41 @@ def test_replay_of_the_mf4_log_equals_the_asc_equivalent(run: RunData, mf4: Path
     np.testing.assert_array_equal(res_mf4.force_ref_n[:n], recorded)
 
 
+# ---------------------------------------------------------------------------- kinds
+
+
+def test_column_kinds_of_every_value_type() -> None:
+    """The kind and dtype of a field over its values: integers and booleans int64,
+    numbers with a float or a missing value float64 (NaN), int and float subclasses
+    (numpy scalars, enums) as numbers, lists one column per element (a missing list
+    NaN), text, ragged lists and mixed lists left out."""
+    import enum
+
+    from rig.recording.run_data import TickRecord
+
+    class Mode(enum.IntEnum):
+        A = 3
+
+    fields: dict[str, list[Any]] = {
+        "count": [1, 2, True], "level": [1, None, 3], "gain": [1, 2.5, 3],
+        "np_x": [np.float64(0.5), 1.0, 2], "mode": [Mode.A, 1, 2],
+        "pair": [[1, 2], [3, 4], [5, 6]], "pair_f": [[1, 2.5], None, [5, 6]],
+        "ragged": [[1], [1, 2], [3]], "text": ["a", "b", "c"], "mixed": [[1, 2], 3, [4, 5]],
+        "text_list": [["a"], ["b"], ["c"]],
+    }
+    records = [TickRecord(i, 1000 * i, i, {"tick": i, **{k: v[i] for k, v in fields.items()}})
+               for i in range(3)]
+    tables = run_tables(RunData(records=records))
+    cols = {name: col for t in tables.topics for name, col in t.columns.items()}
+    assert {n: str(c.dtype) for n, c in cols.items()} == {
+        "count": "int64", "level": "float64", "gain": "float64", "np_x": "float64",
+        "mode": "float64", "pair[0]": "int64", "pair[1]": "int64", "pair_f[0]": "float64",
+        "pair_f[1]": "float64"}
+    assert sorted(tables.skipped) == ["mixed", "ragged", "text", "text_list"]
+    assert np.isnan(cols["level"][1]) and np.isnan(cols["pair_f[1]"][1])
+    assert cols["count"].tolist() == [1, 2, 1] and cols["mode"].tolist() == [3.0, 1.0, 2.0]
+
+
 # ---------------------------------------------------------------------------- batches
 
 

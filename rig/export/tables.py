@@ -13,6 +13,7 @@ table; :attr:`RunTables.start_wall_ns` is that instant on the wall clock."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -99,23 +100,38 @@ def _topic_of(key: str) -> str:
     return TOPIC_INTERNALS
 
 
-def _column(values: list[Any]) -> NDArray[Any] | None:
+#: the types of JSON values that make an ``int64`` column / a ``float64`` one (checked
+#: as a set first: one C loop over the values; other types one by one)
+_INT_TYPES: Final = frozenset({int, bool})
+_NUMBER_TYPES: Final = frozenset({int, bool, float, type(None)})
+_LIST_TYPES: Final = frozenset({list})
+
+
+def _column(values: Sequence[Any]) -> NDArray[Any] | None:
     """One numeric column, or None when the values are not numbers."""
-    if all(type(v) is int or type(v) is bool for v in values):
+    types = set(map(type, values))
+    if types <= _INT_TYPES:
         return np.array(values, dtype=np.int64)
-    if all(v is None or isinstance(v, int | float) for v in values):
+    if types <= _NUMBER_TYPES or all(v is None or isinstance(v, int | float)
+                                     for v in values):
         return np.array(values, dtype=np.float64)        # None -> NaN
     return None
 
 
 def _list_columns(name: str, values: list[Any]) -> dict[str, NDArray[Any]] | None:
-    lengths = {len(v) for v in values if isinstance(v, list)}
-    if len(lengths) != 1 or not all(v is None or isinstance(v, list) for v in values):
-        return None
-    width = lengths.pop()
+    if set(map(type, values)) <= _LIST_TYPES:           # lists only: by element
+        if len(set(map(len, values))) != 1:
+            return None
+        elements: Iterable[Sequence[Any]] = zip(*values, strict=True)
+    else:
+        lengths = {len(v) for v in values if isinstance(v, list)}
+        if len(lengths) != 1 or not all(v is None or isinstance(v, list) for v in values):
+            return None
+        elements = ([None if v is None else v[i] for v in values]
+                    for i in range(lengths.pop()))
     out: dict[str, NDArray[Any]] = {}
-    for i in range(width):
-        col = _column([None if v is None else v[i] for v in values])
+    for i, element in enumerate(elements):
+        col = _column(element)
         if col is None:
             return None
         out[f"{name}[{i}]"] = col
@@ -165,6 +181,7 @@ class TableSchema:
             keys.update(dict.fromkeys(r.data))
         for key in self.widths.keys() - keys:       # absent in this batch: None
             self._float_all(key)
+        datas = [r.data for r in records]
         for key in keys:
             if key in _NOT_FIELDS:
                 continue
@@ -172,7 +189,7 @@ class TableSchema:
                 self.widths[key] = None
                 if self.batches:                    # absent in the earlier batches
                     self._float_all(key)
-            self._observe(key, [r.data.get(key) for r in records])
+            self._observe(key, [d.get(key) for d in datas])
         firsts = [r.t_ns for r in records[:1]] + [f.t_ns for f in run.frames[:1]]
         if firsts and self.t0_ns is None:
             self.t0_ns = min(firsts)
