@@ -33,6 +33,9 @@ ROOT: Final = Path(__file__).resolve().parent.parent
 CACHE: Final = ROOT / "build" / "export-bench"
 FULL_S, QUICK_S = 600.0, 20.0
 FULL_RUNS = 3
+#: format -> the module of its writer (rig/export/)
+WRITER_MODULES: Final = {"mf4": "rig.export.mf4", "parquet": "rig.export.parquet",
+                         "csv": "rig.export.csv_files"}
 
 
 def recording(seconds: float) -> tuple[Path, float | None]:
@@ -94,7 +97,7 @@ def child(fmt: str, src: str, out: str) -> None:
 
     from rig.export.stream import export_run
 
-    importlib.import_module(f"rig.export.{fmt}")    # the writer's imports, counted apart
+    importlib.import_module(WRITER_MODULES[fmt])    # the writer's imports, counted apart
     if fmt != "mf4":                                  # parquet, csv: a directory
         Path(out).mkdir()
 

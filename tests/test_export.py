@@ -20,7 +20,7 @@ from controller.config import default_config
 from hil.stepped_run import record_emulated_run
 from rig.cli import main
 from rig.export import run_tables, unit_of
-from rig.export.csv import CAN_CSV, csv_file
+from rig.export.csv_files import CAN_CSV, csv_file
 from rig.export.parquet import CAN_FILE, table_file
 from rig.recording.run_data import RunData, read_run
 from rig.recording.schema import SIGNAL_KEYS, TIMING_KEYS, TOPIC_SIGNALS, TOPIC_TIMING

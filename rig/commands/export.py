@@ -33,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", required=True, choices=FORMATS,
                    help="mf4: one ASAM MDF 4 file (signals + CAN bus log); parquet: a "
                         "directory, one file per topic + can.parquet; csv: the same as "
-                        "CSV files")
+                        "CSV files (each needs the 'export' extra)")
     p.add_argument("--out", metavar="PATH", required=True,
                    help=f"mf4: a {MF4_SUFFIX} file; parquet, csv: a directory")
     p.add_argument("--force", action="store_true",

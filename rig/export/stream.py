@@ -4,7 +4,7 @@ batch is observed (:meth:`~rig.export.tables.TableSchema.observe`: the columns a
 dtypes as the run so far decides them), laid out and appended to the MF4
 (:class:`~rig.export.mf4.Mf4Stream`), the Parquet files
 (:class:`~rig.export.parquet.ParquetStream`, a row group per batch) or the CSV files
-(:class:`~rig.export.csv.CsvStream`).  The columns of a run are decided over all of its
+(:class:`~rig.export.csv_files.CsvStream`).  The columns of a run are decided over all of its
 records (an integer field ``int64`` only when every record has one ...), so the output
 is the run's only when the layout (:meth:`~rig.export.tables.TableSchema.layout`) the
 first batch decides holds to the end, as it does for the loop's records (one tick
@@ -27,7 +27,7 @@ from rig.extras import EXPORT, require
 from rig.recording.run_data import STREAM_BATCH_TICKS, RunData, stream_run
 
 if TYPE_CHECKING:            # the writers import asammdf / pyarrow: when they write
-    from rig.export.csv import CsvStream
+    from rig.export.csv_files import CsvStream
     from rig.export.mf4 import Mf4Stream
     from rig.export.parquet import ParquetStream
 
@@ -77,7 +77,7 @@ class _Output:
 
             self._files = ParquetStream(self.out)
         elif self.fmt == "csv":
-            from rig.export.csv import CsvStream
+            from rig.export.csv_files import CsvStream
 
             self._files = CsvStream(self.out)
 
