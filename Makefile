@@ -1,8 +1,11 @@
 # Set-up-and-go targets.  `make demo` runs the controller against the emulated rig on the
 # built-in defaults; `make test` runs the whole test suite (what CI runs via .ci/run).
 # Both create the virtual environment and install everything they need on first use.
+# EXTRAS: the optional dependencies installed with it (pyproject.toml); `make
+# .venv/.installed-stamp EXTRAS=` installs the service alone (docs/deploy.md).
 
 VENV ?= .venv
+EXTRAS ?= dev,export
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
@@ -11,7 +14,7 @@ STAMP := $(VENV)/.installed-stamp
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet -e '.$(if $(EXTRAS),[$(EXTRAS)])'
 	touch $(STAMP)
 
 demo: $(STAMP)

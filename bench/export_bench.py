@@ -33,6 +33,9 @@ ROOT: Final = Path(__file__).resolve().parent.parent
 CACHE: Final = ROOT / "build" / "export-bench"
 FULL_S, QUICK_S = 600.0, 20.0
 FULL_RUNS = 3
+#: format -> the module of its writer (rig/export/)
+WRITER_MODULES: Final = {"mf4": "rig.export.mf4", "parquet": "rig.export.parquet",
+                         "csv": "rig.export.csv_files"}
 
 
 def recording(seconds: float) -> tuple[Path, float | None]:
@@ -46,7 +49,8 @@ def recording(seconds: float) -> tuple[Path, float | None]:
     from hil.stepped_run import record_emulated_run
 
     CACHE.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.partial")
+    partial = path.with_name(f".{path.stem}.partial.mcap")   # a .mcap name: a file, not
+    # a directory that gets run-<UTC>.mcap (rig.recording.recorder.recording_file)
     partial.unlink(missing_ok=True)
     t = time.perf_counter()
     record_emulated_run(partial, seconds)
@@ -93,7 +97,7 @@ def child(fmt: str, src: str, out: str) -> None:
 
     from rig.export.stream import export_run
 
-    importlib.import_module(f"rig.export.{fmt}")    # the writer's imports, counted apart
+    importlib.import_module(WRITER_MODULES[fmt])    # the writer's imports, counted apart
     if fmt != "mf4":                                  # parquet, csv: a directory
         Path(out).mkdir()
 

@@ -92,6 +92,7 @@ REFUSALS: dict[str, tuple[str, str, int]] = {
     "rig.recording.scan.RecordingError": ("", "", 2),
     "hil.batch.ClusterError": ("", "", 2),
     "hil.tune.TuneError": ("", "", 2),
+    "rig.extras.MissingExtraError": ("", "", 2),
 }
 
 

@@ -284,28 +284,74 @@ def test_replay_of_the_mf4_log_equals_the_asc_equivalent(run: RunData, mf4: Path
     np.testing.assert_array_equal(res_mf4.force_ref_n[:n], recorded)
 
 
+# ---------------------------------------------------------------------------- kinds
+
+
+def test_column_kinds_of_every_value_type() -> None:
+    """The kind and dtype of a field over its values: integers and booleans int64,
+    numbers with a float or a missing value float64 (NaN), int and float subclasses
+    (numpy scalars, enums) as numbers, lists one column per element (a missing list
+    NaN), text, ragged lists and mixed lists left out."""
+    import enum
+
+    from rig.recording.run_data import TickRecord
+
+    class Mode(enum.IntEnum):
+        A = 3
+
+    fields: dict[str, list[Any]] = {
+        "count": [1, 2, True], "level": [1, None, 3], "gain": [1, 2.5, 3],
+        "np_x": [np.float64(0.5), 1.0, 2], "mode": [Mode.A, 1, 2],
+        "pair": [[1, 2], [3, 4], [5, 6]], "pair_f": [[1, 2.5], None, [5, 6]],
+        "ragged": [[1], [1, 2], [3]], "text": ["a", "b", "c"], "mixed": [[1, 2], 3, [4, 5]],
+        "text_list": [["a"], ["b"], ["c"]],
+    }
+    records = [TickRecord(i, 1000 * i, i, {"tick": i, **{k: v[i] for k, v in fields.items()}})
+               for i in range(3)]
+    tables = run_tables(RunData(records=records))
+    cols = {name: col for t in tables.topics for name, col in t.columns.items()}
+    assert {n: str(c.dtype) for n, c in cols.items()} == {
+        "count": "int64", "level": "float64", "gain": "float64", "np_x": "float64",
+        "mode": "float64", "pair[0]": "int64", "pair[1]": "int64", "pair_f[0]": "float64",
+        "pair_f[1]": "float64"}
+    assert sorted(tables.skipped) == ["mixed", "ragged", "text", "text_list"]
+    assert np.isnan(cols["level"][1]) and np.isnan(cols["pair_f[1]"][1])
+    assert cols["count"].tolist() == [1, 2, 1] and cols["mode"].tolist() == [3.0, 1.0, 2.0]
+
+
 # ---------------------------------------------------------------------------- batches
 
 
-def test_export_in_batches_equals_one_batch(recording: Path, work: Path) -> None:
+def _exports(recording: Path, work: Path, batch_ticks: int
+             ) -> tuple[tuple[Path, Path, Path], int]:
+    """The three exports of ``recording`` in batches of ``batch_ticks`` ticks, and the
+    MF4 export's passes over the recording."""
     from rig.export.stream import export_run
 
-    outs = {}
-    for n in (10**9, 37):
-        mf4, pq_dir = work / f"b{n}.mf4", work / f"b{n}"
-        pq_dir.mkdir()
-        assert export_run(recording, "mf4", mf4, batch_ticks=n).batches > (n == 37)
-        export_run(recording, "parquet", pq_dir, batch_ticks=n)
-        csv_dir = work / f"b{n}-csv"
-        csv_dir.mkdir()
-        export_run(recording, "csv", csv_dir, batch_ticks=n)
-        outs[n] = (mf4, pq_dir, csv_dir)
-    (one, one_pq, one_csv), (many, many_pq, many_csv) = outs[10**9], outs[37]
+    mf4, pq_dir, csv_dir = (work / f"b{batch_ticks}.mf4", work / f"b{batch_ticks}",
+                            work / f"b{batch_ticks}-csv")
+    pq_dir.mkdir()
+    csv_dir.mkdir()
+    summary = export_run(recording, "mf4", mf4, batch_ticks=batch_ticks)
+    assert summary.batches > (batch_ticks < 10**9)
+    for fmt, out in (("parquet", pq_dir), ("csv", csv_dir)):
+        assert export_run(recording, fmt, out, batch_ticks=batch_ticks).passes == \
+            summary.passes
+    return (mf4, pq_dir, csv_dir), summary.passes
+
+
+def _assert_same_exports(one: tuple[Path, Path, Path], many: tuple[Path, Path, Path]
+                         ) -> None:
+    """Two exports of one recording are the same: CSV byte for byte, Parquet and MF4
+    value for value (bit for bit, NaN too) with the same schemas, units and groups."""
+    (one_mf4, one_pq, one_csv), (many_mf4, many_pq, many_csv) = one, many
     assert sorted(p.name for p in one_csv.iterdir()) == sorted(
         p.name for p in many_csv.iterdir())
     for path in one_csv.iterdir():
         assert path.read_bytes() == (many_csv / path.name).read_bytes(), path.name
     assert pq.ParquetFile(many_pq / table_file(TOPIC_SIGNALS)).num_row_groups > 1
+    assert sorted(p.name for p in one_pq.iterdir()) == sorted(
+        p.name for p in many_pq.iterdir())
     for name in sorted(p.name for p in one_pq.iterdir()):
         a, b = pq.read_table(one_pq / name), pq.read_table(many_pq / name)
         assert a.schema.equals(b.schema, check_metadata=True), name
@@ -313,13 +359,58 @@ def test_export_in_batches_equals_one_batch(recording: Path, work: Path) -> None
             x, y = a[col].to_numpy(), b[col].to_numpy()
             assert (x.tobytes() == y.tobytes() if x.dtype.kind in "fiub"
                     else x.tolist() == y.tolist()), (name, col)
-    with MDF(str(one)) as m1, MDF(str(many)) as m2:
+    with MDF(str(one_mf4)) as m1, MDF(str(many_mf4)) as m2:
+        assert m1.header.start_time == m2.header.start_time
         assert len(m1.groups) == len(m2.groups)
         for gi, group in enumerate(m1.groups):
             assert m2.groups[gi].channel_group.acq_name == group.channel_group.acq_name
+            assert [c.name for c in m2.groups[gi].channels] == [c.name for c in
+                                                                 group.channels]
             for ci, ch in enumerate(group.channels):
                 s1, s2 = m1.get(ch.name, gi, ci), m2.get(ch.name, gi, ci)
                 assert s1.samples.dtype == s2.samples.dtype, ch.name
                 assert s1.samples.tobytes() == s2.samples.tobytes(), ch.name
                 assert s1.timestamps.tobytes() == s2.timestamps.tobytes(), ch.name
                 assert s1.unit == s2.unit
+
+
+def test_export_in_batches_equals_one_batch(recording: Path, work: Path) -> None:
+    """The loop's records keep one layout for the whole run (a blending change on the
+    way): one reading of the recording, in batches the same output as in one."""
+    one, passes_one = _exports(recording, work, 10**9)
+    many, passes_many = _exports(recording, work, 37)
+    assert passes_one == passes_many == 1
+    _assert_same_exports(one, many)
+
+
+def test_a_layout_that_changes_mid_run_takes_a_second_pass(tmp_path: Path) -> None:
+    """Records of a generic caller whose fields change after the first batch (a key
+    that first appears later, an integer field that turns float, a list that turns
+    text): what the first batches wrote is discarded and the second pass writes the
+    run's layout -- the same output as one batch gives."""
+    from dataclasses import replace
+
+    from rig.recording.recorder import RunRecorder
+
+    path = tmp_path / "generic.mcap"
+    cfg = replace(CFG.recording, chunk_bytes=2048, batch_ticks=1)
+    with RunRecorder(path, cfg, config_toml="", design_bytes=None, metadata={},
+                     poll_s=0.001) as rec:
+        for k in range(120):
+            t_ns = 1_000_000 * k + 5_000_000_000
+            rec.can_frame(t_ns, k, 0x101, bytes([k % 256, 1, 2]), is_rx=True)
+            record: dict[str, Any] = {"tick": k, "rattlespace_m": 1e-3 * k,
+                                      "weight_set": 1 if k < 70 else 1.5,
+                                      "u_model": [float(k), 2.0] if k < 90 else "none",
+                                      "wake_late_s": 2e-5}
+            if k >= 50:
+                record["stop_contact_s"] = 0.001 * k
+            rec.tick(t_ns, record)
+    one, passes_one = _exports(path, tmp_path, 10**9)
+    many, passes_many = _exports(path, tmp_path, 10)
+    assert (passes_one, passes_many) == (1, 2)
+    _assert_same_exports(one, many)
+    table = pq.read_table(many[1] / table_file("/controller/internals"))
+    assert table.schema.field("weight_set").type == "double"
+    assert "u_model[0]" not in table.column_names
+    assert np.isnan(table["stop_contact_s"].to_numpy()[:50]).all()

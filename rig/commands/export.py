@@ -6,7 +6,9 @@ log as ``CAN_DataFrame`` bus-logging groups (CANape, asammdf, python-can decode 
 ``rig/wire/rig.dbc``, attached).  ``parquet``: a directory with a file per tick topic
 and ``can.parquet``; ``csv``: the same tables as CSV files.  The output is written under
 a hidden name next to it and renamed when complete (a failure leaves no partial output);
-an existing output is replaced only with ``--force``.
+an existing output is replaced only with ``--force``.  The writers (asammdf, pyarrow)
+are the ``export`` extra of the distribution (:mod:`rig.extras`): without it the
+command says so in one line, exit status 2.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", required=True, choices=FORMATS,
                    help="mf4: one ASAM MDF 4 file (signals + CAN bus log); parquet: a "
                         "directory, one file per topic + can.parquet; csv: the same as "
-                        "CSV files")
+                        "CSV files (each needs the 'export' extra)")
     p.add_argument("--out", metavar="PATH", required=True,
                    help=f"mf4: a {MF4_SUFFIX} file; parquet, csv: a directory")
     p.add_argument("--force", action="store_true",

@@ -5,9 +5,11 @@ With the recorded design and configuration the replay must reproduce the recorde
 transmitted frames bit for bit (exit status 1 if it does not).  With ``--design`` or
 ``--config`` it compares the two controllers on the same sensor data -- open loop: the
 recorded plant did not react to the replayed commands.  Exit status 2 for a file that
-is not a replayable recording (the message names what is wrong); 3 when the ``--out``
-recording could not be written whole (a write failed, e.g. a full disk: the partial file
-is kept, readable up to its last complete chunk, and named in one line on stderr).
+is not a replayable recording (the message names what is wrong) or a ``.mf4`` log without
+the ``export`` extra (python-can's MF4 reader needs asammdf, :mod:`rig.extras`); 3 when
+the ``--out`` recording could not be written whole (a write failed, e.g. a full disk: the
+partial file is kept, readable up to its last complete chunk, and named in one line on
+stderr).
 """
 
 from __future__ import annotations
@@ -23,7 +25,14 @@ from controller.config import load_config
 from controller.files import regular_file_problem
 from rig import argtypes, strict_json
 from rig.output_paths import OUTPUT_FAILED
-from rig.replay import LOG_SUFFIXES, MAX_LOG_SPAN_S, RecordingError, ReplayResult, replay_file
+from rig.replay import (
+    LOG_SUFFIXES,
+    MAX_LOG_SPAN_S,
+    RecordingError,
+    ReplayResult,
+    replay_file,
+    require_log_reader,
+)
 from rig.terminal import refuse, safe
 
 
@@ -87,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
         refuse("replay", f"--arm-at applies to log files ({', '.join(LOG_SUFFIXES)}) "
                          f"only; {path.name} replays its recorded commands")
         return 2
+    require_log_reader(path)     # before the design: .mf4 needs the 'export' extra
     try:
         cfg = load_config(args.config) if (args.config or is_log) else None
         design = design_bytes = None

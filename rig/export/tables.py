@@ -13,6 +13,7 @@ table; :attr:`RunTables.start_wall_ns` is that instant on the wall clock."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -99,23 +100,38 @@ def _topic_of(key: str) -> str:
     return TOPIC_INTERNALS
 
 
-def _column(values: list[Any]) -> NDArray[Any] | None:
+#: the types of JSON values that make an ``int64`` column / a ``float64`` one (checked
+#: as a set first: one C loop over the values; other types one by one)
+_INT_TYPES: Final = frozenset({int, bool})
+_NUMBER_TYPES: Final = frozenset({int, bool, float, type(None)})
+_LIST_TYPES: Final = frozenset({list})
+
+
+def _column(values: Sequence[Any]) -> NDArray[Any] | None:
     """One numeric column, or None when the values are not numbers."""
-    if all(type(v) is int or type(v) is bool for v in values):
+    types = set(map(type, values))
+    if types <= _INT_TYPES:
         return np.array(values, dtype=np.int64)
-    if all(v is None or isinstance(v, int | float) for v in values):
+    if types <= _NUMBER_TYPES or all(v is None or isinstance(v, int | float)
+                                     for v in values):
         return np.array(values, dtype=np.float64)        # None -> NaN
     return None
 
 
 def _list_columns(name: str, values: list[Any]) -> dict[str, NDArray[Any]] | None:
-    lengths = {len(v) for v in values if isinstance(v, list)}
-    if len(lengths) != 1 or not all(v is None or isinstance(v, list) for v in values):
-        return None
-    width = lengths.pop()
+    if set(map(type, values)) <= _LIST_TYPES:           # lists only: by element
+        if len(set(map(len, values))) != 1:
+            return None
+        elements: Iterable[Sequence[Any]] = zip(*values, strict=True)
+    else:
+        lengths = {len(v) for v in values if isinstance(v, list)}
+        if len(lengths) != 1 or not all(v is None or isinstance(v, list) for v in values):
+            return None
+        elements = ([None if v is None else v[i] for v in values]
+                    for i in range(lengths.pop()))
     out: dict[str, NDArray[Any]] = {}
-    for i in range(width):
-        col = _column([None if v is None else v[i] for v in values])
+    for i, element in enumerate(elements):
+        col = _column(element)
         if col is None:
             return None
         out[f"{name}[{i}]"] = col
@@ -152,14 +168,20 @@ class TableSchema:
         self.batches = 0
         self.t0_ns: int | None = None
         self.has_can = {False: False, True: False}  # is_error_frame -> any
+        #: the columns of the batch observed last, as observed (:meth:`tables` reuses
+        #: them for that batch instead of collecting its values again)
+        self._observed: RunData | None = None
+        self._observed_cols: dict[str, NDArray[Any]] = {}
 
     def observe(self, run: RunData) -> None:
+        self._observed, self._observed_cols = run, {}
         records = run.records
         keys: dict[str, None] = {}
         for r in records:
             keys.update(dict.fromkeys(r.data))
         for key in self.widths.keys() - keys:       # absent in this batch: None
             self._float_all(key)
+        datas = [r.data for r in records]
         for key in keys:
             if key in _NOT_FIELDS:
                 continue
@@ -167,7 +189,7 @@ class TableSchema:
                 self.widths[key] = None
                 if self.batches:                    # absent in the earlier batches
                     self._float_all(key)
-            self._observe(key, [r.data.get(key) for r in records])
+            self._observe(key, [d.get(key) for d in datas])
         firsts = [r.t_ns for r in records[:1]] + [f.t_ns for f in run.frames[:1]]
         if firsts and self.t0_ns is None:
             self.t0_ns = min(firsts)
@@ -193,6 +215,7 @@ class TableSchema:
             self.seen.add(key)
             if col.dtype != np.int64:
                 self.floats.add(key)
+            self._observed_cols[key] = col
             return
         cols = _list_columns(key, values)
         n = len(cols) if cols is not None else -1
@@ -200,10 +223,19 @@ class TableSchema:
             self.widths[key] = -1
             return
         self.seen.add(key)
+        self._observed_cols.update(cols)
         self.widths[key] = n
         if key in self.floats:                     # a None before the width was known
             self.floats.update(cols)
         self.floats.update(name for name, c in cols.items() if c.dtype != np.int64)
+
+    def layout(self) -> tuple[Any, ...]:
+        """Everything :meth:`tables` lays a batch out by: the time base, the columns in
+        order with their dtype (float or not), the keys left out.  Two schemas with equal
+        layouts give every batch the same tables."""
+        columns = tuple((name, name in self.floats) for key in self.widths
+                        for name in self.columns(key))
+        return self.t0_ns, columns, tuple(self.skipped)
 
     @property
     def skipped(self) -> list[str]:
@@ -223,11 +255,18 @@ class TableSchema:
         tick = np.array([r.tick for r in records], dtype=np.int64)
         tables = {t: TopicTable(t, t_ns, tick) for t in (TOPIC_SIGNALS, TOPIC_INTERNALS,
                                                          TOPIC_TIMING)}
+        observed = self._observed_cols if run is self._observed else {}
+        self._observed, self._observed_cols = None, {}     # used once: free the batch
         for key, width in self.widths.items():
             if width == -1:
                 continue
-            values = [r.data.get(key) for r in records]
             cols = tables[_topic_of(key)].columns
+            names = self.columns(key)
+            if all(name in observed for name in names):
+                for name in names:
+                    cols[name] = self._as_decided(name, observed[name])
+                continue
+            values = [r.data.get(key) for r in records]
             if width is None:
                 cols[key] = self._array(key, values)
                 continue
@@ -241,6 +280,13 @@ class TableSchema:
 
     def _array(self, name: str, values: list[Any]) -> NDArray[Any]:
         return np.array(values, dtype=np.float64 if name in self.floats else np.int64)
+
+    def _as_decided(self, name: str, col: NDArray[Any]) -> NDArray[Any]:
+        """A column as :func:`_column` made it for one batch, in the run's dtype (an
+        ``int64`` column of a float column: the same values :meth:`_array` gives)."""
+        if name in self.floats and col.dtype != np.float64:
+            return col.astype(np.float64)
+        return col
 
 
 def clock_offset_ns(run: RunData) -> int:

@@ -21,7 +21,13 @@ from __future__ import annotations
 
 from rig.recording.scan import RecordingError, ScanResult, scan_recording
 from rig.replay.bus_faults import BusFault
-from rig.replay.buses import LOG_SUFFIXES, MAX_LOG_SPAN_S, LogReplayBus, McapReplayBus
+from rig.replay.buses import (
+    LOG_SUFFIXES,
+    MAX_LOG_SPAN_S,
+    LogReplayBus,
+    McapReplayBus,
+    require_log_reader,
+)
 from rig.replay.driver import replay_file, replay_log, replay_recording
 from rig.replay.reader import PIPELINE_MIN_BYTES
 from rig.replay.recorded import (
@@ -55,6 +61,7 @@ __all__ = [
     "replay_file",
     "replay_log",
     "replay_recording",
+    "require_log_reader",
     "scan_recording",
     "split_json",
 ]

@@ -19,11 +19,13 @@ from typing import Any, Final
 import can
 
 from rig.bus.core import receive_filters
+from rig.extras import EXPORT, require
 from rig.recording.scan import RecordingError
 from rig.replay.bus_faults import BusFault
 from rig.replay.recorded import ERROR_FRAME, EXTENDED_ID, RxFrame, TxFrame, load_recorded_run
 
-__all__ = ["LOG_SUFFIXES", "MAX_LOG_SPAN_S", "LogReplayBus", "McapReplayBus"]
+__all__ = ["LOG_SUFFIXES", "MAX_LOG_SPAN_S", "LogReplayBus", "McapReplayBus",
+           "require_log_reader"]
 
 #: candump / Vector / ASAM MDF 4 bus-log formats read through ``can.LogReader`` (.mf4:
 #: python-can's MF4Reader, asammdf; what ``rig export --format mf4`` writes)
@@ -31,6 +33,14 @@ LOG_SUFFIXES: Final = (".log", ".asc", ".blf", ".mf4")
 #: longest time from a log's first to its last frame that replay accepts: the replay
 #: keeps three values per tick (6 h at 1 kHz = 21.6 M ticks, ~370 MB, minutes of CPU)
 MAX_LOG_SPAN_S: Final = 6 * 3600.0
+
+
+def require_log_reader(path: str | Path) -> None:
+    """Raise :class:`rig.extras.MissingExtraError` when python-can's reader of the log
+    ``path`` needs a module that is not installed (.mf4: asammdf, the ``export`` extra;
+    without it python-can leaves its MF4 reader out)."""
+    if Path(path).suffix.lower() == ".mf4":
+        require("asammdf", EXPORT, "replaying an MF4 log")
 
 
 def _flags(msg: can.Message) -> int:
@@ -217,6 +227,7 @@ class LogReplayBus(_ReplayBus):
         if p.suffix.lower() not in LOG_SUFFIXES:
             raise RecordingError(f"{p}: unknown log format {p.suffix!r}; replay reads "
                                  f"{', '.join(LOG_SUFFIXES)} and .mcap")
+        require_log_reader(p)
         try:
             with can.LogReader(str(p)) as reader:
                 msgs = list(reader)
