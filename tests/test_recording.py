@@ -887,6 +887,11 @@ def expected_packed(layout: Any, scalars: list[Any], arrays: list[np.ndarray]
             out[key] = v
         else:
             out[key] = next(a_it).ravel().tolist()      # matrices flat, row-major
+    # a value that cannot be a JSON number is recorded as the sentinel and its key listed
+    # in "nonfinite" (docs/recording.md); read_run gives None and keeps the list
+    absent = [key for key, kind, _ in layout.fields if kind == "ns_as_s" and out[key] is None]
+    if absent:
+        out["nonfinite"] = absent
     return out
 
 
