@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -268,7 +269,9 @@ def test_quick_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert len(rows) > 50
     ratio_keys = [f"{m}_ratio" for m in RATIO_METRICS]
     groups = {r["group"] for r in rows}
-    assert {"tune", "main", "mc5", "mismatch", "delay", "rate", "rho"} <= groups
+    assert {"tune", "main", "mc5", "mismatch", "delay", "rate", "rho", "envelope"} <= groups
+    assert "## Operating envelope" in md and "| fuzzy-1 (true-plant) |" in md
+    assert (out / "fig_envelope_mass.png").exists()
     for r in rows:
         vals = [float(r[k]) for k in ratio_keys]
         if r["controller"] == "passive":
@@ -284,6 +287,26 @@ def test_quick_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 
 STUDY_DIR = Path(__file__).resolve().parents[1] / "docs" / "study"
+
+
+def test_envelope_layers_are_the_payload_profile() -> None:
+    """The envelope group's layered bank is deploy/payload.toml's, and its true-plant
+    case designs for the plant's mass on the same emulated mass."""
+    import tomllib
+
+    from hil.study.cases import LAYERED_SPRUNG_MASS_SCALES, Case, case_config
+    payload = Path(__file__).resolve().parents[1] / "deploy" / "payload.toml"
+    with payload.open("rb") as fh:
+        layers = tomllib.load(fh)["design"]["sprung_mass_scales"]
+    assert tuple(layers) == LAYERED_SPRUNG_MASS_SCALES
+    case = Case("envelope", "fuzzy", sprung_mass_scale=0.7, design_mass="true-plant")
+    c = case_config(CFG, case)
+    assert c.vehicle.sprung_mass_kg == pytest.approx(0.7 * CFG.vehicle.sprung_mass_kg)
+    assert c.emulator.sprung_mass_scale == 1.0
+    lay = case_config(CFG, replace(case, design_mass="layered"))
+    assert lay.emulator.sprung_mass_scale == 0.7
+    assert tuple(lay.design.sprung_mass_scales) == LAYERED_SPRUNG_MASS_SCALES
+    assert lay.vehicle == CFG.vehicle
 
 
 @pytest.mark.slow

@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from controller.arrays import FloatArray
-from controller.config import RigConfig, config_hash
+from controller.config import RigConfig, design_config_hash
 from controller.metrics import compute_metrics
 from controller.modes import BANK_MODES, CONTROLLER_MODES
 from hil.sim.plant import PlantParams, RigPlant
@@ -114,9 +114,11 @@ def config_from_text(toml_text: str) -> RigConfig:
 
 
 def cached_design(cfg: RigConfig) -> Design:
-    """``design_bank(cfg)``, memoised per configuration hash in this process."""
+    """``design_bank(cfg)``, memoised in this process per hash of the sections the design
+    reads (:func:`controller.config.design_config_hash`): configurations that differ only
+    in e.g. the emulated plant share one design."""
     from controller.design import design_bank
-    key = config_hash(cfg)
+    key = design_config_hash(cfg)
     if key not in _DESIGNS:
         if len(_DESIGNS) >= 8:
             _DESIGNS.pop(next(iter(_DESIGNS)))

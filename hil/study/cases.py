@@ -14,7 +14,7 @@ sweep drives every rate with the same profile.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -40,7 +40,8 @@ from hil.sim.plant import PlantParams
 from hil.sim.roads import Road, make_road
 from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 
-__all__ = ["CONTROLLERS", "ROAD_BASE_RATE_HZ", "TRACE_DECIMATION", "Case", "case_config",
+__all__ = ["CONTROLLERS", "DESIGN_MASSES", "LAYERED_SPRUNG_MASS_SCALES", "ROAD_BASE_RATE_HZ",
+           "TRACE_DECIMATION", "Case", "case_config",
            "lq_cost", "make_controller", "run_case", "run_case_task", "study_road"]
 
 #: the study's controllers: the reference laws worth comparing, the bank modes of
@@ -48,6 +49,13 @@ __all__ = ["CONTROLLERS", "ROAD_BASE_RATE_HZ", "TRACE_DECIMATION", "Case", "case
 CONTROLLERS = ("passive", "skyhook", *BANK_MODES, "fullstate")
 ROAD_BASE_RATE_HZ = 4000.0
 TRACE_DECIMATION = 10
+#: what the bank of a case is designed for (the plant is ``Case.sprung_mass_scale``):
+#: ``configured`` the configuration as it is; ``layered`` the configuration with the
+#: sprung-mass layers :data:`LAYERED_SPRUNG_MASS_SCALES` (the payload profile);
+#: ``true-plant`` the configuration with ``vehicle.sprung_mass_kg`` = the plant's mass
+DESIGN_MASSES = ("configured", "layered", "true-plant")
+#: ``[design] sprung_mass_scales`` of deploy/payload.toml (tests/test_study.py checks it)
+LAYERED_SPRUNG_MASS_SCALES = (0.6, 0.7, 0.85, 1.0, 1.15, 1.3, 1.5)
 
 
 @dataclass(frozen=True)
@@ -69,24 +77,32 @@ class Case:
     skyhook: SkyhookGains | None = None
     settle_s: float = 0.0
     trace: bool = False
+    sprung_mass_scale: float = 1.0         # the plant: [emulator] sprung_mass_scale
+    design_mass: str = "configured"        # DESIGN_MASSES
+    sim_road: bool = False                 # the road as `rig sim` makes it (make_road at
+                                           # the controller rate), not study_road's
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
             raise ValueError(f"controller {self.controller!r}: allowed {CONTROLLERS}")
         if self.delay_point not in ("spool", "force_ref"):
             raise ValueError(f"delay_point {self.delay_point!r}: allowed spool, force_ref")
+        if self.design_mass not in DESIGN_MASSES:
+            raise ValueError(f"design_mass {self.design_mass!r}: allowed {DESIGN_MASSES}")
+        if not self.sprung_mass_scale > 0:
+            raise ValueError(f"bad case {self}: sprung_mass_scale > 0 needed")
         if self.delay_ms < 0 or self.duration_s <= 0:
             raise ValueError(f"bad case {self}: delay_ms >= 0 and duration_s > 0 needed")
 
     def ref_key(self) -> tuple[Any, ...]:
         """Cases with equal keys share one passive reference run."""
         return (self.road, self.speed_mps, self.duration_s, self.road_seed, self.rate_hz,
-                self.param_tag, self.settle_s)
+                self.param_tag, self.settle_s, self.sprung_mass_scale, self.sim_road)
 
     def passive(self) -> Case:
-        return Case(self.group, "passive", 1, self.road, self.speed_mps, self.duration_s,
-                    self.road_seed, self.sensor_seed, 0.0, "spool", self.rate_hz, self.params,
-                    self.param_tag, None, None, self.settle_s, self.trace)
+        return replace(self, controller="passive", weight_set=1, delay_ms=0.0,
+                       delay_point="spool", weights=None, skyhook=None,
+                       design_mass="configured")
 
     def describe(self) -> str:
         """What the case runs, for a failure report (plant, road, seeds)."""
@@ -94,7 +110,11 @@ class Case:
                 f"{self.duration_s:g} s, road seed {self.road_seed}, sensor seed "
                 f"{self.sensor_seed}, plant {self.param_tag}"
                 + (f", delay {self.delay_ms:g} ms" if self.delay_ms else "")
-                + (f", rate {self.rate_hz:g} Hz" if self.rate_hz else ""))
+                + (f", rate {self.rate_hz:g} Hz" if self.rate_hz else "")
+                + (f", sprung mass x {self.sprung_mass_scale:g}"
+                   if self.sprung_mass_scale != 1.0 else "")
+                + (f", design {self.design_mass}" if self.design_mass != "configured"
+                   else ""))
 
     @property
     def label(self) -> str:
@@ -104,18 +124,36 @@ class Case:
             lab = f"{self.controller}-rho"
         else:
             lab = f"{self.controller}-{self.weight_set}"
+        if self.design_mass != "configured":
+            lab += f" ({self.design_mass})"
         return lab + (" (local PI)" if self.delay_point == "force_ref" else "")
 
 
 def case_config(cfg: RigConfig, case: Case) -> RigConfig:
-    """``cfg`` with the case's sample rate and custom weight set applied."""
+    """``cfg`` with the case's sample rate, custom weight set, plant sprung mass
+    (``[emulator] sprung_mass_scale``, the LVDT zeroed at the plant's own rest) and
+    design mass (:data:`DESIGN_MASSES`) applied.  A ``true-plant`` case designs with
+    ``vehicle.sprung_mass_kg`` = the scale x the configured mass and emulates that
+    vehicle as configured (the same plant)."""
+    sections: dict[str, dict[str, Any]] = {}
     design: dict[str, Any] = {}
     if case.rate_hz is not None and not math.isclose(case.rate_hz, cfg.design.sample_rate_hz):
         design["sample_rate_hz"] = float(case.rate_hz)
     if case.weights is not None:
         design["weight_sets"] = [[float(w) for w in case.weights]]
         design["weight_set"] = 1
-    return cfg.replace(design=design) if design else cfg
+    if case.design_mass == "layered":
+        design["sprung_mass_scales"] = list(LAYERED_SPRUNG_MASS_SCALES)
+    if design:
+        sections["design"] = design
+    if case.design_mass == "true-plant":
+        mass_kg = cfg.vehicle.sprung_mass_kg * cfg.emulator.sprung_mass_scale
+        sections["vehicle"] = {"sprung_mass_kg": mass_kg * case.sprung_mass_scale}
+        sections["emulator"] = {"sprung_mass_scale": 1.0}
+    elif case.sprung_mass_scale != 1.0:
+        sections["emulator"] = {
+            "sprung_mass_scale": cfg.emulator.sprung_mass_scale * case.sprung_mass_scale}
+    return cfg.replace(**sections) if sections else cfg
 
 
 def study_road(name: str, speed_mps: float, duration_s: float, dt_s: float,
@@ -179,7 +217,9 @@ def run_case(case: Case, cfg: RigConfig) -> dict[str, Any]:
     ``traces`` dict (decimated by :data:`TRACE_DECIMATION`)."""
     ccfg = case_config(cfg, case)
     dt = ccfg.sample_time_s
-    road = study_road(case.road, case.speed_mps, case.duration_s, dt, case.road_seed)
+    road = (make_road(case.road, case.speed_mps, case.duration_s, dt, case.road_seed)
+            if case.sim_road else
+            study_road(case.road, case.speed_mps, case.duration_s, dt, case.road_seed))
     ctrl = make_controller(case, ccfg, road)
     delay_ticks = round(case.delay_ms * 1e-3 / dt)
     res = run_closed_loop(ccfg, road, ctrl, delay_ticks=delay_ticks, seed=case.sensor_seed,

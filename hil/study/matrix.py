@@ -12,6 +12,11 @@ Groups of cases:
               and once before a local PI force loop ("local PI")
 ``rate``      controller sample rate 250 Hz .. 2 kHz (design redone at each rate)
 ``rho``       nonlinear check points of the linear rho2 trade-off (single LQG)
+``envelope``  operating envelope (issue 22): ballast sweep, plant sprung mass x 0.6..1.5
+              on the thesis course, the single nominal LQG, the fuzzy bank with the
+              payload profile's mass layers and the fuzzy bank designed for the true
+              mass (weight set 1); runs as ``rig sim`` makes them (its road, sensor seed
+              = road seed, no settle skip) so they repeat docs/study.md's "Payload" cells
 
 Every non-passive row is divided by the passive row of the same road, speed, duration,
 road seed, rate and plant (:meth:`Case.ref_key`): ``<metric>_ratio``.
@@ -30,16 +35,19 @@ from hil.batch import BatchExecutor, LocalExecutor
 from hil.sim.montecarlo import draw_params
 from hil.sim.plant import PlantParams
 from hil.sim.skyhook import TUNING_GRID, SkyhookGains
-from hil.study.cases import Case, run_case_task
+from hil.study.cases import LAYERED_SPRUNG_MASS_SCALES, Case, run_case_task
 
-__all__ = ["RATIO_METRICS", "StudyPlan", "add_ratios", "bank_labels", "main_cases",
-           "plan", "run_cases"]
+__all__ = ["ENVELOPE_CONTROLLERS", "RATIO_METRICS", "StudyPlan", "add_ratios", "bank_labels",
+           "envelope_cases", "main_cases", "plan", "run_cases"]
 
 #: metrics reported as closed loop / passive (passive is never zero for these)
 RATIO_METRICS = ("absorbed_power", "wk_rms_mps2", "accel_rms_mps2", "rattlespace_rms_m",
                  "rattlespace_peak_m", "tire_load_rms_ratio", "tire_deflection_rms_m",
                  "lq_cost_w1", "lq_cost_w2")
 THESIS_SPEED_MPS = 11.176   # 25 mph
+#: (controller, design mass) of the envelope group, weight set 1: the single nominal LQG,
+#: the layered (payload) fuzzy bank, the fuzzy bank designed on the true plant
+ENVELOPE_CONTROLLERS = (("lqg", "configured"), ("fuzzy", "layered"), ("fuzzy", "true-plant"))
 
 
 @dataclass(frozen=True)
@@ -61,6 +69,9 @@ class StudyPlan:
     tune_grid: tuple[tuple[float, float, float], ...]
     tune_duration_s: float
     settle_s: float
+    envelope_mass_scales: tuple[float, ...]
+    envelope_seeds: tuple[int, ...]
+    envelope_duration_s: float
 
     def describe(self) -> str:
         return (f"thesis case {len(self.thesis_seeds)} x {self.thesis_duration_s:g} s; other "
@@ -68,21 +79,25 @@ class StudyPlan:
                 f"{self.event_duration_s:g} s; Monte Carlo {self.mc_runs} runs x "
                 f"{self.mc_duration_s:g} s per controller and spread; delay/rate/mismatch "
                 f"{self.sweep_duration_s:g} s; skyhook search {len(self.tune_grid)} settings "
-                f"x {self.tune_duration_s:g} s; statistics skip the first {self.settle_s:g} s")
+                f"x {self.tune_duration_s:g} s; statistics skip the first {self.settle_s:g} s; "
+                f"envelope {len(self.envelope_mass_scales)} sprung masses x "
+                f"{len(self.envelope_seeds)} seeds x {self.envelope_duration_s:g} s")
 
 
 def plan(quick: bool) -> StudyPlan:
     if quick:
         return StudyPlan(True, 3.0, (1,), 2.0, 2.0, (("iso-B", 20.0), ("bump", 10.0)), 2,
                          (0.05,), 2.0, (0.8, 1.2), (0.0, 10.0), (500.0, 1000.0), 2.0,
-                         (1e-1, 1e2), TUNING_GRID[:: max(1, len(TUNING_GRID) // 3)], 2.0, 0.5)
+                         (1e-1, 1e2), TUNING_GRID[:: max(1, len(TUNING_GRID) // 3)], 2.0, 0.5,
+                         (0.7, 1.3), (1,), 2.0)
     roads = (("iso-B", 10.0), ("iso-B", 20.0), ("iso-B", 30.0), ("iso-D", 10.0),
              ("iso-D", 20.0), ("iso-D", 30.0), ("iso-F", 5.0), ("iso-F", 10.0),
              ("bump", 5.0), ("bump", 10.0), ("pothole", 5.0), ("pothole", 10.0))
     return StudyPlan(False, 60.0, (1, 2, 3), 30.0, 4.0, roads, 20, (0.05, 0.15), 20.0,
                      (0.8, 1.2), (0.0, 1.0, 2.0, 5.0, 10.0, 15.0, 20.0, 25.0),
                      (250.0, 500.0, 1000.0, 2000.0), 30.0,
-                     (1e-2, 1e-1, 1e0, 1e1, 1e2, 3e2, 1e3), TUNING_GRID, 20.0, 1.0)
+                     (1e-2, 1e-1, 1e0, 1e1, 1e2, 3e2, 1e3), TUNING_GRID, 20.0, 1.0,
+                     LAYERED_SPRUNG_MASS_SCALES, (1, 2), 30.0)
 
 
 def bank_labels() -> list[tuple[str, int]]:
@@ -161,6 +176,21 @@ def other_cases(p: StudyPlan, cfg: RigConfig, skyhook: SkyhookGains) -> list[Cas
     for rho1 in (1.0, 10.0):
         for rho2 in p.rho2_checks:
             cases.append(replace(base, controller="lqg", weights=(rho1, rho2, 1e-8, 1.0)))
+    return cases + envelope_cases(p)
+
+
+def envelope_cases(p: StudyPlan) -> list[Case]:
+    """The ballast sweep: passive and :data:`ENVELOPE_CONTROLLERS` per sprung-mass scale
+    and road seed (``param_tag`` ``M<scale>``)."""
+    cases: list[Case] = []
+    for seed in p.envelope_seeds:
+        for scale in p.envelope_mass_scales:
+            base = Case("envelope", "passive", road="rough-course", speed_mps=THESIS_SPEED_MPS,
+                        duration_s=p.envelope_duration_s, road_seed=seed, sensor_seed=seed,
+                        sprung_mass_scale=scale, param_tag=f"M{scale:g}", sim_road=True)
+            cases.append(base)
+            cases += [replace(base, controller=c, design_mass=dm)
+                      for c, dm in ENVELOPE_CONTROLLERS]
     return cases
 
 

@@ -208,6 +208,28 @@ def _mismatch(rows: Sequence[Row]) -> list[str]:
     return _table(["controller", *heads], body)
 
 
+#: the envelope group's controllers (hil.study.matrix.ENVELOPE_CONTROLLERS, weight set 1)
+ENVELOPE_LABELS = ("lqg-1", "fuzzy-1 (layered)", "fuzzy-1 (true-plant)")
+
+
+def _envelope(rows: Sequence[Row]) -> list[str]:
+    """Per plant sprung-mass scale: each controller's ``a / r`` (mean over road seeds)
+    and the layered bank's absorbed power and rattlespace RMS over the true-plant
+    design's (ratio of the seed means)."""
+    env = [r for r in rows if r["group"] == "envelope"]
+    body = []
+    for scale in sorted({float(r["sprung_mass_scale"]) for r in env}):
+        at = [r for r in env if float(r["sprung_mass_scale"]) == scale]
+        cells = [_ap_rs(rows_where(at, label=lab)) for lab in ENVELOPE_LABELS]
+        lay = rows_where(at, label=ENVELOPE_LABELS[1])
+        true = rows_where(at, label=ENVELOPE_LABELS[2])
+        rel = [mean_of(lay, k) / mean_of(true, k) if lay and true else math.nan
+               for k in ("absorbed_power_ratio", "rattlespace_rms_m_ratio")]
+        body.append([f"{scale:g}", *cells, f"{_f(rel[0])}, {_f(rel[1])}"])
+    return _table(["sprung mass x", *ENVELOPE_LABELS, "layered ÷ true-plant: power, "
+                   "rattlespace"], body)
+
+
 def _sweep(rows: Sequence[Row], group: str, key: str, unit: str) -> list[str]:
     sel = [r for r in rows if r["group"] == group and r["controller"] != "passive"]
     labels: list[str] = []
@@ -297,6 +319,14 @@ def tables_markdown(rows: Sequence[Row], grid: TradeoffGrid | None, chosen_skyho
     out += _sweep(rows, "rate", "rate_hz", "Hz")
     out += ["## rho2 trade-off: linear analysis vs nonlinear check points (single LQG)", ""]
     out += _rho(rows, grid)
+    out += ["## Operating envelope: ballast sweep (thesis course; plant sprung mass scaled)",
+            "", "Plant `[emulator] sprung_mass_scale` = the scale (LVDT zeroed at its own "
+            "rest); each run as `rig sim --road rough-course --speed 11.176 --seed S` makes "
+            "it.  lqg-1: the single nominal LQG; layered: the fuzzy bank with the sprung-mass "
+            "layers of deploy/payload.toml; true-plant: the default fuzzy bank designed with "
+            "`vehicle.sprung_mass_kg` = the scale x nominal, on the same plant.  Mean over "
+            "road seeds; figure fig_envelope_mass.png.", ""]
+    out += _envelope(rows)
     out += ["## Skyhook tuning search (rough course, road seed 101)", ""]
     out += _tuning(rows, chosen_skyhook)
     return "\n".join(out)
@@ -537,6 +567,38 @@ def _fig_sweeps(rows: Sequence[Row], out: Path) -> Path | None:
     return _save(fig, out / "fig_delay_rate.png")
 
 
+def _fig_envelope(rows: Sequence[Row], out: Path) -> Path | None:
+    env = [r for r in rows if r["group"] == "envelope" and r["controller"] != "passive"]
+    if not env:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    scales = sorted({float(r["sprung_mass_scale"]) for r in env})
+    for a, key, name in ((ax[0], "absorbed_power_ratio", "absorbed power / passive"),
+                         (ax[1], "rattlespace_rms_m_ratio", "rattlespace RMS / passive")):
+        for lab in ENVELOPE_LABELS:
+            pts = [(s, mean_of([r for r in rows_where(env, label=lab)
+                                if float(r["sprung_mass_scale"]) == s], key)) for s in scales]
+            pts = [(x, y) for x, y in pts if math.isfinite(y)]
+            if not pts:
+                continue
+            line = a.plot(*zip(*pts, strict=True), "o-", label=lab, ms=3)[0]
+            bad = sorted({float(r["sprung_mass_scale"]) for r in rows_where(env, label=lab)
+                          if float(r["bump_stop_slam"]) or float(r["n_faults"])
+                          or float(r["nonfinite"])})
+            if bad:
+                a.plot(bad, [y for x, y in pts if x in bad], "x", color=line.get_color(),
+                       ms=9)
+        a.axvline(1.0, color="k", lw=0.5)
+        a.set_xlabel("plant sprung mass / configured")
+        a.set_ylabel(name)
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7)
+    ax[0].set_title("ballast sweep, thesis course (x = slam or fault)", fontsize=9)
+    ax[1].set_title("mean over road seeds", fontsize=9)
+    return _save(fig, out / "fig_envelope_mass.png")
+
+
 def _fig_controllers(rows: Sequence[Row], out: Path) -> Path:
     plt = _plt()
     t = thesis_rows(rows)
@@ -569,6 +631,7 @@ def write_figures(rows: Sequence[Row], out: Path, grid: TradeoffGrid | None,
         lambda: _fig_mc(rows, out),
         lambda: _fig_sweeps(rows, out),
         lambda: _fig_controllers(rows, out),
+        lambda: _fig_envelope(rows, out),
     ]
     if grid is not None:
         makers.append(lambda: _fig_tradeoff(rows, grid, out, thesis_sets))
