@@ -451,6 +451,15 @@ class ControlLoop:
         timing = self.timing
         timing.start_tick(lateness_ns)
         self.lateness_ns = lateness_ns
+        tel = self.telemetry
+        if tel is not None and tick % self.telemetry_every == 0:
+            # the telemetry process's notes and at most one of its commands, applied before
+            # the step and recorded at this tick: a replay re-applies a recorded command
+            # before the tick it names, so the run and its replay stay bit-exact
+            try:
+                tel.poll(self)
+            except Exception as exc:    # the outputs never stop the control loop
+                self._on_output_error(exc)
         if self._requests:
             self._apply(self._requests.popleft())
         mon.begin_tick()
@@ -526,7 +535,6 @@ class ControlLoop:
                     rec.tick_values(now_ns, scalars, arrays)
                 if feed:
                     tel.offer_tick(now_ns, scalars, arrays)  # type: ignore[union-attr]
-                    tel.poll(self)                           # type: ignore[union-attr]
             else:
                 self._last_wake_ns = now_ns
         except Exception as exc:    # the outputs never stop the control loop
