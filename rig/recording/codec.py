@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import pickle
 import struct
 from collections.abc import Iterator, Mapping, Sequence
@@ -215,6 +216,31 @@ def encode_layout(layout: TickLayout) -> bytes:
 
 def encode_end() -> bytes:
     return ITEM_HEAD.pack(ITEM_HEAD.size, ITEM_END)
+
+
+def read_exact(fd: int, n: int, what: str) -> bytes:
+    """``n`` bytes from the pipe ``fd`` (blocking); EOFError naming ``what`` if it ends first."""
+    out = bytearray()
+    while len(out) < n:
+        chunk = os.read(fd, n - len(out))
+        if not chunk:
+            raise EOFError(f"{what} ended after {len(out)} of {n} header bytes")
+        out += chunk
+    return bytes(out)
+
+
+def read_stream_header(fd: int, magic: bytes, what: str) -> dict[str, Any]:
+    """The head of a stream a child process reads on its stdin (the recorder's writer,
+    the telemetry process): ``magic``, a u32 length, that many bytes of JSON.
+    ValueError when the magic is not ``magic``, EOFError when the stream ends early."""
+    got = read_exact(fd, len(magic), what)
+    if got != magic:
+        raise ValueError(f"not a {what} (magic {got!r})")
+    (hlen,) = _U32.unpack(read_exact(fd, 4, what))
+    header = json.loads(read_exact(fd, hlen, what))
+    if not isinstance(header, dict):
+        raise ValueError(f"{what}: the header is not a JSON object")
+    return header
 
 
 def split_items(buf: bytes | bytearray | memoryview, start: int = 0

@@ -41,6 +41,8 @@ from rig.recording.codec import (
     TickDecoder,
     decode_item,
     iter_items,
+    read_exact,
+    read_stream_header,
     split_items,
 )
 from rig.recording.scene import next_scene_ns, scene_json
@@ -287,16 +289,6 @@ class _Status:
             self.broken = True  # the parent is gone; keep writing the file
 
 
-def _read_exact(fd: int, n: int) -> bytes:
-    out = bytearray()
-    while len(out) < n:
-        chunk = os.read(fd, n - len(out))
-        if not chunk:
-            raise EOFError(f"stream ended after {len(out)} of {n} header bytes")
-        out += chunk
-    return bytes(out)
-
-
 class _Backlog:
     """Reader thread: pipe -> complete items, at most ``limit`` items waiting."""
 
@@ -384,13 +376,9 @@ def main() -> int:
     status = _Status(sys.stdout)
     fd = sys.stdin.fileno()
     try:
-        magic = _read_exact(fd, len(STREAM_MAGIC))
-        if magic != STREAM_MAGIC:
-            raise ValueError(f"not a recording stream (magic {magic!r})")
-        (hlen,) = struct.unpack("<I", _read_exact(fd, 4))
-        header = json.loads(_read_exact(fd, hlen))
-        (dlen,) = struct.unpack("<I", _read_exact(fd, 4))
-        design = _read_exact(fd, dlen) if dlen else None
+        header = read_stream_header(fd, STREAM_MAGIC, "recording stream")
+        (dlen,) = struct.unpack("<I", read_exact(fd, 4, "recording stream"))
+        design = read_exact(fd, dlen, "recording stream") if dlen else None
         ticks: TickDecoder | None = None
         sink = McapRunSink(
             Path(header["path"]), rotate_bytes=int(header["rotate_bytes"]),

@@ -46,6 +46,7 @@ from rig.recording.codec import (
     TickDecoder,
     TickLayout,
     decode_item,
+    read_stream_header,
     split_items,
 )
 from rig.recording.writer import stay_out_of_the_loops_way
@@ -168,16 +169,6 @@ class _Commands:
             slot[0].set()
 
 
-def _read_exact(fd: int, n: int) -> bytes:
-    out = bytearray()
-    while len(out) < n:
-        chunk = os.read(fd, n - len(out))
-        if not chunk:
-            raise EOFError(f"feed ended after {len(out)} of {n} header bytes")
-        out += chunk
-    return bytes(out)
-
-
 class _Process:
     """What the process holds: the publisher, the view and the loop's last status."""
 
@@ -273,11 +264,7 @@ def main() -> int:
     out = _Out(sys.stdout)
     fd = sys.stdin.fileno()
     try:
-        magic = _read_exact(fd, len(FEED_MAGIC))
-        if magic != FEED_MAGIC:
-            raise ValueError(f"not a telemetry feed (magic {magic!r})")
-        (hlen,) = struct.unpack("<I", _read_exact(fd, 4))
-        header = json.loads(_read_exact(fd, hlen))
+        header = read_stream_header(fd, FEED_MAGIC, "telemetry feed")
     except (OSError, ValueError, EOFError) as exc:
         print(f"rig.telemetry_process: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
