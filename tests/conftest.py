@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 from rig.blas_threads import one_blas_thread
@@ -16,6 +17,8 @@ from rig.rt.kernel_cache import drop_stale_kernel_cache  # noqa: E402
 
 # before any test module imports the runtime bank (numba's on-disk cache of its kernels)
 drop_stale_kernel_cache()
+
+from tests.support.loop_harness import LoopHarness, make_harness  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -42,3 +45,16 @@ def identification_run(tmp_path_factory: pytest.TempPathFactory, design_path: Pa
 
     path = tmp_path_factory.mktemp("identify") / "ex.mcap"
     return record_identification_run(path, design_path.read_bytes())
+
+
+@pytest.fixture
+def armed() -> Iterator[LoopHarness]:
+    """A controller loop on a virtual bus (tests.support.loop_harness), armed: ten ticks,
+    arm, one more tick, and its valve command enabled."""
+    h = make_harness()
+    h.run(10)
+    h.arm()
+    h.step()
+    assert h.rig.valve[-1].enable == 1
+    yield h
+    h.close()

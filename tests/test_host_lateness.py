@@ -22,16 +22,6 @@ STALE = CFG.safety.stale_ticks
 MS = 1_000_000
 
 
-@pytest.fixture
-def armed() -> Any:
-    h = make_harness()
-    h.run(10)
-    h.arm()
-    h.step()
-    yield h
-    h.close()
-
-
 def _fault(h: LoopHarness) -> dict[str, Any]:
     lc = h.loop.lifecycle
     assert lc.state is LifecycleState.FAULT

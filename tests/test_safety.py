@@ -47,17 +47,6 @@ from tests.support.loop_harness import LoopHarness, make_harness
 CFG = default_config()
 
 
-@pytest.fixture
-def armed() -> Any:
-    h = make_harness()
-    h.run(10)
-    h.arm()
-    h.step()
-    assert h.rig.valve[-1].enable == 1
-    yield h
-    h.close()
-
-
 def assert_faulted_now(h: LoopHarness, valves: list[Any], faults: list[Any],
                        code: FaultCode, detail: int | None = None) -> None:
     """The tick just run sent the safe command and a FaultReport with ``code``."""

@@ -30,7 +30,7 @@ from hil.sim.closed_loop import BankController, cached_design, run_closed_loop, 
 from hil.sim.roads import Road, make_road
 from rig.service.loop import TICK_RECORD_FIELDS
 from rig.telemetry_process.child import snapshot_of
-from tests.support.loop_harness import LoopHarness, make_harness
+from tests.support.loop_harness import LoopHarness
 
 CFG = default_config()
 DT = CFG.sample_time_s
@@ -39,17 +39,6 @@ DT = CFG.sample_time_s
 @pytest.fixture(scope="module")
 def runtime() -> BankRuntime:
     return BankRuntime(cached_design(CFG), cfg=CFG)
-
-
-@pytest.fixture
-def armed() -> Any:
-    h = make_harness()
-    h.run(10)
-    h.arm()
-    h.step()
-    assert h.rig.valve[-1].enable == 1
-    yield h
-    h.close()
 
 
 def _buffers(rt: BankRuntime) -> tuple[np.ndarray, np.ndarray]:
