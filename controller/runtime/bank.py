@@ -260,9 +260,11 @@ from controller.runtime.kernels import (
     StepFlag,
     activate,
     deactivate,
+    degrade_or_rearm,
     firing_weight,
     mass_estimate,
     mass_estimate_reset,
+    ramp_authority,
     servo_update,
     stop_barrier,
     stop_contact,
@@ -354,33 +356,19 @@ def _monitor(fv: np.ndarray, iv: np.ndarray, q_min: float, e_min: float) -> int:
             fv[F_MON_SUM] = tot
         iv[I_MON_PTR] = p
         if cnt >= n:
-            ssum = fv[F_MON_SUM]
-            if iv[I_MON_DEG] == 0:
-                if ssum > fv[F_MON_THR]:
-                    iv[I_MON_DEG] = 1
-                    iv[I_MON_OK] = 0
-                    iv[I_MON_NDEG] += 1
-            elif ssum < fv[F_MON_REARM]:
-                iv[I_MON_OK] += 1
-                if iv[I_MON_OK] >= iv[I_MON_RECOVER]:
-                    iv[I_MON_DEG] = 0
-            else:
-                iv[I_MON_OK] = 0
+            degrade_or_rearm(iv, I_MON_DEG, I_MON_OK, I_MON_NDEG, I_MON_RECOVER,
+                             fv[F_MON_SUM], fv[F_MON_THR], fv[F_MON_REARM], True)
         if e_min > 1.0:
             iv[I_MON_BAD] += 1
             if iv[I_MON_BAD] >= iv[I_MON_MAXBAD]:
                 flags |= _DIVERGED
         else:
             iv[I_MON_BAD] = 0
-    auth = fv[F_AUTH]
-    if iv[I_MON_DEG] != 0:
+    degraded = iv[I_MON_DEG] != 0
+    if degraded:
         flags |= _DEGRADED
         iv[I_MON_DEGTICKS] += 1
-        auth -= fv[F_AUTH_STEP]
-        fv[F_AUTH] = auth if auth > 0.0 else 0.0
-    else:
-        auth += fv[F_AUTH_STEP]
-        fv[F_AUTH] = auth if auth < 1.0 else 1.0
+    ramp_authority(fv, F_AUTH, degraded, 0.0)
     return flags
 
 

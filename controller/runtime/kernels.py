@@ -391,6 +391,41 @@ def stop_guard(fv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def degrade_or_rearm(iv: np.ndarray, i_deg: int, i_ok: int, i_ndeg: int, i_recover: int,
+                     level: float, degrade_above: float, rearm_below: float,
+                     may_degrade: bool) -> None:
+    """A monitor's degrade / re-arm hysteresis, once per tick (the estimator monitor's
+    and the stop-contact monitor's): armed (``iv[i_deg]`` 0), it degrades when ``level``
+    exceeds ``degrade_above`` (and ``may_degrade``), counting in ``iv[i_ndeg]``; degraded,
+    it re-arms once ``level`` stayed below ``rearm_below`` for ``iv[i_recover]`` ticks in
+    a row (``iv[i_ok]`` counts them)."""
+    if iv[i_deg] == 0:
+        if level > degrade_above and may_degrade:
+            iv[i_deg] = 1
+            iv[i_ok] = 0
+            iv[i_ndeg] += 1
+    elif level < rearm_below:
+        iv[i_ok] += 1
+        if iv[i_ok] >= iv[i_recover]:
+            iv[i_deg] = 0
+    else:
+        iv[i_ok] = 0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def ramp_authority(fv: np.ndarray, slot: int, degraded: bool, floor: float) -> None:
+    """A monitor's force authority ``fv[slot]``, once per tick: down by ``F_AUTH_STEP``
+    toward ``floor`` while degraded, back up toward 1 after."""
+    auth = fv[slot]
+    if degraded:
+        auth -= fv[F_AUTH_STEP]
+        fv[slot] = auth if auth > floor else floor
+    else:
+        auth += fv[F_AUTH_STEP]
+        fv[slot] = auth if auth < 1.0 else 1.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def stop_contact(fv: np.ndarray, iv: np.ndarray, rattlespace_m: float) -> int:
     """The stop-contact monitor, once per tick (controller/stop_contact.py): contact
     time in the exponential window ``F_SC_TIME``, episodes, degrade above ``F_SC_BUDGET``
@@ -412,26 +447,13 @@ def stop_contact(fv: np.ndarray, iv: np.ndarray, rattlespace_m: float) -> int:
     if iv[I_SC_QUIET] < iv[I_SC_GAP]:
         flags |= _STOP_CONTACT
     fv[F_SC_TIME] = e
-    if iv[I_SC_DEG] == 0:
-        if e > fv[F_SC_BUDGET] and iv[I_SC_ON] != 0:
-            iv[I_SC_DEG] = 1
-            iv[I_SC_OK] = 0
-            iv[I_SC_NDEG] += 1
-    elif e < fv[F_SC_REARM]:
-        iv[I_SC_OK] += 1
-        if iv[I_SC_OK] >= iv[I_SC_RECOVER]:
-            iv[I_SC_DEG] = 0
-    else:
-        iv[I_SC_OK] = 0
-    auth = fv[F_SC_AUTH]
-    if iv[I_SC_DEG] != 0:
+    degrade_or_rearm(iv, I_SC_DEG, I_SC_OK, I_SC_NDEG, I_SC_RECOVER, e, fv[F_SC_BUDGET],
+                     fv[F_SC_REARM], iv[I_SC_ON] != 0)
+    degraded = iv[I_SC_DEG] != 0
+    if degraded:
         flags |= _STOP_DEGRADED
         iv[I_SC_DEGTICKS] += 1
-        auth -= fv[F_AUTH_STEP]
-        fv[F_SC_AUTH] = auth if auth > fv[F_SC_FLOOR] else fv[F_SC_FLOOR]
-    else:
-        auth += fv[F_AUTH_STEP]
-        fv[F_SC_AUTH] = auth if auth < 1.0 else 1.0
+    ramp_authority(fv, F_SC_AUTH, degraded, fv[F_SC_FLOOR])
     return flags
 
 
