@@ -63,8 +63,8 @@ from rig.recording.schema import (
 )
 from rig.recording.segments import SEGMENT_END_NAME, segment_path
 
-__all__ = ["CONFIG_ATTACHMENT", "DESIGN_ATTACHMENT", "METADATA_NAME", "McapRunSink", "main",
-           "segment_path", "stay_out_of_the_loops_way"]
+__all__ = ["CONFIG_ATTACHMENT", "DESIGN_ATTACHMENT", "METADATA_NAME", "McapRunSink",
+           "ParentLines", "main", "segment_path", "stay_out_of_the_loops_way"]
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
@@ -272,21 +272,28 @@ def _item_tick(item: tuple[Any, ...]) -> int | None:
 # ---------------------------------------------------------------------------- process
 
 
-class _Status:
-    """JSON status lines to the parent (stdout)."""
+class ParentLines:
+    """JSON lines to the parent process on stdout (``{"event": ..., **fields}``), from any
+    thread: the recorder's writer's status and the telemetry process's events and
+    commands.  A broken pipe (the parent is gone) silences it; the child goes on."""
 
     def __init__(self, out: IO[str]) -> None:
         self.out = out
+        self.lock = threading.Lock()
         self.broken = False
 
-    def send(self, event: str, **fields: Any) -> None:
-        if self.broken:
-            return
-        try:
-            self.out.write(json.dumps({"event": event, **fields}, default=str) + "\n")
-            self.out.flush()
-        except (BrokenPipeError, OSError):
-            self.broken = True  # the parent is gone; keep writing the file
+    def send(self, event: str, **fields: Any) -> bool:
+        line = json.dumps({"event": event, **fields}, default=str) + "\n"
+        with self.lock:
+            if self.broken:
+                return False
+            try:
+                self.out.write(line)
+                self.out.flush()
+            except (BrokenPipeError, OSError, ValueError):
+                self.broken = True
+                return False
+        return True
 
 
 class _Backlog:
@@ -373,7 +380,7 @@ def stay_out_of_the_loops_way() -> None:
 
 def main() -> int:
     stay_out_of_the_loops_way()
-    status = _Status(sys.stdout)
+    status = ParentLines(sys.stdout)
     fd = sys.stdin.fileno()
     try:
         header = read_stream_header(fd, STREAM_MAGIC, "recording stream")

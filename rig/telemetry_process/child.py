@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-import json
 import logging
 import math
 import os
@@ -34,7 +33,7 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
-from typing import IO, Any
+from typing import Any
 
 from controller.config import parse_config, parse_toml
 from rig.recording.codec import (
@@ -49,7 +48,7 @@ from rig.recording.codec import (
     read_stream_header,
     split_items,
 )
-from rig.recording.writer import stay_out_of_the_loops_way
+from rig.recording.writer import ParentLines, stay_out_of_the_loops_way
 from rig.telemetry_process.feed import (
     FEED_MAGIC,
     ITEM_REPLY,
@@ -110,33 +109,10 @@ def snapshot_of(t_ns: int, record: Mapping[str, Any], status: Mapping[str, Any]
     }
 
 
-class _Out:
-    """JSON lines to the loop process (stdout), from any thread; a broken pipe (the
-    loop process is gone) silences it."""
-
-    def __init__(self, out: IO[str]) -> None:
-        self.out = out
-        self.lock = threading.Lock()
-        self.broken = False
-
-    def send(self, event: str, **fields: Any) -> bool:
-        line = json.dumps({"event": event, **fields}, default=str) + "\n"
-        with self.lock:
-            if self.broken:
-                return False
-            try:
-                self.out.write(line)
-                self.out.flush()
-            except (BrokenPipeError, OSError, ValueError):
-                self.broken = True
-                return False
-        return True
-
-
 class _Commands:
     """Operator commands to the loop process and their replies back."""
 
-    def __init__(self, out: _Out) -> None:
+    def __init__(self, out: ParentLines) -> None:
         self.out = out
         self.ids = itertools.count(1)
         self.lock = threading.Lock()
@@ -172,7 +148,7 @@ class _Commands:
 class _Process:
     """What the process holds: the publisher, the view and the loop's last status."""
 
-    def __init__(self, header: Mapping[str, Any], out: _Out) -> None:
+    def __init__(self, header: Mapping[str, Any], out: ParentLines) -> None:
         self.out = out
         self.cfg = parse_config(parse_toml(str(header["config_toml"]), "<telemetry feed>"))
         self.layout = TickLayout.from_json(header["layout"])
@@ -261,7 +237,7 @@ def main() -> int:
     stay_out_of_the_loops_way()
     with contextlib.suppress(OSError):
         os.nice(NICE)
-    out = _Out(sys.stdout)
+    out = ParentLines(sys.stdout)
     fd = sys.stdin.fileno()
     try:
         header = read_stream_header(fd, FEED_MAGIC, "telemetry feed")
