@@ -269,7 +269,8 @@ def test_quick_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert len(rows) > 50
     ratio_keys = [f"{m}_ratio" for m in RATIO_METRICS]
     groups = {r["group"] for r in rows}
-    assert {"tune", "main", "mc5", "mismatch", "delay", "rate", "rho", "envelope"} <= groups
+    assert {"tune", "main", "mc5", "mismatch", "delay", "rate", "rho", "envelope",
+            "envelope-mc"} <= groups
     assert "## Operating envelope" in md and "| fuzzy-1 (true-plant) |" in md
     assert (out / "fig_envelope_mass.png").exists()
     for r in rows:

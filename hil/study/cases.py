@@ -49,10 +49,11 @@ __all__ = ["CONTROLLERS", "DESIGN_MASSES", "LAYERED_SPRUNG_MASS_SCALES", "ROAD_B
 CONTROLLERS = ("passive", "skyhook", *BANK_MODES, "fullstate")
 ROAD_BASE_RATE_HZ = 4000.0
 TRACE_DECIMATION = 10
-#: what the bank of a case is designed for (the plant is ``Case.sprung_mass_scale``):
-#: ``configured`` the configuration as it is; ``layered`` the configuration with the
-#: sprung-mass layers :data:`LAYERED_SPRUNG_MASS_SCALES` (the payload profile);
-#: ``true-plant`` the configuration with ``vehicle.sprung_mass_kg`` = the plant's mass
+#: what the bank of a case is designed for (the plant is ``Case.sprung_mass_scale`` and
+#: ``Case.tire_stiffness_scale``): ``configured`` the configuration as it is; ``layered``
+#: the configuration with the sprung-mass layers :data:`LAYERED_SPRUNG_MASS_SCALES` (the
+#: payload profile); ``true-plant`` the configuration with ``vehicle.sprung_mass_kg`` and
+#: ``tire.stiffness_coefficient`` those of the plant
 DESIGN_MASSES = ("configured", "layered", "true-plant")
 #: ``[design] sprung_mass_scales`` of deploy/payload.toml (tests/test_study.py checks it)
 LAYERED_SPRUNG_MASS_SCALES = (0.6, 0.7, 0.85, 1.0, 1.15, 1.3, 1.5)
@@ -62,7 +63,7 @@ LAYERED_SPRUNG_MASS_SCALES = (0.6, 0.7, 0.85, 1.0, 1.15, 1.3, 1.5)
 class Case:
     group: str
     controller: str
-    weight_set: int = 1
+    weight_set: int | None = 1             # None: the configuration's design.weight_set
     road: str = "rough-course"
     speed_mps: float = 11.176
     duration_s: float = 10.0
@@ -78,6 +79,7 @@ class Case:
     settle_s: float = 0.0
     trace: bool = False
     sprung_mass_scale: float = 1.0         # the plant: [emulator] sprung_mass_scale
+    tire_stiffness_scale: float = 1.0      # the plant: [emulator] tire_stiffness_scale
     design_mass: str = "configured"        # DESIGN_MASSES
     sim_road: bool = False                 # the road as `rig sim` makes it (make_road at
                                            # the controller rate), not study_road's
@@ -89,15 +91,17 @@ class Case:
             raise ValueError(f"delay_point {self.delay_point!r}: allowed spool, force_ref")
         if self.design_mass not in DESIGN_MASSES:
             raise ValueError(f"design_mass {self.design_mass!r}: allowed {DESIGN_MASSES}")
-        if not self.sprung_mass_scale > 0:
-            raise ValueError(f"bad case {self}: sprung_mass_scale > 0 needed")
+        if not (self.sprung_mass_scale > 0 and self.tire_stiffness_scale > 0):
+            raise ValueError(f"bad case {self}: sprung_mass_scale and tire_stiffness_scale "
+                             "> 0 needed")
         if self.delay_ms < 0 or self.duration_s <= 0:
             raise ValueError(f"bad case {self}: delay_ms >= 0 and duration_s > 0 needed")
 
     def ref_key(self) -> tuple[Any, ...]:
         """Cases with equal keys share one passive reference run."""
         return (self.road, self.speed_mps, self.duration_s, self.road_seed, self.rate_hz,
-                self.param_tag, self.settle_s, self.sprung_mass_scale, self.sim_road)
+                self.param_tag, self.settle_s, self.sprung_mass_scale,
+                self.tire_stiffness_scale, self.sim_road)
 
     def passive(self) -> Case:
         return replace(self, controller="passive", weight_set=1, delay_ms=0.0,
@@ -113,6 +117,8 @@ class Case:
                 + (f", rate {self.rate_hz:g} Hz" if self.rate_hz else "")
                 + (f", sprung mass x {self.sprung_mass_scale:g}"
                    if self.sprung_mass_scale != 1.0 else "")
+                + (f", tire stiffness x {self.tire_stiffness_scale:g}"
+                   if self.tire_stiffness_scale != 1.0 else "")
                 + (f", design {self.design_mass}" if self.design_mass != "configured"
                    else ""))
 
@@ -122,6 +128,8 @@ class Case:
             lab = self.controller
         elif self.weights is not None:
             lab = f"{self.controller}-rho"
+        elif self.weight_set is None:
+            lab = f"{self.controller}-default"
         else:
             lab = f"{self.controller}-{self.weight_set}"
         if self.design_mass != "configured":
@@ -130,10 +138,11 @@ class Case:
 
 
 def case_config(cfg: RigConfig, case: Case) -> RigConfig:
-    """``cfg`` with the case's sample rate, custom weight set, plant sprung mass
-    (``[emulator] sprung_mass_scale``, the LVDT zeroed at the plant's own rest) and
-    design mass (:data:`DESIGN_MASSES`) applied.  A ``true-plant`` case designs with
-    ``vehicle.sprung_mass_kg`` = the scale x the configured mass and emulates that
+    """``cfg`` with the case's sample rate, custom weight set, plant sprung mass and tire
+    stiffness (``[emulator] sprung_mass_scale`` and ``tire_stiffness_scale``, the LVDT
+    zeroed at the plant's own rest) and design mass (:data:`DESIGN_MASSES`) applied.  A
+    ``true-plant`` case designs with ``vehicle.sprung_mass_kg`` and
+    ``tire.stiffness_coefficient`` = the scales x the emulated rig's and emulates that
     vehicle as configured (the same plant)."""
     sections: dict[str, dict[str, Any]] = {}
     design: dict[str, Any] = {}
@@ -146,13 +155,25 @@ def case_config(cfg: RigConfig, case: Case) -> RigConfig:
         design["sprung_mass_scales"] = list(LAYERED_SPRUNG_MASS_SCALES)
     if design:
         sections["design"] = design
+    em = cfg.emulator
     if case.design_mass == "true-plant":
-        mass_kg = cfg.vehicle.sprung_mass_kg * cfg.emulator.sprung_mass_scale
+        mass_kg = cfg.vehicle.sprung_mass_kg * em.sprung_mass_scale
         sections["vehicle"] = {"sprung_mass_kg": mass_kg * case.sprung_mass_scale}
-        sections["emulator"] = {"sprung_mass_scale": 1.0}
-    elif case.sprung_mass_scale != 1.0:
-        sections["emulator"] = {
-            "sprung_mass_scale": cfg.emulator.sprung_mass_scale * case.sprung_mass_scale}
+        emulator: dict[str, Any] = {"sprung_mass_scale": 1.0}
+        if case.tire_stiffness_scale != 1.0 or em.tire_stiffness_scale != 1.0:
+            kt = cfg.tire.stiffness_coefficient * em.tire_stiffness_scale
+            sections["tire"] = {"stiffness_coefficient": kt * case.tire_stiffness_scale}
+            emulator["tire_stiffness_scale"] = 1.0
+        sections["emulator"] = emulator
+    else:
+        emulator = {}
+        if case.sprung_mass_scale != 1.0:
+            emulator["sprung_mass_scale"] = em.sprung_mass_scale * case.sprung_mass_scale
+        if case.tire_stiffness_scale != 1.0:
+            emulator["tire_stiffness_scale"] = (em.tire_stiffness_scale
+                                                * case.tire_stiffness_scale)
+        if emulator:
+            sections["emulator"] = emulator
     return cfg.replace(**sections) if sections else cfg
 
 
@@ -183,7 +204,8 @@ def make_controller(case: Case, cfg: RigConfig, road: Road) -> LoopController | 
     if c == "skyhook":
         return SkyhookController(cfg, case.skyhook or DEFAULT_GAINS)
     design = cached_design(cfg)
-    ws = 1 if case.weights is not None else case.weight_set
+    ws = (1 if case.weights is not None else
+          cfg.design.weight_set if case.weight_set is None else case.weight_set)
     if c == "fullstate":
         return FullStateLQ(design, cfg, ws)
     return BankController(design, cfg, c, ws, road)

@@ -12,13 +12,22 @@ Groups of cases:
               and once before a local PI force loop ("local PI")
 ``rate``      controller sample rate 250 Hz .. 2 kHz (design redone at each rate)
 ``rho``       nonlinear check points of the linear rho2 trade-off (single LQG)
-``envelope``  operating envelope (issue 22): ballast sweep, plant sprung mass x 0.6..1.5
-              on the thesis course, the single nominal LQG, the fuzzy bank with the
-              payload profile's mass layers and the fuzzy bank designed for the true
-              mass (weight set 1); runs as ``rig sim`` makes them (its road, sensor seed
-              = road seed, no settle skip) so they repeat docs/study.md's "Payload" cells
+``envelope``  operating envelope (issue 22): ballast sweep, plant sprung mass x 0.6..1.5,
+              and the tire stiffness x 0.7 / 1.3 on the thesis course, the single nominal
+              LQG, the fuzzy bank with the payload profile's mass layers and the fuzzy
+              bank designed for the true plant (weight set 1); runs as ``rig sim`` makes
+              them (its road, sensor seed = road seed, no settle skip) so they repeat
+              docs/study.md's "Payload" cells
+``envelope-mc``  the 25 % parameter-spread Monte Carlo as ``rig montecarlo --runs 20
+              --spread 0.25 --duration 20 --seed S`` makes it (Monte Carlo seeds 1 and 2),
+              passive and the fuzzy bank with weight set 1, 2 and the configured one
+``envelope-seeds``  many road seeds on the thesis course as ``rig sim --seed S`` makes them
+              (1-12 x 60 s), passive and lqg / fuzzy / bayes / moving with weight set 1,
+              2 and the configured one; the longest group, not run unless selected
+              (``rig study --groups all``, :data:`DEFAULT_GROUPS`)
 
-Every non-passive row is divided by the passive row of the same road, speed, duration,
+``rig study --groups`` selects groups by the names of :data:`GROUPS` (``mc`` = mc5 and
+mc15).  Every non-passive row is divided by the passive row of the same road, speed, duration,
 road seed, rate and plant (:meth:`Case.ref_key`): ``<metric>_ratio``.
 """
 
@@ -32,13 +41,15 @@ from typing import Any
 
 from controller.config import RigConfig, config_to_toml
 from hil.batch import BatchExecutor, LocalExecutor
-from hil.sim.montecarlo import draw_params
+from hil.sim.montecarlo import RIDE_HEIGHT_STD_M, draw_params
 from hil.sim.plant import PlantParams
 from hil.sim.skyhook import TUNING_GRID, SkyhookGains
 from hil.study.cases import LAYERED_SPRUNG_MASS_SCALES, Case, run_case_task
 
-__all__ = ["ENVELOPE_CONTROLLERS", "RATIO_METRICS", "StudyPlan", "add_ratios", "bank_labels",
-           "envelope_cases", "main_cases", "plan", "run_cases"]
+__all__ = ["DEFAULT_GROUPS", "ENVELOPE_CONTROLLERS", "ENVELOPE_MC_CONTROLLERS",
+           "ENVELOPE_SEED_CONTROLLERS", "GROUPS", "RATIO_METRICS", "StudyPlan", "add_ratios",
+           "bank_labels", "envelope_cases", "envelope_mc_cases", "envelope_seed_cases",
+           "main_cases", "plan", "run_cases", "selected", "selection_of", "study_cases"]
 
 #: metrics reported as closed loop / passive (passive is never zero for these)
 RATIO_METRICS = ("absorbed_power", "wk_rms_mps2", "accel_rms_mps2", "rattlespace_rms_m",
@@ -48,6 +59,21 @@ THESIS_SPEED_MPS = 11.176   # 25 mph
 #: (controller, design mass) of the envelope group, weight set 1: the single nominal LQG,
 #: the layered (payload) fuzzy bank, the fuzzy bank designed on the true plant
 ENVELOPE_CONTROLLERS = (("lqg", "configured"), ("fuzzy", "layered"), ("fuzzy", "true-plant"))
+#: (controller, weight set) of the 25 % Monte Carlo: the default controller (``rig
+#: montecarlo``'s fuzzy bank) with each weight set and the configured one (None: the
+#: configuration's ``design.weight_set`` and defaults as they are when the study runs)
+ENVELOPE_MC_CONTROLLERS: tuple[tuple[str, int | None], ...] = (
+    ("fuzzy", 1), ("fuzzy", 2), ("fuzzy", None))
+#: (controller, weight set) of the many-road-seeds group: every bank mode x set 1, set 2,
+#: the configured one
+ENVELOPE_SEED_CONTROLLERS: tuple[tuple[str, int | None], ...] = tuple(
+    (c, ws) for ws in (1, 2, None) for c in ("lqg", "fuzzy", "bayes", "moving"))
+#: the groups ``rig study --groups`` selects (``mc``: the mc5 / mc15 Monte Carlo)
+GROUPS = ("tune", "main", "mc", "mismatch", "delay", "rate", "rho", "envelope",
+          "envelope-mc", "envelope-seeds")
+#: what ``rig study`` runs without ``--groups``: all but the many road seeds (156 runs of
+#: 60 s, about half the rest of the study again)
+DEFAULT_GROUPS = tuple(g for g in GROUPS if g != "envelope-seeds")
 
 
 @dataclass(frozen=True)
@@ -72,6 +98,13 @@ class StudyPlan:
     envelope_mass_scales: tuple[float, ...]
     envelope_seeds: tuple[int, ...]
     envelope_duration_s: float
+    envelope_tire_scales: tuple[float, ...]
+    envelope_mc_runs: int
+    envelope_mc_spread: float
+    envelope_mc_seeds: tuple[int, ...]
+    envelope_mc_duration_s: float
+    envelope_road_seeds: tuple[int, ...]
+    envelope_road_duration_s: float
 
     def describe(self) -> str:
         return (f"thesis case {len(self.thesis_seeds)} x {self.thesis_duration_s:g} s; other "
@@ -80,8 +113,14 @@ class StudyPlan:
                 f"{self.mc_duration_s:g} s per controller and spread; delay/rate/mismatch "
                 f"{self.sweep_duration_s:g} s; skyhook search {len(self.tune_grid)} settings "
                 f"x {self.tune_duration_s:g} s; statistics skip the first {self.settle_s:g} s; "
-                f"envelope {len(self.envelope_mass_scales)} sprung masses x "
-                f"{len(self.envelope_seeds)} seeds x {self.envelope_duration_s:g} s")
+                f"envelope {len(self.envelope_mass_scales)} sprung masses and "
+                f"{len(self.envelope_tire_scales)} tire stiffnesses x "
+                f"{len(self.envelope_seeds)} seeds x {self.envelope_duration_s:g} s; "
+                f"envelope Monte Carlo {self.envelope_mc_runs} plants x "
+                f"{self.envelope_mc_duration_s:g} s at {100 * self.envelope_mc_spread:g} % "
+                f"spread, seeds {', '.join(map(str, self.envelope_mc_seeds))}; envelope "
+                f"road seeds {len(self.envelope_road_seeds)} x "
+                f"{self.envelope_road_duration_s:g} s")
 
 
 def plan(quick: bool) -> StudyPlan:
@@ -89,7 +128,10 @@ def plan(quick: bool) -> StudyPlan:
         return StudyPlan(True, 3.0, (1,), 2.0, 2.0, (("iso-B", 20.0), ("bump", 10.0)), 2,
                          (0.05,), 2.0, (0.8, 1.2), (0.0, 10.0), (500.0, 1000.0), 2.0,
                          (1e-1, 1e2), TUNING_GRID[:: max(1, len(TUNING_GRID) // 3)], 2.0, 0.5,
-                         (0.7, 1.3), (1,), 2.0)
+                         (0.7, 1.3), (1,), 2.0, envelope_tire_scales=(0.7,),
+                         envelope_mc_runs=2, envelope_mc_spread=0.25,
+                         envelope_mc_seeds=(1,), envelope_mc_duration_s=2.0,
+                         envelope_road_seeds=(1, 2), envelope_road_duration_s=2.0)
     roads = (("iso-B", 10.0), ("iso-B", 20.0), ("iso-B", 30.0), ("iso-D", 10.0),
              ("iso-D", 20.0), ("iso-D", 30.0), ("iso-F", 5.0), ("iso-F", 10.0),
              ("bump", 5.0), ("bump", 10.0), ("pothole", 5.0), ("pothole", 10.0))
@@ -97,7 +139,11 @@ def plan(quick: bool) -> StudyPlan:
                      (0.8, 1.2), (0.0, 1.0, 2.0, 5.0, 10.0, 15.0, 20.0, 25.0),
                      (250.0, 500.0, 1000.0, 2000.0), 30.0,
                      (1e-2, 1e-1, 1e0, 1e1, 1e2, 3e2, 1e3), TUNING_GRID, 20.0, 1.0,
-                     LAYERED_SPRUNG_MASS_SCALES, (1, 2), 30.0)
+                     LAYERED_SPRUNG_MASS_SCALES, (1, 2), 30.0,
+                     envelope_tire_scales=(0.7, 1.3), envelope_mc_runs=20,
+                     envelope_mc_spread=0.25, envelope_mc_seeds=(1, 2),
+                     envelope_mc_duration_s=20.0, envelope_road_seeds=tuple(range(1, 13)),
+                     envelope_road_duration_s=60.0)
 
 
 def bank_labels() -> list[tuple[str, int]]:
@@ -176,22 +222,82 @@ def other_cases(p: StudyPlan, cfg: RigConfig, skyhook: SkyhookGains) -> list[Cas
     for rho1 in (1.0, 10.0):
         for rho2 in p.rho2_checks:
             cases.append(replace(base, controller="lqg", weights=(rho1, rho2, 1e-8, 1.0)))
-    return cases + envelope_cases(p)
+    return cases + envelope_cases(p) + envelope_mc_cases(p, cfg) + envelope_seed_cases(p)
 
 
 def envelope_cases(p: StudyPlan) -> list[Case]:
-    """The ballast sweep: passive and :data:`ENVELOPE_CONTROLLERS` per sprung-mass scale
-    and road seed (``param_tag`` ``M<scale>``)."""
+    """The ballast sweep and the tire cases: passive and :data:`ENVELOPE_CONTROLLERS` per
+    sprung-mass scale (``param_tag`` ``M<scale>``) or tire stiffness scale
+    (``Kt<scale>``) and road seed."""
+    plants = ([(f"M{s:g}", s, 1.0) for s in p.envelope_mass_scales]
+              + [(f"Kt{s:g}", 1.0, s) for s in p.envelope_tire_scales])
     cases: list[Case] = []
     for seed in p.envelope_seeds:
-        for scale in p.envelope_mass_scales:
+        for tag, mass, tire in plants:
             base = Case("envelope", "passive", road="rough-course", speed_mps=THESIS_SPEED_MPS,
                         duration_s=p.envelope_duration_s, road_seed=seed, sensor_seed=seed,
-                        sprung_mass_scale=scale, param_tag=f"M{scale:g}", sim_road=True)
+                        sprung_mass_scale=mass, tire_stiffness_scale=tire, param_tag=tag,
+                        sim_road=True)
             cases.append(base)
             cases += [replace(base, controller=c, design_mass=dm)
                       for c, dm in ENVELOPE_CONTROLLERS]
     return cases
+
+
+def envelope_mc_cases(p: StudyPlan, cfg: RigConfig) -> list[Case]:
+    """The wide Monte Carlo, run by run as ``rig montecarlo --runs R --spread S
+    --duration D --seed K`` makes it (``hil.sim.montecarlo.run_montecarlo``: road seed K
+    at the controller rate, plants ``draw_params(cfg, R, S, K)`` with the default ride
+    height spread, sensor seed K + 1000 + run, no settle skip): passive and
+    :data:`ENVELOPE_MC_CONTROLLERS` per plant (``param_tag`` ``mc<S>s<K>-<run>``)."""
+    cases: list[Case] = []
+    spread = p.envelope_mc_spread
+    for seed in p.envelope_mc_seeds:
+        plants = draw_params(cfg, p.envelope_mc_runs, spread, seed, RIDE_HEIGHT_STD_M)
+        for i, prm in enumerate(plants):
+            base = Case("envelope-mc", "passive", road="rough-course",
+                        speed_mps=THESIS_SPEED_MPS, duration_s=p.envelope_mc_duration_s,
+                        road_seed=seed, sensor_seed=seed + 1000 + i, params=prm,
+                        param_tag=f"mc{100 * spread:g}s{seed}-{i}", sim_road=True)
+            cases.append(base)
+            cases += [replace(base, controller=c, weight_set=ws)
+                      for c, ws in ENVELOPE_MC_CONTROLLERS]
+    return cases
+
+
+def envelope_seed_cases(p: StudyPlan) -> list[Case]:
+    """Many road seeds on the thesis course, each run as ``rig sim --road rough-course
+    --speed 11.176 --duration D --seed S`` makes it: passive and
+    :data:`ENVELOPE_SEED_CONTROLLERS` per road seed."""
+    cases: list[Case] = []
+    for seed in p.envelope_road_seeds:
+        base = Case("envelope-seeds", "passive", road="rough-course",
+                    speed_mps=THESIS_SPEED_MPS, duration_s=p.envelope_road_duration_s,
+                    road_seed=seed, sensor_seed=seed, sim_road=True)
+        cases.append(base)
+        cases += [replace(base, controller=c, weight_set=ws)
+                  for c, ws in ENVELOPE_SEED_CONTROLLERS]
+    return cases
+
+
+def selection_of(case_group: str) -> str:
+    """The :data:`GROUPS` name that selects a case group (mc5, mc15 -> ``mc``)."""
+    return "mc" if case_group.startswith("mc") else case_group
+
+
+def selected(cases: Sequence[Case], groups: Sequence[str]) -> list[Case]:
+    """The cases of the selected :data:`GROUPS` (ValueError naming an unknown one)."""
+    unknown = sorted(set(groups) - set(GROUPS))
+    if unknown:
+        raise ValueError(f"study groups {unknown}: allowed {', '.join(GROUPS)}")
+    return [c for c in cases if selection_of(c.group) in groups]
+
+
+def study_cases(p: StudyPlan, cfg: RigConfig, skyhook: SkyhookGains,
+                groups: Sequence[str] = DEFAULT_GROUPS) -> list[Case]:
+    """Every case of the matrix but the skyhook search (:func:`tune_cases`) in the
+    selected groups."""
+    return selected(main_cases(p, skyhook) + other_cases(p, cfg, skyhook), groups)
 
 
 def run_cases(cases: Sequence[Case], cfg: RigConfig, jobs: int | None = None,

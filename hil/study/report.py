@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.study.matrix import selection_of
 from hil.study.tradeoff import TradeoffGrid
 
 __all__ = ["LABEL_ORDER", "claims", "mean_of", "rows_where", "tables_markdown", "write_csv",
@@ -210,24 +211,146 @@ def _mismatch(rows: Sequence[Row]) -> list[str]:
 
 #: the envelope group's controllers (hil.study.matrix.ENVELOPE_CONTROLLERS, weight set 1)
 ENVELOPE_LABELS = ("lqg-1", "fuzzy-1 (layered)", "fuzzy-1 (true-plant)")
+#: issue 22's bounds of the layered bank against the true-plant design: absorbed power
+#: at most 10 % above it, rattlespace RMS at most 5 % above it (ratios of seed means)
+ENVELOPE_POWER_BOUND = 1.10
+ENVELOPE_RATTLESPACE_BOUND = 1.05
+#: issue 22's stop-contact budget on many road seeds: passive's contact time plus this
+#: fraction of the run
+STOP_CONTACT_RUN_FRACTION = 0.001
+#: issue 22's bound on the wide Monte Carlo: mean absorbed power / passive's mean
+MC_POWER_BOUND = 0.5
+
+
+def _plant_scale(r: Row, key: str) -> float:
+    """A row's plant scale (rows of a study before the key existed: 1)."""
+    v = r.get(key, 1.0)
+    return 1.0 if v in ("", None) else float(v)
 
 
 def _envelope(rows: Sequence[Row]) -> list[str]:
-    """Per plant sprung-mass scale: each controller's ``a / r`` (mean over road seeds)
-    and the layered bank's absorbed power and rattlespace RMS over the true-plant
-    design's (ratio of the seed means)."""
+    """Per plant (sprung-mass scale, then tire stiffness scale): each controller's
+    ``a / r`` (mean over road seeds), the layered bank's absorbed power and rattlespace
+    RMS over the true-plant design's (ratio of the seed means) and whether they are
+    within :data:`ENVELOPE_POWER_BOUND` / :data:`ENVELOPE_RATTLESPACE_BOUND`."""
     env = [r for r in rows if r["group"] == "envelope"]
+    plants = sorted({(_plant_scale(r, "tire_stiffness_scale") != 1.0,
+                      _plant_scale(r, "sprung_mass_scale"),
+                      _plant_scale(r, "tire_stiffness_scale")) for r in env})
     body = []
-    for scale in sorted({float(r["sprung_mass_scale"]) for r in env}):
-        at = [r for r in env if float(r["sprung_mass_scale"]) == scale]
+    for tire_case, mass, tire in plants:
+        at = [r for r in env if _plant_scale(r, "sprung_mass_scale") == mass
+              and _plant_scale(r, "tire_stiffness_scale") == tire]
         cells = [_ap_rs(rows_where(at, label=lab)) for lab in ENVELOPE_LABELS]
         lay = rows_where(at, label=ENVELOPE_LABELS[1])
         true = rows_where(at, label=ENVELOPE_LABELS[2])
         rel = [mean_of(lay, k) / mean_of(true, k) if lay and true else math.nan
                for k in ("absorbed_power_ratio", "rattlespace_rms_m_ratio")]
-        body.append([f"{scale:g}", *cells, f"{_f(rel[0])}, {_f(rel[1])}"])
-    return _table(["sprung mass x", *ENVELOPE_LABELS, "layered ÷ true-plant: power, "
-                   "rattlespace"], body)
+        ok = rel[0] <= ENVELOPE_POWER_BOUND and rel[1] <= ENVELOPE_RATTLESPACE_BOUND and not any(
+            float(r["n_faults"]) for r in lay)
+        plant = f"tire x{tire:g}" if tire_case else f"M x{mass:g}"
+        body.append([plant, *cells, f"{_f(rel[0])}, {_f(rel[1])}",
+                     "yes" if ok else "**no**"])
+    return _table(["plant", *ENVELOPE_LABELS, "layered ÷ true-plant: power, rattlespace",
+                   f"within {_f(100 * (ENVELOPE_POWER_BOUND - 1))} % / "
+                   f"{_f(100 * (ENVELOPE_RATTLESPACE_BOUND - 1))} %, no fault"], body)
+
+
+def _labels_in_order(sel: Sequence[Row]) -> list[str]:
+    """Labels in the order the rows first show them, passive first."""
+    out = ["passive"] if rows_where(sel, label="passive") else []
+    for r in sel:
+        if r["label"] not in out:
+            out.append(r["label"])
+    return out
+
+
+def _faulted(r: Row) -> bool:
+    return bool(float(r["n_faults"]) or float(r["nonfinite"]))
+
+
+def _passive_by_plant(sel: Sequence[Row]) -> dict[tuple[Any, ...], Row]:
+    """The passive row of each (road seed, plant, duration) of one group."""
+    return {(r["road_seed"], r["param_tag"], r["duration_s"]): r
+            for r in sel if r["controller"] == "passive"}
+
+
+def _envelope_mc(rows: Sequence[Row]) -> list[str]:
+    """The wide Monte Carlo per Monte Carlo seed and controller: slams against passive's
+    on the same plants, faults, mean absorbed power over passive's mean (and the mean of
+    the per-plant ratios) and the issue-22 verdict."""
+    mc = [r for r in rows if r["group"] == "envelope-mc"]
+    body = []
+    for seed in sorted({int(r["road_seed"]) for r in mc}):
+        sel = [r for r in mc if int(r["road_seed"]) == seed]
+        ref = _passive_by_plant(sel)
+        p_power = mean_of(list(ref.values()), "absorbed_power")
+        for lab in _labels_in_order(sel):
+            runs = rows_where(sel, label=lab)
+            passive = [ref.get((r["road_seed"], r["param_tag"], r["duration_s"]))
+                       for r in runs]
+            slams = sum(bool(float(r["bump_stop_slam"])) for r in runs)
+            p_slams = sum(bool(p is not None and float(p["bump_stop_slam"])) for p in passive)
+            new_slams = sum(bool(float(r["bump_stop_slam"])) and not (
+                p is not None and float(p["bump_stop_slam"])) for r, p in zip(
+                    runs, passive, strict=True))
+            faults = sum(_faulted(r) for r in runs)
+            power = mean_of(runs, "absorbed_power") / p_power if p_power else math.nan
+            verdict = "–" if lab == "passive" else (
+                "yes" if slams <= p_slams and faults == 0 and power <= MC_POWER_BOUND
+                else "**no**")
+            body.append([str(seed), lab, str(len(runs)), f"{slams} ({p_slams})",
+                         str(new_slams), str(faults), _f(mean_of(runs, "absorbed_power")),
+                         _f(power), _f(mean_of(runs, "absorbed_power_ratio")),
+                         _f(mean_of(runs, "rattlespace_rms_m_ratio")),
+                         _f(mean_of(runs, "bump_stop_time_s"), 2), _stop_degradations(runs),
+                         verdict])
+    return _table(["MC seed", "controller", "plants", "slams (passive's)",
+                   "slams where passive does not", "faulted",
+                   "mean absorbed power [(m/s²)²]", "÷ passive's mean",
+                   "mean of per-plant ratios", "rattlespace RMS", "stop contact [s]",
+                   "stop degradations",
+                   f"slams <= passive's, 0 faults, power <= {_f(MC_POWER_BOUND)}"], body)
+
+
+def _envelope_seeds(rows: Sequence[Row]) -> list[str]:
+    """Many road seeds per controller: absorbed power and rattlespace RMS over passive
+    (mean and range over seeds), stop-contact time against passive's + the run's
+    :data:`STOP_CONTACT_RUN_FRACTION`, slams where passive does not slam, faults and
+    the issue-22 verdict."""
+    sel = [r for r in rows if r["group"] == "envelope-seeds"]
+    ref = _passive_by_plant(sel)
+    body = []
+    for lab in _labels_in_order(sel):
+        runs = rows_where(sel, label=lab)
+        passive = [ref.get((r["road_seed"], r["param_tag"], r["duration_s"])) for r in runs]
+        excess = [float(r["bump_stop_time_s"]) - float(p["bump_stop_time_s"])
+                  - STOP_CONTACT_RUN_FRACTION * float(r["duration_s"])
+                  if p is not None else math.nan for r, p in zip(runs, passive, strict=True)]
+        over = sum(not e <= 0.0 for e in excess)
+        new_slams = sum(bool(float(r["bump_stop_slam"])) and not (
+            p is not None and float(p["bump_stop_slam"])) for r, p in zip(
+                runs, passive, strict=True))
+        faults = sum(_faulted(r) for r in runs)
+        ap = [float(r["absorbed_power_ratio"]) for r in runs]
+        contact = [float(r["bump_stop_time_s"]) for r in runs]
+        verdict = "–" if lab == "passive" else (
+            "yes" if over == 0 and new_slams == 0 and faults == 0 else "**no**")
+        body.append([lab, str(len(runs)),
+                     f"{_f(np.mean(ap))} ({_f(min(ap), 2)}–{_f(max(ap), 2)})",
+                     _f(mean_of(runs, "rattlespace_rms_m_ratio")),
+                     _f(mean_of(runs, "rattlespace_peak_m_ratio")),
+                     f"{_f(np.mean(contact), 2)} / {_f(max(contact), 2)}",
+                     "–" if lab == "passive" else f"{over} ({_f(max(excess), 2)})",
+                     "–" if lab == "passive" else str(new_slams),
+                     str(sum(bool(float(r["bump_stop_slam"])) for r in runs)), str(faults),
+                     _stop_degradations(runs), verdict])
+    return _table(["controller-weights", "seeds", "absorbed power (seed range)",
+                   "rattlespace RMS", "rattlespace peak",
+                   "stop contact mean / max [s]",
+                   f"seeds over passive + {_f(100 * STOP_CONTACT_RUN_FRACTION)} % "
+                   "(largest excess [s])", "slams where passive does not", "slams",
+                   "faulted", "stop degradations", "holds"], body)
 
 
 def _sweep(rows: Sequence[Row], group: str, key: str, unit: str) -> list[str]:
@@ -303,32 +426,71 @@ def tables_markdown(rows: Sequence[Row], grid: TradeoffGrid | None, chosen_skyho
            "rattlespace-RMS ratio; ✗ marks a run that hit a bump stop hard (slam: more "
            "than 10 mm into it), latched a fault, or went non-finite.", "",
            f"Matrix: {describe}.  {len(rows)} runs in {wall_s:.0f} s on {jobs} processes.", "",
-           config_line(cfg) if cfg is not None else "", "",
-           "## Thesis case: 1.35 in RMS course at 25 mph (mean over road seeds)", ""]
-    out += _headline(rows)
-    out += ["## Thesis claims (fuzzy-blended bank)", ""]
-    out += _table(["claim", "measured", "holds"],
-                  [[c, m, "yes" if ok else "**no**"] for c, m, ok in claims(rows)])
-    out += ["## Roads", "", *_roads(rows)]
-    out += ["## Monte Carlo (thesis case; ratios to the passive run of the same plant)", ""]
-    out += _mc(rows)
-    out += ["## Plant-model mismatch (tire stiffness law scaled, design nominal)", ""]
-    out += _mismatch(rows)
-    out += ["## Loop delay (thesis case)", "", *_sweep(rows, "delay", "delay_ms", "ms")]
-    out += ["## Controller sample rate (design redone per rate)", ""]
-    out += _sweep(rows, "rate", "rate_hz", "Hz")
-    out += ["## rho2 trade-off: linear analysis vs nonlinear check points (single LQG)", ""]
-    out += _rho(rows, grid)
-    out += ["## Operating envelope: ballast sweep (thesis course; plant sprung mass scaled)",
-            "", "Plant `[emulator] sprung_mass_scale` = the scale (LVDT zeroed at its own "
-            "rest); each run as `rig sim --road rough-course --speed 11.176 --seed S` makes "
-            "it.  lqg-1: the single nominal LQG; layered: the fuzzy bank with the sprung-mass "
-            "layers of deploy/payload.toml; true-plant: the default fuzzy bank designed with "
-            "`vehicle.sprung_mass_kg` = the scale x nominal, on the same plant.  Mean over "
-            "road seeds; figure fig_envelope_mass.png.", ""]
-    out += _envelope(rows)
-    out += ["## Skyhook tuning search (rough course, road seed 101)", ""]
-    out += _tuning(rows, chosen_skyhook)
+           config_line(cfg) if cfg is not None else "", ""]
+
+    ran = {selection_of(r["group"]) for r in rows}      # hil.study.matrix.GROUPS names
+    if "main" in ran:
+        out += ["## Thesis case: 1.35 in RMS course at 25 mph (mean over road seeds)", ""]
+        out += _headline(rows)
+        out += ["## Thesis claims (fuzzy-blended bank)", ""]
+        out += _table(["claim", "measured", "holds"],
+                      [[c, m, "yes" if ok else "**no**"] for c, m, ok in claims(rows)])
+        out += ["## Roads", "", *_roads(rows)]
+    if "mc" in ran:
+        out += ["## Monte Carlo (thesis case; ratios to the passive run of the same plant)",
+                ""]
+        out += _mc(rows)
+    if "mismatch" in ran:
+        out += ["## Plant-model mismatch (tire stiffness law scaled, design nominal)", ""]
+        out += _mismatch(rows)
+    if "delay" in ran:
+        out += ["## Loop delay (thesis case)", "", *_sweep(rows, "delay", "delay_ms", "ms")]
+    if "rate" in ran:
+        out += ["## Controller sample rate (design redone per rate)", ""]
+        out += _sweep(rows, "rate", "rate_hz", "Hz")
+    if "rho" in ran:
+        out += ["## rho2 trade-off: linear analysis vs nonlinear check points (single LQG)",
+                ""]
+        out += _rho(rows, grid)
+    if "envelope" in ran:
+        out += ["## Operating envelope: ballast sweep and tire stiffness (thesis course; "
+                "plant sprung mass or tire stiffness scaled)", "",
+                "Plant `[emulator] sprung_mass_scale` (M x) or `tire_stiffness_scale` "
+                "(tire x) = the scale (LVDT zeroed at its own rest); each run as `rig sim "
+                "--road rough-course --speed 11.176 --seed S` makes it.  lqg-1: the single "
+                "nominal LQG; layered: the fuzzy bank with the sprung-mass layers of "
+                "deploy/payload.toml; true-plant: the default fuzzy bank designed with "
+                "`vehicle.sprung_mass_kg` and `tire.stiffness_coefficient` = the scale x "
+                "nominal, on the same plant.  Mean over road seeds; the layered bank should "
+                f"come within {_f(100 * (ENVELOPE_POWER_BOUND - 1))} % of the true-plant "
+                f"design's absorbed power at rattlespace within "
+                f"{_f(100 * (ENVELOPE_RATTLESPACE_BOUND - 1))} % (issue 22); figure "
+                "fig_envelope_mass.png (the ballast sweep).", ""]
+        out += _envelope(rows)
+    if "envelope-mc" in ran:
+        out += ["## Operating envelope: 25 % parameter spread (Monte Carlo, thesis course)",
+                "", "Each Monte Carlo seed's plants and runs as `rig montecarlo --runs N "
+                "--spread S --duration D --seed K --weights W --controller fuzzy` makes them "
+                "(M m K C Kt Ct ~ N(1, S), ride height set by preload, road seed K).  "
+                "fuzzy-default: the configuration's weight set and defaults.  Slams: runs "
+                "more than 10 mm into a bump stop (passive's on the same plants in "
+                "brackets); faulted: a latched fault or a non-finite state.  Issue 22 "
+                "asks for slams at most passive's, no fault and mean absorbed power at most "
+                f"{_f(MC_POWER_BOUND)} x passive's.", ""]
+        out += _envelope_mc(rows)
+    if "envelope-seeds" in ran:
+        out += ["## Operating envelope: many road seeds (thesis course)", "",
+                "Each run as `rig sim --road rough-course --speed 11.176 --duration D "
+                "--seed S --controller C --weights W` makes it; -default: the "
+                "configuration's weight set and defaults.  Ratios to passive on the same "
+                "road seed, mean (and range) over seeds.  Issue 22 asks, on every seed, for "
+                "stop contact at most passive's + "
+                f"{_f(100 * STOP_CONTACT_RUN_FRACTION)} % of the run, no slam where "
+                "passive does not slam and no fault.", ""]
+        out += _envelope_seeds(rows)
+    if "tune" in ran:
+        out += ["## Skyhook tuning search (rough course, road seed 101)", ""]
+        out += _tuning(rows, chosen_skyhook)
     return "\n".join(out)
 
 
@@ -553,7 +715,8 @@ def _fig_sweeps(rows: Sequence[Row], out: Path) -> Path | None:
         a.set_ylabel("absorbed power / passive")
         a.set_yscale("log")
         a.grid(alpha=0.3)
-        a.legend(fontsize=7)
+        if labels:
+            a.legend(fontsize=7)
     if not any_:
         plt.close(fig)
         return None
@@ -568,7 +731,8 @@ def _fig_sweeps(rows: Sequence[Row], out: Path) -> Path | None:
 
 
 def _fig_envelope(rows: Sequence[Row], out: Path) -> Path | None:
-    env = [r for r in rows if r["group"] == "envelope" and r["controller"] != "passive"]
+    env = [r for r in rows if r["group"] == "envelope" and r["controller"] != "passive"
+           and _plant_scale(r, "tire_stiffness_scale") == 1.0]
     if not env:
         return None
     plt = _plt()
@@ -599,10 +763,12 @@ def _fig_envelope(rows: Sequence[Row], out: Path) -> Path | None:
     return _save(fig, out / "fig_envelope_mass.png")
 
 
-def _fig_controllers(rows: Sequence[Row], out: Path) -> Path:
+def _fig_controllers(rows: Sequence[Row], out: Path) -> Path | None:
     plt = _plt()
     t = thesis_rows(rows)
     labs = [lab for lab in LABEL_ORDER[1:] if rows_where(t, label=lab)]
+    if not labs:
+        return None
     keys = (("absorbed_power_ratio", "absorbed power"),
             ("rattlespace_rms_m_ratio", "rattlespace RMS"),
             ("tire_load_rms_ratio_ratio", "dyn. tire load RMS"))
@@ -621,13 +787,15 @@ def _fig_controllers(rows: Sequence[Row], out: Path) -> Path:
 
 
 def write_figures(rows: Sequence[Row], out: Path, grid: TradeoffGrid | None,
-                  firing: tuple[np.ndarray, np.ndarray, Sequence[str]],
+                  firing: tuple[np.ndarray, np.ndarray, Sequence[str]] | None,
                   thesis_sets: Sequence[Sequence[float]]) -> list[Path]:
+    """The figures of what ran (``firing``: the design's q grid, firing-weight curve and
+    model names, None without the main group)."""
     makers: list[Callable[[], Path | list[Path] | None]] = [
         lambda: _fig_thesis(rows, out, 1, "5.1"),
         lambda: _fig_thesis(rows, out, 2, "5.3"),
         lambda: _fig_actuation(rows, out),
-        lambda: _fig_firing(rows, out, *firing),
+        lambda: _fig_firing(rows, out, *firing) if firing is not None else None,
         lambda: _fig_mc(rows, out),
         lambda: _fig_sweeps(rows, out),
         lambda: _fig_controllers(rows, out),
