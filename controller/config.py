@@ -234,7 +234,9 @@ class DesignConfig:
                                              "layer nearest the sprung-mass estimate "
                                              "(docs/design.md §11; [1.0] = the configured "
                                              "mass only)")
-    weight_set: int = _f(1, lo=1, hi=15, doc="index into weight_sets (1-based)")
+    weight_set: int = _f(0, lo=0, hi=15, doc="index into weight_sets (1-based); 0 = the "
+                                             "travel schedule between the two sets of "
+                                             "schedule_weight_sets (docs/design.md §12)")
     weight_sets: list[list[float]] = _f([[1.0, 1e2, 1e-8, 1.0], [1e1, 1e-1, 1e-8, 1.0]],
                                         lo=0.0, hi=1e12, max_len=15,
                                         len_why="design.weight_set indexes 1..15",
@@ -287,6 +289,23 @@ class DesignConfig:
                                  "frame, as bump_stop_centre_lvdt_m) the bank's force toward "
                                  "that stop fades linearly to 0 at the stop; a force away "
                                  "from it is untouched (0 = off; docs/design.md §9.6)")
+    schedule_weight_sets: list[int] = _f([2, 1], lo=1, hi=15, max_len=2,
+                                         len_why="[comfort set, travel set]",
+                                         doc="travel schedule (weight_set = 0): the weight "
+                                             "set of the law where travel allows (comfort) "
+                                             "and of the law it blends to before the stops "
+                                             "(travel), 1-based into weight_sets "
+                                             "(docs/design.md §12)")
+    schedule_start_m: float = _f(0.025, lo=0.0, hi=1.0,
+                                 doc="travel schedule: rattlespace usage (envelope of the "
+                                     "LVDT reading's distance from the stops' centre) where "
+                                     "the blend toward the travel law begins")
+    schedule_full_m: float = _f(0.055, lo=0.0, hi=1.0, lo_open=True,
+                                doc="travel schedule: usage at which the travel law has the "
+                                    "whole force (above schedule_start_m)")
+    schedule_release_s: float = _f(0.7, lo=0.0, hi=100.0,
+                                   doc="travel schedule: time constant with which the usage "
+                                       "envelope falls after a peak (it rises at once)")
     stop_barrier: bool = _f(False, doc="end-stop barrier: a safety filter on the force "
                                        "reference that keeps the rattlespace short of the "
                                        "bump stops given the body's momentum and the "
@@ -753,8 +772,10 @@ class RigConfig:
 
     @property
     def weights(self) -> tuple[float, float, float, float]:
-        """The selected [rho1, rho2, rho3, rho4]."""
-        w = self.design.weight_sets[self.design.weight_set - 1]
+        """The selected [rho1, rho2, rho3, rho4] (weight_set 0, the travel schedule: its
+        comfort set)."""
+        ws = self.design.weight_set or self.design.schedule_weight_sets[0]
+        w = self.design.weight_sets[ws - 1]
         return (w[0], w[1], w[2], w[3])
 
     def replace(self, **sections: Any) -> RigConfig:
@@ -868,6 +889,16 @@ def _cross_checks(cfg: RigConfig) -> None:
     d = cfg.design
     if cfg.design.weight_set > len(d.weight_sets):
         raise ConfigError("design.weight_set", d.weight_set, f"[1, {len(d.weight_sets)}]")
+    for i, ws in enumerate(d.schedule_weight_sets if d.weight_set == 0 else []):
+        if ws > len(d.weight_sets):
+            raise ConfigError(f"design.schedule_weight_sets[{i}]", ws,
+                              f"[1, {len(d.weight_sets)}]")
+    if len(d.schedule_weight_sets) != 2:
+        raise ConfigError("design.schedule_weight_sets", d.schedule_weight_sets,
+                          "2 weight sets [comfort, travel]")
+    if d.schedule_full_m <= d.schedule_start_m:
+        raise ConfigError("design.schedule_full_m", d.schedule_full_m,
+                          f"above design.schedule_start_m ({d.schedule_start_m:g})")
     for i, w in enumerate(d.weight_sets):
         if len(w) != 4:
             raise ConfigError(f"design.weight_sets[{i}]", w, "4 numbers [rho1, rho2, rho3, rho4]")

@@ -192,14 +192,16 @@ def active_config() -> RigConfig:
 
 
 def weight_set(text: str) -> int:
-    """A 1-based index into ``design.weight_sets`` of the configuration."""
+    """A 1-based index into ``design.weight_sets`` of the configuration, or 0: the travel
+    schedule between the sets of ``design.schedule_weight_sets`` (docs/design.md §12)."""
     n = len(active_config().design.weight_sets)
-    allowed = f"1..{n} (the weight sets of the configuration, design.weight_sets)"
+    allowed = (f"0..{n} (the weight sets of the configuration, design.weight_sets; "
+               f"0 = the travel schedule)")
     try:
         value = int(text, 10)
     except ValueError:
         _fail(f"{text!r} is not an integer; allowed {allowed}")
-    if not 1 <= value <= n:
+    if not 0 <= value <= n:
         _fail(f"{text} is not a weight set; allowed {allowed}")
     return value
 
@@ -209,7 +211,8 @@ def add_weights_option(parser: argparse.ArgumentParser, default: int | None) -> 
     ``default`` None = the configuration's ``design.weight_set``."""
     shown = "design.weight_set" if default is None else str(default)
     parser.add_argument("--weights", type=weight_set, default=default, metavar="N",
-                        help=f"weight set, 1-based into design.weight_sets (default: {shown})")
+                        help=f"weight set, 1-based into design.weight_sets; 0 = the travel "
+                             f"schedule between comfort and travel sets (default: {shown})")
     parser.add_argument("--weight-set", dest="weights", type=weight_set,
                         help=argparse.SUPPRESS)
 

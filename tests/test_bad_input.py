@@ -165,12 +165,12 @@ ARGUMENT_CASES: list[tuple[list[str], tuple[str, ...]]] = [
     # speeds: the configuration's noise.nominal_speed_mps range
     *[([cmd, "--speed", v], ("--speed", "allowed [0.1, 100] m/s"))
       for cmd in ("demo", "sim", "montecarlo", "hil") for v in ("1e300", "nan", "0", "-5")],
-    # weight sets: 1..len(design.weight_sets)
-    *[([cmd, opt, v], (opt, "allowed 1..2"))
+    # weight sets: 0 (the travel schedule) and 1..len(design.weight_sets)
+    *[([cmd, opt, v], (opt, "allowed 0..2"))
       for cmd, opt in (("demo", "--weights"), ("run", "--weights"), ("demo", "--weight-set"),
                        ("analyze", "--weights"), ("sim", "--weights"),
-                       ("montecarlo", "--weights")) for v in ("0", "3", "one")],
-    (["demo", "--config", "{three_sets}", "--weights", "4"], ("allowed 1..3",)),
+                       ("montecarlo", "--weights")) for v in ("-1", "3", "one")],
+    (["demo", "--config", "{three_sets}", "--weights", "4"], ("allowed 0..3",)),
     # controller modes: the names of controller.modes
     *[([cmd, "--controller", "kalman"], ("--controller", "invalid choice", "fuzzy"))
       for cmd in ("demo", "run", "sim", "montecarlo")],
@@ -379,7 +379,7 @@ def test_recorder_never_overwrites(files: dict[str, Path], tmp_path: Path) -> No
     # still about --duration
     (["run", "--interface", "socketcan", "--channel", "nosuchcan9", "--duration", "inf",
       "--no-record", "--no-telemetry"], "--duration: inf is not a finite number"),
-    (["demo", "--weights", "0"], "--weights: 0 is not a weight set"),
+    (["demo", "--weights", "3"], "--weights: 3 is not a weight set"),
     (["demo", "--speed", "1e300"], "--speed: 1e300 is out of range"),
     (["hil", "--config", "{utf8}"], "UTF-8"),
     (["design", "--config", "{nested}", "--out", "x.npz"], "nested at most"),

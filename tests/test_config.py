@@ -24,7 +24,9 @@ def test_defaults_match_notes() -> None:
     assert cfg.design.sample_rate_hz == 1000.0
     assert cfg.design.linearisation_deflections_m == [0.04, 0.025, 0.01]
     assert cfg.design.weight_sets == [[1.0, 1e2, 1e-8, 1.0], [1e1, 1e-1, 1e-8, 1.0]]
-    assert cfg.weights == (1.0, 1e2, 1e-8, 1.0)
+    assert cfg.design.weight_set == 0                  # the travel schedule (§12) ...
+    assert cfg.design.schedule_weight_sets == [2, 1]   # ... from set 2 to set 1
+    assert cfg.weights == (1e1, 1e-1, 1e-8, 1.0)       # its comfort set
 
 
 def test_toml_round_trip(tmp_path) -> None:

@@ -10,6 +10,7 @@ from controller.runtime.bank import BankRuntime, Blending, StepFlag
 from tests.support.profiles import THESIS_PROFILE as PROFILE
 
 EXPECTED = {
+    ("design", "weight_set"): 1,                   # one fixed LQ weight set, not the schedule (§12)
     ("design", "bump_stop_filter_input"): False,
     ("design", "filter_rattlespace_bias_drift"): 0.0,
     ("design", "accel_mean_window_s"): 0.0,

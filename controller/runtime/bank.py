@@ -130,6 +130,10 @@ from controller.runtime.kernels import (
     F_STOP,
     F_TFLOOR,
     F_THRESH,
+    F_TS,
+    F_TS_BETA,
+    F_TS_ENV,
+    F_TS_ON,
     F_UNUSE_A,
     F_UNUSE_R,
     F_XDEV,
@@ -220,6 +224,7 @@ from controller.runtime.kernels import (
     M_BU,
     M_BY,
     M_CT,
+    M_KC,
     M_KX,
     M_L,
     M_LB,
@@ -249,7 +254,9 @@ from controller.runtime.kernels import (
     V_D,
     V_FINV,
     V_KA,
+    V_KAC,
     V_KF,
+    V_KFC,
     V_LAYER,
     V_LLC,
     V_LOGDET,
@@ -269,6 +276,7 @@ from controller.runtime.kernels import (
     stop_barrier,
     stop_contact,
     stop_guard,
+    travel_comfort_share,
 )
 from controller.runtime.layout import SlotValue
 from controller.runtime.mass_layers import layer_table, mass_schedule
@@ -288,6 +296,7 @@ from controller.runtime.moving_bank import (
 from controller.stop_barrier import BARRIER_SIZE
 from controller.stop_barrier import stop_barrier as stop_barrier_parameters
 from controller.stop_contact import StopContactSettings, stop_contact_settings
+from controller.travel_schedule import SCHEDULE_SIZE, travel_schedule
 
 __all__ = ["BankRuntime", "Blending", "StepFlag", "config_of", "default_single_model"]
 
@@ -403,9 +412,10 @@ def _measurements(fv: np.ndarray, rattlespace_m: float, accel_mps2: float,
 @nb.njit(cache=True, nogil=True, inline="always")
 def _filter_update(j: int, mat: np.ndarray, vec: np.ndarray, st: np.ndarray,
                    fv: np.ndarray, nd: int, u_in: float, y0: float, y1: float,
-                   force_meas_n: float, xf0: float, xf1: float
+                   force_meas_n: float, xf0: float, xf1: float, comfort: float
                    ) -> tuple[float, float, float, float, float, float]:
-    """Measurement and time update of filter j and its LQ control; the posterior goes to
+    """Measurement and time update of filter j and its LQ control (``comfort``: the travel
+    schedule's comfort share, 0 = the selected gain only); the posterior goes to
     ``fv[F_SCR:+4]``, the next prior to ``fv[F_SCR+4:+8]`` until accepted.  Returns the
     likelihood quotient q (NaN when any result is not finite: the caller rejects the
     update), the innovation (r0 [m], r1 [m/s^2]), the updated biases and the control u."""
@@ -436,16 +446,27 @@ def _filter_update(j: int, mat: np.ndarray, vec: np.ndarray, st: np.ndarray,
         ok = False
     u = 0.0
     if vec[j, V_AIR] == 0.0:
-        u = -(vec[j, V_KF] * xf0 + vec[j, V_KF + 1] * xf1)
-        u -= vec[j, V_KA] * fv[F_XV] + vec[j, V_KA + 1] * force_meas_n \
-            + vec[j, V_KA + 2] * fv[F_FFW]
-        for i in range(nd):
-            u -= vec[j, V_KA + 3 + i] * fv[F_PEND + i]
-        for i in range(4):
-            u -= mat[j, i, M_KX] * (fv[F_SCR + i] - mat[j, i, M_XBAR])
+        u = _lq_force(j, mat, vec, fv, nd, M_KX, V_KF, V_KA, force_meas_n, xf0, xf1)
+        if comfort > 0.0:       # travel schedule: the comfort law's share (§12)
+            u += comfort * (_lq_force(j, mat, vec, fv, nd, M_KC, V_KFC, V_KAC, force_meas_n,
+                                   xf0, xf1) - u)
         if not math.isfinite(u):
             ok = False
     return (q if ok else np.nan), r0, r1, b_r, b_a, u
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _lq_force(j: int, mat: np.ndarray, vec: np.ndarray, fv: np.ndarray, nd: int, kx: int,
+              kf: int, ka: int, force_meas_n: float, xf0: float, xf1: float) -> float:
+    """Model j's LQ force [N] with the gain in slots ``kx`` (mat, state part), ``kf``
+    (vec, human filter) and ``ka`` (vec, actuator), on the posterior in ``fv[F_SCR:+4]``."""
+    u = -(vec[j, kf] * xf0 + vec[j, kf + 1] * xf1)
+    u -= vec[j, ka] * fv[F_XV] + vec[j, ka + 1] * force_meas_n + vec[j, ka + 2] * fv[F_FFW]
+    for i in range(nd):
+        u -= vec[j, ka + 3 + i] * fv[F_PEND + i]
+    for i in range(4):
+        u -= mat[j, i, kx] * (fv[F_SCR + i] - mat[j, i, M_XBAR])
+    return u
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -619,6 +640,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     layer = iv[I_LAYER]
     if math.isnan(fv[F_FFW]):           # first reading since reset: rate filter at rest
         fv[F_FFW] = -fv[F_FFB] * rattlespace_m
+    comfort = travel_comfort_share(fv, rattlespace_m)
     # ---- the running filters
     e_min = np.inf          # unusable test: min over models of the innovation / sensor range
     for a in range(nact):
@@ -626,7 +648,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
         st[j, S_CONTRIB] = 0.0
         st[j, S_BAD] = 0.0
         q, r0, r1, b_r, b_a, u = _filter_update(j, mat, vec, st, fv, nd, u_in, y0, y1,
-                                                force_meas_n, xf0, xf1)
+                                                force_meas_n, xf0, xf1, comfort)
         if math.isnan(q):
             st[j, S_BAD] = 1.0
             st[j, S_Q] = Q_MAX
@@ -755,6 +777,8 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_SC_TIME] = 0.0
     fv[F_SC_AUTH] = 1.0
     fv[F_AMEAN] = 0.0
+    fv[F_TS_ENV] = 0.0
+    fv[F_TS_BETA] = 0.0
     mass_estimate_reset(fv)
     for i in range(MAX_DELAY):
         fv[F_PEND + i] = 0.0
@@ -870,6 +894,7 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
                      - design.static_rattlespace_m)
     ystat = np.where(np.isfinite(ystat) & (len(masses) > 1), ystat, 0.0)
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
+    wc = cfg.design.schedule_weight_sets[0] - 1
     mat = np.zeros((S, W, J, 4, MAT_COLS))
     vec = np.zeros((S, W, J, VEC_COLS))
     for s in range(S):
@@ -891,6 +916,11 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
             v[:, V_KF:V_KF + 2] = design.lq_gain[w, :, 4:6]
             ka = design.actuator_gain[w]
             v[:, V_KA:V_KA + ka.shape[1]] = ka
+            if 0 <= wc < W:             # the travel schedule's comfort gain (§12)
+                m[:, :, M_KC] = design.lq_gain[wc, :, :4]
+                v[:, V_KFC:V_KFC + 2] = design.lq_gain[wc, :, 4:6]
+                kac = design.actuator_gain[wc]
+                v[:, V_KAC:V_KAC + kac.shape[1]] = kac
             v[:, V_AIR] = design.airborne.astype(float)
             v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
                            for ld in design.innovation_logdet[:, s]]
@@ -947,6 +977,7 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_GUARD_W] = cfg.design.stop_guard_m
     fv[F_ME:F_ME + ME_SIZE] = mass_estimator_parameters(cfg)
     fv[F_LHYST] = LAYER_HYSTERESIS
+    fv[F_TS:F_TS + SCHEDULE_SIZE] = travel_schedule(cfg).as_array()
     fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
         cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()
     aw = cfg.design.accel_mean_window_s
@@ -1096,6 +1127,7 @@ class BankRuntime:
         self._all_mat[:, :, :, :, M_XBAR] = xbar[None, None, :, :]
         self.noise_index = design.noise_index(0, 0)
         self.weight_set = 1
+        self._table_w = 0               # the packed table of the selected weight set
         self.blending = Blending(int(blending))
         self.set_road(cfg_.noise.nominal_speed_mps, cfg_.noise.nominal_roughness_gd)
         self.set_weight_set(weight_set)
@@ -1131,7 +1163,7 @@ class BankRuntime:
                 bank_step(self._mat, self._vec, st, act, fv, iv, self._nbr, 0.0, 0.0, 0.0)
             bank_step(self._mat, self._vec, st, act, fv, iv, self._nbr, math.nan, 0.0, 0.0)
         _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index,
-                self.weight_set - 1)
+                self._table_w)
 
     def reset(self) -> None:
         """Initial state: filters at equilibrium, p uniform, human filter at rest."""
@@ -1146,19 +1178,31 @@ class BankRuntime:
                        self._nbr, int(b))
 
     def set_weight_set(self, weight_set: int) -> None:
-        """Select the LQ weight set (1-based, as ``design.weight_set``)."""
+        """Select the LQ weight set (1-based, as ``design.weight_set``); 0 = the travel
+        schedule between the two sets of ``design.schedule_weight_sets`` (§12)."""
         w = int(weight_set)
-        if not 1 <= w <= self.design.n_weight_sets:
-            raise ValueError(f"weight_set {weight_set!r}: allowed 1..{self.design.n_weight_sets}")
+        n = self.design.n_weight_sets
+        if w == 0:
+            comfort, travel = self.cfg.design.schedule_weight_sets
+            if not (1 <= comfort <= n and 1 <= travel <= n):
+                raise ValueError(f"weight_set 0 (travel schedule): design.schedule_weight_sets "
+                                 f"{[comfort, travel]} not within the design's 1..{n}")
+            table = travel - 1
+        elif 1 <= w <= n:
+            table = w - 1
+        else:
+            raise ValueError(f"weight_set {weight_set!r}: allowed 0..{n} (0 = travel schedule)")
         self.weight_set = w
-        _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index, w - 1)
+        self._table_w = table
+        self._fv[F_TS_ON] = 1.0 if w == 0 else 0.0
+        _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index, table)
 
     def set_road(self, speed_mps: float, roughness_gd: float) -> int:
         """Use the noise-table entry nearest (speed, Gd(n0)); returns its flat index."""
         s = nearest_noise_entry(self.design.noise_speeds_mps, self.design.noise_roughness_gd,
                                 float(speed_mps), float(roughness_gd))
         self.noise_index = s
-        _select(self._mat, self._vec, self._all_mat, self._all_vec, s, self.weight_set - 1)
+        _select(self._mat, self._vec, self._all_mat, self._all_vec, s, self._table_w)
         return s
 
     # ------------------------------------------------------------------ the tick
@@ -1252,6 +1296,15 @@ class BankRuntime:
         "Force the end-stop barrier added to the law's in the last tick [N] (0: not "
         "limiting; > 0 away from the compression stop); counters()['stop_barrier_ticks'] "
         "counts the ticks it limited (stop_barrier.py).")
+
+    comfort_share = SlotValue(
+        "_fv", F_TS_BETA, float,
+        "The travel schedule's comfort share of the last tick's force, beta in [0, 1] "
+        "(0: the travel law alone, or the schedule off; controller/travel_schedule.py).")
+
+    schedule_usage_m = SlotValue(
+        "_fv", F_TS_ENV, float,
+        "The travel schedule's rattlespace usage envelope [m] (controller/travel_schedule.py).")
 
     mass_layer = SlotValue(
         "_iv", I_LAYER, int,

@@ -62,6 +62,7 @@ from controller.mass_estimator import (
 )
 from controller.modes import Blending
 from controller.runtime.layout import BufferLayout
+from controller.travel_schedule import SCHEDULE_SIZE
 
 __all__ = ["Blending", "StepFlag"]
 
@@ -106,6 +107,7 @@ M_CT = MAT.slot(2)  # C_meas transposed
 M_KX = MAT.slot()  # state part of the LQ gain
 M_XBAR = MAT.slot()  # equilibrium x̄_j (airborne model: the nominal static state)
 M_LB = MAT.slot(2)  # rows 0 / 1: bias-state gains (rattlespace / acceleration bias)
+M_KC = MAT.slot()  # state part of the travel schedule's comfort LQ gain
 MAT_COLS = MAT.size
 # --- vec columns (per model)
 VEC = BufferLayout("vec")
@@ -119,6 +121,8 @@ V_KA = VEC.slot(3 + MAX_DELAY)  # actuator part of the gain (spool, force, w, pe
 V_LAYER = VEC.slot()  # sprung-mass layer of the model (-1: airborne)
 V_MASS = VEC.slot()  # sprung mass of the model's layer [kg]
 V_YSTAT = VEC.slot()  # model's static rattlespace minus the configured one, (M_l - M) g / K [m]
+V_KFC = VEC.slot(2)  # travel schedule's comfort gain: human-filter part
+V_KAC = VEC.slot(3 + MAX_DELAY)  # travel schedule's comfort gain: actuator part
 VEC_COLS = VEC.size
 # --- st columns
 ST = BufferLayout("st")
@@ -221,6 +225,10 @@ F_SC_AUTH = FV.slot()  # the monitor's force authority in [F_SC_FLOOR, 1] (state
 F_LHYST = FV.slot()  # layer hysteresis: switch when |log(est / M_new)| + this < |log(est / M_cur)|
 F_ME = FV.slot(ME_SIZE)  # sprung-mass estimator: mass_estimator_parameters() (λ = 0: off)
 F_MES = FV.slot(ME_STATE_SIZE)  # sprung-mass estimator: state (controller/mass_estimator.py)
+F_TS_ON = FV.slot()  # travel schedule on (weight set 0; docs/design.md §12)
+F_TS = FV.slot(SCHEDULE_SIZE)  # travel schedule: TravelSchedule.as_array() (travel_schedule.py)
+F_TS_ENV = FV.slot()  # travel schedule: usage envelope [m] (state)
+F_TS_BETA = FV.slot()  # travel schedule: the comfort law's share of the last tick (read-out)
 FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
@@ -502,6 +510,28 @@ def stop_barrier(fv: np.ndarray, iv: np.ndarray, force_n: float, rattlespace_m: 
         iv[I_SB_TICKS] += 1
         return out
     return force_n
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def travel_comfort_share(fv: np.ndarray, rattlespace_m: float) -> float:
+    """beta, the comfort law's share of this tick's force under the travel schedule
+    (controller/travel_schedule.py, docs/design.md §12); 0 when the schedule is off."""
+    if fv[F_TS_ON] == 0.0:
+        fv[F_TS_BETA] = 0.0
+        return 0.0
+    usage = abs(rattlespace_m - fv[F_TS])
+    env = fv[F_TS_ENV] * fv[F_TS + 3]
+    if usage > env or not math.isfinite(env):
+        env = usage
+    if math.isfinite(env):
+        fv[F_TS_ENV] = env
+    x = (env - fv[F_TS + 1]) * fv[F_TS + 2]
+    x = min(max(x, 0.0), 1.0)
+    beta = 1.0 - x * x * (3.0 - 2.0 * x)
+    if not math.isfinite(beta):
+        beta = 0.0
+    fv[F_TS_BETA] = beta
+    return beta
 
 
 @nb.njit(cache=True, nogil=True)

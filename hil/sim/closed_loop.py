@@ -155,11 +155,13 @@ class BankController:
         self.no_rule_ticks = 0
         self.degraded_ticks = 0
         self.ticks = 0
+        self.comfort_share_sum = 0.0
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
         u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
         self.flags = flags = int(self.rt.flags)
         self.ticks += 1
+        self.comfort_share_sum += self.rt.comfort_share
         if flags & self._no_rule:
             self.no_rule_ticks += 1
         if flags & self._degraded:
@@ -182,7 +184,8 @@ class BankController:
         limited the force (docs/design.md §9.7), and the stop-contact monitor's view
         (§9.8): contact time by the LVDT reading [s], contact episodes, stop degradations
         and the fraction of ticks stop-degraded (the plant's own time on the stops is
-        ``bump_stop_time_s``)."""
+        ``bump_stop_time_s``), and the travel schedule's mean comfort share (§12; 0 when
+        the schedule is off)."""
         n = self.ticks
         c = self.rt.counters()
         dt = self.rt.stop_contact_settings.tick_s
@@ -193,7 +196,8 @@ class BankController:
                 "stop_contact_measured_s": c["stop_contact_ticks"] * dt,
                 "stop_contact_episodes": float(c["stop_contact_episodes"]),
                 "stop_degradations": float(c["stop_degradations"]),
-                "stop_degraded_fraction": c["stop_degraded_ticks"] / n if n else 0.0}
+                "stop_degraded_fraction": c["stop_degraded_ticks"] / n if n else 0.0,
+                "schedule_comfort_share": self.comfort_share_sum / n if n else 0.0}
 
     @property
     def firing_weight(self) -> FloatArray:
@@ -243,8 +247,9 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}: use one of "
                          f"{', '.join(CONTROLLERS)}")
-    if weight_set < 1 or weight_set > len(cfg.design.weight_sets):
-        raise ValueError(f"weight set {weight_set} not in 1..{len(cfg.design.weight_sets)}")
+    if weight_set < 0 or weight_set > len(cfg.design.weight_sets):
+        raise ValueError(f"weight set {weight_set} not in 0..{len(cfg.design.weight_sets)} "
+                         f"(0 = travel schedule)")
     ctrl: LoopController | None = None
     if controller == "zero-force":
         ctrl = ZeroForceController()

@@ -187,8 +187,9 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}: use one of "
                          f"{', '.join(CONTROLLERS)}")
-    if not 1 <= weight_set <= len(cfg.design.weight_sets):
-        raise ValueError(f"weight set {weight_set} not in 1..{len(cfg.design.weight_sets)}")
+    if not 0 <= weight_set <= len(cfg.design.weight_sets):
+        raise ValueError(f"weight set {weight_set} not in 0..{len(cfg.design.weight_sets)} "
+                         f"(0 = travel schedule)")
     params = draw_params(cfg, runs, spread, seed, ride_height_std_m)
     specs = [RunSpec(i, p, seed + 1000 + i) for i, p in enumerate(params)]
     own = executor is None

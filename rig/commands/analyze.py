@@ -19,14 +19,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     w = cfg.design.weight_set if args.weights is None else args.weights
-    result = analyze(cfg, w)
+    ws = w or cfg.design.schedule_weight_sets[0]    # 0, the travel schedule: its comfort set
+    result = analyze(cfg, ws)
     if args.json:
         out = {name: {kind: {k: entry[kind][k] for k in _KEYS} for kind in ("lq", "lqg")}
                for name, entry in result.items()}
-        print(strict_json.dumps({"weight_set": w, "weights": cfg.design.weight_sets[w - 1],
-                                 "models": out}))
+        print(strict_json.dumps({"weight_set": w, "analysed_weight_set": ws,
+                                 "weights": cfg.design.weight_sets[ws - 1], "models": out}))
         return 0
-    print(f"weight set {w}: rho = {cfg.design.weight_sets[w - 1]} "
+    if w == 0:
+        print(f"weight set 0 is the travel schedule: the linear analysis takes its comfort "
+              f"set {ws}, the law where travel allows")
+    print(f"weight set {ws}: rho = {cfg.design.weight_sets[ws - 1]} "
           f"(closed loop / passive, white road velocity at "
           f"{cfg.noise.nominal_speed_mps:g} m/s, Gd = {cfg.noise.nominal_roughness_gd:g} m^3)")
     print(f"{'model':12s} {'loop':5s} {'absorbed power':>15s} {'rattlespace rms':>16s} "

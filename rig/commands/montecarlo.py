@@ -38,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                                     lo_open=True),
                    default=10.0, help="s per run (default 10)")
     argtypes.add_controller_option(p, CONTROLLERS, "fuzzy")
-    argtypes.add_weights_option(p, 1)
+    argtypes.add_weights_option(p, None)
     p.add_argument("--seed", type=argtypes.seed, default=1)
     argtypes.add_batch_options(p)
     p.add_argument("--out", default=None, metavar="DIR", type=argtypes.output_dir,
@@ -58,11 +58,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
+    weights = cfg.design.weight_set if args.weights is None else args.weights
     try:
         road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
         with make_executor(args.cluster, args.jobs) as ex:
             res = run_montecarlo(cfg, road, args.runs, controller=args.controller,
-                                 weight_set=args.weights, spread=args.spread, seed=args.seed,
+                                 weight_set=weights, spread=args.spread, seed=args.seed,
                                  workers=args.jobs, progress=not args.no_progress,
                                  out_dir=args.out,
                                  ride_height_std_m=(None if args.own_ride_height
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
                                  "faulted_runs": res.faulted_runs,
                                  "failed_runs": res.failed_runs, "png": res.png}, indent=1))
     elif res.summary:
-        print(f"{args.runs} runs, {args.controller} (weights {args.weights}), {road.name} at "
+        print(f"{args.runs} runs, {args.controller} (weights {weights}), {road.name} at "
               f"{road.speed_mps:g} m/s, spread {args.spread:g}")
         print(f"{'metric':<26} {'mean':>11} {'std':>11} {'min':>11} {'max':>11}")
         for k in SUMMARY_KEYS:

@@ -47,7 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                                     lo_open=True),
                    default=20.0, help=f"s (default 20, at most {argtypes.MAX_OFFLINE_S:g})")
     argtypes.add_controller_option(p, CONTROLLERS, "fuzzy", extra=("all",))
-    argtypes.add_weights_option(p, 1)
+    argtypes.add_weights_option(p, None)
     p.add_argument("--seed", type=argtypes.seed, default=1, help="road and sensor-noise seed")
     p.add_argument("--delay", type=argtypes.integer(0, MAX_DELAY_TICKS, "ticks"), default=0,
                    metavar="TICKS", help=f"loop delay (0..{MAX_DELAY_TICKS})")
@@ -81,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
     road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
     names = list(CONTROLLERS) if args.controller == "all" else [args.controller]
     try:
-        results = [simulate(cfg, road, c, args.weights, delay_ticks=args.delay,
+        weights = cfg.design.weight_set if args.weights is None else args.weights
+        results = [simulate(cfg, road, c, weights, delay_ticks=args.delay,
                             seed=args.seed) for c in names]
     except ValueError as exc:
         refuse("sim", f"{exc}")

@@ -108,7 +108,8 @@ def _run_facts(s: RunSeries, metrics: dict[str, Any]) -> str:
         facts.append(f"{Blending(int(blending)).name.lower()} blending")
     ws = meta.get("weight_set")
     if ws is not None:
-        facts.append(f"weight set {html.escape(str(ws))}")
+        facts.append(f"weight set {html.escape(str(ws))}"
+                     + (" (travel schedule)" if str(ws) == "0" else ""))
     models = " ".join(
         f'<span class="model" style="--c:{model_colour(j)[0]}">{html.escape(n)}</span>'
         for j, n in enumerate(s.model_names))

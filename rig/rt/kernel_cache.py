@@ -21,8 +21,9 @@ __all__ = ["KERNEL_CONSTANT_SOURCES", "KERNEL_SOURCES", "drop_stale_kernel_cache
 KERNEL_SOURCES = ("bank.py", "kernels.py", "layout.py", "moving_bank.py", "bayes.py",
                   "mass_layers.py")
 #: sources outside controller/runtime/ whose constants the kernels compile in (the
-#: sprung-mass estimator's parameter and state offsets), relative to it
-KERNEL_CONSTANT_SOURCES = ("../mass_estimator.py",)
+#: sprung-mass estimator's parameter and state offsets, the travel schedule's parameter
+#: count), relative to it
+KERNEL_CONSTANT_SOURCES = ("../mass_estimator.py", "../travel_schedule.py")
 _STAMP = "bank_kernels.sha256"
 
 

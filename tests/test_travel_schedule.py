@@ -1,0 +1,122 @@
+"""Travel schedule (controller/travel_schedule.py, docs/design.md §12): the numba kernel
+against the plain-Python law, the blend's end points against the two weight sets it
+blends, the configuration's checks, and a course run on the nonlinear rig."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controller.config import ConfigError, default_config
+from controller.runtime.bank import BankRuntime
+from controller.runtime.kernels import (
+    F_TS,
+    F_TS_BETA,
+    F_TS_ENV,
+    F_TS_ON,
+    FV_HEAD,
+    travel_comfort_share,
+)
+from controller.travel_schedule import SCHEDULE_SIZE, comfort_share, travel_schedule
+from hil.sim.closed_loop import cached_design, simulate
+from hil.sim.roads import make_road
+
+
+def _python_law(readings: list[float]) -> list[float]:
+    """The schedule of the default configuration in plain Python: peak-hold envelope of
+    the distance from the stops' centre, then the smoothstep share."""
+    sch = travel_schedule(default_config())
+    env, out = 0.0, []
+    for r in readings:
+        env = max(abs(r - sch.centre_m), env * sch.release_decay)
+        out.append(comfort_share(env, sch))
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-0.12, 0.12, allow_nan=False), min_size=1, max_size=200))
+def test_kernel_is_the_plain_law(readings: list[float]) -> None:
+    fv = np.zeros(FV_HEAD)
+    fv[F_TS_ON] = 1.0
+    fv[F_TS:F_TS + SCHEDULE_SIZE] = travel_schedule(default_config()).as_array()
+    got = [travel_comfort_share(fv, r) for r in readings]
+    assert got == pytest.approx(_python_law(readings), abs=1e-12)
+    assert all(0.0 <= b <= 1.0 for b in got)
+    assert fv[F_TS_BETA] == got[-1]
+
+
+def test_share_is_monotone_and_spans_the_band() -> None:
+    sch = travel_schedule(default_config())
+    usage = np.linspace(0.0, 0.1, 401)
+    beta = [comfort_share(float(e), sch) for e in usage]
+    assert beta[0] == 1.0 and beta[-1] == 0.0
+    assert all(b1 <= b0 for b0, b1 in itertools.pairwise(beta))
+    assert comfort_share(sch.start_m, sch) == 1.0 and comfort_share(sch.full_m, sch) == 0.0
+
+
+def test_off_is_zero_and_a_nonfinite_reading_only_decays_the_envelope() -> None:
+    fv = np.zeros(FV_HEAD)
+    fv[F_TS:F_TS + SCHEDULE_SIZE] = travel_schedule(default_config()).as_array()
+    assert travel_comfort_share(fv, 0.0) == 0.0          # F_TS_ON = 0: schedule off
+    fv[F_TS_ON] = 1.0
+    travel_comfort_share(fv, 0.05)
+    env = fv[F_TS_ENV]
+    beta = travel_comfort_share(fv, math.nan)       # (bank_step refuses such a reading first)
+    assert 0.0 < fv[F_TS_ENV] <= env and 0.0 <= beta <= 1.0
+
+
+def _forces(weight_set: int, readings: np.ndarray) -> np.ndarray:
+    cfg = default_config()
+    rt = BankRuntime(cached_design(cfg), weight_set=weight_set, cfg=cfg)
+    return np.array([rt.step(r, a, f) for r, a, f in readings])
+
+
+def test_blend_end_points_are_the_two_weight_sets() -> None:
+    """Fed the same sensor readings (the filters take the measured force as their input,
+    so the estimates are the same), the scheduled bank gives weight set 2's force while
+    the rattlespace stays inside schedule_start_m, and weight set 1's once the envelope
+    is beyond schedule_full_m."""
+    cfg = default_config()
+    comfort, travel = cfg.design.schedule_weight_sets
+    rng = np.random.default_rng(3)
+    n = 400
+    small = np.column_stack([0.01 * np.sin(np.arange(n) * 0.05), rng.normal(0, 0.5, n),
+                             rng.normal(0, 50.0, n)])
+    np.testing.assert_allclose(_forces(0, small), _forces(comfort, small), rtol=1e-9, atol=1e-9)
+    big = small.copy()
+    big[:, 0] += 0.07            # well beyond schedule_full_m from the stops' centre
+    np.testing.assert_allclose(_forces(0, big), _forces(travel, big), rtol=1e-9, atol=1e-9)
+    assert not np.allclose(_forces(comfort, big), _forces(travel, big))
+
+
+def test_configuration_checks_name_the_key() -> None:
+    with pytest.raises(ConfigError, match=r"design\.schedule_weight_sets"):
+        default_config().replace(design={"weight_set": 0, "schedule_weight_sets": [3, 1]})
+    with pytest.raises(ConfigError, match=r"design\.schedule_full_m"):
+        default_config().replace(design={"schedule_start_m": 0.05, "schedule_full_m": 0.04})
+    one = default_config().replace(design={"weight_set": 1, "weight_sets": [[1.0, 1e2, 1e-8, 1.0]]})
+    rt = BankRuntime(cached_design(one), weight_set=1, cfg=one)
+    with pytest.raises(ValueError, match="travel schedule"):
+        rt.set_weight_set(0)
+
+
+@pytest.mark.parametrize("seed", [10])
+def test_course_run_keeps_off_the_stops_with_more_comfort_than_set_1(seed: int) -> None:
+    """Thesis course, a road seed on which weight set 2 slams the stops and passive does
+    not: the schedule does not slam, spends at most passive's time + 0.1 % of the run on
+    the stops, and absorbs less power than weight set 1."""
+    cfg = default_config()
+    road = make_road("rough-course", 11.176, 60.0, cfg.sample_time_s, seed)
+    res = {w: simulate(cfg, road, "fuzzy", w, seed=seed).metrics for w in (0, 1, 2)}
+    passive = simulate(cfg, road, "passive", 1, seed=seed).metrics
+    assert res[2]["bump_stop_slam"] and not passive["bump_stop_slam"]   # the case it is for
+    sched = res[0]
+    assert not sched["bump_stop_slam"] and sched["n_faults"] == 0
+    assert sched["bump_stop_time_s"] <= passive["bump_stop_time_s"] + 0.001 * 60.0
+    assert sched["absorbed_power"] < 0.8 * res[1]["absorbed_power"]
+    assert 0.0 < sched["schedule_comfort_share"] < 1.0
