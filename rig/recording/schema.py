@@ -194,6 +194,9 @@ INTERNALS_SCHEMA: Final = _obj(
                            "stop-contact monitor's window [s]"},
         "stop_degraded": {"type": "boolean", "description": "the stop-contact monitor has "
                           "the bank on its travel-conservative law"},
+        "comfort_share": {**_NUM, "description": "the travel schedule's comfort-law share "
+                          "of the force, 0..1 (1: weight set 2 alone, 0: weight set 1 "
+                          "alone or the schedule off; docs/design.md §12)"},
         "nonfinite": _NONFINITE_KEYS,
     },
     [],

@@ -74,6 +74,8 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "/controller/internals.flags", 6, ratio=False),
     SummaryRow("sprung_mass_est_kg", "sprung-mass estimate at the end of the phase", "kg",
                "/controller/internals.sprung_mass_est_kg", ratio=False),
+    SummaryRow("comfort_share_mean", "travel-schedule comfort share, mean", "",
+               "/controller/internals.comfort_share", 3, ratio=False),
     SummaryRow("no_rule_fired_pct", "ticks on which no fuzzy rule fired", "%",
                "/controller/internals.flags", 3, ratio=False),
     SummaryRow("lateness_p50_us", "wake-up lateness p50", "µs", "/rig/timing.wake_late_s"),
@@ -203,6 +205,9 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "stop_degradations": float(stop_deg),
             "sprung_mass_est_kg": (_last(s.sprung_mass_est_kg[m])
                                    if s.sprung_mass_est_kg.size == m.size else math.nan),
+            "comfort_share_mean": (float(np.nanmean(s.comfort_share[m]))
+                                   if s.comfort_share.size == m.size and m.any()
+                                   and np.isfinite(s.comfort_share[m]).any() else math.nan),
             "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
                                   if m.any() and np.any(s.flags[m] >= 0) else math.nan),
         }

@@ -98,6 +98,8 @@ class RunSeries:
         default_factory=lambda: np.zeros(0, np.int64))
     #: /controller/internals.sprung_mass_est_kg per tick (NaN: not recorded)
     sprung_mass_est_kg: FloatArray = field(default_factory=lambda: np.zeros(0))
+    #: /controller/internals.comfort_share per tick (NaN: not recorded)
+    comfort_share: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def no_sensor_data(self) -> str | None:
         """Why the run has nothing to show -- tick records, but on none of them a fresh
@@ -283,11 +285,12 @@ def load_series(path: str | Path) -> RunSeries:
     flags = np.array([f if isinstance(f := r.get("flags"), int) else -1 for r in recs],
                      dtype=np.int64)
     mass = np.array([_f(r.get("sprung_mass_est_kg")) for r in recs])
+    comfort = np.array([_f(r.get("comfort_share")) for r in recs])
     config, problem = _config(scan)
     return RunSeries(Path(path), scan, tick, t_s, t0_ns, signals,
                      [str(r.get("lifecycle", "")) for r in recs],
                      [str(r.get("fault", "")) for r in recs], per_model, timing, events,
-                     _model_names(scan, J), config, problem, flags, mass)
+                     _model_names(scan, J), config, problem, flags, mass, comfort)
 
 
 def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:

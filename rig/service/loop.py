@@ -124,6 +124,7 @@ TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("xf", "array", "rt.xf"),
     ("stop_contact_s", "float", "rt.stop_contact_s"),
     ("stop_degraded", "bool", "stop_degraded"),
+    ("comfort_share", "float", "rt.comfort_share"),
 )
 
 

@@ -33,6 +33,7 @@ class Runtime(Protocol):
     x_post: np.ndarray
     xf: np.ndarray
     stop_contact_s: float       # stop-contact time in the monitor's window [s]
+    comfort_share: float        # the travel schedule's comfort share of the force [0, 1]
 
     @property
     def sprung_mass_est_kg(self) -> float: ...

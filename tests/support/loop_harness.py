@@ -47,6 +47,7 @@ class FakeRuntime:
         self.x_post = np.zeros((n_models, 4))
         self.xf = np.zeros(2)
         self.stop_contact_s = 0.0
+        self.comfort_share = 0.0
         self.sprung_mass_est_kg = 500.0
         self.steps = 0
         self.resets = 0
