@@ -147,10 +147,13 @@ def plan(quick: bool) -> StudyPlan:
 
 
 def bank_labels() -> list[tuple[str, int]]:
-    """(controller, weight set) of every active configuration in the main comparison."""
+    """(controller, weight set) of every active configuration in the main comparison;
+    weight set 0 is the travel schedule (docs/design.md §12: the bank's own law, so no
+    full-state counterpart)."""
     out: list[tuple[str, int]] = [("skyhook", 1)]
     for ws in (1, 2):
         out += [(c, ws) for c in ("lqg", "fuzzy", "bayes", "moving", "fullstate")]
+    out += [(c, 0) for c in ("lqg", "fuzzy", "bayes", "moving")]
     return out
 
 
@@ -184,7 +187,7 @@ def other_cases(p: StudyPlan, cfg: RigConfig, skyhook: SkyhookGains) -> list[Cas
     cases: list[Case] = []
     thesis = Case("mc", "passive", road="rough-course", speed_mps=THESIS_SPEED_MPS,
                   duration_s=p.mc_duration_s, road_seed=1, settle_s=p.settle_s)
-    mc_ctrl = [(c, ws) for c, ws in bank_labels() if ws == 1] + [("fuzzy", 2)]
+    mc_ctrl = [(c, ws) for c, ws in bank_labels() if ws == 1] + [("fuzzy", 2), ("fuzzy", 0)]
     for spread in p.mc_spreads:
         group = f"mc{round(100 * spread)}"
         for i, prm in enumerate(draw_params(cfg, p.mc_runs, spread, seed=11)):
