@@ -97,16 +97,19 @@ def run(quick: bool = False) -> list[dict[str, Any]]:
                          moving_bank={"active_models": 3})
     d3, d4, d27 = design_bank(cfg3), design_bank(base), design_bank(cfg27)
     data = _inputs(base, n)
+    # weight set 1: one LQ gain per model; 0: the travel schedule, the default law
+    # (two gains per model, docs/design.md §12)
     cases = [
-        ("fuzzy J=3", d3, Blending.FUZZY),
-        ("fuzzy J=4 (default, +airborne)", d4, Blending.FUZZY),
-        ("bayes J=3", d3, Blending.BAYES),
-        ("single (plain LQG)", d4, Blending.LQG),
-        ("moving 9x3+air=28, k=3", d27, Blending.MOVING),
+        ("fuzzy J=3", d3, Blending.FUZZY, 1),
+        ("fuzzy J=4 (+airborne), set 1", d4, Blending.FUZZY, 1),
+        ("fuzzy J=4, schedule (default)", d4, Blending.FUZZY, 0),
+        ("bayes J=3", d3, Blending.BAYES, 1),
+        ("single (plain LQG)", d4, Blending.LQG, 1),
+        ("moving 9x3+air=28, k=3", d27, Blending.MOVING, 1),
     ]
     rows: list[dict[str, Any]] = []
-    for name, d, mode in cases:
-        rt = BankRuntime(d, blending=mode)
+    for name, d, mode, ws in cases:
+        rt = BankRuntime(d, blending=mode, weight_set=ws)
         row: dict[str, Any] = {"case": name, "J": d.n_models}
         row.update(_time_case(rt, data))
         rows.append(row)
