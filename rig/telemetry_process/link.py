@@ -449,16 +449,18 @@ class TelemetryLink:
             return
         if event in ("ready", "state", "final"):
             tel, fox = msg.get("telemetry"), msg.get("foxglove")
+            # a (re)started process first clears the loss note, then its own state may set
+            # one again (a "ready" that already carries a failed session keeps it noted)
+            if event == "ready" and self.process_state in ("starting", "restarting"):
+                if self.process_state == "restarting":
+                    log.warning("telemetry process restarted (pid %d)", child.proc.pid)
+                self._note("telemetry", None)
+                self.process_state = "running"
             if self.zenoh_on and isinstance(tel, dict):
                 self._zenoh_state(tel)
             if self.foxglove_on and isinstance(fox, dict):
                 self._foxglove_state(fox)
             if event == "ready":
-                if self.process_state in ("starting", "restarting"):
-                    if self.process_state == "restarting":
-                        log.warning("telemetry process restarted (pid %d)", child.proc.pid)
-                    self._note("telemetry", None)
-                    self.process_state = "running"
                 child.ready.set()
             return
         self.lines_dropped += 1
