@@ -4,9 +4,9 @@
 the live Foxglove server, :mod:`rig.telemetry_process.child`) and feeds it through a
 pipe, as :class:`rig.recording.recorder.RunRecorder` feeds its writer:
 
-- the loop thread calls :meth:`TelemetryLink.offer_tick` every :attr:`tick_every` ticks
-  (the recording's packed tick record, :class:`rig.recording.codec.TickPacker`: a
-  ``struct.pack_into``, a few array copies and one non-blocking ``write``; no JSON) and
+- the loop thread calls :meth:`TelemetryLink.offer_packed` every :attr:`tick_every`
+  ticks with the tick record it packed for the recording
+  (:class:`rig.recording.codec.TickPacker`): one non-blocking ``write``, no JSON; and
   :meth:`TelemetryLink.offer_event` for each event; a full pipe (the process is slow)
   or a dead process drops the item and counts it (:attr:`dropped`, the tick record's
   ``dropped_telemetry``);
@@ -45,7 +45,7 @@ from typing import Any, Final, Protocol
 
 from controller.config import RigConfig, config_to_toml
 from rig.operator_commands import OPERATOR_COMMANDS, brief, loop_argument, validate_command
-from rig.recording.codec import TickLayout, TickPacker, encode_end, encode_event, encode_layout
+from rig.recording.codec import TickLayout, encode_end, encode_event, encode_layout
 from rig.telemetry_process.feed import (
     MAX_LINE_BYTES,
     STATUS_PERIOD_S,
@@ -154,7 +154,8 @@ class TelemetryLink:
         self._pipe_bytes = pipe_bytes
         self._status_provider = status_provider
         self._on_note = on_note
-        self._packer = TickPacker(layout)
+        #: bytes of one packed tick record of ``layout``
+        self._record_size = layout.item_size()
         offset = (time.time_ns() - time.monotonic_ns() if clock_offset_ns is None
                   else int(clock_offset_ns))
         self._header = encode_feed_header({
@@ -196,20 +197,22 @@ class TelemetryLink:
                       "without it", start_timeout_s)
 
     # ------------------------------------------------------------------ loop side
-    def offer_tick(self, t_ns: int, scalars: Any, arrays: Any) -> bool:
-        """Write the packed tick record (and the status, when one is waiting).  Never
-        blocks; False (and ``dropped`` += 1) when it was not taken."""
+    def offer_packed(self, record: bytes | bytearray | memoryview) -> bool:
+        """Write a tick record the loop packed already (one ``ITEM_TICK`` of the layout
+        this link was made with: the bytes the recording gets) and the status, when one
+        is waiting.  Never blocks; False (and ``dropped`` += 1) when it was not taken."""
         child = self._child
         if child is None or not child.alive:
             self.dropped += 1
             return False
+        if len(record) != self._record_size:
+            raise ValueError(f"tick record of {len(record)} bytes, the layout's are "
+                             f"{self._record_size}")
         status = self._status_blob
         if status is not None:
             self._status_blob = None
             self._send(child, status)
-        packer = self._packer
-        packer.pack(t_ns, scalars, arrays)
-        return self._send(child, packer.buffer)
+        return self._send(child, record)
 
     def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool:
         """An event (lifecycle, fault, command, note) for the live view; False when
@@ -238,7 +241,7 @@ class TelemetryLink:
         if child is not None and child.alive:
             self._send(child, encode_reply(cid, accepted, message))
 
-    def _send(self, child: _Child, data: bytes | bytearray) -> bool:
+    def _send(self, child: _Child, data: bytes | bytearray | memoryview) -> bool:
         try:
             if child.pending:
                 w = os.write(child.fd, child.pending)
