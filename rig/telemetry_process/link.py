@@ -13,7 +13,11 @@ pipe, as :class:`rig.recording.recorder.RunRecorder` feeds its writer:
 - a status thread builds the service's status every :data:`STATUS_PERIOD_S` (off the
   loop thread) and leaves it for the loop thread, which writes it with its next tick
   record: the process answers ``rig/status`` queries from it and never calls into the
-  loop process;
+  loop process.  The loop thread wakes the status thread right after it wrote a tick
+  record (every :data:`STATUS_PERIOD_S` of records), so that the build, ~0.05-0.3 ms
+  of Python holding the interpreter lock, runs while the loop sleeps until its next
+  deadline instead of at a random moment (a loop thread woken while another thread
+  holds the lock waits up to the switch interval, 100 us, for it);
 - operator commands come back as JSON lines on the process's stdout.  A supervisor
   thread reads them (at most 8 KiB every 5 ms, lines over :data:`MAX_LINE_BYTES`
   dropped) into a bounded queue; the loop thread takes at most one per
@@ -182,6 +186,10 @@ class TelemetryLink:
         self._connected = threading.Event()
         self._settled = threading.Event()
         self._closing = threading.Event()
+        #: set by the loop thread after a tick record: time to build the status
+        self._status_due = threading.Event()
+        self._status_every = max(1, round(STATUS_PERIOD_S * rate / self.tick_every))
+        self._records = 0            # tick records offered since the last status
         self._status_blob: bytes | None = None
         self.foxglove = _FoxgloveReport(self)
         self._child: _Child | None = None
@@ -212,7 +220,13 @@ class TelemetryLink:
         if status is not None:
             self._status_blob = None
             self._send(child, status)
-        return self._send(child, record)
+        taken = self._send(child, record)
+        self._records += 1
+        if self._records >= self._status_every:
+            # the status is built now, while the loop sleeps until its next deadline
+            self._records = 0
+            self._status_due.set()
+        return taken
 
     def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool:
         """An event (lifecycle, fault, command, note) for the live view; False when
@@ -308,6 +322,7 @@ class TelemetryLink:
         if self._closing.is_set():
             return
         self._closing.set()
+        self._status_due.set()
         child = self._child
         if child is not None:
             if child.alive and not child.pending:
@@ -488,9 +503,14 @@ class TelemetryLink:
             self._note("foxglove", str(fox.get("error")))
 
     def _build_status(self) -> None:
-        """Status thread: the service's status every STATUS_PERIOD_S, pickled here and
-        left for the loop thread to write (it alone writes the pipe)."""
-        while not self._closing.wait(STATUS_PERIOD_S):
+        """Status thread: the service's status when the loop thread asks for it (every
+        STATUS_PERIOD_S, right after a tick record), pickled here and left for the loop
+        thread to write (it alone writes the pipe)."""
+        while True:
+            self._status_due.wait()
+            self._status_due.clear()
+            if self._closing.is_set():
+                return
             try:
                 self._status_blob = encode_status(self._status_provider())
             except Exception as exc:   # a status that cannot be built is no reason to stop
