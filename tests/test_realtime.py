@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import threading
+from typing import Any
 
 import pytest
 
@@ -39,3 +40,34 @@ def test_a_thread_started_by_the_real_time_loop_thread_is_an_ordinary_one() -> N
     if "denied" in seen:
         pytest.skip("SCHED_FIFO refused here")
     assert seen == {"loop": os.SCHED_FIFO, "helper": os.SCHED_OTHER}
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs CPU affinity and 2 CPUs")
+def test_a_helper_thread_leaves_the_loops_cpus_and_starts_processes_from_them() -> None:
+    """A helper thread started on the loop's CPUs (the service pinned, as systemd's
+    CPUAffinity= does) moves to the others; around a process it starts it is back on
+    the loop's CPUs, so the process finds them and leaves them too."""
+    from rig.recording.cpus import leave_the_loops_cpus, on_the_loops_cpus
+
+    loop_cpu = min(os.sched_getaffinity(0))
+    seen: dict[str, Any] = {}
+
+    def helper() -> None:
+        seen["left"] = leave_the_loops_cpus()
+        seen["after"] = os.sched_getaffinity(0)
+        with on_the_loops_cpus(seen["left"]):
+            seen["spawning"] = os.sched_getaffinity(0)
+        seen["again"] = os.sched_getaffinity(0)
+
+    def service_thread() -> None:
+        os.sched_setaffinity(0, {loop_cpu})
+        t = threading.Thread(target=helper)
+        t.start()
+        t.join()
+
+    t = threading.Thread(target=service_thread)
+    t.start()
+    t.join()
+    assert seen["left"] == {loop_cpu} == seen["spawning"]
+    assert loop_cpu not in seen["after"] and seen["after"] and seen["again"] == seen["after"]

@@ -65,6 +65,7 @@ from rig.recording.codec import (
     encode_layout,
     encode_pickled_tick,
 )
+from rig.recording.cpus import leave_the_loops_cpus
 from rig.recording.run_data import CanFrameRecord, EventRecord, RunData, TickRecord, read_run
 from rig.recording.schema import (
     CONFIG_ATTACHMENT,
@@ -235,6 +236,7 @@ class RunRecorder:
         return self._proc.pid
 
     def _read_status(self) -> None:
+        leave_the_loops_cpus()          # this thread does not share the loop's CPU
         out = self._proc.stdout
         assert out is not None
         for st in json_lines(out):

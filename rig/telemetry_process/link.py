@@ -50,6 +50,7 @@ from typing import Any, Final, Protocol
 from controller.config import RigConfig, config_to_toml
 from rig.operator_commands import OPERATOR_COMMANDS, brief, loop_argument, validate_command
 from rig.recording.codec import TickLayout, encode_end, encode_event, encode_layout
+from rig.recording.cpus import leave_the_loops_cpus, on_the_loops_cpus
 from rig.telemetry_process.feed import (
     MAX_LINE_BYTES,
     STATUS_PERIOD_S,
@@ -374,6 +375,9 @@ class TelemetryLink:
             child.proc.wait(5.0)
 
     def _supervise(self, child: _Child) -> None:
+        # off the loop's CPU; a restarted process starts from the loop's CPUs (it leaves
+        # them itself, as the first one did)
+        loop_cpus = leave_the_loops_cpus()
         while True:
             self._read(child)
             rc = child.proc.wait()
@@ -398,7 +402,8 @@ class TelemetryLink:
             if self._closing.wait(pause):
                 return
             try:
-                child = self._spawn()
+                with on_the_loops_cpus(loop_cpus):
+                    child = self._spawn()
             except OSError as exc:
                 self.process_state = "lost"
                 self._lost(f"telemetry process not restarted: {exc}", rc, None)
@@ -506,6 +511,7 @@ class TelemetryLink:
         """Status thread: the service's status when the loop thread asks for it (every
         STATUS_PERIOD_S, right after a tick record), pickled here and left for the loop
         thread to write (it alone writes the pipe)."""
+        leave_the_loops_cpus()          # this thread does not share the loop's CPU
         while True:
             self._status_due.wait()
             self._status_due.clear()
