@@ -91,18 +91,44 @@ def _harness(cfg: Any, design_path: str, road_s: float, rig_cpus: tuple[int, ...
         rig_start_ticks=100)
 
 
-def _start_client(port: int, mode: str) -> Any:
+def _other_cpus(cpus: tuple[int, ...]) -> set[int]:
+    """The CPUs the loop is not pinned to (empty: not pinned, or no other CPU)."""
+    return set(range(os.cpu_count() or 1)) - set(cpus) if cpus else set()
+
+
+def _as_the_service_starts(cpus: tuple[int, ...]) -> None:
+    """This (main) thread as systemd starts the service (deploy/rig.service): an ordinary
+    thread on the loop's CPUs (``CPUAffinity=``), so that every case builds its service
+    alike; the loop's real-time set-up of the previous case (SCHED_FIFO on this thread)
+    is undone.  The service's helper threads and child processes start from here."""
+    if hasattr(os, "sched_setscheduler"):
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    if cpus and hasattr(os, "sched_setaffinity"):
+        with contextlib.suppress(OSError):
+            os.sched_setaffinity(0, set(cpus))
+
+
+def _start_client(port: int, mode: str, cpus: tuple[int, ...] = ()) -> Any:
     """``bench.foxglove_client`` (or ``bench.zenoh_status_flood`` for ``zflood``) in its
-    own process, subscribed (connected) when this returns."""
+    own process, subscribed (connected) when this returns.  A client stands for another
+    computer: an ordinary process at nice 19, off the loop's CPUs (``cpus``) when it is
+    pinned, taking only the CPU time the service leaves."""
     import subprocess
 
     cmd = (["bench.zenoh_status_flood", str(port)] if mode == "zflood" else
            ["bench.foxglove_client", str(port),
             *([f"--{mode}"] if mode in ("stalled", "flood") else [])])
-    # nice 19: a client stands for another computer; on this one it should take only
-    # the CPU time the service leaves
+    others = _other_cpus(cpus)
+
+    def as_another_computer() -> None:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        if others:
+            os.sched_setaffinity(0, others)
+        os.nice(19)
+
     proc = subprocess.Popen([sys.executable, "-m", *cmd], stdout=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: os.nice(19))
+                            preexec_fn=as_another_computer)
     line = proc.stdout.readline() if proc.stdout is not None else ""
     if not line.startswith(("subscribed", "connected")):
         proc.kill()
@@ -123,8 +149,10 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
 
     rate = cfg.design.sample_rate_hz
     tmp = tempfile.TemporaryDirectory()
+    if realtime:
+        _as_the_service_starts(cpus)
     # the emulated rig off the loop's CPU when the loop is pinned, like other hardware
-    others = tuple(sorted(set(range(os.cpu_count() or 1)) - set(cpus))) if cpus else ()
+    others = tuple(sorted(_other_cpus(cpus)))
     h = _harness(
         cfg, design_path, seconds + 5.0, rig_cpus=others,
         realtime=RealtimeRequest(switch_interval_s=switch_interval_s, cpus=cpus)
@@ -161,15 +189,15 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
         else None)
     port = (int(cfg.telemetry.endpoints[0].rsplit(":", 1)[1]) if client == "zflood"
             else svc.foxglove.port if client else 0)
-    client_proc = _start_client(port, client) if client else None
+    client_proc = _start_client(port, client, cpus) if client else None
     try:
         res = h.run(on_tick=on_tick)
     finally:
         client_messages = 0
         if client_proc is not None:
             client_proc.terminate()              # our own child, by its PID
-            out, _ = client_proc.communicate(timeout=30)
-            for line in out.splitlines():
+            printed, _ = client_proc.communicate(timeout=30)
+            for line in printed.splitlines():
                 if line.startswith(("messages ", "queries ")):
                     client_messages = int(line.split()[1])
     lat, step = svc.loop.timing.recent()

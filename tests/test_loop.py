@@ -27,8 +27,12 @@ from controller.config import default_config
 from controller.runtime.force_loop import PIForceLoop
 from rig.service.timing import TimingStats, histogram_percentile_us
 from rig.wire.protocol import (
+    FAULT_REPORT,
+    VALVE_COMMAND,
     FaultCode,
+    FaultReport,
     LifecycleState,
+    ValveCommand,
 )
 from tests.support.loop_harness import PERIOD_NS, LoopHarness, make_harness
 
@@ -82,7 +86,7 @@ class BrokenRecorder:
     def can_frame(self, *args: Any) -> bool:
         raise OSError("recorder gone")
 
-    def tick_values(self, *args: Any) -> bool:
+    def tick_packed(self, *args: Any) -> bool:
         raise ValueError("layout mismatch")
 
     def event(self, *args: Any) -> bool:
@@ -103,6 +107,73 @@ def test_a_failing_recorder_never_stops_control() -> None:
         assert h.loop.lifecycle.state is LifecycleState.ACTIVE
         assert h.loop.output_errors >= 3 * 30      # per tick: a frame in, one out, the record
         assert h.loop.status()["last_output_error"] == "ValueError: layout mismatch"
+    finally:
+        h.close()
+
+
+class OrderRecorder:
+    """A recorder that keeps the items the loop hands it, in their order."""
+
+    dropped = 0
+
+    def __init__(self) -> None:
+        self.items: list[tuple[Any, ...]] = []
+
+    def set_tick_layout(self, layout: Any) -> None:
+        pass
+
+    def can_frame(self, t_ns: int, tick: int, arbitration_id: int, data: Any, is_rx: bool,
+                  error_frame: bool = False, extended_id: bool = False) -> bool:
+        self.items.append(("rx" if is_rx else "tx", tick, arbitration_id, bytes(data)))
+        return True
+
+    def tick_packed(self, record: Any) -> bool:
+        self.items.append(("tick",))
+        return True
+
+    def event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool:
+        self.items.append(("event", tick, kind))
+        return True
+
+
+def test_frames_reach_the_recording_after_the_valve_command_in_their_order() -> None:
+    """The loop hands a tick's frames to the recorder once its frames are out, yet the
+    recording gets them in the order they came and went: the frames received before a
+    fault, then the fault's event, then the safe command and the fault report with the
+    bytes that were sent (the transmit messages are encoded again later), then the
+    tick record."""
+    rec = OrderRecorder()
+    h = make_harness(recorder=rec)
+    try:
+        h.run(10)
+        h.arm()
+        start = len(rec.items)
+
+        def broken_step(*_args: Any) -> float:
+            raise RuntimeError("bank bug")
+
+        h.rt.step = broken_step          # type: ignore[method-assign]
+        tick = h.loop.tick_count
+        valves, faults = h.step()
+        items = rec.items[start:]
+        kinds = [item[0] for item in items]
+        assert kinds[0] == "rx" and kinds[-1] == "tick"
+        first_event = kinds.index("event")
+        assert set(kinds[:first_event]) == {"rx"}
+        assert items[first_event][1:] == (tick, "fault")
+        tx = [item for item in items if item[0] == "tx"]
+        assert tx and kinds.index("tx") > first_event and "rx" not in kinds[first_event:]
+        sent_valves = [item[3] for item in tx if item[2] == VALVE_COMMAND.frame_id]
+        sent_faults = [item[3] for item in tx if item[2] == FAULT_REPORT.frame_id]
+        assert len(sent_valves) == len(valves) == 1 and len(sent_faults) == len(faults) >= 1
+        valve = ValveCommand()
+        assert VALVE_COMMAND.decode(sent_valves[0], valve).name == "OK"
+        assert (valve.enable, valve.spool_command) == (0, 0.0) == (valves[0].enable,
+                                                                   valves[0].spool_command)
+        for blob, fault in zip(sent_faults, faults, strict=True):
+            report = FaultReport()
+            assert FAULT_REPORT.decode(blob, report).name == "OK"
+            assert report.fault_code == fault.fault_code == FaultCode.EXCEPTION
     finally:
         h.close()
 

@@ -923,6 +923,24 @@ def test_packed_tick_record_rejects_a_wrong_shape(tmp_path: Path) -> None:
         {"tick": 1, "q": [1.0, 1.0, 1.0]}]
 
 
+def test_a_record_packed_by_the_loop_reads_back_like_one_packed_here(tmp_path: Path) -> None:
+    """``tick_packed`` (the loop packs once for the recording and the telemetry) records
+    the same item as ``tick_values``; a record of another size is refused."""
+    from rig.recording.codec import TickLayout, TickPacker
+
+    layout = TickLayout((("tick", "int", None), ("q", "<f8", (3,))))
+    packer = TickPacker(layout)
+    path = tmp_path / "packed_by_loop.mcap"
+    with recorder(path, tick_layout=layout) as rec:
+        packer.pack(1, [1], [np.arange(3.0)])
+        assert rec.tick_packed(packer.buffer)
+        assert rec.tick_values(2, [2], [np.arange(3.0)])
+        with pytest.raises(ValueError):
+            rec.tick_packed(packer.buffer[:-8])
+    assert [r.data for r in read_run(path).records] == [
+        {"tick": 1, "q": [0.0, 1.0, 2.0]}, {"tick": 2, "q": [0.0, 1.0, 2.0]}]
+
+
 def test_a_dropped_batch_keeps_its_tick_layout(tmp_path: Path) -> None:
     """The layout declared while the pipe is full is kept back like an event: the packed
     records sent once the writer catches up still decode."""

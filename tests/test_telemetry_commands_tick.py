@@ -23,7 +23,7 @@ class CommandingTelemetry:
         self.dropped = 0
         self.tick_every = 1
 
-    def offer_tick(self, t_ns: int, scalars: Any, arrays: Any) -> bool:
+    def offer_packed(self, record: Any) -> bool:
         return True
 
     def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool:

@@ -1,8 +1,9 @@
 """MCAP run recording: raw CAN frames, tick records and events, written by a process of
 its own so that the control loop never waits for (or competes with) the encoder.
 
-The 1 kHz loop calls :meth:`RunRecorder.can_frame`, :meth:`RunRecorder.tick_values`
-(or the generic :meth:`RunRecorder.tick`) and :meth:`RunRecorder.event`.  Each packs
+The 1 kHz loop calls :meth:`RunRecorder.can_frame`, :meth:`RunRecorder.tick_packed`
+(a record it packed itself; :meth:`RunRecorder.tick_values` packs one here, the generic
+:meth:`RunRecorder.tick` pickles a dict) and :meth:`RunRecorder.event`.  Each packs
 the item into a preallocated batch buffer (no JSON, no I/O); every ``cfg.batch_ticks``
 ticks the batch goes to a pipe in one non-blocking ``write``.  The writer process
 (:mod:`rig.recording.writer`) reads the pipe, encodes JSON, fills MCAP chunks
@@ -64,6 +65,7 @@ from rig.recording.codec import (
     encode_layout,
     encode_pickled_tick,
 )
+from rig.recording.cpus import leave_the_loops_cpus
 from rig.recording.run_data import CanFrameRecord, EventRecord, RunData, TickRecord, read_run
 from rig.recording.schema import (
     CONFIG_ATTACHMENT,
@@ -234,6 +236,7 @@ class RunRecorder:
         return self._proc.pid
 
     def _read_status(self) -> None:
+        leave_the_loops_cpus()          # this thread does not share the loop's CPU
         out = self._proc.stdout
         assert out is not None
         for st in json_lines(out):
@@ -259,7 +262,8 @@ class RunRecorder:
         self._ready.set()
 
     # ------------------------------------------------------------------ loop side (cheap)
-    def can_frame(self, t_ns: int, tick: int, arbitration_id: int, data: bytes | bytearray,
+    def can_frame(self, t_ns: int, tick: int, arbitration_id: int,
+                  data: bytes | bytearray | memoryview,
                   is_rx: bool, error_frame: bool = False, extended_id: bool = False) -> bool:
         """Add one raw frame to this tick's batch (``data`` is copied).  Never blocks;
         False = dropped (writer failed or closed).  Sent with the next tick record."""
@@ -308,6 +312,31 @@ class RunRecorder:
             self._send_bytes(bytes(packer.buffer))
             return self.flush()
         self._mv[n:n + size] = packer.buffer
+        self._n = n + size
+        self._items += 1
+        return self._end_of_tick()
+
+    def tick_packed(self, record: bytes | bytearray | memoryview) -> bool:
+        """Add a tick record packed already (one ``ITEM_TICK`` of the declared
+        ``tick_layout``, e.g. the loop's :class:`TickPacker` buffer, copied at once: the
+        loop packs a tick once for the recording and the telemetry process); sent like
+        :meth:`tick_values`' records.  False = the batch this call sent was dropped."""
+        packer = self._packer
+        if packer is None:
+            raise ValueError("tick_packed needs a RunRecorder made with a tick_layout")
+        size = len(record)
+        if size != packer.size:
+            raise ValueError(f"tick record of {size} bytes, the layout's are {packer.size}")
+        if self._failed or self._closed:
+            self._dropped += 1
+            return False
+        if self._n + size > _BATCH_BYTES:
+            self.flush()
+        if size > _BATCH_BYTES:
+            self._send_bytes(bytes(record))
+            return self.flush()
+        n = self._n
+        self._mv[n:n + size] = record
         self._n = n + size
         self._items += 1
         return self._end_of_tick()

@@ -45,6 +45,7 @@ from rig.recording.codec import (
     read_stream_header,
     split_items,
 )
+from rig.recording.cpus import leave_the_loops_cpus
 from rig.recording.scene import next_scene_ns, scene_json
 from rig.recording.schema import (
     CONFIG_ATTACHMENT,
@@ -348,18 +349,6 @@ class _Backlog:
             return chunk
 
 
-def _online_cpus() -> set[int]:
-    try:
-        text = Path("/sys/devices/system/cpu/online").read_text().strip()
-    except OSError:
-        return set(range(os.cpu_count() or 1))
-    cpus: set[int] = set()
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        cpus.update(range(int(lo), int(hi or lo) + 1))
-    return cpus
-
-
 def stay_out_of_the_loops_way() -> None:
     """Ignore the stop signals (the loop process ends the writer; the telemetry process
     too, rig.telemetry_process.child), drop a real-time
@@ -370,12 +359,7 @@ def stay_out_of_the_loops_way() -> None:
     if hasattr(os, "sched_setscheduler"):
         with contextlib.suppress(OSError):
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    if hasattr(os, "sched_getaffinity"):
-        with contextlib.suppress(OSError, ValueError):
-            inherited = os.sched_getaffinity(0)
-            others = _online_cpus() - inherited
-            if others:
-                os.sched_setaffinity(0, others)
+    leave_the_loops_cpus()
 
 
 def main() -> int:

@@ -4,7 +4,10 @@ Each measure is tried where the platform and the privileges allow it; what could
 could not be had is reported, never raised:
 
 - ``SCHED_FIFO`` priority for the loop thread (``os.sched_setscheduler``; needs
-  CAP_SYS_NICE or an rtprio limit),
+  CAP_SYS_NICE or an rtprio limit), with ``SCHED_RESET_ON_FORK``: a thread or process
+  started later from the loop thread (a restarted writer, a helper thread) is an
+  ordinary one, never a real-time peer of the loop (systemd's
+  ``CPUSchedulingResetOnFork=yes`` does the same for the service's main thread),
 - CPU affinity (``os.sched_setaffinity``),
 - ``mlockall(MCL_CURRENT | MCL_FUTURE)`` through ctypes (needs CAP_IPC_LOCK or memlock
   limit),
@@ -90,7 +93,9 @@ def _set_fifo(priority: int, report: RealtimeReport) -> None:
         lo = os.sched_get_priority_min(os.SCHED_FIFO)
         hi = os.sched_get_priority_max(os.SCHED_FIFO)
         prio = max(lo, min(hi, priority))
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+        # the flag: threads and processes started from this thread do not inherit FIFO
+        os.sched_setscheduler(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
+                              os.sched_param(prio))
         report.granted["sched_fifo"] = str(prio)
     except OSError as exc:
         report.denied["sched_fifo"] = exc.strerror or str(exc)

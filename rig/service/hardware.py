@@ -7,6 +7,16 @@ held in attributes for the update.  The ``write_*`` methods encode into prealloc
 messages and send without blocking.  Receive and send errors are bus faults for the
 monitor and ``note`` events for the recording; nothing here raises for a bad frame and
 nothing allocates per frame in steady state.
+
+Recording a frame costs the loop a ``struct.pack_into`` and a copy into the recorder's
+batch; it is not on the way from the sensor frame to the valve command.  The frames of a
+tick are noted in a preallocated log as they come and go (a received message by
+reference: a bus returns a new one per ``recv``; a sent one's bytes copied, since the
+preallocated message is encoded again) and handed to the recorder by
+:meth:`RigIO.record_frames`, which the loop calls after the tick's frames are out and
+before any other item of the recording (an event, the tick record), so that the
+recording's items and their order are what they would be if each frame were recorded as
+it came.
 """
 
 from __future__ import annotations
@@ -34,7 +44,11 @@ from rig.wire.protocol import (
 )
 from rig.wire_modes import to_wire
 
-__all__ = ["RigIO", "bus_exception_note"]
+__all__ = ["FRAME_LOG_SLOTS", "RigIO", "bus_exception_note"]
+
+#: frames noted per tick before the log is handed to the recorder early (a tick has 4-6)
+FRAME_LOG_SLOTS = 64
+_MAX_DATA = 64             # a CAN FD frame's bytes
 
 _OK = DecodeStatus.OK
 _OUT_OF_RANGE = DecodeStatus.OUT_OF_RANGE
@@ -65,6 +79,15 @@ class RigIO:
         self._status_msg = make_tx_message(CONTROLLER_STATUS.frame_id)
         self._sd = SensorData()
         self._rs = RigStatus()
+        # the frame log (see the module docstring): per slot the time, tick, message
+        # (received) or None (sent: id, flags and bytes copied into the slot)
+        self._log_n = 0
+        self._log_t = [0] * FRAME_LOG_SLOTS
+        self._log_tick = [0] * FRAME_LOG_SLOTS
+        self._log_msg: list[can.Message | None] = [None] * FRAME_LOG_SLOTS
+        self._log_id = [0] * FRAME_LOG_SLOTS
+        self._log_dlc = [0] * FRAME_LOG_SLOTS
+        self._log_data = [memoryview(bytearray(_MAX_DATA)) for _ in range(FRAME_LOG_SLOTS)]
         self.reset()
 
     def reset(self) -> None:
@@ -102,11 +125,14 @@ class RigIO:
                 return
             self.rx_frames += 1
             if rec is not None:
-                try:
-                    rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, True,
-                                  msg.is_error_frame, msg.is_extended_id)
-                except Exception as exc:
-                    self._on_output_error(exc)
+                n = self._log_n
+                if n == FRAME_LOG_SLOTS:
+                    self.record_frames()
+                    n = 0
+                self._log_t[n] = now_ns
+                self._log_tick[n] = tick
+                self._log_msg[n] = msg
+                self._log_n = n + 1
             if msg.is_error_frame:
                 code = classify_error_frame(msg)
                 if code is not _NONE:
@@ -147,13 +173,46 @@ class RigIO:
                                       "arbitration_id": msg.arbitration_id})
             return False
         self.tx_frames += 1
+        if self.recorder is not None:
+            n = self._log_n
+            if n == FRAME_LOG_SLOTS:
+                self.record_frames()
+                n = 0
+            data = msg.data
+            dlc = len(data)
+            self._log_t[n] = now_ns
+            self._log_tick[n] = tick
+            self._log_msg[n] = None
+            self._log_id[n] = msg.arbitration_id
+            self._log_dlc[n] = dlc
+            self._log_data[n][:dlc] = data
+            self._log_n = n + 1
+        return True
+
+    def record_frames(self) -> None:
+        """Hand the frames noted since the last call to the recorder, in the order they
+        came and went (the loop: after the tick's frames are out, and before any other
+        item it records).  A recorder that raises is counted, never raised."""
+        n = self._log_n
+        if n == 0:
+            return
+        self._log_n = 0
         rec = self.recorder
-        if rec is not None:
+        msgs = self._log_msg
+        for i in range(n):
+            msg = msgs[i]
+            msgs[i] = None
+            if rec is None:
+                continue
             try:
-                rec.can_frame(now_ns, tick, msg.arbitration_id, msg.data, False)
+                if msg is not None:
+                    rec.can_frame(self._log_t[i], self._log_tick[i], msg.arbitration_id,
+                                  msg.data, True, msg.is_error_frame, msg.is_extended_id)
+                else:
+                    rec.can_frame(self._log_t[i], self._log_tick[i], self._log_id[i],
+                                  self._log_data[i][:self._log_dlc[i]], False)
             except Exception as exc:
                 self._on_output_error(exc)
-        return True
 
     def write_valve(self, now_ns: int, tick: int, enable: int, lifecycle: int, spool: float,
                     force_ref_n: float) -> bool:

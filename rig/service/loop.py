@@ -27,10 +27,13 @@ Per tick, in this order (latency from sensor frame to valve command kept short):
 5. ACTIVE: PI force loop -> spool; otherwise the safe command (Enable=0, spool 0);
 6. send ValveCommand (with SensorCounterEcho); heartbeat ControllerStatus at
    ``cfg.safety.heartbeat_hz`` (FaultReport repeated with it while latched);
-7. systemd watchdog ping, the recording (its writer process) and the telemetry
-   process (the packed tick record every ``telemetry_every`` ticks: Zenoh and the live
-   Foxglove view; :mod:`rig.telemetry_process`), both non-blocking pipes that drop and
-   count; every ``telemetry_every`` ticks the telemetry process's operator commands are
+7. systemd watchdog ping; the step time ends here.  Then the outputs: the tick's CAN
+   frames to the recording (:meth:`rig.service.hardware.RigIO.record_frames`), and
+   the tick record, packed once (:class:`rig.recording.codec.TickPacker`) and the same
+   bytes handed to the recording (its writer process) and, every ``telemetry_every``
+   ticks, to the telemetry process (Zenoh and the live Foxglove view;
+   :mod:`rig.telemetry_process`), both non-blocking pipes that drop and count.  Every
+   ``telemetry_every`` ticks, before 1., the telemetry process's operator commands are
    taken (at most one, validated again) and the process's losses recorded.
 
 An exception anywhere in 2-6 is caught: EXCEPTION fault, safe command.  A recording or
@@ -56,7 +59,7 @@ import numpy as np
 from controller.config import RigConfig
 from controller.runtime.kernels import StepFlag
 from rig.operator_commands import OPERATOR_COMMANDS
-from rig.recording.codec import TickLayout
+from rig.recording.codec import TickLayout, TickPacker
 from rig.rt.pacing import LOOP_SPIN_NS, Pacer, TickPacer
 from rig.rt.sdnotify import SdNotifier
 from rig.service.hardware import RigIO
@@ -200,8 +203,10 @@ class ControlLoop:
         #: RIG_WATCHDOG to the loop's lateness; 0: unknown
         self.peer_watchdog_ns = 0
 
+        #: the tick record, packed once per tick for the recording and the telemetry
+        self._packer = TickPacker(tick_record_layout(runtime))
         if recorder is not None:
-            recorder.set_tick_layout(tick_record_layout(runtime))
+            recorder.set_tick_layout(self._packer.layout)
         self._record_scalars = operator.attrgetter(
             *(src for _k, kind, src in TICK_RECORD_FIELDS if kind != "array"))
         self._record_arrays = operator.attrgetter(
@@ -245,6 +250,8 @@ class ControlLoop:
     def recorder(self, recorder: Recorder | None) -> None:
         self._recorder = recorder
         self.io.recorder = recorder
+        if recorder is not None:
+            recorder.set_tick_layout(self._packer.layout)
 
     # the hardware interface's read-outs, for status, telemetry and the operator's view
     bus = property(operator.attrgetter("io.bus"), doc="the CAN bus")
@@ -428,8 +435,9 @@ class ControlLoop:
 
     def _record_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> None:
         """An event to the recording and the telemetry process; a failing output never
-        disturbs the loop."""
+        disturbs the loop.  The frames noted before it are recorded first (their order)."""
         if self.recorder is not None:
+            self.io.record_frames()
             try:
                 self.recorder.event(t_ns, tick, kind, detail)
             except Exception as exc:
@@ -530,12 +538,14 @@ class ControlLoop:
             rec = self._recorder
             tel = self.telemetry
             feed = tel is not None and tick % self.telemetry_every == 0
+            if rec is not None:
+                self.io.record_frames()
             if rec is not None or feed:
-                scalars, arrays = self._tick_record(now_ns)
+                record = self._tick_record(now_ns)
                 if rec is not None:
-                    rec.tick_values(now_ns, scalars, arrays)
+                    rec.tick_packed(record)
                 if feed:
-                    tel.offer_tick(now_ns, scalars, arrays)  # type: ignore[union-attr]
+                    tel.offer_packed(record)  # type: ignore[union-attr]
             else:
                 self._last_wake_ns = now_ns
         except Exception as exc:    # the outputs never stop the control loop
@@ -675,9 +685,10 @@ class ControlLoop:
             self._send_fault_report(now_ns, tick)
 
     # ------------------------------------------------------------------ outputs
-    def _tick_record(self, now_ns: int) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
-        """This tick's record for the recorder and the live view: (scalars, arrays) in
-        :data:`TICK_RECORD_FIELDS` order."""
+    def _tick_record(self, now_ns: int) -> bytearray:
+        """This tick's record for the recorder and the live view, packed (one
+        ``ITEM_TICK`` of :data:`TICK_RECORD_FIELDS`; the packer's buffer, valid until
+        the next tick)."""
         wake_prev = self._last_wake_ns
         self._last_wake_ns = now_ns
         rec, tel = self.recorder, self.telemetry
@@ -685,7 +696,9 @@ class ControlLoop:
         self.overrun = self.lateness_ns > self.timing.overrun_threshold_ns
         self.recording_dropped = rec.dropped if rec is not None else 0
         self.telemetry_dropped = tel.dropped if tel is not None else 0
-        return self._record_scalars(self), self._record_arrays(self)
+        packer = self._packer
+        packer.pack(now_ns, self._record_scalars(self), self._record_arrays(self))
+        return packer.buffer
 
     def status(self) -> dict[str, Any]:
         """Full status (off the hot path: built by the telemetry link's status thread)."""
@@ -768,3 +781,4 @@ class ControlLoop:
             self._heartbeat(now, self.tick_count)
         except Exception:
             log.exception("could not send the shutdown frames")
+        self.io.record_frames()

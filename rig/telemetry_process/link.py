@@ -4,16 +4,20 @@
 the live Foxglove server, :mod:`rig.telemetry_process.child`) and feeds it through a
 pipe, as :class:`rig.recording.recorder.RunRecorder` feeds its writer:
 
-- the loop thread calls :meth:`TelemetryLink.offer_tick` every :attr:`tick_every` ticks
-  (the recording's packed tick record, :class:`rig.recording.codec.TickPacker`: a
-  ``struct.pack_into``, a few array copies and one non-blocking ``write``; no JSON) and
+- the loop thread calls :meth:`TelemetryLink.offer_packed` every :attr:`tick_every`
+  ticks with the tick record it packed for the recording
+  (:class:`rig.recording.codec.TickPacker`): one non-blocking ``write``, no JSON; and
   :meth:`TelemetryLink.offer_event` for each event; a full pipe (the process is slow)
   or a dead process drops the item and counts it (:attr:`dropped`, the tick record's
   ``dropped_telemetry``);
 - a status thread builds the service's status every :data:`STATUS_PERIOD_S` (off the
   loop thread) and leaves it for the loop thread, which writes it with its next tick
   record: the process answers ``rig/status`` queries from it and never calls into the
-  loop process;
+  loop process.  The loop thread wakes the status thread right after it wrote a tick
+  record (every :data:`STATUS_PERIOD_S` of records), so that the build, ~0.05-0.3 ms
+  of Python holding the interpreter lock, runs while the loop sleeps until its next
+  deadline instead of at a random moment (a loop thread woken while another thread
+  holds the lock waits up to the switch interval, 100 us, for it);
 - operator commands come back as JSON lines on the process's stdout.  A supervisor
   thread reads them (at most 8 KiB every 5 ms, lines over :data:`MAX_LINE_BYTES`
   dropped) into a bounded queue; the loop thread takes at most one per
@@ -45,7 +49,8 @@ from typing import Any, Final, Protocol
 
 from controller.config import RigConfig, config_to_toml
 from rig.operator_commands import OPERATOR_COMMANDS, brief, loop_argument, validate_command
-from rig.recording.codec import TickLayout, TickPacker, encode_end, encode_event, encode_layout
+from rig.recording.codec import TickLayout, encode_end, encode_event, encode_layout
+from rig.recording.cpus import leave_the_loops_cpus, on_the_loops_cpus
 from rig.telemetry_process.feed import (
     MAX_LINE_BYTES,
     STATUS_PERIOD_S,
@@ -154,7 +159,8 @@ class TelemetryLink:
         self._pipe_bytes = pipe_bytes
         self._status_provider = status_provider
         self._on_note = on_note
-        self._packer = TickPacker(layout)
+        #: bytes of one packed tick record of ``layout``
+        self._record_size = layout.item_size()
         offset = (time.time_ns() - time.monotonic_ns() if clock_offset_ns is None
                   else int(clock_offset_ns))
         self._header = encode_feed_header({
@@ -181,6 +187,10 @@ class TelemetryLink:
         self._connected = threading.Event()
         self._settled = threading.Event()
         self._closing = threading.Event()
+        #: set by the loop thread after a tick record: time to build the status
+        self._status_due = threading.Event()
+        self._status_every = max(1, round(STATUS_PERIOD_S * rate / self.tick_every))
+        self._records = 0            # tick records offered since the last status
         self._status_blob: bytes | None = None
         self.foxglove = _FoxgloveReport(self)
         self._child: _Child | None = None
@@ -196,20 +206,28 @@ class TelemetryLink:
                       "without it", start_timeout_s)
 
     # ------------------------------------------------------------------ loop side
-    def offer_tick(self, t_ns: int, scalars: Any, arrays: Any) -> bool:
-        """Write the packed tick record (and the status, when one is waiting).  Never
-        blocks; False (and ``dropped`` += 1) when it was not taken."""
+    def offer_packed(self, record: bytes | bytearray | memoryview) -> bool:
+        """Write a tick record the loop packed already (one ``ITEM_TICK`` of the layout
+        this link was made with: the bytes the recording gets) and the status, when one
+        is waiting.  Never blocks; False (and ``dropped`` += 1) when it was not taken."""
         child = self._child
         if child is None or not child.alive:
             self.dropped += 1
             return False
+        if len(record) != self._record_size:
+            raise ValueError(f"tick record of {len(record)} bytes, the layout's are "
+                             f"{self._record_size}")
         status = self._status_blob
         if status is not None:
             self._status_blob = None
             self._send(child, status)
-        packer = self._packer
-        packer.pack(t_ns, scalars, arrays)
-        return self._send(child, packer.buffer)
+        taken = self._send(child, record)
+        self._records += 1
+        if self._records >= self._status_every:
+            # the status is built now, while the loop sleeps until its next deadline
+            self._records = 0
+            self._status_due.set()
+        return taken
 
     def offer_event(self, t_ns: int, tick: int, kind: str, detail: Any) -> bool:
         """An event (lifecycle, fault, command, note) for the live view; False when
@@ -238,7 +256,7 @@ class TelemetryLink:
         if child is not None and child.alive:
             self._send(child, encode_reply(cid, accepted, message))
 
-    def _send(self, child: _Child, data: bytes | bytearray) -> bool:
+    def _send(self, child: _Child, data: bytes | bytearray | memoryview) -> bool:
         try:
             if child.pending:
                 w = os.write(child.fd, child.pending)
@@ -305,6 +323,7 @@ class TelemetryLink:
         if self._closing.is_set():
             return
         self._closing.set()
+        self._status_due.set()
         child = self._child
         if child is not None:
             if child.alive and not child.pending:
@@ -356,6 +375,9 @@ class TelemetryLink:
             child.proc.wait(5.0)
 
     def _supervise(self, child: _Child) -> None:
+        # off the loop's CPU; a restarted process starts from the loop's CPUs (it leaves
+        # them itself, as the first one did)
+        loop_cpus = leave_the_loops_cpus()
         while True:
             self._read(child)
             rc = child.proc.wait()
@@ -380,7 +402,8 @@ class TelemetryLink:
             if self._closing.wait(pause):
                 return
             try:
-                child = self._spawn()
+                with on_the_loops_cpus(loop_cpus):
+                    child = self._spawn()
             except OSError as exc:
                 self.process_state = "lost"
                 self._lost(f"telemetry process not restarted: {exc}", rc, None)
@@ -487,9 +510,15 @@ class TelemetryLink:
             self._note("foxglove", str(fox.get("error")))
 
     def _build_status(self) -> None:
-        """Status thread: the service's status every STATUS_PERIOD_S, pickled here and
-        left for the loop thread to write (it alone writes the pipe)."""
-        while not self._closing.wait(STATUS_PERIOD_S):
+        """Status thread: the service's status when the loop thread asks for it (every
+        STATUS_PERIOD_S, right after a tick record), pickled here and left for the loop
+        thread to write (it alone writes the pipe)."""
+        leave_the_loops_cpus()          # this thread does not share the loop's CPU
+        while True:
+            self._status_due.wait()
+            self._status_due.clear()
+            if self._closing.is_set():
+                return
             try:
                 self._status_blob = encode_status(self._status_provider())
             except Exception as exc:   # a status that cannot be built is no reason to stop
