@@ -364,6 +364,13 @@ class DesignConfig:
                                   doc="ticks from the sensor sample to the valve that the "
                                       "'hydraulic' design assumes (CAN loop: 0 or 1)")
 
+    def single_gain_weight_set(self, weight_set: int | None = None) -> int:
+        """The weight set (1-based) whose one LQ gain stands for ``weight_set`` (default:
+        ``self.weight_set``) where one gain is needed (a linear analysis): the set
+        itself, or for 0, the travel schedule, its comfort set."""
+        ws = self.weight_set if weight_set is None else weight_set
+        return ws or self.schedule_weight_sets[0]
+
 
 @dataclass(frozen=True)
 class NoiseConfig:
@@ -774,8 +781,7 @@ class RigConfig:
     def weights(self) -> tuple[float, float, float, float]:
         """The selected [rho1, rho2, rho3, rho4] (weight_set 0, the travel schedule: its
         comfort set)."""
-        ws = self.design.weight_set or self.design.schedule_weight_sets[0]
-        w = self.design.weight_sets[ws - 1]
+        w = self.design.weight_sets[self.design.single_gain_weight_set() - 1]
         return (w[0], w[1], w[2], w[3])
 
     def replace(self, **sections: Any) -> RigConfig:
@@ -889,10 +895,11 @@ def _cross_checks(cfg: RigConfig) -> None:
     d = cfg.design
     if cfg.design.weight_set > len(d.weight_sets):
         raise ConfigError("design.weight_set", d.weight_set, f"[1, {len(d.weight_sets)}]")
-    for i, ws in enumerate(d.schedule_weight_sets if d.weight_set == 0 else []):
-        if ws > len(d.weight_sets):
-            raise ConfigError(f"design.schedule_weight_sets[{i}]", ws,
-                              f"[1, {len(d.weight_sets)}]")
+    if d.weight_set == 0:
+        for i, ws in enumerate(d.schedule_weight_sets):
+            if ws > len(d.weight_sets):
+                raise ConfigError(f"design.schedule_weight_sets[{i}]", ws,
+                                  f"[1, {len(d.weight_sets)}]")
     if len(d.schedule_weight_sets) != 2:
         raise ConfigError("design.schedule_weight_sets", d.schedule_weight_sets,
                           "2 weight sets [comfort, travel]")

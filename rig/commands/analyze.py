@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     w = cfg.design.weight_set if args.weights is None else args.weights
-    ws = w or cfg.design.schedule_weight_sets[0]    # 0, the travel schedule: its comfort set
+    ws = cfg.design.single_gain_weight_set(w)       # 0, the travel schedule: its comfort set
     result = analyze(cfg, ws)
     if args.json:
         out = {name: {kind: {k: entry[kind][k] for k in _KEYS} for kind in ("lq", "lqg")}
