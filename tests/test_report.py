@@ -486,3 +486,20 @@ def test_screenshot_shows_summary_events_table_and_model_legend(report: Path,
     for phase in Phase:
         shade = _shade(PHASE_COLOURS[phase])
         assert _pixels_near(page, shade, tol=3) - _pixels_near(rest, shade, tol=3) > 2000
+
+
+def test_comfort_share_row_is_the_phase_mean_and_nan_where_not_recorded() -> None:
+    """The travel schedule's row: the mean of the recorded comfort share over each phase;
+    a recording without the field (before the schedule) gives NaN, not 0."""
+    n = 1000
+    s = _synthetic(np.zeros(n), np.zeros(n), np.zeros(n))
+    s.lifecycle = ["INACTIVE"] * 400 + ["ACTIVE"] * 600
+    s.signals["valve_enable"][:400] = 0.0
+    share = np.concatenate([np.full(400, 0.9), np.linspace(0.0, 1.0, 600)])
+    s.comfort_share = share
+    ph = phase_metrics(s)
+    assert ph["active"]["comfort_share_mean"] == pytest.approx(0.5)
+    assert ph["passive"]["comfort_share_mean"] == pytest.approx(0.9)
+    assert "travel-schedule comfort share, mean" in _summary_table(ph)
+    s.comfort_share = np.zeros(0)
+    assert math.isnan(phase_metrics(s)["active"]["comfort_share_mean"])

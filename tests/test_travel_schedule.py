@@ -25,6 +25,9 @@ from controller.runtime.kernels import (
 from controller.travel_schedule import SCHEDULE_SIZE, comfort_share, travel_schedule
 from hil.sim.closed_loop import cached_design, simulate
 from hil.sim.roads import make_road
+from rig.service.loop import TICK_RECORD_FIELDS
+from rig.telemetry_process.child import snapshot_of
+from tests.support.loop_harness import LoopHarness
 
 
 def _python_law(readings: list[float]) -> list[float]:
@@ -120,3 +123,16 @@ def test_course_run_keeps_off_the_stops_with_more_comfort_than_set_1(seed: int) 
     assert sched["bump_stop_time_s"] <= passive["bump_stop_time_s"] + 0.001 * 60.0
     assert sched["absorbed_power"] < 0.8 * res[1]["absorbed_power"]
     assert 0.0 < sched["schedule_comfort_share"] < 1.0
+
+
+def test_loop_records_and_publishes_the_comfort_share(armed: LoopHarness) -> None:
+    """The tick record carries the bank's comfort share as it was on that tick, and the
+    telemetry state built from the record shows it."""
+    h = armed
+    h.rt.comfort_share = 0.25
+    h.step()
+    h.loop._tick_record(0)
+    keys = [k for k, kind, _ in TICK_RECORD_FIELDS if kind != "array"]
+    rec = dict(zip(keys, h.loop._record_scalars(h.loop), strict=True))
+    assert rec["comfort_share"] == 0.25
+    assert snapshot_of(0, rec, h.loop.status())["state"]["comfort_share"] == 0.25
