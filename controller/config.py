@@ -655,6 +655,15 @@ class SafetyConfig:
                                            "(0 = zero force reference: the passive "
                                            "suspension); ramps over "
                                            "estimator_authority_ramp_s")
+    ride_height_window_s: float = _f(2.0, lo=0.0, hi=600.0, lo_open=True,
+                                     doc="ride-height monitor: time constant of the mean "
+                                         "LVDT reading about the stops' centre "
+                                         "(docs/design.md §9.9)")
+    ride_height_warn_m: float = _f(0.02, lo=0.0, hi=1.0,
+                                   doc="ride-height monitor: a mean position farther than "
+                                       "this from the stops' centre is reported (an event, "
+                                       "the status; e.g. ballast put on without re-setting "
+                                       "the preload), not a fault; 0 = off")
     force_range_n: float = _f(15000.0, lo=1.0, hi=1e6)
     heartbeat_hz: float = _f(10.0, lo=0.1, hi=1000.0)
     frozen_ticks: int = _f(50, lo=2, hi=100000,

@@ -503,3 +503,20 @@ def test_comfort_share_row_is_the_phase_mean_and_nan_where_not_recorded() -> Non
     assert "travel-schedule comfort share, mean" in _summary_table(ph)
     s.comfort_share = np.zeros(0)
     assert math.isnan(phase_metrics(s)["active"]["comfort_share_mean"])
+
+
+def test_ride_height_row_is_the_largest_magnitude_and_nan_where_not_recorded() -> None:
+    """The ride-height row: the largest |recorded ride height| over each phase (a sag
+    toward either stop shows); a recording without the field gives NaN, not 0."""
+    n = 1000
+    s = _synthetic(np.zeros(n), np.zeros(n), np.zeros(n))
+    s.lifecycle = ["INACTIVE"] * 400 + ["ACTIVE"] * 600
+    s.signals["valve_enable"][:400] = 0.0
+    s.ride_height_m = np.concatenate([np.full(400, 0.004),
+                                      np.linspace(0.01, -0.03, 600)])
+    ph = phase_metrics(s)
+    assert ph["active"]["ride_height_max_m"] == pytest.approx(0.03)
+    assert ph["passive"]["ride_height_max_m"] == pytest.approx(0.004)
+    assert "ride height (mean LVDT reading from mid-travel)" in _summary_table(ph)
+    s.ride_height_m = np.zeros(0)
+    assert math.isnan(phase_metrics(s)["active"]["ride_height_max_m"])

@@ -62,6 +62,7 @@ from controller.config import RigConfig, default_config, parse_config
 from controller.mass_estimator import ME_EST, ME_NUPD, ME_SIZE, mass_estimator_parameters
 from controller.monitor import MonitorSettings, monitor_settings
 from controller.plant import static_tire_deflection_m
+from controller.ride_height import ride_height_settings
 from controller.road_noise import nearest_noise_entry
 from controller.runtime.bayes import bayes_update, log_likelihood_constant
 from controller.runtime.kernels import (
@@ -109,6 +110,11 @@ from controller.runtime.kernels import (
     F_QUANT,
     F_QW_ALPHA,
     F_RECENTRE,
+    F_RH,
+    F_RH_ALPHA,
+    F_RH_CENTRE,
+    F_RH_CLEAR,
+    F_RH_WARN,
     F_SB,
     F_SB_DF,
     F_SB_V,
@@ -199,6 +205,7 @@ from controller.runtime.kernels import (
     I_PROBE_PTR,
     I_QGRID,
     I_RECOMP,
+    I_RH_OFF,
     I_SB_TICKS,
     I_SC_DEG,
     I_SC_DEGTICKS,
@@ -272,6 +279,7 @@ from controller.runtime.kernels import (
     mass_estimate,
     mass_estimate_reset,
     ramp_authority,
+    ride_height,
     servo_update,
     stop_barrier,
     stop_contact,
@@ -671,6 +679,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     # ---- estimator monitor (docs/design.md §9), human-body filter, guard, spool model
     flags |= _monitor(fv, iv, qmin, e_min)
     flags |= stop_contact(fv, iv, rattlespace_m)
+    flags |= ride_height(fv, iv, rattlespace_m)
     flags |= _human_filter(fv, xf0, xf1, accel_mps2)
     out = stop_guard(fv, out * (fv[F_AUTH] * fv[F_SC_AUTH]), rattlespace_m)
     out = stop_barrier(fv, iv, out, rattlespace_m)
@@ -776,6 +785,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_AUTH] = 1.0
     fv[F_SC_TIME] = 0.0
     fv[F_SC_AUTH] = 1.0
+    fv[F_RH] = 0.0
     fv[F_AMEAN] = 0.0
     fv[F_TS_ENV] = 0.0
     fv[F_TS_BETA] = 0.0
@@ -803,7 +813,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
                 I_FLAGS, I_NUPD, I_NSWITCH, I_NLEARN, I_NRECENTRE, I_TICK, I_NLIFT_LOAD,
                 I_LPTR, I_LCNT, I_MON_PTR, I_MON_DEG, I_MON_OK, I_MON_BAD,
                 I_MON_NDEG, I_MON_DEGTICKS, I_SB_TICKS, I_SC_DEG, I_SC_OK, I_SC_TICKS,
-                I_SC_EPISODES, I_SC_NDEG, I_SC_DEGTICKS):
+                I_SC_EPISODES, I_SC_NDEG, I_SC_DEGTICKS, I_RH_OFF):
         iv[idx] = 0
     iv[I_SC_QUIET] = iv[I_SC_GAP]      # no contact yet: the first contact tick opens an episode
     iv[I_MON_CNT] = -iv[I_MON_N]
@@ -992,6 +1002,9 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     sc = stop_contact_settings(cfg, dt)
     fv[F_SC_DECAY], fv[F_SC_TICK], fv[F_SC_BAND] = sc.decay, sc.tick_s, sc.band_m
     fv[F_SC_BUDGET], fv[F_SC_REARM], fv[F_SC_FLOOR] = sc.budget_s, sc.rearm_level_s, sc.authority
+    rh = ride_height_settings(cfg, dt)
+    fv[F_RH_ALPHA], fv[F_RH_CENTRE] = rh.alpha, rh.centre_m
+    fv[F_RH_WARN], fv[F_RH_CLEAR] = rh.warn_m, rh.clear_m
     fv[F_TFLOOR] = chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
     fv[F_LOFF] = mb.liftoff_load_fraction
     fv[F_LON] = mb.liftoff_load_fraction / mb.hysteresis_ratio
@@ -1278,6 +1291,15 @@ class BankRuntime:
     stop_degraded = SlotValue(
         "_iv", I_SC_DEG, bool,
         "The stop-contact monitor has the bank on its travel-conservative law (STOP_DEGRADED).")
+
+    ride_height_m = SlotValue(
+        "_fv", F_RH, float,
+        "Ride height: the mean LVDT reading about the stops' centre [m], compression "
+        "positive (controller/ride_height.py); 0 after a reset.")
+
+    off_centre = SlotValue(
+        "_iv", I_RH_OFF, bool,
+        "The ride-height monitor finds the body off the stops' centre (RIDE_HEIGHT).")
 
     stop_authority = SlotValue(
         "_fv", F_SC_AUTH, float,

@@ -12,7 +12,8 @@ the runtime packs its data into six buffers instead of ~30 named arrays:
 ``active`` (J,) bool: the filters that run this tick.
 ``fv`` float: scalar parameters, then scalar state (incl. the moving bank's tire-contact
     test, F_LOFF..F_LC, the bump-stop input F_BS_*, the estimator monitor F_MON_*, the
-    end-stop guard F_GUARD_*, the end-stop barrier F_SB*, the stop-contact monitor F_SC_*), then
+    end-stop guard F_GUARD_*, the end-stop barrier F_SB*, the stop-contact monitor F_SC_*,
+    the ride-height monitor F_RH*), then
     the fuzzy table, the residual-history histogram, the tire-load estimator's rings of
     the last 2Δ+1 rattlespace and acceleration samples and the monitor's window ring, at
     offsets stored in ``iv`` (the rings follow the histogram).
@@ -83,10 +84,12 @@ class StepFlag(IntFlag):
     DEGRADED = 16
     STOP_DEGRADED = 32      # the stop-contact monitor has the bank on its travel-conservative law
     STOP_CONTACT = 64       # the tick lies in a bump-stop contact episode (a read-out, no fault)
+    RIDE_HEIGHT = 128       # the body's mean position is off the stops' centre (read-out, no fault)
 
 
 _STOP_DEGRADED = int(StepFlag.STOP_DEGRADED)
 _STOP_CONTACT = int(StepFlag.STOP_CONTACT)
+_RIDE_HEIGHT = int(StepFlag.RIDE_HEIGHT)
 
 MEAS_DIM = 2            # m, measurement dimension [rattlespace_abs, accel]
 Q_MAX = 1.0e12          # likelihood quotients are clamped here (keeps smoothing finite)
@@ -222,6 +225,12 @@ F_SC_REARM = FV.slot()  # re-arm when it stays below this for I_SC_RECOVER ticks
 F_SC_FLOOR = FV.slot()  # force authority of the travel-conservative law
 F_SC_TIME = FV.slot()  # contact time in the window [s] (state)
 F_SC_AUTH = FV.slot()  # the monitor's force authority in [F_SC_FLOOR, 1] (state)
+# --- fv: ride-height monitor (controller/ride_height.py, docs/design.md §9.9)
+F_RH_ALPHA = FV.slot()  # α, weight of a new reading per tick
+F_RH_CENTRE = FV.slot()  # LVDT reading half-way between the stops [m]
+F_RH_WARN = FV.slot()  # off centre above this |ride height| [m] (0: never)
+F_RH_CLEAR = FV.slot()  # centred again below this |ride height| [m]
+F_RH = FV.slot()  # ride height: mean LVDT reading about the stops' centre [m] (state; 0: reset)
 F_LHYST = FV.slot()  # layer hysteresis: switch when |log(est / M_new)| + this < |log(est / M_cur)|
 F_ME = FV.slot(ME_SIZE)  # sprung-mass estimator: mass_estimator_parameters() (λ = 0: off)
 F_MES = FV.slot(ME_STATE_SIZE)  # sprung-mass estimator: state (controller/mass_estimator.py)
@@ -295,6 +304,7 @@ I_SC_TICKS = IV.slot()  # contact ticks since reset (state)
 I_SC_EPISODES = IV.slot()  # contact episodes since reset (state)
 I_SC_NDEG = IV.slot()  # stop degradations since reset (state)
 I_SC_DEGTICKS = IV.slot()  # ticks spent stop-degraded since reset (state)
+I_RH_OFF = IV.slot()  # 1 while the body is off centre (ride-height monitor; state)
 # --- iv: sprung-mass layers (controller/runtime/mass_layers.py)
 I_NLAYER = IV.slot()  # number of sprung-mass layers (1: no scheduling)
 I_NTIRE = IV.slot()  # on-ground models per layer (model j of layer l is l * NTIRE + t)
@@ -463,6 +473,26 @@ def stop_contact(fv: np.ndarray, iv: np.ndarray, rattlespace_m: float) -> int:
         iv[I_SC_DEGTICKS] += 1
     ramp_authority(fv, F_SC_AUTH, degraded, fv[F_SC_FLOOR])
     return flags
+
+
+@nb.njit(cache=True, nogil=True)
+def ride_height(fv: np.ndarray, iv: np.ndarray, rattlespace_m: float) -> int:
+    """The ride-height monitor, once per tick (controller/ride_height.py): the exponential
+    mean ``F_RH`` of the LVDT reading about the stops' centre, off centre (``I_RH_OFF``)
+    above ``F_RH_WARN`` until below ``F_RH_CLEAR``.  Returns the flag bit (RIDE_HEIGHT)."""
+    x = rattlespace_m - fv[F_RH_CENTRE]
+    if not math.isfinite(x):
+        return _RIDE_HEIGHT if iv[I_RH_OFF] != 0 else 0
+    h = fv[F_RH] + fv[F_RH_ALPHA] * (x - fv[F_RH])
+    fv[F_RH] = h
+    if fv[F_RH_WARN] <= 0.0:
+        iv[I_RH_OFF] = 0
+    elif iv[I_RH_OFF] != 0:
+        if abs(h) < fv[F_RH_CLEAR]:
+            iv[I_RH_OFF] = 0
+    elif abs(h) > fv[F_RH_WARN]:
+        iv[I_RH_OFF] = 1
+    return _RIDE_HEIGHT if iv[I_RH_OFF] != 0 else 0
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

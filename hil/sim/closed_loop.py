@@ -147,6 +147,7 @@ class BankController:
                          | StepFlag.DIVERGED)
         self._no_rule = int(StepFlag.NO_RULE_FIRED)
         self._degraded = int(StepFlag.DEGRADED)
+        self._off_centre = int(StepFlag.RIDE_HEIGHT)
         self.reset()
 
     def reset(self) -> None:
@@ -156,6 +157,9 @@ class BankController:
         self.degraded_ticks = 0
         self.ticks = 0
         self.comfort_share_sum = 0.0
+        self.off_centre_ticks = 0
+        self.off_centre_first_tick = -1
+        self.ride_height_max_m = 0.0
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
         u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
@@ -166,6 +170,13 @@ class BankController:
             self.no_rule_ticks += 1
         if flags & self._degraded:
             self.degraded_ticks += 1
+        if flags & self._off_centre:
+            if self.off_centre_ticks == 0:
+                self.off_centre_first_tick = self.ticks - 1
+            self.off_centre_ticks += 1
+        h = abs(self.rt.ride_height_m)
+        if h > self.ride_height_max_m:
+            self.ride_height_max_m = h
         return u
 
     @property
@@ -184,8 +195,10 @@ class BankController:
         limited the force (docs/design.md §9.7), and the stop-contact monitor's view
         (§9.8): contact time by the LVDT reading [s], contact episodes, stop degradations
         and the fraction of ticks stop-degraded (the plant's own time on the stops is
-        ``bump_stop_time_s``), and the travel schedule's mean comfort share (§12; 0 when
-        the schedule is off)."""
+        ``bump_stop_time_s``), the travel schedule's mean comfort share (§12; 0 when
+        the schedule is off), and the ride-height monitor's (§9.9): the largest |ride
+        height| [m], the time off centre [s] and when it first found the body off centre
+        [s of the run; -1 never]."""
         n = self.ticks
         c = self.rt.counters()
         dt = self.rt.stop_contact_settings.tick_s
@@ -197,7 +210,12 @@ class BankController:
                 "stop_contact_episodes": float(c["stop_contact_episodes"]),
                 "stop_degradations": float(c["stop_degradations"]),
                 "stop_degraded_fraction": c["stop_degraded_ticks"] / n if n else 0.0,
-                "schedule_comfort_share": self.comfort_share_sum / n if n else 0.0}
+                "schedule_comfort_share": self.comfort_share_sum / n if n else 0.0,
+                "ride_height_max_m": self.ride_height_max_m,
+                "ride_height_off_centre_s": self.off_centre_ticks * dt,
+                "ride_height_first_off_centre_s": (self.off_centre_first_tick * dt
+                                                   if self.off_centre_first_tick >= 0
+                                                   else -1.0)}
 
     @property
     def firing_weight(self) -> FloatArray:

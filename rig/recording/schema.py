@@ -197,6 +197,10 @@ INTERNALS_SCHEMA: Final = _obj(
         "comfort_share": {**_NUM, "description": "the travel schedule's comfort-law share "
                           "of the force, 0..1 (1: weight set 2 alone, 0: weight set 1 "
                           "alone or the schedule off; docs/design.md §12)"},
+        "ride_height_m": {**_NUM, "description": "ride height: the mean LVDT reading "
+                          "about the stops' centre [m], compression positive (the "
+                          "ride-height monitor, docs/design.md §9.9; bit 128 of flags "
+                          "while it is off centre)"},
         "nonfinite": _NONFINITE_KEYS,
     },
     [],

@@ -76,6 +76,8 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "/controller/internals.sprung_mass_est_kg", ratio=False),
     SummaryRow("comfort_share_mean", "travel-schedule comfort share, mean", "",
                "/controller/internals.comfort_share", 3, ratio=False),
+    SummaryRow("ride_height_max_m", "ride height (mean LVDT reading from mid-travel), "
+               "largest |value|", "m", "/controller/internals.ride_height_m", 3, ratio=False),
     SummaryRow("no_rule_fired_pct", "ticks on which no fuzzy rule fired", "%",
                "/controller/internals.flags", 3, ratio=False),
     SummaryRow("lateness_p50_us", "wake-up lateness p50", "µs", "/rig/timing.wake_late_s"),
@@ -208,6 +210,9 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "comfort_share_mean": (float(np.nanmean(s.comfort_share[m]))
                                    if s.comfort_share.size == m.size and m.any()
                                    and np.isfinite(s.comfort_share[m]).any() else math.nan),
+            "ride_height_max_m": (float(np.nanmax(np.abs(s.ride_height_m[m])))
+                                  if s.ride_height_m.size == m.size and m.any()
+                                  and np.isfinite(s.ride_height_m[m]).any() else math.nan),
             "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
                                   if m.any() and np.any(s.flags[m] >= 0) else math.nan),
         }

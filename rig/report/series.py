@@ -100,6 +100,8 @@ class RunSeries:
     sprung_mass_est_kg: FloatArray = field(default_factory=lambda: np.zeros(0))
     #: /controller/internals.comfort_share per tick (NaN: not recorded)
     comfort_share: FloatArray = field(default_factory=lambda: np.zeros(0))
+    #: /controller/internals.ride_height_m per tick (NaN: not recorded)
+    ride_height_m: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def no_sensor_data(self) -> str | None:
         """Why the run has nothing to show -- tick records, but on none of them a fresh
@@ -286,11 +288,12 @@ def load_series(path: str | Path) -> RunSeries:
                      dtype=np.int64)
     mass = np.array([_f(r.get("sprung_mass_est_kg")) for r in recs])
     comfort = np.array([_f(r.get("comfort_share")) for r in recs])
+    ride = np.array([_f(r.get("ride_height_m")) for r in recs])
     config, problem = _config(scan)
     return RunSeries(Path(path), scan, tick, t_s, t0_ns, signals,
                      [str(r.get("lifecycle", "")) for r in recs],
                      [str(r.get("fault", "")) for r in recs], per_model, timing, events,
-                     _model_names(scan, J), config, problem, flags, mass, comfort)
+                     _model_names(scan, J), config, problem, flags, mass, comfort, ride)
 
 
 def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:

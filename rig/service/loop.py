@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import operator
 import threading
 import time
@@ -87,6 +88,7 @@ _DIVERGED = int(StepFlag.DIVERGED)
 _STOP_DEGRADED = int(StepFlag.STOP_DEGRADED)
 _STOP_CONTACT = int(StepFlag.STOP_CONTACT)
 _STOP_BITS = _STOP_DEGRADED | _STOP_CONTACT
+_RIDE_HEIGHT = int(StepFlag.RIDE_HEIGHT)
 _FAULT = LifecycleState.FAULT
 _STOPPING = LifecycleState.STOPPING
 
@@ -128,6 +130,7 @@ TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("stop_contact_s", "float", "rt.stop_contact_s"),
     ("stop_degraded", "bool", "stop_degraded"),
     ("comfort_share", "float", "rt.comfort_share"),
+    ("ride_height_m", "float", "rt.ride_height_m"),
 )
 
 
@@ -283,6 +286,7 @@ class ControlLoop:
         self.stop_degradations = 0      # times the stop-contact monitor degraded (not faults)
         self.stop_contact_episodes = 0  # bump-stop contact episodes seen
         self._episode_start_tick = -1   # tick the current contact episode started (-1: none)
+        self.off_centre_episodes = 0    # times the ride-height monitor found the body off centre
         self.good_ticks = 0          # consecutive ticks with a good SensorData since reset
         self.exceptions = 0
         self.last_exception = ""
@@ -488,6 +492,8 @@ class ControlLoop:
                     self._on_degraded_change(flags, now_ns, tick)
                 if (flags ^ self.bank_flags) & _STOP_BITS:
                     self._on_stop_contact_change(flags, now_ns, tick)
+                if (flags ^ self.bank_flags) & _RIDE_HEIGHT:
+                    self._on_ride_height_change(flags, now_ns, tick)
                 self.bank_flags = flags
                 if self.excitation_state == "playing":
                     # the bank is not in the loop while the excitation plays (and is
@@ -633,6 +639,36 @@ class ControlLoop:
                 "contact_s_in_window": contact_s,
                 "stop_degradations": self.stop_degradations})
 
+    @property
+    def off_centre(self) -> bool:
+        """The ride-height monitor finds the body off the stops' centre."""
+        return bool(self.bank_flags & _RIDE_HEIGHT)
+
+    def _on_ride_height_change(self, flags: int, now_ns: int, tick: int) -> None:
+        """The ride-height monitor found the body off the stops' centre or centred again
+        (controller/ride_height.py; not a fault, the law is unchanged): count, log (at
+        most every 1000th episode) and record a note with the ride height and the travel
+        left on the side the body sits toward."""
+        off = bool(flags & _RIDE_HEIGHT)
+        if off:
+            self.off_centre_episodes += 1
+        height_m = float(self.rt.ride_height_m)
+        side = "compression" if height_m > 0.0 else "rebound"
+        left_m = self.cfg.vehicle.rattlespace_travel_m - abs(height_m)
+        if self.off_centre_episodes % 1000 == 1 or not off:
+            if off:
+                log.warning("ride height off centre: the body sits %.1f mm toward the %s "
+                            "stop, %.1f mm of travel left on that side (ballast or preload "
+                            "changed? docs/design.md §9.9)", abs(height_m) * 1e3, side,
+                            left_m * 1e3)
+            else:
+                log.warning("ride height centred again (%.1f mm from the stops' centre)",
+                            abs(height_m) * 1e3)
+        self._record_event(now_ns, tick, "note", {
+            "ride_height": "off centre" if off else "centred",
+            "ride_height_m": height_m, "side": side, "travel_left_m": left_m,
+            "off_centre_episodes": self.off_centre_episodes})
+
     def _latch(self, code: FaultCode, detail: int, now_ns: int, message: str = "") -> None:
         """Latch FAULT (if not already) and send the FaultReport now."""
         lc = self.lifecycle
@@ -703,6 +739,7 @@ class ControlLoop:
     def status(self) -> dict[str, Any]:
         """Full status (off the hot path: built by the telemetry link's status thread)."""
         lc = self.lifecycle
+        ride_height_m = float(self.rt.ride_height_m)
         return {
             "lifecycle": lc.state.name,
             "fault": lc.fault_code.name,
@@ -716,6 +753,9 @@ class ControlLoop:
             "stop_degraded": self.stop_degraded,
             "stop_degradations": self.stop_degradations,
             "stop_contact_episodes": self.stop_contact_episodes,
+            "ride_height_m": ride_height_m if math.isfinite(ride_height_m) else None,
+            "off_centre": self.off_centre,
+            "off_centre_episodes": self.off_centre_episodes,
             "health": self.health_problem() or "ok",
             "tick": self.tick_count,
             "blending": self.blending,

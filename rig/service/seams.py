@@ -34,6 +34,7 @@ class Runtime(Protocol):
     xf: np.ndarray
     stop_contact_s: float       # stop-contact time in the monitor's window [s]
     comfort_share: float        # the travel schedule's comfort share of the force [0, 1]
+    ride_height_m: float        # mean LVDT reading about the stops' centre [m]
 
     @property
     def sprung_mass_est_kg(self) -> float: ...

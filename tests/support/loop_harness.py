@@ -48,6 +48,7 @@ class FakeRuntime:
         self.xf = np.zeros(2)
         self.stop_contact_s = 0.0
         self.comfort_share = 0.0
+        self.ride_height_m = 0.0
         self.sprung_mass_est_kg = 500.0
         self.steps = 0
         self.resets = 0
