@@ -215,6 +215,9 @@ def run_case(cfg: Any, seconds: float, recording: bool, telemetry: bool, realtim
         "dropped_telemetry": svc.telemetry.dropped if svc.telemetry else 0,
         "foxglove": svc.foxglove_status(),
         "client_messages": client_messages,
+        # status queries the telemetry process refused (rate limits), as it reported
+        "status_refused": (svc.telemetry.status().get("status_refused", 0)
+                           if svc.telemetry else 0),
         "realtime": svc.realtime_report.as_dict() if realtime else None,
         "rig_realtime": res.rig_realtime,
     }
@@ -265,7 +268,7 @@ def run_sleeper(seconds: float, realtime: bool, switch_interval_s: float = 0.000
             "faults": [], "rig_late_ticks": 0, "rig_max_lateness_us": math.nan,
             "rig_resyncs": 0, "rig_watchdog_trips": 0, "rig_error": None,
             "dropped_recording": 0, "dropped_telemetry": 0, "foxglove": {},
-            "client_messages": 0,
+            "client_messages": 0, "status_refused": 0,
             "realtime": report.as_dict() if report else None, "rig_realtime": None}
 
 
@@ -303,6 +306,7 @@ def _summarise(segments: list[dict[str, Any]]) -> dict[str, Any]:
         "fox_published": sum(s["foxglove"].get("published", 0) for s in segments),
         "fox_dropped": sum(s["foxglove"].get("dropped", 0) for s in segments),
         "client_messages": sum(s["client_messages"] for s in segments),
+        "status_refused": sum(s["status_refused"] for s in segments),
         "segment_step_p99_us": [_pct(s["_step_us"], 99) for s in segments],
         "realtime": segments[0]["realtime"],
         "rig_realtime": segments[0]["rig_realtime"],
@@ -452,14 +456,16 @@ def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
              "tick": tick,
              "sleep_slack_50us": sleep_lateness(50_000),
              "sleep_slack_1ns": sleep_lateness(1)}
-    bare, full = cases["bare"], cases["rec+tel"]
-    seg_ratios = [f / b for f, b in zip(full["segment_step_p99_us"],
-                                         bare["segment_step_p99_us"], strict=True)]
-    return {"seconds": seconds, "rounds": rounds, "cases": cases, "micro": micro,
-            "p99_step_ratio_median_of_rounds": float(np.median(seg_ratios)),
-            "p99_lateness_ratio": (full["lateness_p99_us"] / bare["lateness_p99_us"]
-                                   if bare["lateness_p99_us"] > 0 else math.nan),
-            "p99_step_ratio": full["step_p99_us"] / bare["step_p99_us"],
+    ratios: dict[str, float] = {}
+    if "bare" in cases and "rec+tel" in cases:     # the rec+tel / bare ratios
+        bare, full = cases["bare"], cases["rec+tel"]
+        seg_ratios = [f / b for f, b in zip(full["segment_step_p99_us"],
+                                             bare["segment_step_p99_us"], strict=True)]
+        ratios = {"p99_step_ratio_median_of_rounds": float(np.median(seg_ratios)),
+                  "p99_lateness_ratio": _ratio(full["lateness_p99_us"],
+                                               bare["lateness_p99_us"]),
+                  "p99_step_ratio": _ratio(full["step_p99_us"], bare["step_p99_us"])}
+    return {"seconds": seconds, "rounds": rounds, "cases": cases, "micro": micro, **ratios,
             "foxglove_vs_off": {
                 name: {"base": base,
                        "lateness_p99_ratio": _ratio(cases[name]["lateness_p99_us"],
@@ -486,6 +492,7 @@ _ROWS = [("lateness p50 [us]", "lateness_p50_us", "{:.1f}"),
          ("skipped deadlines", "skipped", "{:.0f}"),
          ("periods late [%]", "periods_late_pct", "{:.3f}"), ("ticks", "ticks", "{:.0f}"),
          ("rig process max late [us]", "rig_max_lateness_us", "{:.1f}"),
+         ("rig ticks > 200 us late", "rig_late_ticks", "{:.0f}"),
          ("rig watchdog trips", "rig_watchdog_trips", "{:.0f}")]
 
 
@@ -513,17 +520,23 @@ def format_report(res: dict[str, Any]) -> str:
             out.append(f"  [{name}] {f} x{c['faults'].count(f)}")
         for err in c["rig_errors"]:
             out.append(f"  [{name}] emulated rig: {err}")
-    bare, full = cases["bare"], cases["rec+tel"]
-    out.append(f"rec+tel vs bare: lateness p99 {full['lateness_p99_us']:.1f} vs "
-               f"{bare['lateness_p99_us']:.1f} us (x{res['p99_lateness_ratio']:.2f}), "
-               f"step p99 {full['step_p99_us']:.1f} vs {bare['step_p99_us']:.1f} us "
-               f"(x{res['p99_step_ratio']:.2f}; median of the {res['rounds']} rounds' "
-               f"ratios x{res['p99_step_ratio_median_of_rounds']:.2f}); goal: at most x1.10")
-    if "rec+tel+fox+client" in cases:
+    bare, full = cases.get("bare"), cases.get("rec+tel")
+    if bare is not None and full is not None:
+        out.append(f"rec+tel vs bare: lateness p99 {full['lateness_p99_us']:.1f} vs "
+                   f"{bare['lateness_p99_us']:.1f} us (x{res['p99_lateness_ratio']:.2f}), "
+                   f"step p99 {full['step_p99_us']:.1f} vs {bare['step_p99_us']:.1f} us "
+                   f"(x{res['p99_step_ratio']:.2f}; median of the {res['rounds']} rounds' "
+                   f"ratios x{res['p99_step_ratio_median_of_rounds']:.2f}); goal: at most x1.10")
+    if "rec+tel+fox+client" in cases and bare is not None:
         c = cases["rec+tel+fox+client"]
         ratio = _ratio(c["step_p99_us"], bare["step_p99_us"])
+        # each round's cases run back to back: the median of the rounds' ratios is less
+        # moved by the machine's drift than the ratio of the pooled p99s
+        of_rounds = float(np.median([_ratio(f, b) for f, b in zip(
+            c["segment_step_p99_us"], bare["segment_step_p99_us"], strict=True)]))
         out.append(f"rec+tel+fox+client vs bare: step p99 {c['step_p99_us']:.1f} vs "
-                   f"{bare['step_p99_us']:.1f} us (x{ratio:.2f}; goal: at most x1.10, "
+                   f"{bare['step_p99_us']:.1f} us (x{ratio:.2f}; median of the "
+                   f"{res['rounds']} rounds' ratios x{of_rounds:.2f}; goal: at most x1.10, "
                    f"{'met' if ratio <= 1.1 else 'NOT met'}), lateness p99 "
                    f"{c['lateness_p99_us']:.1f} vs {bare['lateness_p99_us']:.1f} us")
     for name, r in res.get("foxglove_vs_off", {}).items():
@@ -534,7 +547,9 @@ def format_report(res: dict[str, Any]) -> str:
                    f"faults {len(c['faults'])} vs {len(cases[r['base']]['faults'])}; "
                    f"view published {c['fox_published']:.0f}, dropped "
                    f"{c['fox_dropped']:.0f}, client received / sent "
-                   f"{c['client_messages']:.0f}")
+                   f"{c['client_messages']:.0f}"
+                   + (f", status queries refused {c['status_refused']:.0f}"
+                      if c["status_refused"] else ""))
     sleeper = cases.get(SLEEPER)
     for name, c in cases.items():
         if name == SLEEPER:
@@ -594,13 +609,13 @@ def main(argv: list[str] | None = None) -> int:
                          "recording writer go to the others), like CPUAffinity= in "
                          "deploy/rig.service")
     ap.add_argument("--cases", default=f"bare,rec,tel,rec+tel,{SLEEPER}",
-                    help=f"comma-separated, from {', '.join([*CASES, SLEEPER])} (bare and "
-                         "rec+tel are needed for the ratio)")
+                    help=f"comma-separated, from {', '.join([*CASES, SLEEPER])} (the "
+                         "rec+tel / bare ratio needs both)")
     args = ap.parse_args(argv)
     names = args.cases.split(",")
     unknown = set(names) - {*CASES, SLEEPER}
-    if unknown or not {"bare", "rec+tel"} <= set(names):
-        ap.error(f"--cases: unknown {sorted(unknown)}; bare and rec+tel are required")
+    if unknown or not names:
+        ap.error(f"--cases: unknown {sorted(unknown)}")
     res = measure(args.seconds, names, realtime=not args.no_realtime,
                   switch_interval_s=args.switch_interval_us * 1e-6, cpu=args.cpu)
     if args.json:

@@ -5,7 +5,10 @@ process, like a remote viewer gone wrong).
 
 Connects to tcp/127.0.0.1:PORT (no scouting), prints ``connected`` once, then sends
 status queries at ``--rate`` per second (not waiting for the replies) until SIGTERM and
-prints ``queries N ok A refused R``.
+prints ``queries N ok A``.  The rig answers a query over its rate limits with nothing
+(it is counted there: ``status()["telemetry"]["status_refused"]``), so only the answers
+call back into Python here: the client stands for another computer and should cost the
+one it shares as little as it can.
 """
 
 from __future__ import annotations
@@ -33,12 +36,13 @@ def main(argv: list[str] | None = None) -> int:
     c.insert_json5("listen/endpoints", "[]")
     c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{args.port}"]))
     c.insert_json5("scouting/multicast/enabled", "false")
-    counts = {"ok": 0, "refused": 0}
+    counts = {"ok": 0}
     lock = threading.Lock()
 
     def reply(r: Any) -> None:
-        with lock:
-            counts["ok" if r.ok is not None else "refused"] += 1
+        if r.ok is not None:
+            with lock:
+                counts["ok"] += 1
 
     with zenoh.open(c) as session:
         print("connected", flush=True)
@@ -52,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
             if wait > 0:
                 stop.wait(wait)
         time.sleep(0.5)
-        print(f"queries {sent} ok {counts['ok']} refused {counts['refused']}", flush=True)
+        print(f"queries {sent} ok {counts['ok']}", flush=True)
     return 0
 
 

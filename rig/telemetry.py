@@ -45,9 +45,8 @@ MAX_ERROR_CHARS = 200
 #: status queries are answered from a status built on the publisher thread at most
 #: this long ago [s] (a query never calls the status provider itself)
 STATUS_REFRESH_S = 0.2
-#: the error replies of a query over the rate limit ([telemetry] status_queries_per_s,
-#: commands_per_s)
-_RATE_LIMITED_STATUS = json.dumps({"error": "rate limited: too many status queries"})
+#: the error reply of a command query over the rate limit ([telemetry] commands_per_s);
+#: a status query over its limit gets no reply at all (:meth:`TelemetryPublisher._on_status`)
 _RATE_LIMITED_COMMAND = json.dumps({"accepted": False,
                                     "error": "rate limited: too many commands"})
 _RUST_SOURCE = re.compile(r" at /\S+\.rs:\d+\.?")
@@ -113,7 +112,8 @@ class TelemetryPublisher:
     ``status_provider()`` is called on the publisher thread every
     :data:`STATUS_REFRESH_S` (return a fresh dict of plain values); ``<prefix>/status``
     queries get its last result, encoded once (within ``[telemetry]``
-    ``status_queries_per_s`` / ``status_burst``).  ``command_handler(name, args) -> str`` is only
+    ``status_queries_per_s`` / ``status_burst`` and the per-peer limits; a query over
+    them is counted and gets no reply).  ``command_handler(name, args) -> str`` is only
     wired when ``cfg.commands_enabled``; it runs on a Zenoh thread, must not block (queue
     the command for the loop) and raises ``ValueError`` to reject a command.
     ``on_state(state, error)`` is called on the publisher thread at every change of
@@ -365,10 +365,14 @@ class TelemetryPublisher:
         return reply
 
     def _on_status(self, query: zenoh.Query) -> None:
-        # the reply goes out on the concrete key, whatever the query's key expression
+        # Over the limit: counted (the buckets' ``refused``) and not answered: the query
+        # ends at once with no reply.  A flood is mostly refusals, so a refusal does the
+        # least there is: no reply to send (an error reply costs the process more than
+        # the rest of the refused query's Python together, bench/README.md), no log
+        # line, no status built or encoded.
         if not (self._status_peers.take(_query_peer(query)) and self._status_limit.take()):
-            query.reply_err(_RATE_LIMITED_STATUS)
             return
+        # the reply goes out on the concrete key, whatever the query's key expression
         ok, body = self._status_reply or self._refresh_status()   # None: before the first
         if ok:
             query.reply(self._key("status"), body, encoding=zenoh.Encoding.APPLICATION_JSON)

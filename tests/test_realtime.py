@@ -44,21 +44,32 @@ def test_a_thread_started_by_the_real_time_loop_thread_is_an_ordinary_one() -> N
 
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2,
                     reason="needs CPU affinity and 2 CPUs")
-def test_a_helper_thread_leaves_the_loops_cpus_and_starts_processes_from_them() -> None:
+def test_a_helper_thread_leaves_the_loops_cpus_and_its_processes_start_off_them() -> None:
     """A helper thread started on the loop's CPUs (the service pinned, as systemd's
-    CPUAffinity= does) moves to the others; around a process it starts it is back on
-    the loop's CPUs, so the process finds them and leaves them too."""
-    from rig.recording.cpus import leave_the_loops_cpus, on_the_loops_cpus
+    CPUAffinity= does) moves to the others; a process it starts, told the loop's CPUs
+    (loop_cpus_env, as a restarted telemetry process is), starts on the helper's CPUs and
+    stays there when it leaves the loop's CPUs itself (without being told, it would take
+    the helper's CPUs for the loop's and move onto the loop's)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from rig.recording.cpus import leave_the_loops_cpus, loop_cpus_env
 
     loop_cpu = min(os.sched_getaffinity(0))
     seen: dict[str, Any] = {}
+    child = ("import json, os; from rig.recording.cpus import leave_the_loops_cpus; "
+             "start = sorted(os.sched_getaffinity(0)); left = leave_the_loops_cpus(); "
+             "print(json.dumps([start, sorted(left or ()), sorted(os.sched_getaffinity(0))]))")
 
     def helper() -> None:
         seen["left"] = leave_the_loops_cpus()
         seen["after"] = os.sched_getaffinity(0)
-        with on_the_loops_cpus(seen["left"]):
-            seen["spawning"] = os.sched_getaffinity(0)
-        seen["again"] = os.sched_getaffinity(0)
+        seen["child"] = json.loads(subprocess.run(
+            [sys.executable, "-c", child], env=loop_cpus_env(seen["left"]),
+            cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True,
+            check=True, timeout=60).stdout)
 
     def service_thread() -> None:
         os.sched_setaffinity(0, {loop_cpu})
@@ -69,5 +80,7 @@ def test_a_helper_thread_leaves_the_loops_cpus_and_starts_processes_from_them() 
     t = threading.Thread(target=service_thread)
     t.start()
     t.join()
-    assert seen["left"] == {loop_cpu} == seen["spawning"]
-    assert loop_cpu not in seen["after"] and seen["after"] and seen["again"] == seen["after"]
+    assert seen["left"] == {loop_cpu}
+    assert loop_cpu not in seen["after"] and seen["after"]
+    start, left, end = seen["child"]
+    assert start == end == sorted(seen["after"]) and left == [loop_cpu]

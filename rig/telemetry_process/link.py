@@ -14,10 +14,12 @@ pipe, as :class:`rig.recording.recorder.RunRecorder` feeds its writer:
   loop thread) and leaves it for the loop thread, which writes it with its next tick
   record: the process answers ``rig/status`` queries from it and never calls into the
   loop process.  The loop thread wakes the status thread right after it wrote a tick
-  record (every :data:`STATUS_PERIOD_S` of records), so that the build, ~0.05-0.3 ms
-  of Python holding the interpreter lock, runs while the loop sleeps until its next
-  deadline instead of at a random moment (a loop thread woken while another thread
-  holds the lock waits up to the switch interval, 100 us, for it);
+  record (every :data:`STATUS_PERIOD_S` of records), so that the build, ~20 us of
+  Python holding the interpreter lock (``Service.status()`` and its pickle, 864 bytes:
+  21 us p50 / 47 us p99 on the 2-core VM, 2026-11-28; most of it the timing
+  percentiles), runs while the loop sleeps until its next deadline instead of at a
+  random moment (a loop thread woken while another thread holds the lock waits for
+  it, up to the switch interval, 100 us);
 - operator commands come back as JSON lines on the process's stdout.  A supervisor
   thread reads them (at most 8 KiB every 5 ms, lines over :data:`MAX_LINE_BYTES`
   dropped) into a bounded queue; the loop thread takes at most one per
@@ -50,7 +52,7 @@ from typing import Any, Final, Protocol
 from controller.config import RigConfig, config_to_toml
 from rig.operator_commands import OPERATOR_COMMANDS, brief, loop_argument, validate_command
 from rig.recording.codec import TickLayout, encode_end, encode_event, encode_layout
-from rig.recording.cpus import leave_the_loops_cpus, on_the_loops_cpus
+from rig.recording.cpus import leave_the_loops_cpus, loop_cpus_env
 from rig.telemetry_process.feed import (
     MAX_LINE_BYTES,
     STATUS_PERIOD_S,
@@ -352,11 +354,14 @@ class TelemetryLink:
         self.close()
 
     # ------------------------------------------------------------------ process
-    def _spawn(self) -> _Child:
+    def _spawn(self, loop_cpus: set[int] | None = None) -> _Child:
+        """Start the process from the calling thread's CPUs; ``loop_cpus``: the loop's,
+        which the calling thread left already (the process is told them and stays off
+        them, from its first instruction on)."""
         proc = subprocess.Popen(
             [sys.executable, "-m", "rig.telemetry_process"], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, cwd=Path(__file__).resolve().parents[2],
-            start_new_session=True)
+            start_new_session=True, env=loop_cpus_env(loop_cpus))
         child = _Child(proc)
         with contextlib.suppress(OSError):   # best effort: the default pipe is 64 KiB
             fcntl.fcntl(child.fd, fcntl.F_SETPIPE_SZ, max(4096, self._pipe_bytes))
@@ -375,8 +380,9 @@ class TelemetryLink:
             child.proc.wait(5.0)
 
     def _supervise(self, child: _Child) -> None:
-        # off the loop's CPU; a restarted process starts from the loop's CPUs (it leaves
-        # them itself, as the first one did)
+        # off the loop's CPU; a restarted process starts here too, told the loop's CPUs
+        # (its interpreter's start and imports, ~0.2 s of CPU, stay off the running loop's
+        # CPU; the first process started before the loop ran)
         loop_cpus = leave_the_loops_cpus()
         while True:
             self._read(child)
@@ -402,8 +408,7 @@ class TelemetryLink:
             if self._closing.wait(pause):
                 return
             try:
-                with on_the_loops_cpus(loop_cpus):
-                    child = self._spawn()
+                child = self._spawn(loop_cpus)
             except OSError as exc:
                 self.process_state = "lost"
                 self._lost(f"telemetry process not restarted: {exc}", rc, None)
