@@ -70,3 +70,18 @@ def test_demo_short_run_json(tmp_path: Path) -> None:
     states = {r.data["lifecycle"] for r in run.records}
     assert {"INACTIVE", "ACTIVE"} <= states
     assert run.metadata["rig"]["source"] == "rig demo"
+
+
+@pytest.mark.timeout(120)
+def test_demo_too_short_to_measure_prints_no_nan(tmp_path: Path) -> None:
+    """`rig demo --duration 0.001` (lockstep, the default timing): a table of n/a with
+    the reason and a lockstep line without a nan real-time factor, exit status 0."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "rig.cli", "demo", "--duration", "0.001", "--no-telemetry",
+         "--record", str(tmp_path / "short.mcap")],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=110)
+    assert proc.returncode == 0, proc.stderr
+    assert "nan" not in proc.stdout.lower(), proc.stdout
+    assert "n/a: too short to measure" in proc.stdout
+    assert "lockstep: 0.00 s of rig time" in proc.stdout and "n/a x real time" in proc.stdout

@@ -446,8 +446,10 @@ def run(args: argparse.Namespace) -> int:
     print(_table(passive, active), file=out)
     if lockstep:
         ls = result.lockstep
+        factor = ls.get("realtime_factor", math.nan)
+        factor_text = f"{factor:.2f} x" if math.isfinite(factor) and n_rig > 0 else "n/a x"
         print(f"lockstep: {n_rig / rate:.2f} s of rig time in {wall_s:.2f} s of wall time "
-              f"(loop {ls.get('realtime_factor', math.nan):.2f} x real time; the host held "
+              f"(loop {factor_text} real time; the host held "
               f"it back {ls.get('behind_s', 0.0):.2f} s in {ls.get('stalls', 0):.0f} stalls); "
               "the lateness and step-time rows are the lockstep clock's (0)", file=out)
     for f in faults:
