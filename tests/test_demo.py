@@ -85,3 +85,4 @@ def test_demo_too_short_to_measure_prints_no_nan(tmp_path: Path) -> None:
     assert "nan" not in proc.stdout.lower(), proc.stdout
     assert "n/a: too short to measure" in proc.stdout
     assert "lockstep: 0.00 s of rig time" in proc.stdout and "n/a x real time" in proc.stdout
+    assert "nan" not in proc.stderr.lower(), proc.stderr     # the progress line: "-"

@@ -174,10 +174,10 @@ class _Progress:
             self.n[1] += int(np.sum(active))
             self.done = end
         loop = self.service.loop
-        p = [self.sum_sq[i] / self.n[i] if self.n[i] else math.nan for i in (0, 1)]
+        p = [f"{self.sum_sq[i] / self.n[i]:.4f}" if self.n[i] else "-" for i in (0, 1)]
         line = (f"t {end * self.dt:6.2f} s  {loop.lifecycle.state.name:<8}  "
                 f"rattlespace {1e3 * loop.rattlespace_m:+7.2f} mm  "
-                f"absorbed power passive {p[0]:.4f} active {p[1]:.4f}  "
+                f"absorbed power passive {p[0]} active {p[1]}  "
                 f"overruns {loop.timing.overruns}")
         if self.tty:
             sys.stderr.write("\r" + line + ("\n" if final else ""))
