@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rig.blas_threads import one_blas_thread
 
@@ -20,6 +21,9 @@ drop_stale_kernel_cache()
 
 from tests.support.loop_harness import LoopHarness, make_harness  # noqa: E402
 
+if TYPE_CHECKING:
+    from controller.runtime.bank import BankRuntime
+
 
 @pytest.fixture(scope="session")
 def default_design() -> Design:
@@ -27,6 +31,15 @@ def default_design() -> Design:
     from hil.sim.closed_loop import cached_design  # imports the bank: after the check
 
     return cached_design(default_config())
+
+
+@pytest.fixture(scope="session")
+def default_runtime(default_design: Design) -> BankRuntime:
+    """A runtime bank of :func:`default_design` (tests reset it or copy its buffers:
+    tests.support.bank_buffers)."""
+    from controller.runtime.bank import BankRuntime
+
+    return BankRuntime(default_design, cfg=default_config())
 
 
 @pytest.fixture(scope="session")

@@ -488,13 +488,20 @@ def test_screenshot_shows_summary_events_table_and_model_legend(report: Path,
         assert _pixels_near(page, shade, tol=3) - _pixels_near(rest, shade, tol=3) > 2000
 
 
+def _passive_then_active(passive: int = 400, active: int = 600) -> RunSeries:
+    """A synthetic run of flat signals: ``passive`` ticks with the valve off, then
+    ``active`` ticks ACTIVE (the two phases of :func:`phase_metrics`)."""
+    n = passive + active
+    s = _synthetic(np.zeros(n), np.zeros(n), np.zeros(n))
+    s.lifecycle = ["INACTIVE"] * passive + ["ACTIVE"] * active
+    s.signals["valve_enable"][:passive] = 0.0
+    return s
+
+
 def test_comfort_share_row_is_the_phase_mean_and_nan_where_not_recorded() -> None:
     """The travel schedule's row: the mean of the recorded comfort share over each phase;
     a recording without the field (before the schedule) gives NaN, not 0."""
-    n = 1000
-    s = _synthetic(np.zeros(n), np.zeros(n), np.zeros(n))
-    s.lifecycle = ["INACTIVE"] * 400 + ["ACTIVE"] * 600
-    s.signals["valve_enable"][:400] = 0.0
+    s = _passive_then_active()
     share = np.concatenate([np.full(400, 0.9), np.linspace(0.0, 1.0, 600)])
     s.comfort_share = share
     ph = phase_metrics(s)
@@ -508,10 +515,7 @@ def test_comfort_share_row_is_the_phase_mean_and_nan_where_not_recorded() -> Non
 def test_ride_height_row_is_the_largest_magnitude_and_nan_where_not_recorded() -> None:
     """The ride-height row: the largest |recorded ride height| over each phase (a sag
     toward either stop shows); a recording without the field gives NaN, not 0."""
-    n = 1000
-    s = _synthetic(np.zeros(n), np.zeros(n), np.zeros(n))
-    s.lifecycle = ["INACTIVE"] * 400 + ["ACTIVE"] * 600
-    s.signals["valve_enable"][:400] = 0.0
+    s = _passive_then_active()
     s.ride_height_m = np.concatenate([np.full(400, 0.004),
                                       np.linspace(0.01, -0.03, 600)])
     ph = phase_metrics(s)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -24,10 +23,11 @@ from controller.runtime.kernels import (
     StepFlag,
     ride_height,
 )
-from hil.sim.closed_loop import cached_design, simulate
+from hil.sim.closed_loop import simulate
 from hil.sim.roads import make_road
 from rig.service.loop import TICK_RECORD_FIELDS
 from rig.telemetry_process.child import snapshot_of
+from tests.support.bank_buffers import fresh_buffers
 from tests.support.loop_harness import LoopHarness
 
 CFG = default_config()
@@ -35,25 +35,15 @@ DT = CFG.sample_time_s
 SETTINGS = ride_height_settings(CFG, DT)
 
 
-@pytest.fixture(scope="module")
-def runtime() -> BankRuntime:
-    return BankRuntime(cached_design(CFG), cfg=CFG)
-
-
-def _buffers(rt: BankRuntime) -> tuple[np.ndarray, np.ndarray]:
-    rt.reset()
-    return rt._fv.copy(), rt._iv.copy()
-
-
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.one_of(st.floats(-0.12, 0.12), st.just(math.nan), st.just(math.inf)),
                 min_size=1, max_size=300),
        st.floats(0.001, 0.05))
-def test_kernel_is_the_plain_law(runtime: BankRuntime, readings: list[float],
+def test_kernel_is_the_plain_law(default_runtime: BankRuntime, readings: list[float],
                                  warn_m: float) -> None:
     """Tick for tick the same ride height and off-centre state, a non-finite reading
     changing nothing; the flag bit is RIDE_HEIGHT exactly while off centre."""
-    fv, iv = _buffers(runtime)
+    fv, iv = fresh_buffers(default_runtime)
     s = ride_height_settings(CFG.replace(safety={"ride_height_warn_m": warn_m,
                                                  "ride_height_window_s": 0.05}), DT)
     fv[F_RH_ALPHA], fv[F_RH_WARN], fv[F_RH_CLEAR] = s.alpha, s.warn_m, s.clear_m

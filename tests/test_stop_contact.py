@@ -30,21 +30,11 @@ from hil.sim.closed_loop import BankController, cached_design, run_closed_loop, 
 from hil.sim.roads import Road, make_road
 from rig.service.loop import TICK_RECORD_FIELDS
 from rig.telemetry_process.child import snapshot_of
+from tests.support.bank_buffers import fresh_buffers
 from tests.support.loop_harness import LoopHarness
 
 CFG = default_config()
 DT = CFG.sample_time_s
-
-
-@pytest.fixture(scope="module")
-def runtime() -> BankRuntime:
-    return BankRuntime(cached_design(CFG), cfg=CFG)
-
-
-def _buffers(rt: BankRuntime) -> tuple[np.ndarray, np.ndarray]:
-    """Fresh copies of the runtime's parameter and state buffers (after a reset)."""
-    rt.reset()
-    return rt._fv.copy(), rt._iv.copy()
 
 
 def _readings(fv: np.ndarray, contact: list[bool]) -> np.ndarray:
@@ -61,13 +51,13 @@ def _readings(fv: np.ndarray, contact: list[bool]) -> np.ndarray:
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.booleans(), min_size=1, max_size=400),
        st.integers(min_value=1, max_value=40))
-def test_window_is_the_exponentially_weighted_contact_time(runtime: BankRuntime,
+def test_window_is_the_exponentially_weighted_contact_time(default_runtime: BankRuntime,
                                                            pattern: list[bool],
                                                            run: int) -> None:
     """E_k = sum_i λ^(k-i) T c_i (closed form, to rounding), never above T / (1 - λ), and
     the episodes are the contact ticks that follow at least EPISODE_GAP_S without
     contact.  ``run`` stretches each drawn tick into a run of ticks (long episodes)."""
-    fv, iv = _buffers(runtime)
+    fv, iv = fresh_buffers(default_runtime)
     contact = [c for c in pattern for _ in range(run)]
     r = _readings(fv, contact)
     sc = stop_contact_settings(CFG, DT)
@@ -88,10 +78,10 @@ def test_window_is_the_exponentially_weighted_contact_time(runtime: BankRuntime,
 
 
 def test_single_episode_adds_its_duration_and_fades_with_the_window(
-        runtime: BankRuntime) -> None:
+        default_runtime: BankRuntime) -> None:
     """From rest, d seconds of contact leave T sum λ^i ≈ τ (1 - e^(-d/τ)) <= d; after
     another τ without contact, a factor e less."""
-    fv, iv = _buffers(runtime)
+    fv, iv = fresh_buffers(default_runtime)
     tau = CFG.safety.stop_contact_window_s
     n = round(0.2 / DT)
     for _ in range(n):
@@ -103,11 +93,11 @@ def test_single_episode_adds_its_duration_and_fades_with_the_window(
     assert fv[F_SC_TIME] == pytest.approx(e / np.e, rel=1e-3)
 
 
-def test_degrades_above_the_budget_ramps_and_rearms(runtime: BankRuntime) -> None:
+def test_degrades_above_the_budget_ramps_and_rearms(default_runtime: BankRuntime) -> None:
     """Contact beyond the budget degrades once (STOP_DEGRADED, authority ramping to
     stop_contact_authority); below the re-arm level for the re-arm time it re-arms and
     the authority ramps back to 1.  With stop_contact_degrade = false: reports only."""
-    fv, iv = _buffers(runtime)
+    fv, iv = fresh_buffers(default_runtime)
     sa = CFG.safety
     flags = [stop_contact(fv, iv, float(fv[F_BS_HI]) + 0.01)
              for _ in range(round(2 * sa.stop_contact_budget_s / DT))]
@@ -132,7 +122,7 @@ def test_degrades_above_the_budget_ramps_and_rearms(runtime: BankRuntime) -> Non
         stop_contact(fv, iv, 0.0)
     assert fv[F_SC_AUTH] == 1.0
     off = BankRuntime(cached_design(CFG), cfg=CFG.replace(safety={"stop_contact_degrade": False}))
-    fv, iv = _buffers(off)
+    fv, iv = fresh_buffers(off)
     for _ in range(round(1.0 / DT)):
         f = stop_contact(fv, iv, float(fv[F_BS_HI]) + 0.01)
         assert not f & StepFlag.STOP_DEGRADED and f & StepFlag.STOP_CONTACT

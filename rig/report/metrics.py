@@ -210,9 +210,8 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "comfort_share_mean": (float(np.nanmean(s.comfort_share[m]))
                                    if s.comfort_share.size == m.size and m.any()
                                    and np.isfinite(s.comfort_share[m]).any() else math.nan),
-            "ride_height_max_m": (float(np.nanmax(np.abs(s.ride_height_m[m])))
-                                  if s.ride_height_m.size == m.size and m.any()
-                                  and np.isfinite(s.ride_height_m[m]).any() else math.nan),
+            "ride_height_max_m": (_max(np.abs(s.ride_height_m[m]))
+                                  if s.ride_height_m.size == m.size else math.nan),
             "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
                                   if m.any() and np.any(s.flags[m] >= 0) else math.nan),
         }
