@@ -97,11 +97,16 @@ class FlowFeedforward:
         """w that makes the first filtered rate zero (as if the rig had been at rest)."""
         return -self.rate_input_gain_per_s * rattlespace_m
 
+    def rate_mps(self, w: float, rattlespace_m: float) -> float:
+        """The filtered rattlespace rate r' [m/s, compression positive] this tick, from the
+        state ``w`` before :meth:`step` advances it and the reading r [m]."""
+        return w + self.rate_input_gain_per_s * rattlespace_m
+
     def step(self, w: float, rattlespace_m: float, force_meas_n: float) -> tuple[float, float]:
         """(s_ff, next w) for LVDT reading r [m] and load-cell force F [N] (module
         docstring).  Plain Python; ``controller.runtime.kernels.servo_update`` is the numba twin."""
         b = self.rate_input_gain_per_s
-        rho = w + b * rattlespace_m
+        rho = self.rate_mps(w, rattlespace_m)
         w_next = (1.0 - self.rate_filter_coeff) * rho - b * rattlespace_m
         return self.spool(-rho, force_meas_n), w_next
 

@@ -289,6 +289,18 @@ class DesignConfig:
                                  "frame, as bump_stop_centre_lvdt_m) the bank's force toward "
                                  "that stop fades linearly to 0 at the stop; a force away "
                                  "from it is untouched (0 = off; docs/design.md §9.6)")
+    stop_guard_lead_s: float = _f(0.03, lo=0.0, hi=0.5,
+                                  doc="end-stop guard: the LVDT reading is led by this "
+                                      "many seconds of the approach rate above "
+                                      "stop_guard_lead_deadband_mps, so a force toward a "
+                                      "stop the suspension closes on fast fades before the "
+                                      "force loop's ~20 ms unloading time runs out; under "
+                                      "the travel schedule scaled by the comfort share "
+                                      "(0 = the distance law; docs/design.md §9.6)")
+    stop_guard_lead_deadband_mps: float = _f(0.5, lo=0.0, hi=10.0,
+                                             doc="end-stop guard: approach rate [m/s] below "
+                                                 "which the lead does nothing (the wheel "
+                                                 "hop's rate)")
     schedule_weight_sets: list[int] = _f([2, 1], lo=1, hi=15, max_len=2,
                                          len_why="[comfort set, travel set]",
                                          doc="travel schedule (weight_set = 0): the weight "

@@ -191,12 +191,14 @@ def test_degrade_reduces_contact_on_the_nonlinear_plant_and_rearms() -> None:
     stops: with the monitor reporting only it stays on them for over 0.5 s and slams;
     with the degrade the monitor degrades, the contact falls to under a third with no
     slam and no fault, the absorbed power is not worse, and it re-arms on the level road
-    after (no contact, the window fades)."""
+    after (no contact, the window fades).  The guard's rate lead (§9.6), which by itself
+    keeps this burst under 0.1 s on the stops, is off: the monitor alone is measured."""
     road = _burst_then_flat()
-    off = simulate(CFG.replace(safety={"stop_contact_degrade": False}), road, "fuzzy", 2,
+    cfg = CFG.replace(design={"stop_guard_lead_s": 0.0})
+    off = simulate(cfg.replace(safety={"stop_contact_degrade": False}), road, "fuzzy", 2,
                    seed=6).metrics
-    ctrl = BankController(cached_design(CFG), CFG, "fuzzy", 2, road)
-    on = run_closed_loop(CFG, road, ctrl, seed=6).metrics
+    ctrl = BankController(cached_design(cfg), cfg, "fuzzy", 2, road)
+    on = run_closed_loop(cfg, road, ctrl, seed=6).metrics
     assert off["bump_stop_time_s"] > 0.5 and off["bump_stop_slam"] == 1.0
     assert off["stop_degradations"] == 0.0 and off["stop_contact_episodes"] >= 1
     assert on["stop_degradations"] >= 1.0 and on["n_faults"] == 0.0

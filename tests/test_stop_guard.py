@@ -1,6 +1,7 @@
 """End-stop guard (controller/stop_guard.py, docs/design.md §9.6): the numba kernel
-against the plain-Python law, the law's invariants, and the soft-spring plant it exists
-for (closed loop on the nonlinear rig)."""
+against the plain-Python law, the law's invariants (with and without the rate lead), the
+soft-spring plant it exists for and weight set 2's hard hits on the thesis course that
+the lead is for (closed loop on the nonlinear rig)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,20 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.config import default_config
-from controller.runtime.kernels import F_BS_HI, F_BS_LO, F_GUARD_S, F_GUARD_W, FV_HEAD, stop_guard
+from controller.runtime.kernels import (
+    F_BS_HI,
+    F_BS_LO,
+    F_FFB,
+    F_FFW,
+    F_GUARD_LEAD,
+    F_GUARD_S,
+    F_GUARD_V0,
+    F_GUARD_W,
+    F_TS_BETA,
+    F_TS_ON,
+    FV_HEAD,
+    stop_guard,
+)
 from controller.stop_guard import stop_guard_scale
 from hil.sim.closed_loop import simulate
 from hil.sim.plant import PlantParams
@@ -19,9 +33,17 @@ from hil.sim.roads import make_road
 LO, HI = -0.08, 0.08
 
 
-def _kernel(u: float, r: float, lo: float, hi: float, w: float) -> tuple[float, float]:
+def _kernel(u: float, r: float, lo: float, hi: float, w: float, rate: float = 0.0,
+            lead: float = 0.0, v0: float = 0.0, beta: float | None = None
+            ) -> tuple[float, float]:
+    """The kernel on a bare parameter vector; the force loop's rate filter holds ``rate``
+    (w = rate, b = 0), ``beta`` not None switches the travel schedule on with that share."""
     fv = np.zeros(FV_HEAD)
     fv[F_BS_LO], fv[F_BS_HI], fv[F_GUARD_W] = lo, hi, w
+    fv[F_FFW], fv[F_FFB] = rate, 0.0
+    fv[F_GUARD_LEAD], fv[F_GUARD_V0] = lead, v0
+    if beta is not None:
+        fv[F_TS_ON], fv[F_TS_BETA] = 1.0, beta
     out = stop_guard(fv, u, r)
     return out, float(fv[F_GUARD_S])
 
@@ -41,6 +63,47 @@ def test_kernel_is_the_law_and_only_removes_force_toward_a_stop(
         assert out == u                              # outside the zone of the stop ahead
     if w > 0.0 and ((u < 0.0 and r >= hi) or (u > 0.0 and r <= lo)):
         assert out == 0.0                            # at or in the stop it heads for
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-1e4, 1e4), st.floats(-0.2, 0.2), st.floats(0.001, 0.05),
+       st.floats(-5.0, 5.0), st.floats(0.0, 0.1), st.floats(0.0, 2.0),
+       st.one_of(st.none(), st.floats(0.0, 1.0)))
+def test_kernel_is_the_law_with_the_rate_lead(u: float, r: float, w: float, rate: float,
+                                              lead: float, v0: float,
+                                              beta: float | None) -> None:
+    out, s = _kernel(u, r, LO, HI, w, rate, lead, v0, beta)
+    lead_eff = lead if beta is None else lead * beta     # schedule: the comfort share
+    s_ref = stop_guard_scale(u, r, LO, HI, w, rate, lead_eff, v0)
+    assert s == pytest.approx(s_ref, rel=1e-12, abs=1e-12)
+    assert out == pytest.approx(u * s_ref, rel=1e-12, abs=1e-9)
+    assert 0.0 <= s <= 1.0 and abs(out) <= abs(u) and out * u >= 0.0
+    # the lead only ever takes more force toward a stop away, never less
+    assert s <= stop_guard_scale(u, r, LO, HI, w) + 1e-15
+    toward = rate if u < 0.0 else -rate                  # approach rate of the stop ahead
+    if toward <= v0 or lead_eff == 0.0:
+        assert s == stop_guard_scale(u, r, LO, HI, w)    # within the deadband: the distance law
+
+
+def test_lead_fades_the_force_earlier_in_a_fast_approach() -> None:
+    """The zone moves out by t_lead (r' - v0): at 2 m/s toward the compression stop with
+    a 30 ms lead over 0.5 m/s it starts 45 mm further out; the same rate away from that
+    stop changes nothing, and the non-finite rate of a filter just reset counts as 0."""
+    w, lead, v0 = 0.02, 0.03, 0.5
+    shift = lead * (2.0 - v0)
+    r = np.linspace(HI - w - shift - 0.01, HI, 501)
+    s = np.array([stop_guard_scale(-500.0, x, LO, HI, w, 2.0, lead, v0) for x in r])
+    np.testing.assert_allclose(s, np.clip((HI - shift - r) / w, 0.0, 1.0), atol=1e-12)
+    assert all(stop_guard_scale(-500.0, x, LO, HI, w, -2.0, lead, v0)
+               == stop_guard_scale(-500.0, x, LO, HI, w) for x in r)
+    assert stop_guard_scale(-500.0, HI - 0.03, LO, HI, w, float("nan"), lead, v0) == 1.0
+    # rebound side, mirrored: the zone's outer edge moves from LO + w to LO + w + shift
+    assert stop_guard_scale(500.0, LO + w + 0.01, LO, HI, w) == 1.0
+    assert stop_guard_scale(500.0, LO + w + 0.01, LO, HI, w, -2.0, lead, v0) == 0.0
+    assert stop_guard_scale(500.0, LO + w + shift - 0.005, LO, HI, w, -2.0, lead, v0) \
+        == pytest.approx(0.75, abs=1e-12)
+    assert stop_guard_scale(500.0, LO + w + shift, LO, HI, w, -2.0, lead, v0) \
+        == pytest.approx(1.0, abs=1e-12)
 
 
 def test_law_is_continuous_and_linear_across_the_zone() -> None:
@@ -76,3 +139,23 @@ def test_guard_keeps_a_soft_spring_plant_off_the_stops() -> None:
     assert off["bump_stop_slam"] == 1.0 and off["bump_stop_time_s"] > 1.0
     assert on["bump_stop_slam"] == 0.0 and on["bump_stop_time_s"] < 0.2 * off["bump_stop_time_s"]
     assert on["n_faults"] == 0.0 and on["absorbed_power"] < 0.5 * passive["absorbed_power"]
+
+
+def test_lead_keeps_weight_set_2_off_the_stops_on_the_thesis_course() -> None:
+    """Weight set 2's hard hits on the thesis course are fast compressions: the law
+    pushes toward the stop (it cancels the damper) and the force loop needs ~20 ms to
+    unload, so the distance law fades the force too late.  Road seed 1, 60 s, fuzzy: the
+    distance law alone slams (> 10 mm into a stop; passive does not touch it), with the
+    default lead there is no slam, less time on the stops and no fault."""
+    base = default_config()
+    road = make_road("rough-course", 11.176, 60.0, base.sample_time_s, 1)
+    passive = simulate(base, road, "passive", seed=1).metrics
+    runs = {lead: simulate(base.replace(design={"stop_guard_lead_s": lead}), road, "fuzzy", 2,
+                           seed=1).metrics
+            for lead in (0.0, base.design.stop_guard_lead_s)}
+    off, on = runs[0.0], runs[base.design.stop_guard_lead_s]
+    assert passive["bump_stop_slam"] == 0.0
+    assert off["bump_stop_slam"] == 1.0
+    assert on["bump_stop_slam"] == 0.0 and on["n_faults"] == 0.0
+    assert on["bump_stop_time_s"] < off["bump_stop_time_s"]
+    assert on["absorbed_power"] < 0.5 * passive["absorbed_power"]

@@ -84,7 +84,9 @@ from controller.runtime.kernels import (
     F_FORGET,
     F_GOFF,
     F_GON,
+    F_GUARD_LEAD,
     F_GUARD_S,
+    F_GUARD_V0,
     F_GUARD_W,
     F_HAD,
     F_HBD,
@@ -985,6 +987,8 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_PFLOOR] = cfg.bayes.probability_floor
     fv[F_BS_K], fv[F_BS_LO], fv[F_BS_HI] = design.bump_stop
     fv[F_GUARD_W] = cfg.design.stop_guard_m
+    fv[F_GUARD_LEAD] = cfg.design.stop_guard_lead_s
+    fv[F_GUARD_V0] = cfg.design.stop_guard_lead_deadband_mps
     fv[F_ME:F_ME + ME_SIZE] = mass_estimator_parameters(cfg)
     fv[F_LHYST] = LAYER_HYSTERESIS
     fv[F_TS:F_TS + SCHEDULE_SIZE] = travel_schedule(cfg).as_array()

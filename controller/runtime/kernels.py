@@ -213,6 +213,8 @@ F_AMEAN = FV.slot()  # running mean of the accelerometer reading (its bias) [m/s
 F_AMEAN_ALPHA = FV.slot()  # weight of the running mean, 1 - exp(-dt / accel_mean_window_s) (0 off)
 F_GUARD_W = FV.slot()  # end-stop guard: zone width in front of each stop [m] (0: off)
 F_GUARD_S = FV.slot()  # end-stop guard: factor applied to the force of the last tick (read-out)
+F_GUARD_LEAD = FV.slot()  # end-stop guard: lead on the approach rate [s] (0: the distance law)
+F_GUARD_V0 = FV.slot()  # end-stop guard: deadband of the approach rate [m/s]
 F_SB = FV.slot(9)  # end-stop barrier: StopBarrier.as_array() (stop_barrier.py; M = 0: off)
 F_SB_DF = FV.slot()  # end-stop barrier: force added in the last tick [N] (read-out)
 F_SB_V = FV.slot()  # end-stop barrier: low-passed LVDT rate [m/s] (state; NaN after reset)
@@ -394,15 +396,25 @@ def _clear_outputs(st: np.ndarray, j: int) -> None:
 @nb.njit(cache=True, nogil=True)
 def stop_guard(fv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
     """The force after the end-stop guard (controller/stop_guard.py): a force toward a
-    bump stop fades linearly to 0 over the last ``F_GUARD_W`` metres before it; the
-    factor is kept in ``F_GUARD_S``."""
+    bump stop fades linearly to 0 over the last ``F_GUARD_W`` metres before it, the
+    reading led by ``F_GUARD_LEAD`` times the approach rate above ``F_GUARD_V0`` (the force
+    loop's filtered LVDT rate, F_FFW, before :func:`servo_update` advances it this tick);
+    under the travel schedule the lead is scaled by the comfort share β of this tick
+    (docs/design.md §9.6).  The factor is kept in ``F_GUARD_S``."""
     w = fv[F_GUARD_W]
     s = 1.0
     if w > 0.0:
+        lead = fv[F_GUARD_LEAD]
+        if fv[F_TS_ON] != 0.0:
+            lead *= fv[F_TS_BETA]
+        rate = fv[F_FFW] + fv[F_FFB] * rattlespace_m      # compression rate r' [m/s]
+        if not math.isfinite(rate):
+            rate = 0.0
+        v0 = fv[F_GUARD_V0]
         if force_n < 0.0:
-            s = (fv[F_BS_HI] - rattlespace_m) / w
+            s = (fv[F_BS_HI] - rattlespace_m - lead * max(rate - v0, 0.0)) / w
         elif force_n > 0.0:
-            s = (rattlespace_m - fv[F_BS_LO]) / w
+            s = (rattlespace_m - fv[F_BS_LO] - lead * max(-rate - v0, 0.0)) / w
         s = min(max(s, 0.0), 1.0)
     fv[F_GUARD_S] = s
     return force_n * s

@@ -79,6 +79,8 @@ class FullStateLQ:
             self.n_pending = 0
         self.stop_lo, self.stop_hi = (float(v) for v in design.bump_stop[1:3])
         self.guard_width = cfg.design.stop_guard_m
+        self.guard_lead_s = cfg.design.stop_guard_lead_s
+        self.guard_deadband_mps = cfg.design.stop_guard_lead_deadband_mps
         self._xbar: FloatArray | None = None
         self._plant_id = -1
         self._fault = False
@@ -107,7 +109,10 @@ class FullStateLQ:
         u = -float(self.kx @ (x - xbar)) - float(self.kf @ self.xf)
         if self.ka is not None:
             u -= float(self.ka @ np.array([self.xv, force_n, self.rate_state, *self.pending]))
-        u *= stop_guard_scale(u, rattlespace_m, self.stop_lo, self.stop_hi, self.guard_width)
+        rate = (self.ff.rate_mps(self.rate_state, rattlespace_m) if self.ff is not None
+                else 0.0)
+        u *= stop_guard_scale(u, rattlespace_m, self.stop_lo, self.stop_hi, self.guard_width,
+                              rate, self.guard_lead_s, self.guard_deadband_mps)
         if not (math.isfinite(u) and math.isfinite(accel_mps2) and math.isfinite(force_n)):
             self._fault = True
             return 0.0

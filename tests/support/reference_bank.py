@@ -96,6 +96,8 @@ class ReferenceBank:
         self.mon = monitor_settings(c, dt, MEAS_DIM)
         self.stop_k, self.stop_lo, self.stop_hi = (float(v) for v in d.bump_stop)
         self.guard_width = c.design.stop_guard_m
+        self.guard_lead_s = c.design.stop_guard_lead_s
+        self.guard_deadband_mps = c.design.stop_guard_lead_deadband_mps
         self.sc = stop_contact_settings(c, dt)
         self.t_floor = moving_bank.chi2_threshold_floor(mb.threshold_quantile, MEAS_DIM)
         self.load_off = mb.liftoff_load_fraction               # lift-off reference
@@ -357,7 +359,9 @@ class ReferenceBank:
         flags |= self._stop_contact(rattlespace_m)
         out *= self.authority * self.stop_authority
         self.guard = stop_guard_scale(out, rattlespace_m, self.stop_lo, self.stop_hi,
-                                      self.guard_width)
+                                      self.guard_width,
+                                      self.ff.rate_mps(self.rate_state, rattlespace_m),
+                                      self.guard_lead_s, self.guard_deadband_mps)
         out *= self.guard
         if not math.isfinite(out):
             out = 0.0
