@@ -23,6 +23,9 @@ from controller.runtime.kernels import (
     F_TS_BETA,
     F_TS_ON,
     FV_HEAD,
+    I_GUARD_LEAD_TICKS,
+    I_GUARD_TICKS,
+    IV_HEAD,
     stop_guard,
 )
 from controller.stop_guard import stop_guard_scale
@@ -34,17 +37,21 @@ LO, HI = -0.08, 0.08
 
 
 def _kernel(u: float, r: float, lo: float, hi: float, w: float, rate: float = 0.0,
-            lead: float = 0.0, v0: float = 0.0, beta: float | None = None
-            ) -> tuple[float, float]:
+            lead: float = 0.0, v0: float = 0.0, beta: float | None = None,
+            counts: list[int] | None = None) -> tuple[float, float]:
     """The kernel on a bare parameter vector; the force loop's rate filter holds ``rate``
-    (w = rate, b = 0), ``beta`` not None switches the travel schedule on with that share."""
+    (w = rate, b = 0), ``beta`` not None switches the travel schedule on with that share;
+    ``counts`` receives the guard's two tick counters."""
     fv = np.zeros(FV_HEAD)
+    iv = np.zeros(IV_HEAD, dtype=np.int64)
     fv[F_BS_LO], fv[F_BS_HI], fv[F_GUARD_W] = lo, hi, w
     fv[F_FFW], fv[F_FFB] = rate, 0.0
     fv[F_GUARD_LEAD], fv[F_GUARD_V0] = lead, v0
     if beta is not None:
         fv[F_TS_ON], fv[F_TS_BETA] = 1.0, beta
-    out = stop_guard(fv, u, r)
+    out = stop_guard(fv, iv, u, r)
+    if counts is not None:
+        counts[:] = [int(iv[I_GUARD_TICKS]), int(iv[I_GUARD_LEAD_TICKS])]
     return out, float(fv[F_GUARD_S])
 
 
@@ -72,9 +79,13 @@ def test_kernel_is_the_law_and_only_removes_force_toward_a_stop(
 def test_kernel_is_the_law_with_the_rate_lead(u: float, r: float, w: float, rate: float,
                                               lead: float, v0: float,
                                               beta: float | None) -> None:
-    out, s = _kernel(u, r, LO, HI, w, rate, lead, v0, beta)
+    counts = [0, 0]
+    out, s = _kernel(u, r, LO, HI, w, rate, lead, v0, beta, counts)
     lead_eff = lead if beta is None else lead * beta     # schedule: the comfort share
     s_ref = stop_guard_scale(u, r, LO, HI, w, rate, lead_eff, v0)
+    s_dist = stop_guard_scale(u, r, LO, HI, w)
+    # counted: a tick with force taken away, and of them one where the lead took more
+    assert counts == [int(s < 1.0), int(s < s_dist)]
     assert s == pytest.approx(s_ref, rel=1e-12, abs=1e-12)
     assert out == pytest.approx(u * s_ref, rel=1e-12, abs=1e-9)
     assert 0.0 <= s <= 1.0 and abs(out) <= abs(u) and out * u >= 0.0
@@ -159,3 +170,6 @@ def test_lead_keeps_weight_set_2_off_the_stops_on_the_thesis_course() -> None:
     assert on["bump_stop_slam"] == 0.0 and on["n_faults"] == 0.0
     assert on["bump_stop_time_s"] < off["bump_stop_time_s"]
     assert on["absorbed_power"] < 0.5 * passive["absorbed_power"]
+    # the simulator reports how often the guard and its lead acted
+    assert off["stop_guard_lead_fraction"] == 0.0 < off["stop_guard_fraction"]
+    assert 0.0 < on["stop_guard_lead_fraction"] <= on["stop_guard_fraction"] < 0.5

@@ -166,6 +166,8 @@ from controller.runtime.kernels import (
     I_FLAGS,
     I_FSTAT,
     I_G,
+    I_GUARD_LEAD_TICKS,
+    I_GUARD_TICKS,
     I_HIST,
     I_J,
     I_K,
@@ -683,7 +685,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     flags |= stop_contact(fv, iv, rattlespace_m)
     flags |= ride_height(fv, iv, rattlespace_m)
     flags |= _human_filter(fv, xf0, xf1, accel_mps2)
-    out = stop_guard(fv, out * (fv[F_AUTH] * fv[F_SC_AUTH]), rattlespace_m)
+    out = stop_guard(fv, iv, out * (fv[F_AUTH] * fv[F_SC_AUTH]), rattlespace_m)
     out = stop_barrier(fv, iv, out, rattlespace_m)
     if not math.isfinite(out):
         out = 0.0
@@ -814,7 +816,8 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     for idx in (I_MODE, I_SINCE_SWITCH, I_SINCE_RECENTRE, I_PROBE_PTR, I_PROBE_CNT,
                 I_FLAGS, I_NUPD, I_NSWITCH, I_NLEARN, I_NRECENTRE, I_TICK, I_NLIFT_LOAD,
                 I_LPTR, I_LCNT, I_MON_PTR, I_MON_DEG, I_MON_OK, I_MON_BAD,
-                I_MON_NDEG, I_MON_DEGTICKS, I_SB_TICKS, I_SC_DEG, I_SC_OK, I_SC_TICKS,
+                I_MON_NDEG, I_MON_DEGTICKS, I_SB_TICKS, I_GUARD_TICKS, I_GUARD_LEAD_TICKS,
+                I_SC_DEG, I_SC_OK, I_SC_TICKS,
                 I_SC_EPISODES, I_SC_NDEG, I_SC_DEGTICKS, I_RH_OFF):
         iv[idx] = 0
     iv[I_SC_QUIET] = iv[I_SC_GAP]      # no contact yet: the first contact tick opens an episode
@@ -1357,6 +1360,8 @@ class BankRuntime:
                 "unusable_ticks": int(iv[I_MON_BAD]),
                 "load_liftoffs": int(iv[I_NLIFT_LOAD]),
                 "stop_barrier_ticks": int(iv[I_SB_TICKS]),
+                "stop_guard_ticks": int(iv[I_GUARD_TICKS]),
+                "stop_guard_lead_ticks": int(iv[I_GUARD_LEAD_TICKS]),
                 "stop_contact_ticks": int(iv[I_SC_TICKS]),
                 "stop_contact_episodes": int(iv[I_SC_EPISODES]),
                 "stop_degradations": int(iv[I_SC_NDEG]),

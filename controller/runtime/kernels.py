@@ -295,6 +295,8 @@ I_MON_BAD = IV.slot()  # consecutive ticks with an unusable estimate (state)
 I_MON_NDEG = IV.slot()  # degradations since reset (state)
 I_MON_DEGTICKS = IV.slot()  # ticks spent degraded since reset (state)
 I_SB_TICKS = IV.slot()  # ticks in which the end-stop barrier changed the force since reset (state)
+I_GUARD_TICKS = IV.slot()  # ticks in which the end-stop guard took force away since reset (state)
+I_GUARD_LEAD_TICKS = IV.slot()  # ... of them, ticks the rate lead took more than distance (state)
 # --- iv: stop-contact monitor (docs/design.md §9.8)
 I_SC_ON = IV.slot()  # 1: degrade above the budget; 0: report only
 I_SC_RECOVER = IV.slot()  # ticks below the re-arm level needed to re-arm
@@ -394,13 +396,15 @@ def _clear_outputs(st: np.ndarray, j: int) -> None:
 
 
 @nb.njit(cache=True, nogil=True)
-def stop_guard(fv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
+def stop_guard(fv: np.ndarray, iv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
     """The force after the end-stop guard (controller/stop_guard.py): a force toward a
     bump stop fades linearly to 0 over the last ``F_GUARD_W`` metres before it, the
     reading led by ``F_GUARD_LEAD`` times the approach rate above ``F_GUARD_V0`` (the force
     loop's filtered LVDT rate, F_FFW, before :func:`servo_update` advances it this tick);
     under the travel schedule the lead is scaled by the comfort share β of this tick
-    (docs/design.md §9.6).  The factor is kept in ``F_GUARD_S``."""
+    (docs/design.md §9.6).  The factor is kept in ``F_GUARD_S``; the ticks in which it
+    took force away are counted in ``I_GUARD_TICKS``, those in which the lead took more
+    than the distance law alone would have in ``I_GUARD_LEAD_TICKS``."""
     w = fv[F_GUARD_W]
     s = 1.0
     if w > 0.0:
@@ -411,11 +415,18 @@ def stop_guard(fv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
         if not math.isfinite(rate):
             rate = 0.0
         v0 = fv[F_GUARD_V0]
+        d = 1.0                         # the distance law's factor
         if force_n < 0.0:
-            s = (fv[F_BS_HI] - rattlespace_m - lead * max(rate - v0, 0.0)) / w
+            d = (fv[F_BS_HI] - rattlespace_m) / w
+            s = d - lead * max(rate - v0, 0.0) / w
         elif force_n > 0.0:
-            s = (rattlespace_m - fv[F_BS_LO] - lead * max(-rate - v0, 0.0)) / w
+            d = (rattlespace_m - fv[F_BS_LO]) / w
+            s = d - lead * max(-rate - v0, 0.0) / w
         s = min(max(s, 0.0), 1.0)
+        if s < 1.0:
+            iv[I_GUARD_TICKS] += 1
+            if s < min(max(d, 0.0), 1.0):
+                iv[I_GUARD_LEAD_TICKS] += 1
     fv[F_GUARD_S] = s
     return force_n * s
 

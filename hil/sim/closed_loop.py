@@ -191,8 +191,10 @@ class BankController:
     def diagnostics(self) -> dict[str, float]:
         """Fractions of ticks in which no fuzzy rule fired (fallback force used) and in
         which the estimator monitor had the bank degraded (conservative law), the
-        number of degradations, the fraction of ticks in which the end-stop barrier
-        limited the force (docs/design.md §9.7), and the stop-contact monitor's view
+        number of degradations, the fractions of ticks in which the end-stop guard took
+        force away and in which its rate lead took more than the distance law (§9.6) and
+        in which the end-stop barrier limited the force (docs/design.md §9.7), and the
+        stop-contact monitor's view
         (§9.8): contact time by the LVDT reading [s], contact episodes, stop degradations
         and the fraction of ticks stop-degraded (the plant's own time on the stops is
         ``bump_stop_time_s``), the travel schedule's mean comfort share (§12; 0 when
@@ -206,6 +208,8 @@ class BankController:
                 "degraded_fraction": self.degraded_ticks / n if n else 0.0,
                 "degradations": float(c["degradations"]),
                 "stop_barrier_fraction": c["stop_barrier_ticks"] / n if n else 0.0,
+                "stop_guard_fraction": c["stop_guard_ticks"] / n if n else 0.0,
+                "stop_guard_lead_fraction": c["stop_guard_lead_ticks"] / n if n else 0.0,
                 "stop_contact_measured_s": c["stop_contact_ticks"] * dt,
                 "stop_contact_episodes": float(c["stop_contact_episodes"]),
                 "stop_degradations": float(c["stop_degradations"]),
