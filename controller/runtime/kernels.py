@@ -415,13 +415,13 @@ def stop_guard(fv: np.ndarray, iv: np.ndarray, force_n: float, rattlespace_m: fl
         if not math.isfinite(rate):
             rate = 0.0
         v0 = fv[F_GUARD_V0]
-        d = 1.0                         # the distance law's factor
+        d = 1.0                         # the distance law's factor (for the count)
         if force_n < 0.0:
+            s = (fv[F_BS_HI] - rattlespace_m - lead * max(rate - v0, 0.0)) / w
             d = (fv[F_BS_HI] - rattlespace_m) / w
-            s = d - lead * max(rate - v0, 0.0) / w
         elif force_n > 0.0:
+            s = (rattlespace_m - fv[F_BS_LO] - lead * max(-rate - v0, 0.0)) / w
             d = (rattlespace_m - fv[F_BS_LO]) / w
-            s = d - lead * max(-rate - v0, 0.0) / w
         s = min(max(s, 0.0), 1.0)
         if s < 1.0:
             iv[I_GUARD_TICKS] += 1
