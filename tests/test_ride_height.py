@@ -5,7 +5,6 @@ the nonlinear plant (a ballast change found, the thesis course left alone)."""
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import pytest
 from hypothesis import given, settings
@@ -100,9 +99,7 @@ def test_loop_notes_the_ride_height_and_the_travel_left(armed: LoopHarness) -> N
     travel left there, keeps the valve driven (no fault), and carries the ride height in
     its tick record, status and the telemetry state."""
     h = armed
-    events: list[tuple[str, Any]] = []
-    h.loop._record_event = (  # type: ignore[method-assign]
-        lambda t_ns, tick, kind, detail: events.append((kind, detail)))
+    events = h.capture_events()
     h.rt.ride_height_m = 0.05
     h.rt.flags = int(StepFlag.RIDE_HEIGHT)
     valves, faults = h.step()

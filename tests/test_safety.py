@@ -308,8 +308,7 @@ def test_degraded_estimator_is_reported_not_latched(armed: LoopHarness) -> None:
     ActiveFault while it lasts, records a note at each change, and a real fault during
     it still reaches the safe state within the tick."""
     h = armed
-    events: list[tuple[str, Any]] = []
-    h.loop._record_event = lambda t, k, kind, detail: events.append((kind, detail))  # type: ignore[method-assign]
+    events = h.capture_events()
     every = h.loop.heartbeat_every
     h.rt.flags = 16                                   # StepFlag.DEGRADED
     for _ in range(2 * every):

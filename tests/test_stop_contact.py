@@ -5,7 +5,6 @@ loop's events, and the monitor on the nonlinear plant."""
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 import pytest
@@ -141,9 +140,7 @@ def test_loop_records_episodes_and_degradations(armed: LoopHarness) -> None:
     window's contact time, counts them, keeps the valve driven (no fault) and carries
     the contact time and the flag in its tick record and status."""
     h = armed
-    events: list[tuple[str, Any]] = []
-    h.loop._record_event = (  # type: ignore[method-assign]
-        lambda t_ns, tick, kind, detail: events.append((kind, detail)))
+    events = h.capture_events()
     h.rt.stop_contact_s = 0.02
     h.rt.flags = int(StepFlag.STOP_CONTACT)
     h.step()

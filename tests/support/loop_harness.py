@@ -146,6 +146,14 @@ class LoopHarness:
         for _ in range(n):
             self.step(**kw)
 
+    def capture_events(self) -> list[tuple[str, Any]]:
+        """From now on, the loop's recorded events land in the returned list as
+        (kind, detail) instead of in the recording."""
+        events: list[tuple[str, Any]] = []
+        self.loop._record_event = (  # type: ignore[method-assign]
+            lambda t_ns, tick, kind, detail: events.append((kind, detail)))
+        return events
+
     def arm(self) -> None:
         res = self.loop.request("arm", timeout_s=None)
         assert res.accepted, res.message
