@@ -395,6 +395,14 @@ def _clear_outputs(st: np.ndarray, j: int) -> None:
         st[j, c] = 0.0
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def filtered_rate(fv: np.ndarray, rattlespace_m: float) -> float:
+    """The force loop's filtered LVDT rate r' [m/s, compression positive] this tick: the
+    rate filter's state w (F_FFW, before :func:`servo_update` advances it) plus b times
+    the reading (``FlowFeedforward.rate_mps``); NaN before the first reading."""
+    return fv[F_FFW] + fv[F_FFB] * rattlespace_m
+
+
 @nb.njit(cache=True, nogil=True)
 def stop_guard(fv: np.ndarray, iv: np.ndarray, force_n: float, rattlespace_m: float) -> float:
     """The force after the end-stop guard (controller/stop_guard.py): a force toward a
@@ -411,7 +419,7 @@ def stop_guard(fv: np.ndarray, iv: np.ndarray, force_n: float, rattlespace_m: fl
         lead = fv[F_GUARD_LEAD]
         if fv[F_TS_ON] != 0.0:
             lead *= fv[F_TS_BETA]
-        rate = fv[F_FFW] + fv[F_FFB] * rattlespace_m      # compression rate r' [m/s]
+        rate = filtered_rate(fv, rattlespace_m)
         if not math.isfinite(rate):
             rate = 0.0
         v0 = fv[F_GUARD_V0]
@@ -544,7 +552,7 @@ def stop_barrier(fv: np.ndarray, iv: np.ndarray, force_n: float, rattlespace_m: 
     fv[F_SB_DF] = 0.0
     if not (fv[F_SB] > 0.0):
         return force_n
-    rate = fv[F_FFW] + fv[F_FFB] * rattlespace_m      # compression rate r' [m/s]
+    rate = filtered_rate(fv, rattlespace_m)
     if math.isnan(fv[F_SB_V]):
         fv[F_SB_V] = rate
     rate = fv[F_SB_V] + fv[F_SB + 7] * (rate - fv[F_SB_V])
@@ -623,7 +631,7 @@ def servo_update(fv: np.ndarray, nd: int, force_ref_n: float, force_meas_n: floa
     (ZOH).  s_ff is the force loop's flow feedforward (``FlowFeedforward.step``), its
     rate-filter state w (F_FFW) advanced here; the caller initialises a NaN w."""
     b = fv[F_FFB]
-    rho = fv[F_FFW] + b * rattlespace_m              # filtered rattlespace rate r'
+    rho = filtered_rate(fv, rattlespace_m)
     fv[F_FFW] = (1.0 - fv[F_FFA]) * rho - b * rattlespace_m
     ff = 0.0
     v = -rho                                         # extension rate zs' - zu'
