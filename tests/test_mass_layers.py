@@ -14,7 +14,9 @@ from controller.runtime.bank import BankRuntime
 from controller.runtime.kernels import Blending
 from controller.runtime.mass_layers import layer_table
 from hil.sim.closed_loop import BankController, cached_design, run_closed_loop
+from hil.sim.plant import RigPlant
 from hil.sim.roads import make_road
+from hil.sim.sensors import SensorReading
 
 CFG = default_config()
 V = CFG.vehicle
@@ -85,6 +87,46 @@ def test_light_plant_controlled_like_the_design_for_it() -> None:
     assert layered["absorbed_power"] == pytest.approx(true["absorbed_power"], rel=0.10)
     assert layered["rattlespace_rms_m"] == pytest.approx(true["rattlespace_rms_m"], rel=0.05)
     assert nominal["absorbed_power"] > 1.3 * true["absorbed_power"]
+
+
+class _LayerTrace(BankController):
+    """The bank with the running layer of every tick."""
+
+    def reset(self) -> None:
+        super().reset()
+        self.layers: list[int] = []
+
+    def step(self, reading: SensorReading, plant: RigPlant) -> float:
+        u = super().step(reading, plant)
+        self.layers.append(int(self.rt.mass_layer))
+        return u
+
+
+def test_observed_before_arming_the_light_plant_starts_on_its_layer() -> None:
+    """As the service runs (the bank steps from the first sensor reading, armed or not),
+    5 s of observing choose the light layer before the valve is armed (estimator settling
+    plus the 1 s dwell take about 3 s), so the armed run matches the design for the true
+    mass from its first tick: 0.6 x, whose start on the configured layer costs most when
+    armed at once (docs/design.md §11)."""
+    light = CFG.replace(design={"sprung_mass_scales": [0.6, 1.0]})
+    road = make_road("rough-course", 11.176, 11.0, DT, 2)
+    n_obs = round(5.0 / DT)
+    true_cfg = CFG.replace(vehicle={"sprung_mass_kg": 0.6 * V.sprung_mass_kg})
+    plant_cfg = light.replace(emulator={"sprung_mass_scale": 0.6})
+    power = {}
+    for name, ctrl_cfg in (("layered", light), ("true", true_cfg)):
+        for observe_s in (0.0, 5.0):
+            ctrl = _LayerTrace(cached_design(ctrl_cfg), ctrl_cfg, "fuzzy", 1, road)
+            res = run_closed_loop(plant_cfg if name == "layered" else true_cfg, road, ctrl,
+                                  seed=2, observe_s=observe_s)
+            assert res.metrics["n_faults"] == 0
+            power[name, observe_s] = res.metrics["absorbed_power"]
+            if name == "layered":
+                assert ctrl.layers[0] == 1 and ctrl.layers[-1] == 0
+                if observe_s:
+                    assert ctrl.layers[n_obs - 1] == 0      # chosen before arming
+    assert power["layered", 5.0] == pytest.approx(power["true", 5.0], rel=0.05)
+    assert power["layered", 0.0] > 1.15 * power["true", 0.0]
 
 
 def test_ballast_step_moves_the_bank_to_the_heavy_layer_without_fault() -> None:

@@ -213,6 +213,34 @@ def test_bank_controller_weights_traces_and_diagnostics() -> None:
     with pytest.raises(ValueError, match="blending"):
         BankController(cached_design(CFG), CFG, "skyhook", 1, road)
 
+def test_observing_before_arming_runs_the_controller_with_the_valve_safe() -> None:
+    """``observe_s``: the bank steps from the first reading (as the service does, armed
+    or not) while the valve is safe, so up to arming the plant is the passive rig tick
+    for tick; the metrics are the armed window's alone."""
+    road = make_road("rough-course", SPEED_25MPH, 3.0, DT, seed=3)
+    n_obs = round(1.0 / DT)
+    passive = simulate(CFG, road, "passive", seed=3)
+    armed_late = simulate(CFG, road, "fuzzy", 1, seed=3, observe_s=1.0)
+    tr, ptr = armed_late.traces, passive.traces
+    np.testing.assert_array_equal(tr["rattlespace_m"][:n_obs + 1],
+                                  ptr["rattlespace_m"][:n_obs + 1])
+    assert np.all(tr["force_ref_n"][:n_obs] == 0.0) and np.all(tr["spool_cmd"][:n_obs] == 0.0)
+    assert np.any(tr["force_ref_n"][n_obs:] != 0.0)
+    assert not np.array_equal(tr["rattlespace_m"], ptr["rattlespace_m"])
+    assert armed_late.info["observe_s"] == pytest.approx(1.0)
+    # the controller ran while observing: its estimate had settled before arming
+    assert math.isfinite(tr["sprung_mass_est_kg"][n_obs - 1])
+    # the metrics skip the observed second like settle_s does, for active and passive alike
+    p_obs = simulate(CFG, road, "passive", seed=3, observe_s=1.0).metrics
+    p_settle = simulate(CFG, road, "passive", seed=3, settle_s=1.0).metrics
+    assert p_obs["absorbed_power"] == p_settle["absorbed_power"]
+    assert p_obs["absorbed_power"] != passive.metrics["absorbed_power"]
+    with pytest.raises(ValueError, match="observe_s"):
+        simulate(CFG, road, "fuzzy", 1, observe_s=3.0)
+    with pytest.raises(ValueError, match="observe_s"):
+        simulate(CFG, road, "fuzzy", 1, observe_s=-1.0)
+
+
 def test_sensor_fault_latches_safe_state() -> None:
     cfg = CFG.replace(sensors={"lvdt_range_m": 0.005})
     road = make_road("bump", SPEED_25MPH, 1.5, DT)
@@ -280,6 +308,11 @@ def test_cli_json_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
     table = capsys.readouterr().out
     assert all(c in table for c in ("passive", "zero-force", "skyhook", "lqg", "fuzzy",
                                     "bayes", "moving"))
+    assert main(["sim", "--road", "iso-B", "--duration", "0.5", "--observe", "0.5",
+                 "--controller", "fuzzy"]) == 0
+    assert "observed 0.5 s, armed 0.5 s" in capsys.readouterr().out
+    assert main(["sim", "--duration", "1", "--observe", "-1"]) == 2
+    assert "--observe" in capsys.readouterr().err
     for c in ("zero-force", "skyhook"):
         assert main(["sim", "--road", "rough-course", "--duration", "1", "--controller", c,
                      "--json"]) == 0

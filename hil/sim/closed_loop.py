@@ -257,14 +257,15 @@ class ZeroForceController:
 def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: int = 1, *,
              delay_ticks: int = 0, seed: int | None = None, params: PlantParams | None = None,
              design: Design | None = None, settle_s: float = 0.0,
-             latch_on_sensor_status: bool = True) -> SimResult:
+             latch_on_sensor_status: bool = True, observe_s: float = 0.0) -> SimResult:
     """Closed-loop run of ``controller`` (one of :data:`CONTROLLERS`) over ``road``
     (sampled at the controller rate): :func:`run_closed_loop` with a :class:`BankController`,
     :class:`ZeroForceController` or :class:`hil.sim.skyhook.SkyhookController`.
 
     ``params`` perturbs the plant (default: the emulated rig of ``cfg.emulator``; the
     controller keeps its design from the configuration); ``design`` defaults to
-    ``design_bank(cfg)`` (memoised, bank modes only).  Raises ValueError on bad arguments.
+    ``design_bank(cfg)`` (memoised, bank modes only); ``observe_s``: the time before
+    arming (:func:`run_closed_loop`).  Raises ValueError on bad arguments.
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}: use one of "
@@ -281,7 +282,8 @@ def simulate(cfg: RigConfig, road: Road, controller: str = "fuzzy", weight_set: 
         design = design if design is not None else cached_design(cfg)
         ctrl = BankController(design, cfg, controller, weight_set, road)
     res = run_closed_loop(cfg, road, ctrl, delay_ticks=delay_ticks, seed=seed, params=params,
-                          settle_s=settle_s, latch_on_sensor_status=latch_on_sensor_status)
+                          settle_s=settle_s, latch_on_sensor_status=latch_on_sensor_status,
+                          observe_s=observe_s)
     res.weight_set = weight_set
     return res
 
@@ -290,9 +292,16 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
                     delay_ticks: int = 0, delay_point: str = "spool", seed: int | None = None,
                     params: PlantParams | None = None, settle_s: float = 0.0,
                     latch_on_sensor_status: bool = True,
-                    record_weights: bool = False) -> SimResult:
+                    record_weights: bool = False, observe_s: float = 0.0) -> SimResult:
     """Closed-loop run of ``controller`` (None = passive, bypass open) over ``road``
     (sampled at ``cfg.sample_time_s``); ``controller.reset()`` is called first.
+
+    ``observe_s`` [s] is the time before arming, as the service runs: the controller
+    steps from the first sensor reading (estimator, mass estimate, layer choice, monitors;
+    a fault latches) while the valve is in its safe state (bypass open, no force loop),
+    and is armed from then on.  The metrics, the slam check and ``tire_deflection_rms_m``
+    cover the armed time only (after ``settle_s`` more), so a passive run with the same
+    ``observe_s`` is the reference for the same window; the road must cover both.
 
     ``delay_ticks`` ticks pass between computing and applying; ``delay_point`` (one of
     :data:`DELAY_POINTS`) is what is late: ``"spool"`` the valve command,
@@ -307,12 +316,18 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
         raise ValueError(f"delay_ticks must be >= 0, got {delay_ticks}")
     if delay_point not in DELAY_POINTS:
         raise ValueError(f"delay_point {delay_point!r}: allowed {', '.join(DELAY_POINTS)}")
+    if not (math.isfinite(observe_s) and observe_s >= 0):
+        raise ValueError(f"observe_s must be finite and >= 0, got {observe_s}")
     delay_ref = delay_point == "force_ref" and delay_ticks > 0
     delay_spool = delay_ticks > 0 and not delay_ref
     dt = cfg.sample_time_s
     if not math.isclose(road.dt_s, dt, rel_tol=1e-9):
         raise ValueError(f"road sampled at {road.dt_s} s but the controller runs at {dt} s")
     n = road.n_ticks
+    n_observe = round(observe_s / dt)
+    if n_observe >= n:
+        raise ValueError(f"observe_s {observe_s} s leaves no armed tick of the "
+                         f"{n * dt:g} s road")
     substeps = max(1, math.ceil(dt / MAX_INNER_STEP_S - 1e-9))
     plant = RigPlant(cfg, params, substeps=substeps)
     sensors = SensorSuite(cfg.sensors, cfg.noise, seed, dt_s=dt)
@@ -366,6 +381,8 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
                 fault_tick = k
                 fault_flags = int(getattr(controller, "flags", 0)) | (int(rd.status) << 8)
                 fref = 0.0
+            elif k < n_observe:         # not armed yet: observing, valve safe
+                fref = 0.0
             else:
                 if delay_ref:
                     queue.append(fref)
@@ -413,14 +430,16 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
     static_load = (plant.p[0] + plant.p[1]) * v.gravity_mps2
     metrics = compute_metrics(dt, tr["accel_mps2"], tr["rattlespace_m"], tr["tire_force_n"],
                               static_load, tr["force_n"], tr["hydraulic_power_w"],
-                              tr["off_ground_s"], tr["bump_stop_s"], settle_s=settle_s,
+                              tr["off_ground_s"], tr["bump_stop_s"],
+                              settle_s=n_observe * dt + settle_s,
                               human_filter=(cfg.design.human_filter_num,
                                             cfg.design.human_filter_den))
     zero_offset = plant.static_rattlespace_m - float(plant.p[12])   # LVDT zero - r0
-    penetration = (float(np.max(np.abs(tr["rattlespace_m"] + zero_offset)))
-                   - v.rattlespace_travel_m) if n_done else 0.0
+    armed_r = tr["rattlespace_m"][n_observe:]
+    penetration = (float(np.max(np.abs(armed_r + zero_offset)))
+                   - v.rattlespace_travel_m) if armed_r.size else 0.0
     slam = penetration > SLAM_PENETRATION_M
-    i0 = min(round(settle_s / dt), max(n_done - 1, 0))
+    i0 = min(n_observe + round(settle_s / dt), max(n_done - 1, 0))
     x2_dev = tr["tire_deflection_m"][i0:] - plant.equilibrium()[1]
     metrics.update({
         "duration_s": n_done * dt,
@@ -442,7 +461,8 @@ def run_closed_loop(cfg: RigConfig, road: Road, controller: LoopController | Non
     if callable(diagnostics):
         metrics.update(diagnostics())
     info = {"substeps": substeps, "delay_ticks": delay_ticks, "delay_point": delay_point,
-            "dt_s": dt, "speed_mps": road.speed_mps, "seed": sensors.seed}
+            "dt_s": dt, "observe_s": n_observe * dt, "speed_mps": road.speed_mps,
+            "seed": sensors.seed}
     name = controller.name if controller is not None else "passive"
     return SimResult(metrics, tr, name, int(getattr(controller, "weight_set", 0)), road.name,
                      info)

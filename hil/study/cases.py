@@ -83,6 +83,8 @@ class Case:
     design_mass: str = "configured"        # DESIGN_MASSES
     sim_road: bool = False                 # the road as `rig sim` makes it (make_road at
                                            # the controller rate), not study_road's
+    observe_s: float = 0.0                 # observed before arming (run_closed_loop); the
+                                           # road is observe_s + duration_s long
 
     def __post_init__(self) -> None:
         if self.controller not in CONTROLLERS:
@@ -94,14 +96,15 @@ class Case:
         if not (self.sprung_mass_scale > 0 and self.tire_stiffness_scale > 0):
             raise ValueError(f"bad case {self}: sprung_mass_scale and tire_stiffness_scale "
                              "> 0 needed")
-        if self.delay_ms < 0 or self.duration_s <= 0:
-            raise ValueError(f"bad case {self}: delay_ms >= 0 and duration_s > 0 needed")
+        if self.delay_ms < 0 or self.duration_s <= 0 or self.observe_s < 0:
+            raise ValueError(f"bad case {self}: delay_ms >= 0, duration_s > 0 and "
+                             "observe_s >= 0 needed")
 
     def ref_key(self) -> tuple[Any, ...]:
         """Cases with equal keys share one passive reference run."""
         return (self.road, self.speed_mps, self.duration_s, self.road_seed, self.rate_hz,
                 self.param_tag, self.settle_s, self.sprung_mass_scale,
-                self.tire_stiffness_scale, self.sim_road)
+                self.tire_stiffness_scale, self.sim_road, self.observe_s)
 
     def passive(self) -> Case:
         return replace(self, controller="passive", weight_set=1, delay_ms=0.0,
@@ -120,6 +123,8 @@ class Case:
                 + (f", tire stiffness x {self.tire_stiffness_scale:g}"
                    if self.tire_stiffness_scale != 1.0 else "")
                 + (f", design {self.design_mass}" if self.design_mass != "configured"
+                   else "")
+                + (f", observed {self.observe_s:g} s before arming" if self.observe_s
                    else ""))
 
     @property
@@ -239,15 +244,16 @@ def run_case(case: Case, cfg: RigConfig) -> dict[str, Any]:
     ``traces`` dict (decimated by :data:`TRACE_DECIMATION`)."""
     ccfg = case_config(cfg, case)
     dt = ccfg.sample_time_s
-    road = (make_road(case.road, case.speed_mps, case.duration_s, dt, case.road_seed)
+    length_s = case.observe_s + case.duration_s
+    road = (make_road(case.road, case.speed_mps, length_s, dt, case.road_seed)
             if case.sim_road else
-            study_road(case.road, case.speed_mps, case.duration_s, dt, case.road_seed))
+            study_road(case.road, case.speed_mps, length_s, dt, case.road_seed))
     ctrl = make_controller(case, ccfg, road)
     delay_ticks = round(case.delay_ms * 1e-3 / dt)
     res = run_closed_loop(ccfg, road, ctrl, delay_ticks=delay_ticks, seed=case.sensor_seed,
                           params=case.params, settle_s=case.settle_s,
                           record_weights=case.trace,
-                          delay_point=case.delay_point)
+                          delay_point=case.delay_point, observe_s=case.observe_s)
     row = _row_fields(case)
     row.update({k: float(v) for k, v in res.metrics.items()
                 if k != "realtime_factor"})       # wall-clock: would make rows unrepeatable

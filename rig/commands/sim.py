@@ -46,6 +46,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
                                                     lo_open=True),
                    default=20.0, help=f"s (default 20, at most {argtypes.MAX_OFFLINE_S:g})")
+    p.add_argument("--observe", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s"),
+                   default=0.0, metavar="S",
+                   help="observe S seconds before arming, as the service does: the "
+                        "controller runs from the first sensor reading with the valve safe; "
+                        "the road is S + duration long and the metrics cover the armed "
+                        "duration (default 0: armed from the start)")
     argtypes.add_controller_option(p, CONTROLLERS, "fuzzy", extra=("all",))
     argtypes.add_weights_option(p, None)
     p.add_argument("--seed", type=argtypes.seed, default=1, help="road and sensor-noise seed")
@@ -78,12 +84,13 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.rate is not None:
         cfg = cfg.replace(design={"sample_rate_hz": args.rate})
-    road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
+    road = make_road(args.road, args.speed, args.observe + args.duration, cfg.sample_time_s,
+                     args.seed)
     names = list(CONTROLLERS) if args.controller == "all" else [args.controller]
     try:
         weights = cfg.design.weight_set if args.weights is None else args.weights
         results = [simulate(cfg, road, c, weights, delay_ticks=args.delay,
-                            seed=args.seed) for c in names]
+                            seed=args.seed, observe_s=args.observe) for c in names]
     except ValueError as exc:
         refuse("sim", f"{exc}")
         return 2
@@ -96,7 +103,10 @@ def run(args: argparse.Namespace) -> int:
         out = {r.controller: r.metrics for r in results}
         print(strict_json.dumps(out if len(results) > 1 else results[0].metrics, indent=1))
     else:
-        print(f"road {road.name} at {road.speed_mps:g} m/s for {road.duration_s:g} s, "
-              f"seed {args.seed}, delay {args.delay} ticks, {1 / cfg.sample_time_s:g} Hz")
+        observed = (f" (observed {args.observe:g} s, armed {args.duration:g} s)"
+                    if args.observe else "")
+        print(f"road {road.name} at {road.speed_mps:g} m/s for {road.duration_s:g} s"
+              f"{observed}, seed {args.seed}, delay {args.delay} ticks, "
+              f"{1 / cfg.sample_time_s:g} Hz")
         print(format_table(results))
     return 1 if any(r.metrics["unstable"] for r in results) else 0
