@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -58,7 +59,11 @@ def test_envelope_plan_covers_the_issue_cases() -> None:
     env = envelope_cases(p)
     tags = {c.param_tag for c in env}
     assert {"Kt0.7", "Kt1.3", "M0.6", "M1.5"} <= tags
-    assert len(env) == 2 * (len(p.envelope_mass_scales) + 2) * 4
+    assert len(env) == 2 * (len(p.envelope_mass_scales) + 2) * 6
+    assert {c.observe_s for c in env} == {5.0}
+    assert {c.label for c in env} == {"passive", "lqg-1", "fuzzy-1 (layered)",
+                                      "fuzzy-1 (true-plant)", "fuzzy-default (layered)",
+                                      "fuzzy-default (true-plant)"}
     mc = envelope_mc_cases(p, CFG)
     assert len(mc) == 2 * 20 * (1 + len(ENVELOPE_MC_CONTROLLERS))
     assert {c.duration_s for c in mc} == {20.0} and {c.road_seed for c in mc} == {1, 2}
@@ -101,6 +106,22 @@ def test_envelope_seed_runs_are_rig_sim_runs() -> None:
     row = run_case(case, CFG)
     road = make_road("rough-course", V25, 0.4, DT, 3)
     ref = simulate(CFG, road, "bayes", CFG.design.weight_set, seed=3).metrics
+    for key in ("absorbed_power", "rattlespace_rms_m", "force_rms_n"):
+        assert row[key] == ref[key], key
+
+
+def test_ballast_sweep_runs_are_observed_rig_sim_runs(capsys: pytest.CaptureFixture[str]
+                                                     ) -> None:
+    """A ballast-sweep row is ``rig sim --seed S --observe O`` on that plant: observed O s
+    (the road O + D long), the metrics over the armed D s."""
+    from rig.cli import main
+    p = replace(plan(True), envelope_seeds=(2,), envelope_duration_s=0.4,
+                envelope_observe_s=0.3, envelope_mass_scales=(1.0,), envelope_tire_scales=())
+    case = next(c for c in envelope_cases(p) if c.label == "fuzzy-default (true-plant)")
+    row = run_case(case, CFG)
+    assert main(["sim", "--seed", "2", "--duration", "0.4", "--observe", "0.3",
+                 "--controller", "fuzzy", "--json"]) == 0
+    ref = json.loads(capsys.readouterr().out)
     for key in ("absorbed_power", "rattlespace_rms_m", "force_rms_n"):
         assert row[key] == ref[key], key
 
@@ -176,11 +197,15 @@ def test_envelope_table_names_tire_plants_and_bounds() -> None:
                 "sprung_mass_scale": mass, "tire_stiffness_scale": tire}
     rows = [r("lqg-1", 0.1, 1.0, mass=0.7), r("fuzzy-1 (layered)", 0.109, 1.0, mass=0.7),
             r("fuzzy-1 (true-plant)", 0.1, 1.0, mass=0.7),
+            r("fuzzy-default (layered)", 0.12, 1.0, mass=0.7),
+            r("fuzzy-default (true-plant)", 0.1, 1.0, mass=0.7),
             r("lqg-1", 0.1, 1.0, tire=1.3), r("fuzzy-1 (layered)", 0.1, 1.06, tire=1.3),
             r("fuzzy-1 (true-plant)", 0.1, 1.0, tire=1.3)]
     lines = _envelope(rows)
-    assert _cells(lines, "M x0.7")[-1] == "yes"
-    assert _cells(lines, "tire x1.3")[-1] == "**no**"
+    m07 = _cells(lines, "M x0.7")
+    assert m07[-2].endswith(": yes") and m07[-1] == "1.200, 1.000: **no**"
+    t13 = _cells(lines, "tire x1.3")
+    assert t13[-2].endswith(": **no**") and t13[-1] == "–"      # the default law not run
     assert lines.index(next(x for x in lines if x.startswith("| M x0.7"))) < lines.index(
         next(x for x in lines if x.startswith("| tire x1.3")))
 

@@ -56,9 +56,13 @@ RATIO_METRICS = ("absorbed_power", "wk_rms_mps2", "accel_rms_mps2", "rattlespace
                  "rattlespace_peak_m", "tire_load_rms_ratio", "tire_deflection_rms_m",
                  "lq_cost_w1", "lq_cost_w2")
 THESIS_SPEED_MPS = 11.176   # 25 mph
-#: (controller, design mass) of the envelope group, weight set 1: the single nominal LQG,
-#: the layered (payload) fuzzy bank, the fuzzy bank designed on the true plant
-ENVELOPE_CONTROLLERS = (("lqg", "configured"), ("fuzzy", "layered"), ("fuzzy", "true-plant"))
+#: (controller, design mass, weight set) of the envelope group: the single nominal LQG,
+#: the layered (payload) fuzzy bank and the fuzzy bank designed on the true plant, with
+#: weight set 1 and with the configured law (None: ``design.weight_set``, the travel
+#: schedule by default)
+ENVELOPE_CONTROLLERS: tuple[tuple[str, str, int | None], ...] = (
+    ("lqg", "configured", 1), ("fuzzy", "layered", 1), ("fuzzy", "true-plant", 1),
+    ("fuzzy", "layered", None), ("fuzzy", "true-plant", None))
 #: (controller, weight set) of the 25 % Monte Carlo: the default controller (``rig
 #: montecarlo``'s fuzzy bank) with each weight set and the configured one (None: the
 #: configuration's ``design.weight_set`` and defaults as they are when the study runs)
@@ -105,6 +109,7 @@ class StudyPlan:
     envelope_mc_duration_s: float
     envelope_road_seeds: tuple[int, ...]
     envelope_road_duration_s: float
+    envelope_observe_s: float = 0.0
 
     def describe(self) -> str:
         return (f"thesis case {len(self.thesis_seeds)} x {self.thesis_duration_s:g} s; other "
@@ -115,7 +120,8 @@ class StudyPlan:
                 f"x {self.tune_duration_s:g} s; statistics skip the first {self.settle_s:g} s; "
                 f"envelope {len(self.envelope_mass_scales)} sprung masses and "
                 f"{len(self.envelope_tire_scales)} tire stiffnesses x "
-                f"{len(self.envelope_seeds)} seeds x {self.envelope_duration_s:g} s; "
+                f"{len(self.envelope_seeds)} seeds x {self.envelope_duration_s:g} s armed "
+                f"after {self.envelope_observe_s:g} s observed; "
                 f"envelope Monte Carlo {self.envelope_mc_runs} plants x "
                 f"{self.envelope_mc_duration_s:g} s at {100 * self.envelope_mc_spread:g} % "
                 f"spread, seeds {', '.join(map(str, self.envelope_mc_seeds))}; envelope "
@@ -131,7 +137,8 @@ def plan(quick: bool) -> StudyPlan:
                          (0.7, 1.3), (1,), 2.0, envelope_tire_scales=(0.7,),
                          envelope_mc_runs=2, envelope_mc_spread=0.25,
                          envelope_mc_seeds=(1,), envelope_mc_duration_s=2.0,
-                         envelope_road_seeds=(1, 2), envelope_road_duration_s=2.0)
+                         envelope_road_seeds=(1, 2), envelope_road_duration_s=2.0,
+                         envelope_observe_s=0.5)
     roads = (("iso-B", 10.0), ("iso-B", 20.0), ("iso-B", 30.0), ("iso-D", 10.0),
              ("iso-D", 20.0), ("iso-D", 30.0), ("iso-F", 5.0), ("iso-F", 10.0),
              ("bump", 5.0), ("bump", 10.0), ("pothole", 5.0), ("pothole", 10.0))
@@ -143,7 +150,7 @@ def plan(quick: bool) -> StudyPlan:
                      envelope_tire_scales=(0.7, 1.3), envelope_mc_runs=20,
                      envelope_mc_spread=0.25, envelope_mc_seeds=(1, 2),
                      envelope_mc_duration_s=20.0, envelope_road_seeds=tuple(range(1, 13)),
-                     envelope_road_duration_s=60.0)
+                     envelope_road_duration_s=60.0, envelope_observe_s=5.0)
 
 
 def bank_labels() -> list[tuple[str, int]]:
@@ -231,7 +238,9 @@ def other_cases(p: StudyPlan, cfg: RigConfig, skyhook: SkyhookGains) -> list[Cas
 def envelope_cases(p: StudyPlan) -> list[Case]:
     """The ballast sweep and the tire cases: passive and :data:`ENVELOPE_CONTROLLERS` per
     sprung-mass scale (``param_tag`` ``M<scale>``) or tire stiffness scale
-    (``Kt<scale>``) and road seed."""
+    (``Kt<scale>``) and road seed, each observed ``envelope_observe_s`` before arming as
+    the service runs (a ballast change with the service stopped: the bank chooses its
+    layer before the operator arms; a change during a run is the ballast-step case)."""
     plants = ([(f"M{s:g}", s, 1.0) for s in p.envelope_mass_scales]
               + [(f"Kt{s:g}", 1.0, s) for s in p.envelope_tire_scales])
     cases: list[Case] = []
@@ -240,10 +249,10 @@ def envelope_cases(p: StudyPlan) -> list[Case]:
             base = Case("envelope", "passive", road="rough-course", speed_mps=THESIS_SPEED_MPS,
                         duration_s=p.envelope_duration_s, road_seed=seed, sensor_seed=seed,
                         sprung_mass_scale=mass, tire_stiffness_scale=tire, param_tag=tag,
-                        sim_road=True)
+                        sim_road=True, observe_s=p.envelope_observe_s)
             cases.append(base)
-            cases += [replace(base, controller=c, design_mass=dm)
-                      for c, dm in ENVELOPE_CONTROLLERS]
+            cases += [replace(base, controller=c, design_mass=dm, weight_set=ws)
+                      for c, dm, ws in ENVELOPE_CONTROLLERS]
     return cases
 
 

@@ -210,8 +210,12 @@ def _mismatch(rows: Sequence[Row]) -> list[str]:
     return _table(["controller", *heads], body)
 
 
-#: the envelope group's controllers (hil.study.matrix.ENVELOPE_CONTROLLERS, weight set 1)
-ENVELOPE_LABELS = ("lqg-1", "fuzzy-1 (layered)", "fuzzy-1 (true-plant)")
+#: the envelope group's controllers (hil.study.matrix.ENVELOPE_CONTROLLERS)
+ENVELOPE_LABELS = ("lqg-1", "fuzzy-1 (layered)", "fuzzy-1 (true-plant)",
+                   "fuzzy-default (layered)", "fuzzy-default (true-plant)")
+#: (layered, true-plant) label pairs the envelope table compares, by law
+ENVELOPE_PAIRS = (("set 1", "fuzzy-1 (layered)", "fuzzy-1 (true-plant)"),
+                  ("default", "fuzzy-default (layered)", "fuzzy-default (true-plant)"))
 #: issue 22's bounds of the layered bank against the true-plant design: absorbed power
 #: at most 10 % above it, rattlespace RMS at most 5 % above it (ratios of seed means)
 ENVELOPE_POWER_BOUND = 1.10
@@ -231,9 +235,10 @@ def _plant_scale(r: Row, key: str) -> float:
 
 def _envelope(rows: Sequence[Row]) -> list[str]:
     """Per plant (sprung-mass scale, then tire stiffness scale): each controller's
-    ``a / r`` (mean over road seeds), the layered bank's absorbed power and rattlespace
-    RMS over the true-plant design's (ratio of the seed means) and whether they are
-    within :data:`ENVELOPE_POWER_BOUND` / :data:`ENVELOPE_RATTLESPACE_BOUND`."""
+    ``a / r`` (mean over road seeds) and, per law of :data:`ENVELOPE_PAIRS`, the layered
+    bank's absorbed power and rattlespace RMS over the true-plant design's (ratio of the
+    seed means) and whether they are within :data:`ENVELOPE_POWER_BOUND` /
+    :data:`ENVELOPE_RATTLESPACE_BOUND` with no fault (``–``: the law was not run)."""
     env = [r for r in rows if r["group"] == "envelope"]
     plants = sorted({(_plant_scale(r, "tire_stiffness_scale") != 1.0,
                       _plant_scale(r, "sprung_mass_scale"),
@@ -243,18 +248,25 @@ def _envelope(rows: Sequence[Row]) -> list[str]:
         at = [r for r in env if _plant_scale(r, "sprung_mass_scale") == mass
               and _plant_scale(r, "tire_stiffness_scale") == tire]
         cells = [_ap_rs(rows_where(at, label=lab)) for lab in ENVELOPE_LABELS]
-        lay = rows_where(at, label=ENVELOPE_LABELS[1])
-        true = rows_where(at, label=ENVELOPE_LABELS[2])
-        rel = [mean_of(lay, k) / mean_of(true, k) if lay and true else math.nan
-               for k in ("absorbed_power_ratio", "rattlespace_rms_m_ratio")]
-        ok = rel[0] <= ENVELOPE_POWER_BOUND and rel[1] <= ENVELOPE_RATTLESPACE_BOUND and not any(
-            float(r["n_faults"]) for r in lay)
+        verdicts = []
+        for _, layered, true_plant in ENVELOPE_PAIRS:
+            lay = rows_where(at, label=layered)
+            true = rows_where(at, label=true_plant)
+            if not (lay and true):
+                verdicts.append("–")
+                continue
+            rel = [mean_of(lay, k) / mean_of(true, k)
+                   for k in ("absorbed_power_ratio", "rattlespace_rms_m_ratio")]
+            ok = (rel[0] <= ENVELOPE_POWER_BOUND and rel[1] <= ENVELOPE_RATTLESPACE_BOUND
+                  and not any(float(r["n_faults"]) for r in lay))
+            verdicts.append(f"{rel[0]:.3f}, {rel[1]:.3f}: {'yes' if ok else '**no**'}")
         plant = f"tire x{tire:g}" if tire_case else f"M x{mass:g}"
-        body.append([plant, *cells, f"{_f(rel[0])}, {_f(rel[1])}",
-                     "yes" if ok else "**no**"])
-    return _table(["plant", *ENVELOPE_LABELS, "layered ÷ true-plant: power, rattlespace",
-                   f"within {_f(100 * (ENVELOPE_POWER_BOUND - 1))} % / "
-                   f"{_f(100 * (ENVELOPE_RATTLESPACE_BOUND - 1))} %, no fault"], body)
+        body.append([plant, *cells, *verdicts])
+    bounds = (f"within {_f(100 * (ENVELOPE_POWER_BOUND - 1))} % / "
+              f"{_f(100 * (ENVELOPE_RATTLESPACE_BOUND - 1))} %, no fault")
+    return _table(["plant", *ENVELOPE_LABELS,
+                   *(f"{law}: layered ÷ true-plant power, rattlespace; {bounds}"
+                     for law, _, _ in ENVELOPE_PAIRS)], body)
 
 
 def _labels_in_order(sel: Sequence[Row]) -> list[str]:
@@ -456,15 +468,21 @@ def tables_markdown(rows: Sequence[Row], grid: TradeoffGrid | None, chosen_skyho
                 ""]
         out += _rho(rows, grid)
     if "envelope" in ran:
+        observed = sorted({float(r.get("observe_s") or 0.0) for r in rows
+                           if r["group"] == "envelope"})
+        obs = ", ".join(f"{o:g}" for o in observed)
         out += ["## Operating envelope: ballast sweep and tire stiffness (thesis course; "
                 "plant sprung mass or tire stiffness scaled)", "",
                 "Plant `[emulator] sprung_mass_scale` (M x) or `tire_stiffness_scale` "
                 "(tire x) = the scale (LVDT zeroed at its own rest); each run as `rig sim "
-                "--road rough-course --speed 11.176 --seed S` makes it.  lqg-1: the single "
-                "nominal LQG; layered: the fuzzy bank with the sprung-mass layers of "
-                "deploy/payload.toml; true-plant: the default fuzzy bank designed with "
-                "`vehicle.sprung_mass_kg` and `tire.stiffness_coefficient` = the scale x "
-                "nominal, on the same plant.  Mean over road seeds; the layered bank should "
+                f"--road rough-course --speed 11.176 --seed S --observe {obs}` makes it: "
+                f"observed {obs} s before arming, as the service runs (the bank chooses its "
+                "layer before the valve is armed; the metrics cover the armed time).  "
+                "lqg-1: the single nominal LQG; layered: the fuzzy bank with the "
+                "sprung-mass layers of deploy/payload.toml; true-plant: the default fuzzy "
+                "bank designed with `vehicle.sprung_mass_kg` and `tire.stiffness_coefficient` "
+                "= the scale x nominal, on the same plant; -1: weight set 1, -default: the "
+                "configured law.  Mean over road seeds; the layered bank should "
                 f"come within {_f(100 * (ENVELOPE_POWER_BOUND - 1))} % of the true-plant "
                 f"design's absorbed power at rattlespace within "
                 f"{_f(100 * (ENVELOPE_RATTLESPACE_BOUND - 1))} % (issue 22); figure "
