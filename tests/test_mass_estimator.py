@@ -21,18 +21,29 @@ DT = CFG.sample_time_s
 COURSE_SPEED_MPS = 11.176
 
 
-def _body_data(mass_kg: float, n: int, seed: int, offset_n: float = 0.0
+def _body_data(mass_kg: float, n: int, seed: int, offset_n: float = 0.0,
+               spring_scale: float = 1.0, damping_scale: float = 1.0
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(force [N], LVDT [m], acceleration [m/s^2]) that obey M a = F + K z + C z' exactly
-    (z' the backward difference), z band-limited random motion; ``offset_n``: a constant
-    force (a ballast's weight before the LVDT is re-zeroed, a load-cell offset)."""
+    at the mid-tick instants (z' the backward difference, a, F and z the mean of two
+    samples), z band-limited random motion; K and C the configured ones x the scales;
+    ``offset_n``: a constant force (a ballast's weight before the LVDT is re-zeroed, a
+    load-cell offset)."""
     rng = np.random.default_rng(seed)
     b, a = signal.butter(2, [0.5, 5.0], btype="bandpass", fs=1.0 / DT)
     z = 0.01 * signal.lfilter(b, a, rng.standard_normal(n)) / 0.05
     zdot = np.diff(z, prepend=z[0]) / DT
     acc = 0.5 * signal.lfilter(b, a, rng.standard_normal(n)) / 0.05
-    force = mass_kg * acc - V.suspension_stiffness_n_per_m * z \
-        - V.suspension_damping_ns_per_m * zdot - offset_n
+    # mid-tick force from the mid-tick terms, then samples whose pairwise means are it
+    k = V.suspension_stiffness_n_per_m * spring_scale
+    c = V.suspension_damping_ns_per_m * damping_scale
+    z_mid = 0.5 * (z + np.concatenate(([z[0]], z[:-1])))
+    a_mid = 0.5 * (acc + np.concatenate(([acc[0]], acc[:-1])))
+    f_mid = mass_kg * a_mid - k * z_mid - c * zdot - offset_n
+    force = np.empty(n)
+    force[0] = f_mid[0]
+    for i in range(1, n):
+        force[i] = 2.0 * f_mid[i] - force[i - 1]
     return force, z, acc
 
 
@@ -42,6 +53,22 @@ def test_fit_is_exact_on_the_body_equation_despite_a_constant_offset() -> None:
     for f, r, a in zip(force, z, acc, strict=True):
         est.step(f, r, a)
     assert est.estimate_kg == pytest.approx(380.0, rel=1e-3)
+
+
+def test_fit_finds_mass_spring_and_damper_of_a_rig_unlike_the_configured_one() -> None:
+    """K 0.7 x and C 1.4 x the configured ones (a 25 % spread draws such rigs): the fit of
+    [M, K, C] finds all three, where a fit of M alone with the configured K and C would
+    be off by tens of per cent (the weak prior on K and C moves them < 0.5 %)."""
+    est = MassEstimator(mass_estimator_parameters(CFG))
+    force, z, acc = _body_data(540.0, 20_000, seed=5, offset_n=-800.0, spring_scale=0.7,
+                               damping_scale=1.4)
+    for f, r, a in zip(force, z, acc, strict=True):
+        est.step(f, r, a)
+    assert est.estimate_kg == pytest.approx(540.0, rel=5e-3)
+    assert est.spring_rate_n_per_m == pytest.approx(0.7 * V.suspension_stiffness_n_per_m,
+                                                    rel=5e-3)
+    assert est.damping_ns_per_m == pytest.approx(1.4 * V.suspension_damping_ns_per_m,
+                                                 rel=5e-3)
 
 
 def test_kernel_is_the_plain_recursion() -> None:
@@ -57,9 +84,12 @@ def test_kernel_is_the_plain_recursion() -> None:
         want.append(ref.step(f + rt.bump_stop_force, r, a))
     np.testing.assert_allclose(got, want, rtol=1e-9)
     assert got[-1] == pytest.approx(620.0, rel=1e-2)
+    assert rt.spring_rate_est_n_per_m == pytest.approx(ref.spring_rate_n_per_m, rel=1e-9)
+    assert rt.damping_est_ns_per_m == pytest.approx(ref.damping_ns_per_m, rel=1e-9)
     assert rt.counters()["mass_estimate_updates"] == ref.updates > 0
     rt.reset()
     assert rt.sprung_mass_est_kg == V.sprung_mass_kg
+    assert rt.spring_rate_est_n_per_m == V.suspension_stiffness_n_per_m
     assert rt.counters()["mass_estimate_updates"] == 0
 
 
@@ -107,6 +137,16 @@ def test_estimate_within_5_percent_after_10_s_on_the_thesis_course() -> None:
     assert err[round(10.0 / DT):].max() < 0.05
     assert err[0] == pytest.approx(1.0 / 0.7 - 1.0)      # it started from the configured mass
     assert metrics["sprung_mass_est_ratio"] == pytest.approx(1.0, abs=0.05)
+
+
+def test_estimate_within_5_percent_on_a_rig_with_another_spring_and_damper() -> None:
+    """The emulated rig 0.8 x the configured mass on a spring 0.8 x and a damper 1.3 x the
+    configured ones: the mass within 5 % after 10 s (a fit of M alone with the configured
+    K and C read this rig's 400 kg as 296 kg)."""
+    est, true, _ = _estimate_run({"sprung_mass_scale": 0.8, "spring_rate_scale": 0.8,
+                                  "damping_scale": 1.3}, 12.0)
+    err = np.abs(est / true - 1.0)
+    assert err[round(10.0 / DT):].max() < 0.05
 
 
 def test_estimate_follows_a_30_percent_ballast_step_within_5_s_without_fault() -> None:

@@ -59,7 +59,14 @@ from numpy.typing import NDArray
 from controller.arrays import FloatArray
 from controller.artifact import Design
 from controller.config import RigConfig, default_config, parse_config
-from controller.mass_estimator import ME_EST, ME_NUPD, ME_SIZE, mass_estimator_parameters
+from controller.mass_estimator import (
+    ME_CEST,
+    ME_EST,
+    ME_KEST,
+    ME_NUPD,
+    ME_SIZE,
+    mass_estimator_parameters,
+)
 from controller.monitor import MonitorSettings, monitor_settings
 from controller.plant import static_tire_deflection_m
 from controller.ride_height import ride_height_settings
@@ -1345,6 +1352,14 @@ class BankRuntime:
         "The sprung-mass estimate [kg] (controller/mass_estimator.py: band-passed least "
         "squares on the body equation; the configured mass until the rig has moved enough "
         "to tell, held while it is quiet).")
+    spring_rate_est_n_per_m = SlotValue(
+        "_fv", F_MES + ME_KEST, float,
+        "The suspension spring rate the sprung-mass estimator fits beside the mass [N/m] "
+        "(the configured K until it updates).")
+    damping_est_ns_per_m = SlotValue(
+        "_fv", F_MES + ME_CEST, float,
+        "The suspension damping the sprung-mass estimator fits beside the mass [N s/m] "
+        "(the configured C until it updates).")
 
     @property
     def bias_estimate(self) -> tuple[float, float]:

@@ -37,28 +37,45 @@ import numpy as np
 
 from controller.config import MAX_COMPUTE_DELAY_TICKS
 from controller.mass_estimator import (
+    ME_APREV,
+    ME_BV,
+    ME_BZ,
     ME_C,
+    ME_CEST,
     ME_EST,
+    ME_FPREV,
     ME_HI,
     ME_HP,
     ME_HPA,
+    ME_HPV,
     ME_HPY,
+    ME_HPZ,
     ME_INV_DT,
     ME_K,
+    ME_KEST,
     ME_LAMBDA,
     ME_LO,
     ME_LP,
     ME_LPA,
+    ME_LPV,
     ME_LPY,
+    ME_LPZ,
     ME_M0,
     ME_NSEEN,
     ME_NUPD,
+    ME_RAV,
+    ME_RAZ,
+    ME_RVV,
+    ME_RZV,
+    ME_RZZ,
     ME_SAA,
     ME_SAY,
     ME_SETTLE,
     ME_SIZE,
     ME_SMIN,
     ME_STATE_SIZE,
+    ME_WC,
+    ME_WK,
     ME_ZPREV,
 )
 from controller.modes import Blending
@@ -665,53 +682,117 @@ def _biquad(fv: np.ndarray, c: int, s: int, x: float) -> float:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _hp_at_rest(fv: np.ndarray, hp: int, s: int, x: float) -> None:
+    """A high-pass state ``fv[s:s+2]`` at steady state for the constant input ``x``."""
+    fv[s] = (fv[hp + 1] + fv[hp + 2]) * x
+    fv[s + 1] = fv[hp + 2] * x
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _body_fit(fv: np.ndarray, p: int, s: int) -> None:
+    """θ = [M, K, C] from the information of the state and the prior on K and C
+    (Cholesky of the 3 x 3 system, ``controller.mass_estimator.solve_body_fit``'s
+    arithmetic); clamped, and left unchanged if the system is not positive definite."""
+    r00 = fv[s + ME_SAA]
+    if not r00 > 0.0:
+        return
+    r11 = fv[s + ME_RZZ] + fv[p + ME_WK]
+    r22 = fv[s + ME_RVV] + fv[p + ME_WC]
+    b1 = fv[s + ME_BZ] + fv[p + ME_WK] * fv[p + ME_K]
+    b2 = fv[s + ME_BV] + fv[p + ME_WC] * fv[p + ME_C]
+    l00 = math.sqrt(r00)
+    l10 = fv[s + ME_RAZ] / l00
+    l20 = fv[s + ME_RAV] / l00
+    d1 = r11 - l10 * l10
+    if not d1 > 0.0:
+        return
+    l11 = math.sqrt(d1)
+    l21 = (fv[s + ME_RZV] - l20 * l10) / l11
+    d2 = r22 - l20 * l20 - l21 * l21
+    if not d2 > 0.0:
+        return
+    l22 = math.sqrt(d2)
+    y0 = fv[s + ME_SAY] / l00
+    y1 = (b1 - l10 * y0) / l11
+    y2 = (b2 - l20 * y0 - l21 * y1) / l22
+    c = y2 / l22
+    k = (y1 - l21 * c) / l11
+    m = (y0 - l10 * k - l20 * c) / l00
+    if not (math.isfinite(m) and math.isfinite(k) and math.isfinite(c)):
+        return
+    lo = fv[p + ME_LO] / fv[p + ME_M0]
+    hi = fv[p + ME_HI] / fv[p + ME_M0]
+    fv[s + ME_EST] = min(max(m, fv[p + ME_LO]), fv[p + ME_HI])
+    fv[s + ME_KEST] = min(max(k, lo * fv[p + ME_K]), hi * fv[p + ME_K])
+    fv[s + ME_CEST] = min(max(c, lo * fv[p + ME_C]), hi * fv[p + ME_C])
+    fv[s + ME_NUPD] += 1.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def mass_estimate(fv: np.ndarray, force_n: float, rattlespace_m: float,
                   accel_mps2: float) -> None:
     """One tick of the sprung-mass estimator (controller/mass_estimator.py, the plain
     reference ``MassEstimator``): band-passed least squares with forgetting on
-    M a = F + F_bs + K z + C z'; the estimate in ``fv[F_MES + S_EST]``."""
+    F + F_bs = M a - K z - C z' for [M, K, C] with a weak prior on K and C; the
+    estimates in ``fv[F_MES + ME_EST]`` (M), ``ME_KEST`` (K), ``ME_CEST`` (C)."""
     p = F_ME
     s = F_MES
     if not (fv[p + ME_LAMBDA] > 0.0):      # off: the estimate stays the configured mass
         return
     hp = p + ME_HP
     lp = p + ME_LP
-    k = fv[p + ME_K]
     if math.isnan(fv[s + ME_ZPREV]):        # first sample: the high-passes at steady state
         fv[s + ME_ZPREV] = rattlespace_m
-        y0 = force_n + k * rattlespace_m
-        fv[s + ME_HPA] = (fv[hp + 1] + fv[hp + 2]) * accel_mps2
-        fv[s + ME_HPA + 1] = fv[hp + 2] * accel_mps2
-        fv[s + ME_HPY] = (fv[hp + 1] + fv[hp + 2]) * y0
-        fv[s + ME_HPY + 1] = fv[hp + 2] * y0
+        fv[s + ME_APREV] = accel_mps2
+        fv[s + ME_FPREV] = force_n
+        _hp_at_rest(fv, hp, s + ME_HPA, accel_mps2)
+        _hp_at_rest(fv, hp, s + ME_HPY, force_n)
+        _hp_at_rest(fv, hp, s + ME_HPZ, rattlespace_m)
+        _hp_at_rest(fv, hp, s + ME_HPV, 0.0)
+    # the velocity half a tick ago, and the other signals at that instant
     zdot = (rattlespace_m - fv[s + ME_ZPREV]) * fv[p + ME_INV_DT]
+    a_mid = 0.5 * (accel_mps2 + fv[s + ME_APREV])
+    f_mid = 0.5 * (force_n + fv[s + ME_FPREV])
+    z_mid = 0.5 * (rattlespace_m + fv[s + ME_ZPREV])
     fv[s + ME_ZPREV] = rattlespace_m
-    y = force_n + k * rattlespace_m + fv[p + ME_C] * zdot
-    phi = _biquad(fv, lp, s + ME_LPA, _biquad(fv, hp, s + ME_HPA, accel_mps2))
-    yb = _biquad(fv, lp, s + ME_LPY, _biquad(fv, hp, s + ME_HPY, y))
+    fv[s + ME_APREV] = accel_mps2
+    fv[s + ME_FPREV] = force_n
+    pa = _biquad(fv, lp, s + ME_LPA, _biquad(fv, hp, s + ME_HPA, a_mid))
+    yb = _biquad(fv, lp, s + ME_LPY, _biquad(fv, hp, s + ME_HPY, f_mid))
+    pz = -_biquad(fv, lp, s + ME_LPZ, _biquad(fv, hp, s + ME_HPZ, z_mid))
+    pv = -_biquad(fv, lp, s + ME_LPV, _biquad(fv, hp, s + ME_HPV, zdot))
     if fv[s + ME_NSEEN] < fv[p + ME_SETTLE]:    # the band-pass settling after a reset
         fv[s + ME_NSEEN] += 1.0
         return
     lam = fv[p + ME_LAMBDA]
-    saa = lam * fv[s + ME_SAA] + phi * phi
-    say = lam * fv[s + ME_SAY] + phi * yb
-    if not (math.isfinite(saa) and math.isfinite(say)):     # restart the fit
+    saa = lam * fv[s + ME_SAA] + pa * pa
+    if not (math.isfinite(saa) and math.isfinite(yb) and math.isfinite(pz)
+            and math.isfinite(pv)):         # restart the fit
         fv[s + ME_ZPREV] = np.nan
-        fv[s + ME_SAA] = 0.0
-        fv[s + ME_SAY] = 0.0
+        for i in (ME_SAA, ME_RAZ, ME_RAV, ME_RZZ, ME_RZV, ME_RVV, ME_SAY, ME_BZ, ME_BV):
+            fv[s + i] = 0.0
         return
     fv[s + ME_SAA] = saa
-    fv[s + ME_SAY] = say
+    fv[s + ME_RAZ] = lam * fv[s + ME_RAZ] + pa * pz
+    fv[s + ME_RAV] = lam * fv[s + ME_RAV] + pa * pv
+    fv[s + ME_RZZ] = lam * fv[s + ME_RZZ] + pz * pz
+    fv[s + ME_RZV] = lam * fv[s + ME_RZV] + pz * pv
+    fv[s + ME_RVV] = lam * fv[s + ME_RVV] + pv * pv
+    fv[s + ME_SAY] = lam * fv[s + ME_SAY] + pa * yb
+    fv[s + ME_BZ] = lam * fv[s + ME_BZ] + pz * yb
+    fv[s + ME_BV] = lam * fv[s + ME_BV] + pv * yb
     if saa > fv[p + ME_SMIN]:
-        fv[s + ME_EST] = min(max(say / saa, fv[p + ME_LO]), fv[p + ME_HI])
-        fv[s + ME_NUPD] += 1.0
+        _body_fit(fv, p, s)
 
 
 @nb.njit(cache=True, nogil=True)
 def mass_estimate_reset(fv: np.ndarray) -> None:
-    """The estimator's state after a reset: no data, the estimate the configured mass."""
+    """The estimator's state after a reset: no data, the estimates the configured mass,
+    spring rate and damping."""
     s = F_MES
     for i in range(ME_STATE_SIZE):
         fv[s + i] = 0.0
     fv[s + ME_ZPREV] = np.nan
     fv[s + ME_EST] = fv[F_ME + ME_M0]
+    fv[s + ME_KEST] = fv[F_ME + ME_K]
+    fv[s + ME_CEST] = fv[F_ME + ME_C]
