@@ -114,6 +114,21 @@ def test_active_runs_and_unstable_detection() -> None:
     assert res.unstable_runs == [0, 1]
 
 
+def test_observed_runs_are_observed_rig_sim_runs(capsys: pytest.CaptureFixture[str]
+                                                ) -> None:
+    """``rig montecarlo --observe S``: each run is ``simulate(..., observe_s=S)`` of its
+    plant on the S + duration road, metrics over the armed time."""
+    assert main(["montecarlo", "--runs", "2", "--duration", "0.4", "--observe", "0.3",
+                 "--seed", "3", "--jobs", "1", "--no-progress", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    road = make_road("rough-course", 11.176, 0.7, DT, seed=3)
+    plants = draw_params(CFG, 2, 0.05, 3, RIDE_HEIGHT_STD_M)
+    want = [simulate(CFG, road, "fuzzy", CFG.design.weight_set, params=p, seed=3 + 1000 + i,
+                     observe_s=0.3).metrics["absorbed_power"] for i, p in enumerate(plants)]
+    assert out["summary"]["absorbed_power"]["min"] == min(want)
+    assert out["summary"]["absorbed_power"]["max"] == max(want)
+
+
 def test_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = main(["montecarlo", "--runs", "2", "--duration", "1", "--road", "bump",
                "--controller", "passive", "--jobs", "1", "--no-progress",

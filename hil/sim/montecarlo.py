@@ -132,13 +132,15 @@ class RunSpec:
     seed: int
 
 
-def run_task(shared: tuple[str, Road, str, int], spec: RunSpec
+def run_task(shared: tuple[str, Road, str, int, float], spec: RunSpec
              ) -> tuple[dict[str, float], FloatArray]:
-    """A worker's run: ``shared`` = (configuration TOML, road, controller, weight set);
-    the bank is designed on the worker (memoised per configuration)."""
-    config_toml, road, controller, weight_set = shared
+    """A worker's run: ``shared`` = (configuration TOML, road, controller, weight set,
+    time observed before arming); the bank is designed on the worker (memoised per
+    configuration)."""
+    config_toml, road, controller, weight_set, observe_s = shared
     cfg = config_from_text(config_toml)
-    res = simulate(cfg, road, controller, weight_set, params=spec.params, seed=spec.seed)
+    res = simulate(cfg, road, controller, weight_set, params=spec.params, seed=spec.seed,
+                   observe_s=observe_s)
     return res.metrics, res.traces["rattlespace_m"][::TRACE_DECIMATION].copy()
 
 
@@ -170,7 +172,8 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
                    seed: int = 0, workers: int | None = None, progress: bool = True,
                    out_dir: str | Path | None = None,
                    ride_height_std_m: float | None = RIDE_HEIGHT_STD_M,
-                   executor: BatchExecutor | None = None) -> MonteCarloResult:
+                   executor: BatchExecutor | None = None,
+                   observe_s: float = 0.0) -> MonteCarloResult:
     """Run ``runs`` perturbed plants in parallel (on ``executor``, default a local pool
     of ``workers`` processes); write ``montecarlo.png`` (and
     ``montecarlo.json``) into ``out_dir`` if given.
@@ -182,7 +185,9 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
     deviation-coordinate models); ``"nominal"`` keeps the configured zero, so the
     controller also sees the static offset M g / K - M_nom g / K_nom (about 9 mm for +5 %
     M) -- or, with the ride height set by preload (``ride_height_std_m``, see the module
-    docstring), the setting error.
+    docstring), the setting error.  ``observe_s``: each run observed that long before
+    arming (``hil.sim.closed_loop.run_closed_loop``; the road covers it, the metrics are
+    the armed time's).
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}: use one of "
@@ -196,7 +201,8 @@ def run_montecarlo(cfg: RigConfig, road: Road, runs: int, *, controller: str = "
     ex: BatchExecutor = (LocalExecutor(min(workers or os.cpu_count() or 1, runs))
                          if executor is None else executor)
     try:
-        batch = ex.run(run_task, (config_to_toml(cfg), road, controller, weight_set), specs,
+        batch = ex.run(run_task, (config_to_toml(cfg), road, controller, weight_set,
+                                  observe_s), specs,
                        [run_case_label(s, road) for s in specs],
                        desc=f"monte carlo {controller}", progress=progress)
     finally:

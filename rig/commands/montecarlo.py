@@ -37,6 +37,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
                                                     lo_open=True),
                    default=10.0, help="s per run (default 10)")
+    p.add_argument("--observe", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s"),
+                   default=0.0, metavar="S",
+                   help="observe S seconds before arming each run, as the service does "
+                        "(rig sim --observe; default 0: armed from the start)")
     argtypes.add_controller_option(p, CONTROLLERS, "fuzzy")
     argtypes.add_weights_option(p, None)
     p.add_argument("--seed", type=argtypes.seed, default=1)
@@ -60,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     weights = cfg.design.weight_set if args.weights is None else args.weights
     try:
-        road = make_road(args.road, args.speed, args.duration, cfg.sample_time_s, args.seed)
+        road = make_road(args.road, args.speed, args.observe + args.duration,
+                         cfg.sample_time_s, args.seed)
         with make_executor(args.cluster, args.jobs) as ex:
             res = run_montecarlo(cfg, road, args.runs, controller=args.controller,
                                  weight_set=weights, spread=args.spread, seed=args.seed,
@@ -68,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
                                  out_dir=args.out,
                                  ride_height_std_m=(None if args.own_ride_height
                                                     else args.ride_height_std),
-                                 executor=ex)
+                                 executor=ex, observe_s=args.observe)
     except ValueError as exc:       # a bad road or spread (others: rig.cli.REFUSALS)
         refuse("montecarlo", f"{exc}")
         return 2
