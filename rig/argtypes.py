@@ -217,6 +217,17 @@ def add_weights_option(parser: argparse.ArgumentParser, default: int | None) -> 
                         help=argparse.SUPPRESS)
 
 
+def add_observe_option(parser: argparse.ArgumentParser) -> None:
+    """``--observe S`` of the offline runs (``rig sim``, ``rig montecarlo``): the time each
+    run observes before arming (``hil.sim.closed_loop.run_closed_loop``'s ``observe_s``)."""
+    parser.add_argument("--observe", type=real(0.0, MAX_OFFLINE_S, "s"), default=0.0,
+                        metavar="S",
+                        help="observe S seconds before arming, as the service does: the "
+                             "controller runs from the first sensor reading with the valve "
+                             "safe; the road is S + duration long and the metrics cover the "
+                             "armed duration (default 0: armed from the start)")
+
+
 def _mode_name(text: str) -> str:
     """Mode names are typed in lower case; ``single`` is the old name of ``lqg``."""
     name = text.strip().lower()

@@ -46,10 +46,11 @@ from hil.sim.plant import PlantParams
 from hil.sim.skyhook import TUNING_GRID, SkyhookGains
 from hil.study.cases import LAYERED_SPRUNG_MASS_SCALES, Case, run_case_task
 
-__all__ = ["DEFAULT_GROUPS", "ENVELOPE_CONTROLLERS", "ENVELOPE_MC_CONTROLLERS",
-           "ENVELOPE_SEED_CONTROLLERS", "GROUPS", "RATIO_METRICS", "StudyPlan", "add_ratios",
-           "bank_labels", "envelope_cases", "envelope_mc_cases", "envelope_seed_cases",
-           "main_cases", "plan", "run_cases", "selected", "selection_of", "study_cases"]
+__all__ = ["DEFAULT_GROUPS", "ENVELOPE_CONTROLLERS", "ENVELOPE_LABELS",
+           "ENVELOPE_MC_CONTROLLERS", "ENVELOPE_PAIRS", "ENVELOPE_SEED_CONTROLLERS", "GROUPS",
+           "RATIO_METRICS", "StudyPlan", "add_ratios", "bank_labels", "envelope_cases",
+           "envelope_mc_cases", "envelope_seed_cases", "main_cases", "plan", "run_cases",
+           "selected", "selection_of", "study_cases"]
 
 #: metrics reported as closed loop / passive (passive is never zero for these)
 RATIO_METRICS = ("absorbed_power", "wk_rms_mps2", "accel_rms_mps2", "rattlespace_rms_m",
@@ -63,6 +64,16 @@ THESIS_SPEED_MPS = 11.176   # 25 mph
 ENVELOPE_CONTROLLERS: tuple[tuple[str, str, int | None], ...] = (
     ("lqg", "configured", 1), ("fuzzy", "layered", 1), ("fuzzy", "true-plant", 1),
     ("fuzzy", "layered", None), ("fuzzy", "true-plant", None))
+#: the row label of each :data:`ENVELOPE_CONTROLLERS` entry, in that order
+ENVELOPE_LABELS = tuple(Case("envelope", c, weight_set=ws, design_mass=dm).label
+                        for c, dm, ws in ENVELOPE_CONTROLLERS)
+#: (law, layered label, true-plant label) of each weight set the envelope runs both
+#: designs with: the pairs the envelope table compares
+ENVELOPE_PAIRS = tuple(
+    ("default" if ws is None else f"set {ws}",
+     Case("envelope", c, weight_set=ws, design_mass="layered").label,
+     Case("envelope", c, weight_set=ws, design_mass="true-plant").label)
+    for c, dm, ws in ENVELOPE_CONTROLLERS if dm == "layered")
 #: (controller, weight set) of the 25 % Monte Carlo: the default controller (``rig
 #: montecarlo``'s fuzzy bank) with each weight set and the configured one (None: the
 #: configuration's ``design.weight_set`` and defaults as they are when the study runs)

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.study.matrix import selection_of
+from hil.study.matrix import ENVELOPE_LABELS, ENVELOPE_PAIRS, selection_of
 from hil.study.tradeoff import TradeoffGrid
 
 __all__ = ["LABEL_ORDER", "claims", "mean_of", "rows_where", "tables_markdown", "write_csv",
@@ -210,12 +210,6 @@ def _mismatch(rows: Sequence[Row]) -> list[str]:
     return _table(["controller", *heads], body)
 
 
-#: the envelope group's controllers (hil.study.matrix.ENVELOPE_CONTROLLERS)
-ENVELOPE_LABELS = ("lqg-1", "fuzzy-1 (layered)", "fuzzy-1 (true-plant)",
-                   "fuzzy-default (layered)", "fuzzy-default (true-plant)")
-#: (layered, true-plant) label pairs the envelope table compares, by law
-ENVELOPE_PAIRS = (("set 1", "fuzzy-1 (layered)", "fuzzy-1 (true-plant)"),
-                  ("default", "fuzzy-default (layered)", "fuzzy-default (true-plant)"))
 #: issue 22's bounds of the layered bank against the true-plant design: absorbed power
 #: at most 10 % above it, rattlespace RMS at most 5 % above it (ratios of seed means)
 ENVELOPE_POWER_BOUND = 1.10

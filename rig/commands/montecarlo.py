@@ -37,10 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
                                                     lo_open=True),
                    default=10.0, help="s per run (default 10)")
-    p.add_argument("--observe", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s"),
-                   default=0.0, metavar="S",
-                   help="observe S seconds before arming each run, as the service does "
-                        "(rig sim --observe; default 0: armed from the start)")
+    argtypes.add_observe_option(p)
     argtypes.add_controller_option(p, CONTROLLERS, "fuzzy")
     argtypes.add_weights_option(p, None)
     p.add_argument("--seed", type=argtypes.seed, default=1)

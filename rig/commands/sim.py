@@ -46,12 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s",
                                                     lo_open=True),
                    default=20.0, help=f"s (default 20, at most {argtypes.MAX_OFFLINE_S:g})")
-    p.add_argument("--observe", type=argtypes.real(0.0, argtypes.MAX_OFFLINE_S, "s"),
-                   default=0.0, metavar="S",
-                   help="observe S seconds before arming, as the service does: the "
-                        "controller runs from the first sensor reading with the valve safe; "
-                        "the road is S + duration long and the metrics cover the armed "
-                        "duration (default 0: armed from the start)")
+    argtypes.add_observe_option(p)
     argtypes.add_controller_option(p, CONTROLLERS, "fuzzy", extra=("all",))
     argtypes.add_weights_option(p, None)
     p.add_argument("--seed", type=argtypes.seed, default=1, help="road and sensor-noise seed")
