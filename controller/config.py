@@ -64,6 +64,7 @@ __all__ = [
     "default_config",
     "excitation_problems",
     "host_problem",
+    "layer_scales",
     "load_config",
     "parse_config",
     "parse_toml",
@@ -234,6 +235,21 @@ class DesignConfig:
                                              "layer nearest the sprung-mass estimate "
                                              "(docs/design.md §11; [1.0] = the configured "
                                              "mass only)")
+    spring_rate_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=8,
+                                         len_why="one layer of tire models per scale",
+                                         doc="spring-rate layers of the bank (x "
+                                             "vehicle.suspension_stiffness_n_per_m), crossed "
+                                             "with the sprung-mass and damping layers; the "
+                                             "bank runs the layer nearest the estimate of "
+                                             "[M, K, C] (docs/design.md §11; [1.0] = the "
+                                             "configured spring only)")
+    damping_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=8,
+                                     len_why="one layer of tire models per scale",
+                                     doc="damping layers of the bank (x vehicle."
+                                         "suspension_damping_ns_per_m), crossed with the "
+                                         "sprung-mass and spring-rate layers "
+                                         "(docs/design.md §11; [1.0] = the configured "
+                                         "damper only)")
     weight_set: int = _f(0, lo=0, hi=15, doc="index into weight_sets (1-based); 0 = the "
                                              "travel schedule between the two sets of "
                                              "schedule_weight_sets (docs/design.md §12)")
@@ -970,19 +986,22 @@ def _cross_checks(cfg: RigConfig) -> None:
         t = getattr(fz, name)
         if len(t) != 3 or not (t[0] <= t[1] <= t[2]) or t[0] == t[2]:
             raise ConfigError(f"fuzzy.{name}", t, "3 numbers a <= peak <= c with a < c")
-    ms = d.sprung_mass_scales
-    if not ms or any(b <= a for a, b in itertools.pairwise(ms)):
-        raise ConfigError("design.sprung_mass_scales", ms, "at least one scale, strictly "
-                          "increasing")
-    n_models = (len(pts) * len(d.tire_damping_scales) * len(ms)
-                + int(d.include_airborne_model))
-    if n_models > MAX_BANK_MODELS:
+    for key in ("sprung_mass_scales", "spring_rate_scales", "damping_scales"):
+        ls = getattr(d, key)
+        if not ls or any(b <= a for a, b in itertools.pairwise(ls)):
+            raise ConfigError(f"design.{key}", ls, "at least one scale, strictly increasing")
+    n_layers = len(d.sprung_mass_scales) * len(d.spring_rate_scales) * len(d.damping_scales)
+    per_layer = len(pts) * len(d.tire_damping_scales) + int(d.include_airborne_model)
+    if per_layer > MAX_BANK_MODELS:
         raise ConfigError("design.linearisation_deflections_m", pts,
-                          f"at most {MAX_BANK_MODELS} models in the bank: "
+                          f"at most {MAX_BANK_MODELS} models in a layer of the bank: "
                           f"{len(pts)} deflections x {len(d.tire_damping_scales)} "
-                          f"tire_damping_scales x {len(ms)} sprung_mass_scales"
+                          f"tire_damping_scales"
                           f"{' + airborne' * d.include_airborne_model} "
-                          f"= {n_models} (every model's filter runs each tick)")
+                          f"= {per_layer} (every model of the running layer filters each "
+                          "tick)")
+    n_models = (len(pts) * len(d.tire_damping_scales) * n_layers
+                + int(d.include_airborne_model))
     n_noise = len(cfg.noise.speeds_mps) * len(cfg.noise.road_roughness_gd)
     if n_models * n_noise > MAX_BANK_TABLE_ENTRIES:
         raise ConfigError("noise.speeds_mps", cfg.noise.speeds_mps,
@@ -1178,6 +1197,15 @@ def parse_toml(text: str, path: str | Path) -> dict[str, Any]:
     except RecursionError:
         raise ConfigError("<file>", str(path),
                           "valid TOML nested at most a few hundred levels deep") from None
+
+
+def layer_scales(cfg: RigConfig) -> list[tuple[float, float, float]]:
+    """(sprung mass, spring rate, damping) scale of each layer of the bank, in the bank's
+    order: ``design.sprung_mass_scales`` x ``spring_rate_scales`` x ``damping_scales``,
+    mass major, damping minor."""
+    d = cfg.design
+    return list(itertools.product(d.sprung_mass_scales, d.spring_rate_scales,
+                                  d.damping_scales))
 
 
 def load_config(path: str | Path | None = None) -> RigConfig:

@@ -23,7 +23,7 @@ import numpy as np
 from controller.actuator import servo_model
 from controller.arrays import FloatArray
 from controller.artifact import Design, build_metadata
-from controller.config import RigConfig
+from controller.config import RigConfig, layer_scales
 from controller.fuzzy import firing_weight_curve
 from controller.human_filter import HumanFilter, human_filter
 from controller.kalman import (
@@ -69,11 +69,24 @@ def bump_stop_input(cfg: RigConfig) -> FloatArray:
     return np.array([k, c - v.rattlespace_travel_m, c + v.rattlespace_travel_m])
 
 
-def layer_config(cfg: RigConfig, mass_scale: float) -> RigConfig:
-    """The configuration of one sprung-mass layer: the vehicle's sprung mass x scale."""
-    if mass_scale == 1.0:
+def layer_config(cfg: RigConfig, mass_scale: float, spring_scale: float = 1.0,
+                 damping_scale: float = 1.0) -> RigConfig:
+    """The configuration of one layer of the bank: the vehicle's sprung mass, suspension
+    spring rate and damping x the scales."""
+    if (mass_scale, spring_scale, damping_scale) == (1.0, 1.0, 1.0):
         return cfg
-    return cfg.replace(vehicle={"sprung_mass_kg": cfg.vehicle.sprung_mass_kg * mass_scale})
+    v = cfg.vehicle
+    return cfg.replace(vehicle={
+        "sprung_mass_kg": v.sprung_mass_kg * mass_scale,
+        "suspension_stiffness_n_per_m": v.suspension_stiffness_n_per_m * spring_scale,
+        "suspension_damping_ns_per_m": v.suspension_damping_ns_per_m * damping_scale})
+
+
+def _layer_suffix(cfg: RigConfig, scales: tuple[float, float, float]) -> str:
+    d = cfg.design
+    m, k, c = scales
+    return (f"_M{m:g}" + (f"_K{k:g}" if len(d.spring_rate_scales) > 1 else "")
+            + (f"_C{c:g}" if len(d.damping_scales) > 1 else ""))
 
 
 def _model_design(model: LinearModel, cfg: RigConfig) -> ModelDesign:
@@ -83,15 +96,17 @@ def _model_design(model: LinearModel, cfg: RigConfig) -> ModelDesign:
 
 def design_models(cfg: RigConfig) -> list[ModelDesign]:
     """The bank's models: the tire family of :func:`controller.plant.model_family` once per
-    sprung-mass layer (``design.sprung_mass_scales``, layer major; with more than one
-    layer the names carry ``_M<scale>``), then the airborne model (configured mass)."""
-    scales = cfg.design.sprung_mass_scales
-    if list(scales) == [1.0]:
+    layer (:func:`layer_scales`, layer major; with more than one layer the names carry
+    ``_M<scale>``, and ``_K<scale>`` / ``_C<scale>`` where those axes have more than one
+    value), then the airborne model (configured vehicle)."""
+    layers = layer_scales(cfg)
+    if layers == [(1.0, 1.0, 1.0)]:
         return [_model_design(model, cfg) for model in model_family(cfg)]
     out = []
-    for scale in scales:
-        cfg_l = layer_config(cfg, scale)
-        out += [_model_design(dataclasses.replace(model, name=f"{model.name}_M{scale:g}"),
+    for scales in layers:
+        cfg_l = layer_config(cfg, *scales)
+        suffix = _layer_suffix(cfg, scales)
+        out += [_model_design(dataclasses.replace(model, name=f"{model.name}{suffix}"),
                               cfg_l)
                 for model in model_family(cfg_l) if not model.airborne]
     out += [_model_design(model, cfg) for model in model_family(cfg) if model.airborne]
@@ -99,7 +114,7 @@ def design_models(cfg: RigConfig) -> list[ModelDesign]:
 
 
 def _grid_index(cfg: RigConfig, j: int, airborne: bool) -> tuple[int, int]:
-    """(deflection, damping scale) index of model j within its sprung-mass layer."""
+    """(deflection, damping scale) index of model j within its layer."""
     if airborne:
         return (-1, -1)
     n_scale = len(cfg.design.tire_damping_scales)

@@ -93,7 +93,8 @@ def test_grid_and_table_sizes_are_bounded_with_the_reason() -> None:
     assert "at most 64 entries" in msg and "models in the bank" in msg
     assert "(200000 entries)" in msg and len(msg) < 400     # one short line
     # 20 deflections x 4 scales = 80 models (each list within its own bound)
-    with pytest.raises(ConfigError, match=r"at most 64 models in the bank: 20 deflections"):
+    with pytest.raises(ConfigError,
+                       match=r"at most 64 models in a layer of the bank: 20 deflections"):
         parse_config({"design": {"linearisation_deflections_m": grid[:20],
                                  "tire_damping_scales": [0.5, 1.0, 1.5, 2.0]}})
     # 4 models x 64 speeds x 20 roughness = 5120 Kalman designs

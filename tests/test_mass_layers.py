@@ -29,9 +29,10 @@ def test_each_layer_is_the_design_for_its_mass() -> None:
     d = cached_design(LAYERED)
     n_tire = len(CFG.design.linearisation_deflections_m)
     assert d.n_models == 3 * n_tire + 1 and bool(d.airborne[-1])
-    masses, layer, n = layer_table(d.equilibrium, d.airborne, V.suspension_stiffness_n_per_m,
-                                   V.gravity_mps2)
-    np.testing.assert_allclose(masses, [350.0, 500.0, 650.0])
+    params = [[V.sprung_mass_kg * s, V.suspension_stiffness_n_per_m,
+               V.suspension_damping_ns_per_m] for s in SCALES]
+    layers, layer, n = layer_table(d.equilibrium, d.airborne, np.array(params), V.gravity_mps2)
+    np.testing.assert_allclose(layers[:, 0], [350.0, 500.0, 650.0])
     assert n == n_tire and layer.tolist() == [0] * n + [1] * n + [2] * n + [-1]
     for i, scale in enumerate(SCALES):
         ref = design_bank(CFG.replace(vehicle={"sprung_mass_kg": V.sprung_mass_kg * scale}))

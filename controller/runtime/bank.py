@@ -58,7 +58,7 @@ from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
 from controller.artifact import Design
-from controller.config import RigConfig, default_config, parse_config
+from controller.config import RigConfig, default_config, layer_scales, parse_config
 from controller.mass_estimator import (
     ME_CEST,
     ME_EST,
@@ -108,6 +108,8 @@ from controller.runtime.kernels import (
     F_LOAD,
     F_LOFF,
     F_LON,
+    F_LWC,
+    F_LWK,
     F_ME,
     F_MES,
     F_MON_REARM,
@@ -270,6 +272,7 @@ from controller.runtime.kernels import (
     ST_COLS,
     V_AIR,
     V_D,
+    V_DAMP,
     V_FINV,
     V_KA,
     V_KAC,
@@ -279,6 +282,7 @@ from controller.runtime.kernels import (
     V_LLC,
     V_LOGDET,
     V_MASS,
+    V_SPRING,
     V_YSTAT,
     VEC_COLS,
     Blending,
@@ -649,7 +653,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     sentinel = iv[I_SENTINEL] if blend == _MOVING and iv[I_MODE] == MODE_AIR else -1
     u_in, y0, y1 = _measurements(fv, rattlespace_m, accel_mps2, force_meas_n)
     mass_estimate(fv, u_in, rattlespace_m, accel_mps2)
-    mass_schedule(st, active, fv, iv, nbr, vec, mat, fv[F_MES + ME_EST], blend)
+    mass_schedule(st, active, fv, iv, nbr, vec, mat, fv[F_MES + ME_EST], fv[F_MES + ME_KEST],
+                  fv[F_MES + ME_CEST], blend)
     xf0 = fv[F_XF]
     xf1 = fv[F_XF + 1]
     alpha = fv[F_ALPHA]
@@ -872,15 +877,24 @@ def config_of(design: Design) -> RigConfig:
 
 
 def _layers(design: Design, cfg: RigConfig) -> tuple[FloatArray, NDArray[np.int64], int]:
+    """(layers (L, 3): sprung mass [kg], spring rate [N/m], damping [N s/m]; layer of each
+    model, -1 airborne; on-ground models per layer) of the design, whose layers are those
+    its own configuration names (``config_of(design)``, the vehicle of ``cfg``)."""
     v = cfg.vehicle
-    return layer_table(design.equilibrium, design.airborne, v.suspension_stiffness_n_per_m,
-                       v.gravity_mps2)
+    scales = np.array(layer_scales(config_of(design)), dtype=float)
+    base = np.array([v.sprung_mass_kg, v.suspension_stiffness_n_per_m,
+                     v.suspension_damping_ns_per_m])
+    return layer_table(design.equilibrium, design.airborne, scales * base, v.gravity_mps2)
 
 
-def _nominal_layer(masses: FloatArray, cfg: RigConfig) -> int:
-    """The sprung-mass layer nearest the configured mass (the bank's layer after a reset)."""
-    m = cfg.vehicle.sprung_mass_kg
-    return int(np.argmin(np.abs(np.log(masses / m)))) if np.all(masses > 0.0) else 0
+def _nominal_layer(layers: FloatArray, cfg: RigConfig) -> int:
+    """The layer nearest the configured vehicle (the bank's layer after a reset)."""
+    v = cfg.vehicle
+    base = np.array([v.sprung_mass_kg, v.suspension_stiffness_n_per_m,
+                     v.suspension_damping_ns_per_m])
+    if not np.all(layers > 0.0):
+        return 0
+    return int(np.argmin(np.sum(np.abs(np.log(layers / base)), axis=1)))
 
 
 def default_single_model(design: Design, cfg: RigConfig) -> int:
@@ -890,8 +904,8 @@ def default_single_model(design: Design, cfg: RigConfig) -> int:
     x2s = static_tire_deflection_m(cfg)
     defl = cfg.design.linearisation_deflections_m
     scales = cfg.design.tire_damping_scales
-    masses, layer, _ = _layers(design, cfg)
-    home = _nominal_layer(masses, cfg)
+    layers, layer, _ = _layers(design, cfg)
+    home = _nominal_layer(layers, cfg)
     best, key_best = -1, (math.inf, math.inf)
     for j in range(design.n_models):
         if design.airborne[j] or layer[j] != home:
@@ -908,13 +922,16 @@ def default_single_model(design: Design, cfg: RigConfig) -> int:
 def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
     """Packed per-model tables for every (noise entry, weight set): (S, W, J, 4, MAT_COLS)
     and (S, W, J, VEC_COLS)."""
-    masses, layer, _ = _layers(design, cfg)
-    # each model reads the rattlespace about its own static position, M_l g / K: right for
-    # a rig whose LVDT is zeroed at rest with its ballast (one layer: 0, as before)
-    ystat = np.where(design.airborne, 0.0,
-                     design.equilibrium[:, 0] - design.equilibrium[:, 1]
-                     - design.static_rattlespace_m)
-    ystat = np.where(np.isfinite(ystat) & (len(masses) > 1), ystat, 0.0)
+    layers, layer, _ = _layers(design, cfg)
+    # each model reads the rattlespace about its own static position: a rig whose LVDT was
+    # zeroed at rest with the configured ballast sags (M_l - M) g / K_l under layer l's
+    # mass on its spring (one layer: 0, as before).  A spring or damper other than the
+    # configured one moves nothing: the rig's ride height was set (preload) and its LVDT
+    # zeroed with the spring it has.
+    v = cfg.vehicle
+    lay = layers[np.maximum(layer, 0)]
+    ystat = np.where((layer >= 0) & (len(layers) > 1),
+                     (lay[:, 0] - v.sprung_mass_kg) * v.gravity_mps2 / lay[:, 1], 0.0)
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
     wc = cfg.design.schedule_weight_sets[0] - 1
     mat = np.zeros((S, W, J, 4, MAT_COLS))
@@ -947,7 +964,9 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
             v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
                            for ld in design.innovation_logdet[:, s]]
             v[:, V_LAYER] = layer
-            v[:, V_MASS] = np.where(layer >= 0, masses[np.maximum(layer, 0)], 0.0)
+            v[:, V_MASS] = np.where(layer >= 0, layers[np.maximum(layer, 0), 0], 0.0)
+            v[:, V_SPRING] = np.where(layer >= 0, layers[np.maximum(layer, 0), 1], 0.0)
+            v[:, V_DAMP] = np.where(layer >= 0, layers[np.maximum(layer, 0), 2], 0.0)
             v[:, V_YSTAT] = ystat
     return mat, vec
 
@@ -1001,6 +1020,9 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_GUARD_V0] = cfg.design.stop_guard_lead_deadband_mps
     fv[F_ME:F_ME + ME_SIZE] = mass_estimator_parameters(cfg)
     fv[F_LHYST] = LAYER_HYSTERESIS
+    layers = _layers(design, cfg)[0]     # the layer distance counts the axes that vary
+    fv[F_LWK] = float(np.unique(layers[:, 1]).size > 1)
+    fv[F_LWC] = float(np.unique(layers[:, 2]).size > 1)
     fv[F_TS:F_TS + SCHEDULE_SIZE] = travel_schedule(cfg).as_array()
     fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
         cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()
@@ -1074,9 +1096,9 @@ def _int_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _Ta
     iv[I_NB] = HIST_BINS
     iv[I_MINLEARN] = max(1, int(_history_ticks(cfg, dt) // 4))
     iv[I_RECOMP] = HIST_RECOMPUTE_TICKS
-    masses, layer, n_tire = _layers(design, cfg)
+    layers, layer, n_tire = _layers(design, cfg)
     iv[I_NPROBE] = max(0, min(n_tire - k, MAX_PROBE_CANDIDATES))   # within the layer
-    iv[I_NLAYER] = len(masses)
+    iv[I_NLAYER] = len(layers)
     iv[I_NTIRE] = n_tire
     iv[I_SINGLE0] = single_model
     iv[I_LAYER0] = max(int(layer[single_model]), 0)
@@ -1124,9 +1146,12 @@ class BankRuntime:
                              f"index in [0, {J})")
         self.single_model = int(single_model)
         self._all_mat, self._all_vec = _pack(design, cfg_)
-        masses, layer, n_tire = _layers(design, cfg_)
-        #: sprung masses of the bank's layers [kg] (docs/design.md §11)
-        self.layer_masses_kg = masses
+        layers, layer, n_tire = _layers(design, cfg_)
+        #: (L, 3) sprung mass [kg], spring rate [N/m] and damping [N s/m] of the bank's
+        #: layers (docs/design.md §11)
+        self.layer_params = layers
+        #: sprung masses of the bank's layers [kg]
+        self.layer_masses_kg = np.ascontiguousarray(layers[:, 0])
         self._nbr = neighbour_table(design.grid_index, design.airborne, layer)
         k = min(int(cfg_.moving_bank.active_models), n_tire)
         x_init = np.asarray(design.equilibrium[self.single_model], dtype=float)

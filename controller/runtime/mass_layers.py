@@ -46,27 +46,31 @@ __all__ = ["layer_table", "mass_schedule", "model_in_layer"]
 _MOVING = int(kern.Blending.MOVING)
 
 
-def layer_table(equilibrium: FloatArray, airborne: NDArray[np.bool_], stiffness_n_per_m: float,
+def layer_table(equilibrium: FloatArray, airborne: NDArray[np.bool_], layers: FloatArray,
                 gravity_mps2: float) -> tuple[FloatArray, NDArray[np.int64], int]:
-    """(layer masses [kg] ascending, layer of each model (-1 airborne), on-ground models
-    per layer) from the models' equilibria; ValueError unless the on-ground models are
-    layer major with the same number per layer."""
+    """(``layers``, layer of each model (-1 airborne), on-ground models per layer) for a
+    design whose layers are ``layers`` (L, 3): sprung mass [kg], spring rate [N/m] and
+    damping [N s/m] of each, in the bank's order (:func:`controller.config.layer_scales`
+    x the configured vehicle).  ValueError unless the on-ground models are layer major
+    with the same number per layer and each model's static suspension deflection
+    (equilibrium) is its layer's M g / K."""
+    layers = np.asarray(layers, dtype=float).reshape(-1, 3)
     ground = np.flatnonzero(~airborne)
     layer = -np.ones(airborne.shape[0], dtype=np.int64)
-    if gravity_mps2 <= 0.0 or ground.size == 0:
-        layer[ground] = 0
-        return np.array([math.nan]), layer, int(ground.size)
-    mass = (equilibrium[ground, 0] - equilibrium[ground, 1]) * stiffness_n_per_m / gravity_mps2
-    masses = np.unique(np.round(mass, 6))
-    idx = np.searchsorted(masses, np.round(mass, 6))
-    n_tire = ground.size // masses.size
-    expected = np.repeat(np.arange(masses.size), n_tire)
-    if ground.size != n_tire * masses.size or not np.array_equal(idx, expected) \
-            or not np.array_equal(ground, np.arange(ground.size)):
-        raise ValueError("the design's sprung-mass layers are not layer major with one "
-                         "tire family each (controller.design.design_models)")
-    layer[ground] = idx
-    return masses, layer, n_tire
+    n_layers = layers.shape[0]
+    if ground.size == 0 or ground.size % n_layers or \
+            not np.array_equal(ground, np.arange(ground.size)):
+        raise ValueError(f"the design's models are not {n_layers} layers of one tire family "
+                         "each, layer major (controller.design.design_models)")
+    n_tire = ground.size // n_layers
+    layer[ground] = ground // n_tire
+    if gravity_mps2 > 0.0:
+        sag = equilibrium[ground, 0] - equilibrium[ground, 1]
+        want = layers[layer[ground], 0] * gravity_mps2 / layers[layer[ground], 1]
+        if not np.allclose(sag, want, rtol=1e-6, atol=1e-9):
+            raise ValueError("the design's models are not those of its configured layers "
+                             "(static deflection != M g / K of the layer)")
+    return layers, layer, n_tire
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -95,23 +99,41 @@ def _warm(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
                 kern.deactivate(j, st, active, iv)
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _layer_distance(vec: np.ndarray, j: int, fv: np.ndarray, mass_est_kg: float,
+                    spring_est_n_per_m: float, damping_est_ns_per_m: float) -> float:
+    """Distance of the estimate [M, K, C] from model j's layer: the sum of |log ratio|
+    over the axes on which the bank has more than one layer (``F_LWK`` / ``F_LWC`` 0
+    or 1 for spring rate and damping; mass always)."""
+    d = abs(math.log(mass_est_kg / vec[j, kern.V_MASS]))
+    if fv[kern.F_LWK] > 0.0:
+        d += abs(math.log(spring_est_n_per_m / vec[j, kern.V_SPRING]))
+    if fv[kern.F_LWC] > 0.0:
+        d += abs(math.log(damping_est_ns_per_m / vec[j, kern.V_DAMP]))
+    return d
+
+
 @nb.njit(cache=True, nogil=True)
 def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
                   nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray, mass_est_kg: float,
+                  spring_est_n_per_m: float, damping_est_ns_per_m: float,
                   blend: int) -> None:
-    """Move the bank to the layer nearest ``mass_est_kg`` (see the module docstring)."""
+    """Move the bank to the layer nearest the estimate of [M, K, C] (see the module
+    docstring)."""
     nl = iv[kern.I_NLAYER]
     if nl <= 1:
         return
-    if not (mass_est_kg > 0.0):
+    if not (mass_est_kg > 0.0 and spring_est_n_per_m > 0.0 and damping_est_ns_per_m > 0.0):
         return
     n = iv[kern.I_NTIRE]
     cur = iv[kern.I_LAYER]
-    d_cur = abs(math.log(mass_est_kg / vec[cur * n, kern.V_MASS]))
+    d_cur = _layer_distance(vec, cur * n, fv, mass_est_kg, spring_est_n_per_m,
+                            damping_est_ns_per_m)
     best = cur
     d_best = d_cur
     for lay in range(nl):
-        d = abs(math.log(mass_est_kg / vec[lay * n, kern.V_MASS]))
+        d = _layer_distance(vec, lay * n, fv, mass_est_kg, spring_est_n_per_m,
+                            damping_est_ns_per_m)
         if d < d_best:
             best = lay
             d_best = d
