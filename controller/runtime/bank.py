@@ -281,6 +281,7 @@ from controller.runtime.kernels import (
     V_LAYER,
     V_LLC,
     V_LOGDET,
+    V_LOGP,
     V_MASS,
     V_SPRING,
     V_YSTAT,
@@ -967,6 +968,8 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
             v[:, V_MASS] = np.where(layer >= 0, layers[np.maximum(layer, 0), 0], 0.0)
             v[:, V_SPRING] = np.where(layer >= 0, layers[np.maximum(layer, 0), 1], 0.0)
             v[:, V_DAMP] = np.where(layer >= 0, layers[np.maximum(layer, 0), 2], 0.0)
+            v[:, V_LOGP:V_LOGP + 3] = np.where((layer >= 0)[:, None],
+                                               np.log(layers[np.maximum(layer, 0)]), 0.0)
             v[:, V_YSTAT] = ystat
     return mat, vec
 

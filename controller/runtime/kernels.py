@@ -143,6 +143,7 @@ V_MASS = VEC.slot()  # sprung mass of the model's layer [kg]
 V_YSTAT = VEC.slot()  # model's static rattlespace minus the configured one, M_l g/K_l - M g/K [m]
 V_SPRING = VEC.slot()  # suspension spring rate of the model's layer [N/m]
 V_DAMP = VEC.slot()  # suspension damping of the model's layer [N s/m]
+V_LOGP = VEC.slot(3)  # log of the layer's [M, K, C] (the layer distance of mass_layers.py)
 V_KFC = VEC.slot(2)  # travel schedule's comfort gain: human-filter part
 V_KAC = VEC.slot(3 + MAX_DELAY)  # travel schedule's comfort gain: actuator part
 VEC_COLS = VEC.size

@@ -100,16 +100,17 @@ def _warm(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _layer_distance(vec: np.ndarray, j: int, fv: np.ndarray, mass_est_kg: float,
-                    spring_est_n_per_m: float, damping_est_ns_per_m: float) -> float:
-    """Distance of the estimate [M, K, C] from model j's layer: the sum of |log ratio|
-    over the axes on which the bank has more than one layer (``F_LWK`` / ``F_LWC`` 0
-    or 1 for spring rate and damping; mass always)."""
-    d = abs(math.log(mass_est_kg / vec[j, kern.V_MASS]))
+def _layer_distance(vec: np.ndarray, j: int, fv: np.ndarray, log_m: float, log_k: float,
+                    log_c: float) -> float:
+    """Distance of the estimate (logs of [M, K, C]) from model j's layer: the sum of
+    |log ratio| over the axes on which the bank has more than one layer (``F_LWK`` /
+    ``F_LWC`` 0 or 1 for spring rate and damping; mass always)."""
+    p = kern.V_LOGP
+    d = abs(log_m - vec[j, p])
     if fv[kern.F_LWK] > 0.0:
-        d += abs(math.log(spring_est_n_per_m / vec[j, kern.V_SPRING]))
+        d += abs(log_k - vec[j, p + 1])
     if fv[kern.F_LWC] > 0.0:
-        d += abs(math.log(damping_est_ns_per_m / vec[j, kern.V_DAMP]))
+        d += abs(log_c - vec[j, p + 2])
     return d
 
 
@@ -125,15 +126,16 @@ def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.nda
         return
     if not (mass_est_kg > 0.0 and spring_est_n_per_m > 0.0 and damping_est_ns_per_m > 0.0):
         return
+    log_m = math.log(mass_est_kg)
+    log_k = math.log(spring_est_n_per_m)
+    log_c = math.log(damping_est_ns_per_m)
     n = iv[kern.I_NTIRE]
     cur = iv[kern.I_LAYER]
-    d_cur = _layer_distance(vec, cur * n, fv, mass_est_kg, spring_est_n_per_m,
-                            damping_est_ns_per_m)
+    d_cur = _layer_distance(vec, cur * n, fv, log_m, log_k, log_c)
     best = cur
     d_best = d_cur
     for lay in range(nl):
-        d = _layer_distance(vec, lay * n, fv, mass_est_kg, spring_est_n_per_m,
-                            damping_est_ns_per_m)
+        d = _layer_distance(vec, lay * n, fv, log_m, log_k, log_c)
         if d < d_best:
             best = lay
             d_best = d
