@@ -295,11 +295,12 @@ def test_envelope_layers_are_the_payload_profile() -> None:
     case designs for the plant's mass on the same emulated mass."""
     import tomllib
 
-    from hil.study.cases import LAYERED_SPRUNG_MASS_SCALES, Case, case_config
+    from hil.study.cases import LAYERED_DESIGN, LAYERED_SPRUNG_MASS_SCALES, Case, case_config
     payload = Path(__file__).resolve().parents[1] / "deploy" / "payload.toml"
     with payload.open("rb") as fh:
-        layers = tomllib.load(fh)["design"]["sprung_mass_scales"]
-    assert tuple(layers) == LAYERED_SPRUNG_MASS_SCALES
+        design = tomllib.load(fh)["design"]
+    assert {k: tuple(v) for k, v in design.items() if k.endswith("_scales")} == LAYERED_DESIGN
+    assert LAYERED_DESIGN["sprung_mass_scales"] == LAYERED_SPRUNG_MASS_SCALES
     case = Case("envelope", "fuzzy", sprung_mass_scale=0.7, design_mass="true-plant")
     c = case_config(CFG, case)
     assert c.vehicle.sprung_mass_kg == pytest.approx(0.7 * CFG.vehicle.sprung_mass_kg)
@@ -307,6 +308,8 @@ def test_envelope_layers_are_the_payload_profile() -> None:
     lay = case_config(CFG, replace(case, design_mass="layered"))
     assert lay.emulator.sprung_mass_scale == 0.7
     assert tuple(lay.design.sprung_mass_scales) == LAYERED_SPRUNG_MASS_SCALES
+    assert tuple(lay.design.spring_rate_scales) == LAYERED_DESIGN["spring_rate_scales"]
+    assert tuple(lay.design.damping_scales) == LAYERED_DESIGN["damping_scales"]
     assert lay.vehicle == CFG.vehicle
 
 

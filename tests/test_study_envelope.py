@@ -67,6 +67,8 @@ def test_envelope_plan_covers_the_issue_cases() -> None:
     mc = envelope_mc_cases(p, CFG)
     assert len(mc) == 2 * 20 * (1 + len(ENVELOPE_MC_CONTROLLERS))
     assert {c.duration_s for c in mc} == {20.0} and {c.road_seed for c in mc} == {1, 2}
+    assert {c.label for c in mc} == {"passive", "fuzzy-1", "fuzzy-2", "fuzzy-default",
+                                     "fuzzy-1 (layered)", "fuzzy-default (layered)"}
     seeds = envelope_seed_cases(p)
     assert len(seeds) == 12 * 13 and {c.duration_s for c in seeds} == {60.0}
     labels = {c.label for c in seeds}

@@ -40,7 +40,8 @@ from hil.sim.plant import PlantParams
 from hil.sim.roads import Road, make_road
 from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 
-__all__ = ["CONTROLLERS", "DESIGN_MASSES", "LAYERED_SPRUNG_MASS_SCALES", "ROAD_BASE_RATE_HZ",
+__all__ = ["CONTROLLERS", "DESIGN_MASSES", "LAYERED_DESIGN", "LAYERED_SPRUNG_MASS_SCALES",
+           "ROAD_BASE_RATE_HZ",
            "TRACE_DECIMATION", "Case", "case_config",
            "lq_cost", "make_controller", "run_case", "run_case_task", "study_road"]
 
@@ -51,12 +52,17 @@ ROAD_BASE_RATE_HZ = 4000.0
 TRACE_DECIMATION = 10
 #: what the bank of a case is designed for (the plant is ``Case.sprung_mass_scale`` and
 #: ``Case.tire_stiffness_scale``): ``configured`` the configuration as it is; ``layered``
-#: the configuration with the sprung-mass layers :data:`LAYERED_SPRUNG_MASS_SCALES` (the
-#: payload profile); ``true-plant`` the configuration with ``vehicle.sprung_mass_kg`` and
+#: the configuration with the layers :data:`LAYERED_DESIGN` (the payload profile);
+#: ``true-plant`` the configuration with ``vehicle.sprung_mass_kg`` and
 #: ``tire.stiffness_coefficient`` those of the plant
 DESIGN_MASSES = ("configured", "layered", "true-plant")
 #: ``[design] sprung_mass_scales`` of deploy/payload.toml (tests/test_study.py checks it)
 LAYERED_SPRUNG_MASS_SCALES = (0.6, 0.7, 0.85, 1.0, 1.15, 1.3, 1.5)
+#: the ``[design]`` layer keys of deploy/payload.toml (tests/test_study.py checks them)
+LAYERED_DESIGN: dict[str, tuple[float, ...]] = {
+    "sprung_mass_scales": LAYERED_SPRUNG_MASS_SCALES,
+    "spring_rate_scales": (0.7, 1.0, 1.4),
+    "damping_scales": (0.6, 1.0, 1.5)}
 
 
 @dataclass(frozen=True)
@@ -157,7 +163,7 @@ def case_config(cfg: RigConfig, case: Case) -> RigConfig:
         design["weight_sets"] = [[float(w) for w in case.weights]]
         design["weight_set"] = 1
     if case.design_mass == "layered":
-        design["sprung_mass_scales"] = list(LAYERED_SPRUNG_MASS_SCALES)
+        design.update({key: list(scales) for key, scales in LAYERED_DESIGN.items()})
     if design:
         sections["design"] = design
     em = cfg.emulator

@@ -74,11 +74,14 @@ ENVELOPE_PAIRS = tuple(
      Case("envelope", c, weight_set=ws, design_mass="layered").label,
      Case("envelope", c, weight_set=ws, design_mass="true-plant").label)
     for c, dm, ws in ENVELOPE_CONTROLLERS if dm == "layered")
-#: (controller, weight set) of the 25 % Monte Carlo: the default controller (``rig
+#: (controller, weight set, design) of the 25 % Monte Carlo: the default controller (``rig
 #: montecarlo``'s fuzzy bank) with each weight set and the configured one (None: the
-#: configuration's ``design.weight_set`` and defaults as they are when the study runs)
-ENVELOPE_MC_CONTROLLERS: tuple[tuple[str, int | None], ...] = (
-    ("fuzzy", 1), ("fuzzy", 2), ("fuzzy", None))
+#: configuration's ``design.weight_set`` and defaults as they are when the study runs),
+#: and the layered bank of the payload profile (``layered``, deploy/payload.toml: layers
+#: over [M, K, C]) with weight set 1 and the configured one
+ENVELOPE_MC_CONTROLLERS: tuple[tuple[str, int | None, str], ...] = (
+    ("fuzzy", 1, "configured"), ("fuzzy", 2, "configured"), ("fuzzy", None, "configured"),
+    ("fuzzy", 1, "layered"), ("fuzzy", None, "layered"))
 #: (controller, weight set) of the many-road-seeds group: every bank mode x set 1, set 2,
 #: the configured one
 ENVELOPE_SEED_CONTROLLERS: tuple[tuple[str, int | None], ...] = tuple(
@@ -283,8 +286,8 @@ def envelope_mc_cases(p: StudyPlan, cfg: RigConfig) -> list[Case]:
                         road_seed=seed, sensor_seed=seed + 1000 + i, params=prm,
                         param_tag=f"mc{100 * spread:g}s{seed}-{i}", sim_road=True)
             cases.append(base)
-            cases += [replace(base, controller=c, weight_set=ws)
-                      for c, ws in ENVELOPE_MC_CONTROLLERS]
+            cases += [replace(base, controller=c, weight_set=ws, design_mass=dm)
+                      for c, ws, dm in ENVELOPE_MC_CONTROLLERS]
     return cases
 
 
