@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from websockets.exceptions import ConnectionClosed
 
 from rig.sdk_logs import (
     BURST,
@@ -165,15 +166,18 @@ def test_attacked_demo_logs_a_few_escaped_lines_and_runs_without_fault() -> None
     finally:
         del os.environ["FOXGLOVE_LOG_LEVEL"]
     try:
-        with connect_when_up(f"ws://127.0.0.1:{port}", proc) as ws:
-            assert ws.subprotocol in SUBPROTOCOLS
-            junk = (["{"] * FLOOD
-                    + [json.dumps({"op": f"sub\n{FAKE_LINE}\n{i}"}) for i in range(FORGED)]
-                    + [json.dumps({"op": "x" * 100_000})]
-                    + [json.dumps({"op": "subscribe", "subscriptions": [
-                        {"id": i, "channelId": 900_000 + i} for i in range(UNKNOWN)]})])
-            for m in junk:
-                ws.send(m)
+        try:
+            with connect_when_up(f"ws://127.0.0.1:{port}", proc) as ws:
+                assert ws.subprotocol in SUBPROTOCOLS
+                junk = (["{"] * FLOOD
+                        + [json.dumps({"op": f"sub\n{FAKE_LINE}\n{i}"}) for i in range(FORGED)]
+                        + [json.dumps({"op": "x" * 100_000})]
+                        + [json.dumps({"op": "subscribe", "subscriptions": [
+                            {"id": i, "channelId": 900_000 + i} for i in range(UNKNOWN)]})])
+                for m in junk:
+                    ws.send(m)
+        except ConnectionClosed:    # the viewer may drop the attacker before a close frame
+            pass                    # (on a busy machine): what is checked is the demo's log
         out, err = proc.communicate(timeout=180)
     finally:
         if proc.poll() is None:
