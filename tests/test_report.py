@@ -129,6 +129,27 @@ def test_each_model_has_its_own_colour_and_legend(report: Path, recording: Path)
     assert _pixels_near(img, _rgb("#00ffff")) == 0
 
 
+def test_a_layered_bank_shows_the_models_that_ran(work: Path) -> None:
+    """A bank layered over sprung mass (docs/design.md §11) runs one layer at a time: the
+    models plot and its caption name the models whose filter ran, not every model of the
+    design (with 190 models the plot's legend left no room for the axes)."""
+    cfg = CFG.replace(design={"sprung_mass_scales": [0.7, 1.0]})
+    path = work / "layered-design.npz"
+    save_design(design_bank(cfg), path)
+    rec = record_emulated_run(work / "layered.mcap", 1.0, cfg=cfg,
+                              design_bytes=path.read_bytes(), arm_at_s=0.2)
+    s = load_series(rec)
+    J = len(s.model_names)
+    ran = [j for j in range(J) if np.any(s.per_model["q"][:, j] > 0)]
+    assert J == 7 and 0 < len(ran) < J
+    assert all("_M1" in s.model_names[j] or s.model_names[j] == "airborne" for j in ran)
+    html = write_report(rec, work / "layered-report").read_text()
+    assert f"The {len(ran)} of the design's {J} linear models whose filter ran" in html
+    caption = html[html.index("whose filter ran"):html.index("q is each model")]
+    for j in range(J):      # the mean firing weights while active: the models that ran
+        assert (f"{s.model_names[j]} " in caption) == (j in ran), s.model_names[j]
+
+
 def test_every_time_plot_shades_the_phases_alike(report: Path) -> None:
     for name in ("rattlespace.png", "acceleration.png", "force.png", "models.png",
                  "sprung_mass.png", "lifecycle.png", "timing.png"):

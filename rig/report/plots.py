@@ -449,9 +449,12 @@ def _models(d: PlotInput, out: Path) -> Figure | None:
     tw, fw_mean, _ = window_stats(s.t_s, s.per_model["firing_weight"], w)
     q = np.where(s.per_model["q"] > 0, s.per_model["q"], np.nan)
     _, _, (q_lo, q_med, q_hi) = window_stats(s.t_s, q, w, (10, 50, 90))
+    # the models whose filter ran (q > 0 at some tick): a layered bank runs one layer of
+    # its many models at a time (docs/design.md §11)
+    ran = [j for j in range(J) if np.any(s.per_model["q"][:, j] > 0)] or list(range(J))
     fig, (ax, ax2) = _subplots(2, 1, height=5.6, sharex=True)
     handles = []
-    for j in range(J):
+    for j in ran:
         colour, ls = model_colour(j)
         handles.append(ax.plot(tw, fw_mean[:, j], color=colour, ls=ls, lw=1.1,
                                label=f"[{j}] {s.model_names[j]}")[0])
@@ -475,12 +478,15 @@ def _models(d: PlotInput, out: Path) -> Figure | None:
     with _quiet():
         mean_w = (np.nanmean(s.per_model["firing_weight"][active], axis=0) if active.any()
                   else np.full(J, np.nan))
-    rows = ", ".join(f"{s.model_names[j]} {_fmt(mean_w[j], 2)}" for j in range(J))
+    rows = ", ".join(f"{s.model_names[j]} {_fmt(mean_w[j], 2)}" for j in ran)
+    which = (f"The design's {J} linear tire models, one colour each" if len(ran) == J else
+             f"The {len(ran)} of the design's {J} linear models whose filter ran (the "
+             f"layers the bank ran), one colour each")
     return Figure(
         "models.png", "Firing weights and likelihood quotients per model",
         ("/controller/internals.firing_weight", "/controller/internals.q",
          "/controller/internals.flags"),
-        f"The design's {J} linear tire models, one colour each. Firing weights are the "
+        f"{which}. Firing weights are the "
         f"normalised blending weights actually used (sum 1 unless no rule fired); mean "
         f"while active: {rows}. q is each model's likelihood quotient (log scale; small "
         f"q: the model explains the measurements).")
