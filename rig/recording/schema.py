@@ -187,6 +187,10 @@ INTERNALS_SCHEMA: Final = _obj(
         "weight_set": {"type": "integer"},
         "sprung_mass_est_kg": {**_NUM, "description": "the controller's sprung-mass "
                                "estimate [kg] (controller/mass_estimator.py)"},
+        "spring_rate_est_n_per_m": {**_NUM, "description": "the suspension spring rate "
+                                    "the estimator fits beside the mass [N/m]"},
+        "damping_est_ns_per_m": {**_NUM, "description": "the suspension damping the "
+                                 "estimator fits beside the mass [N s/m]"},
         "x_post": {**_NUM_ARRAY, "description": "(J, 4) estimates, flat row-major: "
                    "model j at [4j, 4j + 4)"},
         "xf": _NUM_ARRAY,

@@ -74,6 +74,10 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "/controller/internals.flags", 6, ratio=False),
     SummaryRow("sprung_mass_est_kg", "sprung-mass estimate at the end of the phase", "kg",
                "/controller/internals.sprung_mass_est_kg", ratio=False),
+    SummaryRow("spring_rate_est_n_per_m", "spring-rate estimate at the end of the phase",
+               "N/m", "/controller/internals.spring_rate_est_n_per_m", ratio=False),
+    SummaryRow("damping_est_ns_per_m", "damping estimate at the end of the phase", "N s/m",
+               "/controller/internals.damping_est_ns_per_m", ratio=False),
     SummaryRow("comfort_share_mean", "travel-schedule comfort share, mean", "",
                "/controller/internals.comfort_share", 3, ratio=False),
     SummaryRow("ride_height_max_m", "ride height (mean LVDT reading from mid-travel), "
@@ -207,6 +211,11 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "stop_degradations": float(stop_deg),
             "sprung_mass_est_kg": (_last(s.sprung_mass_est_kg[m])
                                    if s.sprung_mass_est_kg.size == m.size else math.nan),
+            "spring_rate_est_n_per_m": (_last(s.spring_rate_est_n_per_m[m])
+                                        if s.spring_rate_est_n_per_m.size == m.size
+                                        else math.nan),
+            "damping_est_ns_per_m": (_last(s.damping_est_ns_per_m[m])
+                                     if s.damping_est_ns_per_m.size == m.size else math.nan),
             "comfort_share_mean": (float(np.nanmean(s.comfort_share[m]))
                                    if s.comfort_share.size == m.size and m.any()
                                    and np.isfinite(s.comfort_share[m]).any() else math.nan),

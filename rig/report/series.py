@@ -102,6 +102,10 @@ class RunSeries:
     comfort_share: FloatArray = field(default_factory=lambda: np.zeros(0))
     #: /controller/internals.ride_height_m per tick (NaN: not recorded)
     ride_height_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    #: /controller/internals.spring_rate_est_n_per_m per tick (NaN: not recorded)
+    spring_rate_est_n_per_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    #: /controller/internals.damping_est_ns_per_m per tick (NaN: not recorded)
+    damping_est_ns_per_m: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def no_sensor_data(self) -> str | None:
         """Why the run has nothing to show -- tick records, but on none of them a fresh
@@ -289,11 +293,14 @@ def load_series(path: str | Path) -> RunSeries:
     mass = np.array([_f(r.get("sprung_mass_est_kg")) for r in recs])
     comfort = np.array([_f(r.get("comfort_share")) for r in recs])
     ride = np.array([_f(r.get("ride_height_m")) for r in recs])
+    spring = np.array([_f(r.get("spring_rate_est_n_per_m")) for r in recs])
+    damping = np.array([_f(r.get("damping_est_ns_per_m")) for r in recs])
     config, problem = _config(scan)
     return RunSeries(Path(path), scan, tick, t_s, t0_ns, signals,
                      [str(r.get("lifecycle", "")) for r in recs],
                      [str(r.get("fault", "")) for r in recs], per_model, timing, events,
-                     _model_names(scan, J), config, problem, flags, mass, comfort, ride)
+                     _model_names(scan, J), config, problem, flags, mass, comfort, ride,
+                     spring, damping)
 
 
 def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:

@@ -125,6 +125,8 @@ TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("blending", "int", "blending"),
     ("weight_set", "int", "weight_set"),
     ("sprung_mass_est_kg", "float", "rt.sprung_mass_est_kg"),
+    ("spring_rate_est_n_per_m", "float", "rt.spring_rate_est_n_per_m"),
+    ("damping_est_ns_per_m", "float", "rt.damping_est_ns_per_m"),
     ("x_post", "array", "rt.x_post"),
     ("xf", "array", "rt.xf"),
     ("stop_contact_s", "float", "rt.stop_contact_s"),
