@@ -272,7 +272,6 @@ from controller.runtime.kernels import (
     ST_COLS,
     V_AIR,
     V_D,
-    V_DAMP,
     V_FINV,
     V_KA,
     V_KAC,
@@ -282,8 +281,6 @@ from controller.runtime.kernels import (
     V_LLC,
     V_LOGDET,
     V_LOGP,
-    V_MASS,
-    V_SPRING,
     V_YSTAT,
     VEC_COLS,
     Blending,
@@ -877,25 +874,27 @@ def config_of(design: Design) -> RigConfig:
     return parse_config(tomllib.loads(str(text)))
 
 
+def _vehicle_mkc(cfg: RigConfig) -> FloatArray:
+    """The configured sprung mass [kg], spring rate [N/m] and damping [N s/m]."""
+    v = cfg.vehicle
+    return np.array([v.sprung_mass_kg, v.suspension_stiffness_n_per_m,
+                     v.suspension_damping_ns_per_m])
+
+
 def _layers(design: Design, cfg: RigConfig) -> tuple[FloatArray, NDArray[np.int64], int]:
     """(layers (L, 3): sprung mass [kg], spring rate [N/m], damping [N s/m]; layer of each
     model, -1 airborne; on-ground models per layer) of the design, whose layers are those
     its own configuration names (``config_of(design)``, the vehicle of ``cfg``)."""
-    v = cfg.vehicle
     scales = np.array(layer_scales(config_of(design)), dtype=float)
-    base = np.array([v.sprung_mass_kg, v.suspension_stiffness_n_per_m,
-                     v.suspension_damping_ns_per_m])
-    return layer_table(design.equilibrium, design.airborne, scales * base, v.gravity_mps2)
+    return layer_table(design.equilibrium, design.airborne, scales * _vehicle_mkc(cfg),
+                       cfg.vehicle.gravity_mps2)
 
 
 def _nominal_layer(layers: FloatArray, cfg: RigConfig) -> int:
     """The layer nearest the configured vehicle (the bank's layer after a reset)."""
-    v = cfg.vehicle
-    base = np.array([v.sprung_mass_kg, v.suspension_stiffness_n_per_m,
-                     v.suspension_damping_ns_per_m])
     if not np.all(layers > 0.0):
         return 0
-    return int(np.argmin(np.sum(np.abs(np.log(layers / base)), axis=1)))
+    return int(np.argmin(np.sum(np.abs(np.log(layers / _vehicle_mkc(cfg))), axis=1)))
 
 
 def default_single_model(design: Design, cfg: RigConfig) -> int:
@@ -929,10 +928,11 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
     # mass on its spring (one layer: 0, as before).  A spring or damper other than the
     # configured one moves nothing: the rig's ride height was set (preload) and its LVDT
     # zeroed with the spring it has.
-    v = cfg.vehicle
+    veh = cfg.vehicle
     lay = layers[np.maximum(layer, 0)]
     ystat = np.where((layer >= 0) & (len(layers) > 1),
-                     (lay[:, 0] - v.sprung_mass_kg) * v.gravity_mps2 / lay[:, 1], 0.0)
+                     (lay[:, 0] - veh.sprung_mass_kg) * veh.gravity_mps2 / lay[:, 1], 0.0)
+    log_params = np.where((layer >= 0)[:, None], np.log(lay), 0.0)
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
     wc = cfg.design.schedule_weight_sets[0] - 1
     mat = np.zeros((S, W, J, 4, MAT_COLS))
@@ -965,11 +965,7 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
             v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
                            for ld in design.innovation_logdet[:, s]]
             v[:, V_LAYER] = layer
-            v[:, V_MASS] = np.where(layer >= 0, layers[np.maximum(layer, 0), 0], 0.0)
-            v[:, V_SPRING] = np.where(layer >= 0, layers[np.maximum(layer, 0), 1], 0.0)
-            v[:, V_DAMP] = np.where(layer >= 0, layers[np.maximum(layer, 0), 2], 0.0)
-            v[:, V_LOGP:V_LOGP + 3] = np.where((layer >= 0)[:, None],
-                                               np.log(layers[np.maximum(layer, 0)]), 0.0)
+            v[:, V_LOGP:V_LOGP + 3] = log_params
             v[:, V_YSTAT] = ystat
     return mat, vec
 

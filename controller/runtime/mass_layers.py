@@ -1,23 +1,25 @@
-"""Sprung-mass layers of the bank (issue 22, docs/design.md §11): the scheduler that runs
-the layer nearest the sprung-mass estimate.
+"""Layers of the bank (issue 22, docs/design.md §11): the scheduler that runs the layer
+nearest the estimate of sprung mass, spring rate and damping.
 
-The design holds the tire models once per sprung-mass layer (``design.sprung_mass_scales``,
+The design holds the tire models once per layer (``design.sprung_mass_scales`` x
+``spring_rate_scales`` x ``damping_scales``, :func:`controller.config.layer_scales`;
 layer major: model j of layer l is ``l * NTIRE + t``, the airborne model last).  The bank
 runs one layer at a time: fuzzy and Bayes blend that layer's tire models (and the airborne
 model), the single LQG is that layer's counterpart of the configured single model, the
 moving bank walks within the layer.  :func:`mass_schedule` moves to the layer nearest the
-estimate (in log mass) once that layer has been nearer than the current one by more than
-the hysteresis ``F_LHYST`` for ``I_LDWELL`` ticks in a row (the estimate dips for a few
-tenths of a second just after a ballast change: the weight the spring does not carry yet
-passes the band-pass as a transient); the newcomers start bumpless from the blended
-deviation and biases (:func:`controller.runtime.kernels.activate`), as the moving bank's
-do.
+estimate (the sum of |log ratio| over the axes with more than one value) once that layer
+has been nearer than the current one by more than the hysteresis ``F_LHYST`` for
+``I_LDWELL`` ticks in a row (the estimate dips for a few tenths of a second just after a
+ballast change: the weight the spring does not carry yet passes the band-pass as a
+transient); the newcomers start bumpless from the blended deviation and biases
+(:func:`controller.runtime.kernels.activate`), as the moving bank's do.
 
 Where the LVDT reads 0: each model reads the rattlespace about its own static position
-(the reading + M_l g / K, ``V_YSTAT``), right for a rig whose LVDT is zeroed at rest with
-its ballast; after a ballast change without re-zeroing the LVDT's sag of ΔM g / K is an
-offset to the heavier layer's models, which their rattlespace-bias state takes up (as
-it is for the single-layer bank).
+(the reading + (M_l - M) g / K_l, ``V_YSTAT``: the sag of the layer's ballast on its
+spring), right for a rig whose LVDT is zeroed at rest with its ballast and whose ride
+height was set with the spring it has; after a ballast change without re-zeroing the
+LVDT's sag of ΔM g / K is an offset to the heavier layer's models, which their
+rattlespace-bias state takes up (as it is for the single-layer bank).
 
 A candidate layer's filters (the counterparts of the running ones; not in the moving
 bank, whose supervisor re-centres onto any running filter) are warmed up while the
@@ -25,8 +27,9 @@ candidate waits out its dwell: they run without contributing to the force, the
 monitor or the probabilities, so at the change they are settled (started cold at the
 change, the new filters' q put the bank into DEGRADED for 0.6 s on the 0.7 x plant).
 
-:func:`layer_table` derives the layers from a design's model equilibria (the static
-rattlespace M g / K of each model), so the artifact needs no field of its own.
+:func:`layer_table` takes the layers from the design's own configuration and checks them
+against the models' equilibria (the static deflection M g / K of each model), so the
+artifact needs no field of its own.
 """
 
 from __future__ import annotations

@@ -41,9 +41,8 @@ from hil.sim.roads import Road, make_road
 from hil.sim.skyhook import DEFAULT_GAINS, SkyhookController, SkyhookGains
 
 __all__ = ["CONTROLLERS", "DESIGN_MASSES", "LAYERED_DESIGN", "LAYERED_SPRUNG_MASS_SCALES",
-           "ROAD_BASE_RATE_HZ",
-           "TRACE_DECIMATION", "Case", "case_config",
-           "lq_cost", "make_controller", "run_case", "run_case_task", "study_road"]
+           "ROAD_BASE_RATE_HZ", "TRACE_DECIMATION", "Case", "case_config", "lq_cost",
+           "make_controller", "run_case", "run_case_task", "study_road"]
 
 #: the study's controllers: the reference laws worth comparing, the bank modes of
 #: controller.modes, and the full-state LQ (the simulator's true-state reference)

@@ -134,6 +134,12 @@ def _last(x: FloatArray) -> float:
     return float(x[-1]) if x.size else math.nan
 
 
+def _last_in(x: FloatArray, m: NDArray[np.bool_]) -> float:
+    """:func:`_last` of the ticks ``m`` of a per-tick series (NaN: the series was not
+    recorded, so it has not one value per tick)."""
+    return _last(x[m]) if x.size == m.size else math.nan
+
+
 def _filtered(s: RunSeries) -> tuple[FloatArray, FloatArray]:
     """Sprung acceleration through F(s) and through ISO 2631 Wk, over the whole run."""
     acc = np.nan_to_num(s.signals["sprung_accel_mps2"])
@@ -209,13 +215,9 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "stop_contact_s": contact_s,
             "stop_contact_episodes": float(episodes),
             "stop_degradations": float(stop_deg),
-            "sprung_mass_est_kg": (_last(s.sprung_mass_est_kg[m])
-                                   if s.sprung_mass_est_kg.size == m.size else math.nan),
-            "spring_rate_est_n_per_m": (_last(s.spring_rate_est_n_per_m[m])
-                                        if s.spring_rate_est_n_per_m.size == m.size
-                                        else math.nan),
-            "damping_est_ns_per_m": (_last(s.damping_est_ns_per_m[m])
-                                     if s.damping_est_ns_per_m.size == m.size else math.nan),
+            "sprung_mass_est_kg": _last_in(s.sprung_mass_est_kg, m),
+            "spring_rate_est_n_per_m": _last_in(s.spring_rate_est_n_per_m, m),
+            "damping_est_ns_per_m": _last_in(s.damping_est_ns_per_m, m),
             "comfort_share_mean": (float(np.nanmean(s.comfort_share[m]))
                                    if s.comfort_share.size == m.size and m.any()
                                    and np.isfinite(s.comfort_share[m]).any() else math.nan),

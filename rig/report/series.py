@@ -290,17 +290,17 @@ def load_series(path: str | Path) -> RunSeries:
     per_model = {k: _matrix([r.get(k) for r in recs], J) for k in PER_MODEL_FIELDS}
     flags = np.array([f if isinstance(f := r.get("flags"), int) else -1 for r in recs],
                      dtype=np.int64)
-    mass = np.array([_f(r.get("sprung_mass_est_kg")) for r in recs])
-    comfort = np.array([_f(r.get("comfort_share")) for r in recs])
-    ride = np.array([_f(r.get("ride_height_m")) for r in recs])
-    spring = np.array([_f(r.get("spring_rate_est_n_per_m")) for r in recs])
-    damping = np.array([_f(r.get("damping_est_ns_per_m")) for r in recs])
+    def column(key: str) -> FloatArray:
+        return np.array([_f(r.get(key)) for r in recs])
+
     config, problem = _config(scan)
     return RunSeries(Path(path), scan, tick, t_s, t0_ns, signals,
                      [str(r.get("lifecycle", "")) for r in recs],
                      [str(r.get("fault", "")) for r in recs], per_model, timing, events,
-                     _model_names(scan, J), config, problem, flags, mass, comfort, ride,
-                     spring, damping)
+                     _model_names(scan, J), config, problem, flags,
+                     column("sprung_mass_est_kg"), column("comfort_share"),
+                     column("ride_height_m"), column("spring_rate_est_n_per_m"),
+                     column("damping_est_ns_per_m"))
 
 
 def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:
