@@ -169,6 +169,13 @@ def test_sprung_mass_estimate_is_a_row_and_a_plot(report: Path, recording: Path)
     html = report.read_text()
     assert "sprung-mass estimate at the end of the phase" in html
     assert "sprung_mass.png" in html
+    # the spring rate and damping fitted beside it: recorded every tick, last of a phase
+    for key, label in (("spring_rate_est_n_per_m", "spring-rate estimate"),
+                       ("damping_est_ns_per_m", "damping estimate")):
+        x = getattr(s, key)
+        assert x.size == s.t_s.size and np.all(np.isfinite(x) & (x > 0.0)), key
+        assert phase_metrics(s)["active"][key] == x[active][-1]
+        assert f"{label} at the end of the phase" in html
 
 
 def test_long_series_envelope_keeps_every_extreme() -> None:
