@@ -297,6 +297,7 @@ def test_a_stalled_publisher_drops_and_counts_without_blocking_the_loop(
     """The publisher thread hangs (as if the SDK or a client held it): the loop's hand-off
     still returns at once, the queue keeps at most queue_size items and the rest are
     dropped and counted."""
+    import operator
     import threading
 
     import numpy as np
@@ -304,7 +305,7 @@ def test_a_stalled_publisher_drops_and_counts_without_blocking_the_loop(
     from controller.runtime.bank import BankRuntime
     from hil.sim.closed_loop import cached_design
     from rig.foxglove_server import FoxgloveView
-    from rig.service.loop import tick_record_layout
+    from rig.service.loop import TICK_RECORD_FIELDS, tick_record_layout
 
     cfg = default_config().replace(foxglove={"enabled": True, "port": 0, "queue_size": 8})
     rt = BankRuntime(cached_design(cfg), cfg=cfg)
@@ -317,8 +318,8 @@ def test_a_stalled_publisher_drops_and_counts_without_blocking_the_loop(
         layout = tick_record_layout(rt)
         n_scalars = len(layout.scalar_fields)
         scalars = [0] * n_scalars
-        arrays = [rt.q, rt.firing_weight, rt.probability, rt.u_model, rt.active,
-                  rt.x_post, rt.xf]
+        arrays = [operator.attrgetter(src.removeprefix("rt."))(rt)
+                  for _key, kind, src in TICK_RECORD_FIELDS if kind == "array"]
         view.offer_tick(0, scalars, arrays)
         end = time.monotonic() + 10
         while view._queue.qsize() and time.monotonic() < end:   # the thread takes it, hangs

@@ -70,6 +70,45 @@ def test_bad_scales_name_the_key() -> None:
                 CFG.replace(design={key: scales})
 
 
+def _running_is_the_layer(rt: BankRuntime) -> None:
+    """rt.running (what the tick record carries) is the running layer's tire models then
+    the airborne model, with the bank's values for them."""
+    n = len(CFG.design.linearisation_deflections_m)
+    rows = [rt.mass_layer * n + t for t in range(n)] + [rt.n_models - 1]
+    run = rt.running
+    assert run.models.tolist() == rows
+    for key in ("q", "firing_weight", "probability", "u_model", "active", "x_post"):
+        np.testing.assert_array_equal(getattr(run, key), getattr(rt, key)[rows], err_msg=key)
+    assert run.q.shape == (n + 1,) and run.x_post.shape == (n + 1, 4)
+
+
+def test_a_one_layer_bank_records_every_model_without_a_copy() -> None:
+    rt = BankRuntime(cached_design(CFG), cfg=CFG)
+    assert rt.running.models.tolist() == list(range(rt.n_models))
+    for key in ("q", "firing_weight", "probability", "u_model", "active", "x_post"):
+        assert np.shares_memory(getattr(rt.running, key), getattr(rt, key)), key
+
+
+def test_the_running_layer_follows_a_layer_change() -> None:
+    """Stepped on the 0.7 x spring's layer's rig, the bank leaves the configured layer;
+    the running models follow it tick for tick (not only at the end of a run)."""
+    road = make_road("rough-course", 11.176, 6.0, DT, 2)
+    layers_seen = set()
+
+    class Check(BankController):
+        def step(self, rd, plant):          # type: ignore[no-untyped-def]
+            u = super().step(rd, plant)
+            if self.ticks % 97 == 0:
+                _running_is_the_layer(self.rt)
+                layers_seen.add(self.rt.mass_layer)
+            return u
+
+    ctrl = Check(cached_design(GRID), GRID, "fuzzy", 0, road)
+    run_closed_loop(CFG.replace(emulator={"spring_rate_scale": 0.7, "damping_scale": 0.6}),
+                    road, ctrl, seed=2)
+    assert len(layers_seen) >= 2
+
+
 def _power(ctrl_cfg, plant_emulator: dict[str, float], road, seed: int
            ) -> tuple[float, float, BankController]:
     ctrl = BankController(cached_design(ctrl_cfg), ctrl_cfg, "fuzzy", 0, road)
@@ -94,6 +133,7 @@ def test_on_another_spring_and_damper_the_bank_runs_that_layer(
     plant = {"spring_rate_scale": spring, "damping_scale": damping}
     layered, layered_rms, ctrl = _power(GRID, plant, road, 3)
     assert layer_scales(GRID)[ctrl.rt.mass_layer] == layer
+    _running_is_the_layer(ctrl.rt)
     true_cfg = CFG.replace(vehicle={
         "suspension_stiffness_n_per_m": V.suspension_stiffness_n_per_m * spring,
         "suspension_damping_ns_per_m": V.suspension_damping_ns_per_m * damping})

@@ -138,10 +138,17 @@ def test_a_layered_bank_shows_the_models_that_ran(work: Path) -> None:
     save_design(design_bank(cfg), path)
     rec = record_emulated_run(work / "layered.mcap", 1.0, cfg=cfg,
                               design_bytes=path.read_bytes(), arm_at_s=0.2)
+    # the record carries the running layer's four models (bank indices in "models"):
+    # three tire models of layer 0 (0.7 x) or 1 (1.0 x), then the airborne model
+    internals = [r.data for r in read_run(rec).records if "models" in r.data]
+    assert internals and all(len(r["q"]) == 4 and len(r["x_post"]) == 16 for r in internals)
+    assert {tuple(r["models"]) for r in internals} <= {(0, 1, 2, 6), (3, 4, 5, 6)}
     s = load_series(rec)
     J = len(s.model_names)
     ran = [j for j in range(J) if np.any(s.per_model["q"][:, j] > 0)]
     assert J == 7 and 0 < len(ran) < J
+    for r, row in zip(internals[-5:], range(len(s.tick) - 5, len(s.tick)), strict=True):
+        assert s.per_model["q"][row, r["models"]].tolist() == r["q"]   # spread back
     assert all("_M1" in s.model_names[j] or s.model_names[j] == "airborne" for j in ran)
     html = write_report(rec, work / "layered-report").read_text()
     assert f"The {len(ran)} of the design's {J} linear models whose filter ran" in html

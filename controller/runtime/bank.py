@@ -300,7 +300,12 @@ from controller.runtime.kernels import (
     travel_comfort_share,
 )
 from controller.runtime.layout import SlotValue
-from controller.runtime.mass_layers import layer_table, mass_schedule
+from controller.runtime.mass_layers import (
+    gather_running_layer,
+    layer_table,
+    mass_schedule,
+    running_layer_rows,
+)
 from controller.runtime.moving_bank import (
     HIST_BINS,
     HIST_HI_LOG10,
@@ -319,7 +324,8 @@ from controller.stop_barrier import stop_barrier as stop_barrier_parameters
 from controller.stop_contact import StopContactSettings, stop_contact_settings
 from controller.travel_schedule import SCHEDULE_SIZE, travel_schedule
 
-__all__ = ["BankRuntime", "Blending", "StepFlag", "config_of", "default_single_model"]
+__all__ = ["BankRuntime", "Blending", "RunningModels", "StepFlag", "config_of",
+           "default_single_model"]
 
 #: sprung-mass layers: another layer must be preferred this long in a row [s] ...
 LAYER_DWELL_S = 1.0
@@ -341,6 +347,10 @@ _DEGRADED = int(StepFlag.DEGRADED)
 _SIG_STEP = nb.float64(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
                        nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1],
                        nb.float64, nb.float64, nb.float64)
+_SIG_TICK = nb.float64(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
+                       nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1],
+                       nb.float64, nb.float64, nb.float64, nb.float64[:, ::1],
+                       nb.boolean[::1], nb.int64[::1])
 _SIG_CFG = nb.void(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
                    nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1], nb.int64)
 
@@ -709,6 +719,20 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     iv[I_FLAGS] = flags
     fv[F_OUT] = out
     return out
+
+
+@nb.njit(_SIG_TICK, cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]
+def bank_tick(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+              fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, rattlespace_m: float,
+              accel_mps2: float, force_meas_n: float, run_st: np.ndarray,
+              run_active: np.ndarray, run_models: np.ndarray) -> float:
+    """:func:`bank_step`, then the running layer's rows copied into ``run_st`` /
+    ``run_active`` / ``run_models`` (:func:`gather_running_layer`; nothing to copy for
+    0-row arrays, a one-layer bank's).  Allocation-free, never raises."""
+    u = bank_step(mat, vec, st, active, fv, iv, nbr, rattlespace_m, accel_mps2, force_meas_n)
+    if run_st.shape[0] > 0:
+        gather_running_layer(st, active, iv, run_st, run_active, run_models)
+    return u
 
 
 @nb.njit(nogil=True)          # compiled on first use only (bench and tests)
@@ -1107,6 +1131,30 @@ def _int_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _Ta
     return iv
 
 
+class RunningModels:
+    """The models of the layer the bank runs, as the tick record carries them
+    (docs/recording.md): ``models`` (W,) the bank's index of each column; ``q``,
+    ``firing_weight``, ``probability``, ``u_model``, ``active`` (W,) and ``x_post`` (W, 4)
+    are the :class:`BankRuntime` read-outs of the same names for those models.  A
+    one-layer bank's are views of the read-outs (W = J, every model, nothing copied); a
+    layered bank's (docs/design.md §11) hold the running layer's on-ground models and the
+    shared airborne model (W = J / L for L layers, about), refreshed by every step, so a
+    record is as wide for the payload profile's 190 models as for the default bank's 4."""
+
+    __slots__ = ("active", "firing_weight", "models", "probability", "q", "u_model",
+                 "x_post")
+
+    def __init__(self, st: np.ndarray, active: np.ndarray, models: NDArray[np.int64]
+                 ) -> None:
+        self.models = models
+        self.q = st[:, S_Q]
+        self.firing_weight = st[:, S_W]
+        self.probability = st[:, S_P]
+        self.u_model = st[:, S_U]
+        self.active = active
+        self.x_post = st[:, S_XPOST:S_XPOST + 4]
+
+
 class BankRuntime:
     """The controller bank at run time (API in docs/architecture.md "Runtime step").
 
@@ -1184,6 +1232,17 @@ class BankRuntime:
         self.set_weight_set(weight_set)
 
         self._bind_views()
+        rows = running_layer_rows(J, len(layers), n_tire, 0)
+        # the step copies the running layer into these (0 rows: a one-layer bank, whose
+        # running models are every model, read through views)
+        w = rows.size if len(layers) > 1 else 0
+        self._st_run = np.zeros((w, ST_COLS))
+        self._active_run = np.zeros(w, dtype=np.bool_)
+        self._models_run = rows[:w].copy()
+        self._gather = w > 0
+        #: the running layer's models (the tick record's columns)
+        self.running = (RunningModels(self._st_run, self._active_run, self._models_run) if w
+                        else RunningModels(self._st, self._active, rows))
         self._warm_up()
         self.reset()
 
@@ -1212,7 +1271,8 @@ class BankRuntime:
             bank_reset(self._mat, self._vec, st, act, fv, iv, self._nbr, int(b))
             for _ in range(3):
                 bank_step(self._mat, self._vec, st, act, fv, iv, self._nbr, 0.0, 0.0, 0.0)
-            bank_step(self._mat, self._vec, st, act, fv, iv, self._nbr, math.nan, 0.0, 0.0)
+            bank_tick(self._mat, self._vec, st, act, fv, iv, self._nbr, math.nan, 0.0, 0.0,
+                      self._st_run.copy(), self._active_run.copy(), self._models_run.copy())
         _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index,
                 self._table_w)
 
@@ -1220,6 +1280,9 @@ class BankRuntime:
         """Initial state: filters at equilibrium, p uniform, human filter at rest."""
         bank_reset(self._mat, self._vec, self._st, self._active, self._fv, self._iv,
                    self._nbr, int(self.blending))
+        if self._gather:
+            gather_running_layer(self._st, self._active, self._iv, self._st_run,
+                                 self._active_run, self._models_run)
 
     def set_blending(self, blending: Blending | int) -> None:
         """Switch the blending mode (newly running filters start from the blended estimate)."""
@@ -1260,6 +1323,11 @@ class BankRuntime:
     def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float:
         """One controller tick: the actuator force reference [N].  Never raises."""
         try:
+            if self._gather:    # a layered bank: the step copies the running layer too
+                return bank_tick(self._mat, self._vec, self._st, self._active, self._fv,
+                                 self._iv, self._nbr, rattlespace_m, accel_mps2,
+                                 force_meas_n, self._st_run, self._active_run,
+                                 self._models_run)
             return bank_step(self._mat, self._vec, self._st, self._active, self._fv,
                              self._iv, self._nbr, rattlespace_m, accel_mps2, force_meas_n)
         except (TypeError, ValueError, OverflowError):

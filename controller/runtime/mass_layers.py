@@ -44,7 +44,8 @@ from controller.arrays import FloatArray
 from controller.runtime import kernels as kern
 from controller.runtime.moving_bank import enter_moving
 
-__all__ = ["layer_table", "mass_schedule", "model_in_layer"]
+__all__ = ["gather_running_layer", "layer_table", "mass_schedule", "model_in_layer",
+           "running_layer_rows"]
 
 _MOVING = int(kern.Blending.MOVING)
 
@@ -74,6 +75,33 @@ def layer_table(equilibrium: FloatArray, airborne: NDArray[np.bool_], layers: Fl
             raise ValueError("the design's models are not those of its configured layers "
                              "(static deflection != M g / K of the layer)")
     return layers, layer, n_tire
+
+
+def running_layer_rows(n_models: int, n_layers: int, n_tire: int, layer: int
+                       ) -> NDArray[np.int64]:
+    """The bank's model indices of ``layer``'s models, in the order the tick record's
+    columns have them (docs/recording.md): its ``n_tire`` on-ground models, then the
+    airborne models the layers share.  For a one-layer bank: every model, in order."""
+    ground = layer * n_tire + np.arange(n_tire, dtype=np.int64)
+    return np.concatenate([ground, np.arange(n_layers * n_tire, n_models, dtype=np.int64)])
+
+
+@nb.njit(cache=True, nogil=True)
+def gather_running_layer(st: np.ndarray, active: np.ndarray, iv: np.ndarray,
+                         st_out: np.ndarray, active_out: np.ndarray,
+                         models_out: np.ndarray) -> None:
+    """Copy the running layer's rows of the state ``st`` and ``active`` into ``st_out`` /
+    ``active_out`` and their bank indices into ``models_out`` (the rows of
+    :func:`running_layer_rows` for ``iv[I_LAYER]``).  Allocation-free."""
+    n = iv[kern.I_NTIRE]
+    base = iv[kern.I_LAYER] * n
+    air = n * iv[kern.I_NLAYER]
+    for k in range(st_out.shape[0]):
+        j = base + k if k < n else air + k - n
+        models_out[k] = j
+        active_out[k] = active[j]
+        for c in range(st.shape[1]):
+            st_out[k, c] = st[j, c]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

@@ -181,6 +181,9 @@ INTERNALS_SCHEMA: Final = _obj(
         "probability": {**_NUM_ARRAY, "description": "normalised model probability"},
         "u_model": {**_NUM_ARRAY, "description": "force per model controller [N]"},
         "active": {"type": "array", "items": {"type": "boolean"}},
+        "models": {"type": "array", "items": {"type": "integer"},
+                   "description": "the bank's model index of each per-model column: the "
+                   "models of the layer the bank runs (docs/design.md §11)"},
         "flags": {"type": "integer", "description": "StepFlag bits"},
         "blending": {"type": "integer", "minimum": 0,
                      "description": "bank mode code (controller.modes.Blending)"},

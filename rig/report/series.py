@@ -204,6 +204,22 @@ def _matrix(rows: list[Any], width: int) -> FloatArray:
     return out
 
 
+def _bank_matrix(rows: list[Any], models: list[Any], width: int) -> FloatArray:
+    """Per-model values of a layered bank's records (one column per running model, the
+    ``models`` field its bank index) spread over the bank's ``width`` models: 0 where a
+    model did not run (as the runtime reads its inactive filters), NaN where the record
+    has no value.  A column whose index is not a model of the bank is left out."""
+    out = np.full((len(rows), width), np.nan)
+    for i, (r, m) in enumerate(zip(rows, models, strict=True)):
+        if not (isinstance(r, list) and isinstance(m, list)):
+            continue
+        out[i, :] = 0.0
+        for x, j in zip(r, m, strict=False):
+            if isinstance(j, int) and 0 <= j < width:
+                out[i, j] = _f(x)
+    return out
+
+
 def _objects(path: str | Path, topic: str, joined: bytes,
              seqs: list[int]) -> list[dict[str, Any]]:
     """The JSON objects of a topic's payloads; RecordingError naming the first that is
@@ -287,7 +303,14 @@ def load_series(path: str | Path) -> RunSeries:
     signals = {k: np.array([_f(r.get(k)) for r in recs]) for k in SIGNAL_FIELDS}
     timing = {k: np.array([_f(r.get(k)) for r in recs]) for k in TIMING_FIELDS}
     J = max((len(qs) for r in recs if isinstance(qs := r.get("q"), list)), default=0)
-    per_model = {k: _matrix([r.get(k) for r in recs], J) for k in PER_MODEL_FIELDS}
+    models = [r.get("models") for r in recs]
+    names = _design_model_names(scan)
+    if len(names) > J and any(isinstance(m, list) for m in models):
+        J = len(names)          # a layered bank: its records carry the running layer
+        per_model = {k: _bank_matrix([r.get(k) for r in recs], models, J)
+                     for k in PER_MODEL_FIELDS}
+    else:
+        per_model = {k: _matrix([r.get(k) for r in recs], J) for k in PER_MODEL_FIELDS}
     flags = np.array([f if isinstance(f := r.get("flags"), int) else -1 for r in recs],
                      dtype=np.int64)
     def column(key: str) -> FloatArray:
@@ -316,18 +339,27 @@ def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:
         return None, f"its {CONFIG_ATTACHMENT} could not be read ({exc})"
 
 
-def _model_names(scan: ScanResult, J: int) -> list[str]:
-    """Model names of the design: the ``models`` metadata, else the design artifact."""
+def _design_model_names(scan: ScanResult, want: int = 0) -> list[str]:
+    """The bank's model names: the recording's ``models`` metadata, else (or when it
+    does not have ``want`` names) its design artifact's; [] without either."""
     raw = scan.rig_metadata.get("models")
     try:
-        names = [str(x) for x in json.loads(raw)] if raw else []
+        names = json.loads(raw) if raw else []
     except (json.JSONDecodeError, TypeError):
         names = []
-    if len(names) != J and DESIGN_ATTACHMENT in scan.attachments:
+    if isinstance(names, list) and names and (not want or len(names) == want):
+        return [str(x) for x in names]
+    if DESIGN_ATTACHMENT in scan.attachments:
         try:
             with np.load(io.BytesIO(scan.attachments[DESIGN_ATTACHMENT])) as npz:
-                names = [str(x) for x in npz["model_names"]]
+                return [str(x) for x in npz["model_names"]]
         except (OSError, ValueError, KeyError):
-            names = []
+            pass
+    return []
+
+
+def _model_names(scan: ScanResult, J: int) -> list[str]:
+    """Model names of the design (:func:`_design_model_names`), one per column."""
+    names = _design_model_names(scan, J)
     return names if len(names) == J else [f"model {j}" for j in range(J)]
 

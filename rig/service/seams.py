@@ -17,7 +17,20 @@ import numpy as np
 
 from rig.recording.codec import TickLayout
 
-__all__ = ["ForceLoop", "Recorder", "Runtime", "Telemetry"]
+__all__ = ["ForceLoop", "Recorder", "RunningModels", "Runtime", "Telemetry"]
+
+
+class RunningModels(Protocol):
+    """The models the tick record carries (``controller.runtime.bank.RunningModels``):
+    the running layer's, one column each; ``models`` is the bank's index of each column."""
+
+    models: np.ndarray
+    q: np.ndarray
+    firing_weight: np.ndarray
+    probability: np.ndarray
+    u_model: np.ndarray
+    active: np.ndarray
+    x_post: np.ndarray
 
 
 class Runtime(Protocol):
@@ -25,12 +38,8 @@ class Runtime(Protocol):
 
     @property
     def flags(self) -> Any: ...
-    q: np.ndarray
-    firing_weight: np.ndarray
-    probability: np.ndarray
-    u_model: np.ndarray
-    active: np.ndarray
-    x_post: np.ndarray
+    @property
+    def running(self) -> RunningModels: ...
     xf: np.ndarray
     stop_contact_s: float       # stop-contact time in the monitor's window [s]
     comfort_share: float        # the travel schedule's comfort share of the force [0, 1]

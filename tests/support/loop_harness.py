@@ -45,6 +45,8 @@ class FakeRuntime:
         self.u_model = np.zeros(n_models)
         self.active = np.ones(n_models, dtype=bool)
         self.x_post = np.zeros((n_models, 4))
+        self.models = np.arange(n_models)
+        self.running = self             # one layer: the record's columns are every model
         self.xf = np.zeros(2)
         self.stop_contact_s = 0.0
         self.comfort_share = 0.0
