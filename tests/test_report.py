@@ -150,7 +150,14 @@ def test_a_layered_bank_shows_the_models_that_ran(work: Path) -> None:
     for r, row in zip(internals[-5:], range(len(s.tick) - 5, len(s.tick)), strict=True):
         assert s.per_model["q"][row, r["models"]].tolist() == r["q"]   # spread back
     assert all("_M1" in s.model_names[j] or s.model_names[j] == "airborne" for j in ran)
+    # the layer it ran, per tick, from the first column's model index and the config
+    v = CFG.vehicle
+    mkc = [v.sprung_mass_kg, v.suspension_stiffness_n_per_m, v.suspension_damping_ns_per_m]
+    assert np.array_equal(s.layer_mkc, np.tile(mkc, (len(s.tick), 1)))
     html = write_report(rec, work / "layered-report").read_text()
+    assert (f"The bank ran 1 of its layers (the red line is the running layer's mass; "
+            f"each layer is the design for one sprung mass, spring rate and damping): "
+            f"{mkc[0]:.0f} kg, {mkc[1]:.0f} N/m, {mkc[2]:.0f} N s/m for ") in html
     assert f"The {len(ran)} of the design's {J} linear models whose filter ran" in html
     caption = html[html.index("whose filter ran"):html.index("q is each model")]
     for j in range(J):      # the mean firing weights while active: the models that ran
@@ -176,6 +183,8 @@ def test_sprung_mass_estimate_is_a_row_and_a_plot(report: Path, recording: Path)
     html = report.read_text()
     assert "sprung-mass estimate at the end of the phase" in html
     assert "sprung_mass.png" in html
+    # a one-layer bank has no layers to show
+    assert np.isnan(s.layer_mkc).all() and "The bank ran" not in html
     # the spring rate and damping fitted beside it: recorded every tick, last of a phase
     for key, label in (("spring_rate_est_n_per_m", "spring-rate estimate"),
                        ("damping_est_ns_per_m", "damping estimate")):

@@ -493,7 +493,8 @@ def _models(d: PlotInput, out: Path) -> Figure | None:
 
 
 def _sprung_mass(d: PlotInput, out: Path) -> Figure | None:
-    """The controller's sprung-mass estimate over the run, against the configured mass."""
+    """The controller's sprung-mass estimate over the run, against the configured mass
+    (and, for a layered bank, the mass of the layer it ran)."""
     s = d.s
     m = s.sprung_mass_est_kg
     if m.size != s.t_s.size or not np.isfinite(m).any():
@@ -503,6 +504,10 @@ def _sprung_mass(d: PlotInput, out: Path) -> Figure | None:
     nominal = s.cfg.vehicle.sprung_mass_kg
     handles.append(ax.axhline(nominal, color="k", ls="--", lw=0.8,
                               label=f"configured {nominal:g} kg"))
+    layered = s.layer_mkc.shape[0] == s.t_s.size and bool(np.isfinite(s.layer_mkc).any())
+    if layered:
+        handles.append(ax.step(s.t_s, s.layer_mkc[:, 0], where="post", color="C3", lw=1.0,
+                               label="the running layer's mass")[0])
     _time_axes(ax, s)
     ax.set_ylabel("sprung mass [kg]")
     _title_and_legend(ax, "/controller/internals.sprung_mass_est_kg",
@@ -510,11 +515,30 @@ def _sprung_mass(d: PlotInput, out: Path) -> Figure | None:
     _save(fig, out, "sprung_mass.png")
     fin = m[np.isfinite(m)]
     return Figure(
-        "sprung_mass.png", "Sprung-mass estimate", ("/controller/internals.sprung_mass_est_kg",),
+        "sprung_mass.png", "Sprung-mass estimate",
+        ("/controller/internals.sprung_mass_est_kg",
+         *(("/controller/internals.models",) if layered else ())),
         f"What the controller believes the body weighs (least squares on the body equation "
         f"M a = F + K z + C z', docs/design.md §10): {_fmt(fin[-1], 4)} kg at the end, "
         f"{_fmt(float(fin.min()), 4)}–{_fmt(float(fin.max()), 4)} kg over the run, against "
-        f"the configured {nominal:g} kg. It holds while the rig is too quiet to tell.")
+        f"the configured {nominal:g} kg. It holds while the rig is too quiet to tell."
+        + (_layers_caption(s) if layered else ""))
+
+
+def _layers_caption(s: RunSeries) -> str:
+    """The layers a layered bank ran (docs/design.md §11), longest first, with the time
+    on each (by the loop clock)."""
+    dt = np.diff(s.t_s, append=s.t_s[-1])
+    ok = np.all(np.isfinite(s.layer_mkc), axis=1)
+    keys, inverse = np.unique(s.layer_mkc[ok], axis=0, return_inverse=True)
+    time_s = np.bincount(inverse.ravel(), weights=dt[ok], minlength=len(keys))
+    order = np.argsort(-time_s)
+    parts = [f"{keys[i, 0]:.0f} kg, {keys[i, 1]:.0f} N/m, {keys[i, 2]:.0f} N s/m for "
+             f"{time_s[i]:.1f} s" for i in order[:6]]
+    more = f" and {len(keys) - 6} more" if len(keys) > 6 else ""
+    return (f" The bank ran {len(keys)} of its layers (the red line is the running layer's "
+            f"mass; each layer is the design for one sprung mass, spring rate and damping): "
+            f"{'; '.join(parts)}{more}.")
 
 
 def _lifecycle(d: PlotInput, out: Path) -> Figure:

@@ -22,7 +22,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
-from controller.config import ConfigError, RigConfig, config_from_bytes, default_config
+from controller.config import (
+    ConfigError,
+    RigConfig,
+    config_from_bytes,
+    default_config,
+    layer_scales,
+)
 from controller.runtime.kernels import StepFlag
 from rig.recording.scan import RecordingError, ScanResult, scan_recording, split_json
 from rig.recording.schema import (
@@ -106,6 +112,9 @@ class RunSeries:
     spring_rate_est_n_per_m: FloatArray = field(default_factory=lambda: np.zeros(0))
     #: /controller/internals.damping_est_ns_per_m per tick (NaN: not recorded)
     damping_est_ns_per_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    #: (n, 3) sprung mass [kg], spring rate [N/m] and damping [N s/m] of the layer the
+    #: bank ran each tick (a layered bank, docs/design.md §11; NaN rows otherwise)
+    layer_mkc: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def no_sensor_data(self) -> str | None:
         """Why the run has nothing to show -- tick records, but on none of them a fresh
@@ -317,13 +326,37 @@ def load_series(path: str | Path) -> RunSeries:
         return np.array([_f(r.get(key)) for r in recs])
 
     config, problem = _config(scan)
+    layers = _running_layers(config, models, J)
     return RunSeries(Path(path), scan, tick, t_s, t0_ns, signals,
                      [str(r.get("lifecycle", "")) for r in recs],
                      [str(r.get("fault", "")) for r in recs], per_model, timing, events,
                      _model_names(scan, J), config, problem, flags,
                      column("sprung_mass_est_kg"), column("comfort_share"),
                      column("ride_height_m"), column("spring_rate_est_n_per_m"),
-                     column("damping_est_ns_per_m"))
+                     column("damping_est_ns_per_m"), layers)
+
+
+def _running_layers(cfg: RigConfig | None, models: list[Any], n_models: int) -> FloatArray:
+    """[M, K, C] of the layer each record's bank ran, from its first column's model
+    index (layer major, the airborne model last: controller/runtime/mass_layers.py) and
+    the layers of the recording's configuration; NaN rows for a one-layer bank, without
+    a configuration or where a record has no valid index."""
+    out = np.full((len(models), 3), np.nan)
+    if cfg is None:
+        return out
+    scales = np.array(layer_scales(cfg), dtype=float)
+    n_layers = scales.shape[0]
+    n_tire = (n_models - int(cfg.design.include_airborne_model)) // n_layers
+    if n_layers < 2 or n_tire < 1:
+        return out
+    v = cfg.vehicle
+    mkc = scales * np.array([v.sprung_mass_kg, v.suspension_stiffness_n_per_m,
+                             v.suspension_damping_ns_per_m])
+    for i, m in enumerate(models):
+        if isinstance(m, list) and m and isinstance(m[0], int) \
+                and 0 <= m[0] < n_tire * n_layers:
+            out[i] = mkc[m[0] // n_tire]
+    return out
 
 
 def _config(scan: ScanResult) -> tuple[RigConfig | None, str]:
