@@ -89,6 +89,31 @@ def test_a_one_layer_bank_records_every_model_without_a_copy() -> None:
         assert np.shares_memory(getattr(rt.running, key), getattr(rt, key)), key
 
 
+def test_the_loop_records_and_publishes_the_running_layer() -> None:
+    """Through the loop: the packed tick record (recording and telemetry) has the running
+    layer's four columns and their bank indices, and the telemetry state carries both."""
+    from rig.recording.codec import TickDecoder, iter_items
+    from rig.telemetry_process.child import snapshot_of
+    from tests.support.loop_harness import make_harness
+
+    rt = BankRuntime(cached_design(GRID), cfg=GRID)
+    h = make_harness(GRID, rt=rt)
+    try:
+        for _ in range(20):
+            h.step()
+        packed = bytes(h.loop._tick_record(0))
+        _t, rec = TickDecoder(h.loop._packer.layout).decode(next(iter_items(packed)))
+    finally:
+        h.close()
+    n = len(CFG.design.linearisation_deflections_m)
+    home = layer_scales(GRID).index((1.0, 1.0, 1.0))
+    assert rec["models"] == [home * n + t for t in range(n)] + [rt.n_models - 1]
+    assert len(rec["q"]) == len(rec["firing_weight"]) == n + 1
+    assert np.shape(rec["x_post"]) == (n + 1, 4)
+    state = snapshot_of(0, rec, h.loop.status())["state"]
+    assert state["models"] == rec["models"] and state["q"] == rec["q"]
+
+
 def test_the_running_layer_follows_a_layer_change() -> None:
     """Stepped on the 0.7 x spring's layer's rig, the bank leaves the configured layer;
     the running models follow it tick for tick (not only at the end of a run)."""

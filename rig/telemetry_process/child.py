@@ -68,7 +68,8 @@ COMMAND_TIMEOUT_S = 2.0
 NICE = 10
 _STATE_EVERY_S = 1.0
 _STATE_KEYS = ("rattlespace_m", "sprung_accel_mps2", "force_meas_n", "force_ref_n",
-               "spool_cmd", "valve_enable", "sensor_counter", "firing_weight", "q", "flags",
+               "spool_cmd", "valve_enable", "sensor_counter", "firing_weight", "q", "models",
+               "flags",
                "blending", "weight_set", "stop_contact_s", "stop_degraded",
                "sprung_mass_est_kg", "spring_rate_est_n_per_m", "damping_est_ns_per_m",
                "comfort_share", "ride_height_m")
