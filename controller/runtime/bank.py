@@ -1168,7 +1168,9 @@ class BankRuntime:
     ``probability`` (MMAE p_j, kept in every mode), ``u_model`` (each model's LQ force),
     ``q_smoothed``, ``active`` (the filters that ran).  ``x_post`` (J, 4), ``x_prior``
     (J, 4), ``xf`` (2,), ``x_blend`` (4,), absolute states (positions from the unloaded
-    springs).  Inactive filters read 0 in q/weights/forces.
+    springs).  Inactive filters read 0 in q/weights/forces.  ``running``
+    (:class:`RunningModels`): the same read-outs for the models of the layer the bank
+    runs, which the loop records (for a one-layer bank, views of the above).
     """
 
     def __init__(self, design: Design, blending: Blending | int = Blending.FUZZY,
