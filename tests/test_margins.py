@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import control
 import numpy as np
 import pytest
 
-from controller.config import default_config
+from controller.config import default_config, layer_scales, load_config
 from controller.design import design_bank, design_models
 from controller.margins import (
     closed_loop_stable,
@@ -127,6 +128,25 @@ def test_actuator_aware_lqg_tolerates_up_to_two_ticks(j: int, w: int) -> None:
     for d, dm_min in ((0, 10e-3), (1, 10e-3), (2, 1e-3)):
         L = lqg_loop_gain(CFG, GROUND[j], SETS[w], "hydraulic", d)
         assert delay_margin_s(L) >= dm_min, d
+
+
+def test_payload_profile_lightest_layers_keep_a_delay_margin() -> None:
+    """deploy/payload.toml (docs/design.md §11): the same weights on a lighter body give a
+    faster law and a thinner delay margin.  The lightest layers (0.6 x the mass, at the
+    spring-rate and damping extremes; the 25 mm tire model, both weight sets) keep >= 6 ms
+    at 0 ticks and >= 4 ms at the CAN loop's 1 tick (measured 6.5 / 4.5 ms at the worst),
+    where the configured mass keeps >= 10 ms (test above)."""
+    cfg = load_config(Path(__file__).resolve().parents[1] / "deploy" / "payload.toml")
+    scales = layer_scales(cfg)
+    ground = [md for md in design_models(cfg) if not md.model.airborne]
+    n = len(ground) // len(scales)
+    for m, k, c in [(0.6, 0.7, 0.6), (0.6, 0.7, 1.5), (0.6, 1.4, 0.6), (0.6, 1.4, 1.5)]:
+        md = ground[scales.index((m, k, c)) * n + 1]
+        assert md.model.B2[2] == pytest.approx(1.0 / (m * CFG.vehicle.sprung_mass_kg))
+        for w in SETS:
+            for d, dm_min in ((0, 6e-3), (1, 4e-3)):
+                dm = delay_margin_s(lqg_loop_gain(cfg, md, w, "hydraulic", d))
+                assert dm >= dm_min, ((m, k, c), w, d, dm)
 
 
 def test_runtime_bank_is_the_linear_controller() -> None:
