@@ -64,6 +64,7 @@ __all__ = [
     "default_config",
     "excitation_problems",
     "host_problem",
+    "layer_params",
     "layer_scales",
     "load_config",
     "parse_config",
@@ -1206,6 +1207,16 @@ def layer_scales(cfg: RigConfig) -> list[tuple[float, float, float]]:
     d = cfg.design
     return list(itertools.product(d.sprung_mass_scales, d.spring_rate_scales,
                                   d.damping_scales))
+
+
+def layer_params(cfg: RigConfig, vehicle: VehicleConfig | None = None
+                 ) -> list[tuple[float, float, float]]:
+    """(sprung mass [kg], spring rate [N/m], damping [N s/m]) of each layer of the bank,
+    in the bank's order: :func:`layer_scales` of ``cfg`` x those of ``vehicle`` (default
+    ``cfg.vehicle``)."""
+    v = cfg.vehicle if vehicle is None else vehicle
+    return [(m * v.sprung_mass_kg, k * v.suspension_stiffness_n_per_m,
+             c * v.suspension_damping_ns_per_m) for m, k, c in layer_scales(cfg)]
 
 
 def load_config(path: str | Path | None = None) -> RigConfig:

@@ -58,7 +58,7 @@ from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
 from controller.artifact import Design
-from controller.config import RigConfig, default_config, layer_scales, parse_config
+from controller.config import RigConfig, default_config, layer_params, parse_config
 from controller.mass_estimator import (
     ME_CEST,
     ME_EST,
@@ -909,9 +909,8 @@ def _layers(design: Design, cfg: RigConfig) -> tuple[FloatArray, NDArray[np.int6
     """(layers (L, 3): sprung mass [kg], spring rate [N/m], damping [N s/m]; layer of each
     model, -1 airborne; on-ground models per layer) of the design, whose layers are those
     its own configuration names (``config_of(design)``, the vehicle of ``cfg``)."""
-    scales = np.array(layer_scales(config_of(design)), dtype=float)
-    return layer_table(design.equilibrium, design.airborne, scales * _vehicle_mkc(cfg),
-                       cfg.vehicle.gravity_mps2)
+    layers = np.array(layer_params(config_of(design), cfg.vehicle), dtype=float)
+    return layer_table(design.equilibrium, design.airborne, layers, cfg.vehicle.gravity_mps2)
 
 
 def _nominal_layer(layers: FloatArray, cfg: RigConfig) -> int:

@@ -194,8 +194,8 @@ INTERNALS_SCHEMA: Final = _obj(
                                     "the estimator fits beside the mass [N/m]"},
         "damping_est_ns_per_m": {**_NUM, "description": "the suspension damping the "
                                  "estimator fits beside the mass [N s/m]"},
-        "x_post": {**_NUM_ARRAY, "description": "(J, 4) estimates, flat row-major: "
-                   "model j at [4j, 4j + 4)"},
+        "x_post": {**_NUM_ARRAY, "description": "(W, 4) estimates of the W models in "
+                   "models, flat row-major: column k at [4k, 4k + 4)"},
         "xf": _NUM_ARRAY,
         "stop_contact_s": {**_NUM, "description": "bump-stop contact time in the "
                            "stop-contact monitor's window [s]"},

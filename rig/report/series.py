@@ -27,7 +27,7 @@ from controller.config import (
     RigConfig,
     config_from_bytes,
     default_config,
-    layer_scales,
+    layer_params,
 )
 from controller.runtime.kernels import StepFlag
 from rig.recording.scan import RecordingError, ScanResult, scan_recording, split_json
@@ -344,14 +344,11 @@ def _running_layers(cfg: RigConfig | None, models: list[Any], n_models: int) -> 
     out = np.full((len(models), 3), np.nan)
     if cfg is None:
         return out
-    scales = np.array(layer_scales(cfg), dtype=float)
-    n_layers = scales.shape[0]
+    mkc = np.array(layer_params(cfg), dtype=float)
+    n_layers = mkc.shape[0]
     n_tire = (n_models - int(cfg.design.include_airborne_model)) // n_layers
     if n_layers < 2 or n_tire < 1:
         return out
-    v = cfg.vehicle
-    mkc = scales * np.array([v.sprung_mass_kg, v.suspension_stiffness_n_per_m,
-                             v.suspension_damping_ns_per_m])
     for i, m in enumerate(models):
         if isinstance(m, list) and m and isinstance(m[0], int) \
                 and 0 <= m[0] < n_tire * n_layers:
