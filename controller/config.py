@@ -33,6 +33,7 @@ from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 from controller.files import NotRegularFileError, open_regular
 
 __all__ = [
+    "LAYER_KEYS",
     "MAX_BANK_MODELS",
     "MAX_BANK_TABLE_ENTRIES",
     "MAX_CONFIG_BYTES",
@@ -67,6 +68,7 @@ __all__ = [
     "layer_params",
     "layer_scales",
     "load_config",
+    "one_layer",
     "parse_config",
     "parse_toml",
     "read_text_file",
@@ -987,7 +989,7 @@ def _cross_checks(cfg: RigConfig) -> None:
         t = getattr(fz, name)
         if len(t) != 3 or not (t[0] <= t[1] <= t[2]) or t[0] == t[2]:
             raise ConfigError(f"fuzzy.{name}", t, "3 numbers a <= peak <= c with a < c")
-    for key in ("sprung_mass_scales", "spring_rate_scales", "damping_scales"):
+    for key in LAYER_KEYS:
         ls = getattr(d, key)
         if not ls or any(b <= a for a, b in itertools.pairwise(ls)):
             raise ConfigError(f"design.{key}", ls, "at least one scale, strictly increasing")
@@ -1207,6 +1209,16 @@ def layer_scales(cfg: RigConfig) -> list[tuple[float, float, float]]:
     d = cfg.design
     return list(itertools.product(d.sprung_mass_scales, d.spring_rate_scales,
                                   d.damping_scales))
+
+
+#: the ``[design]`` keys of the bank's layers (:func:`layer_scales`)
+LAYER_KEYS = ("sprung_mass_scales", "spring_rate_scales", "damping_scales")
+
+
+def one_layer(cfg: RigConfig) -> RigConfig:
+    """``cfg`` with a bank of one layer: the tire models designed for the configured
+    vehicle only (every :data:`LAYER_KEYS` = [1.0]), as the thesis's bank is."""
+    return cfg.replace(design={key: [1.0] for key in LAYER_KEYS})
 
 
 def layer_params(cfg: RigConfig, vehicle: VehicleConfig | None = None
