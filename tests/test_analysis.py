@@ -1,8 +1,16 @@
 """Covariance analysis: thesis claims on defaults, and an independent second computation
 (the loops re-assembled from textbook controller equations with python-control's
-interconnect, variances by integrating |H(e^jw)|^2 over frequency)."""
+interconnect, variances by integrating |H(e^jw)|^2 over frequency).
+
+The thesis's claims are on the configured vehicle: the built-in defaults with a bank of one
+layer (THESIS, :func:`controller.config.one_layer`: the tire models designed for the
+configured sprung mass, spring rate and damping, whatever layers the built-in defaults
+have).  The other checks are on the on-ground models of the built-in bank, whatever its
+layers."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import control
 import numpy as np
@@ -10,13 +18,14 @@ import pytest
 import scipy.linalg
 
 from controller.analysis import OUTPUTS, analyze, closed_loop, output_mean_squares
-from controller.config import default_config
+from controller.config import default_config, one_layer
 from controller.design import design_models, measurement_noise_cov
 from controller.human_filter import discretize_zoh, human_filter
 from controller.kalman import process_noise_cov, steady_state_kalman
 from controller.lq import augmented_plant, lq_gain
 from controller.road_noise import road_velocity_intensity
 from rig.cli import main
+from tests.support.profiles import write_one_layer_config
 
 CFG = default_config()
 DT = CFG.sample_time_s
@@ -24,11 +33,14 @@ HF = human_filter(CFG.design, DT)
 W = road_velocity_intensity(CFG.noise.nominal_speed_mps, CFG.noise.nominal_roughness_gd)
 R = measurement_noise_cov(CFG)
 GROUND = [md for md in design_models(CFG) if not md.model.airborne]
+#: the thesis's bank: the configured vehicle's tire models (one layer)
+THESIS = one_layer(CFG)
 
 
 @pytest.fixture(scope="module", params=[1, 2])
 def result(request: pytest.FixtureRequest) -> tuple[int, dict]:
-    return request.param, analyze(CFG, request.param)
+    """(weight set, :func:`analyze` of THESIS for it)."""
+    return request.param, analyze(THESIS, request.param)
 
 
 def test_thesis_claims_on_defaults(result: tuple[int, dict]) -> None:
@@ -49,7 +61,7 @@ def test_design_for_the_compensated_actuator_pays_on_the_linearised_rig(
     both on the linearised rig with their loop: set 1 absorbed power at least 20 % lower
     for every model, rattlespace within 3 %; set 2 no worse (docs/design.md section 7)."""
     w, res = result
-    plain = analyze(CFG.replace(force_loop={"flow_feedforward_gain": 0.0}), w)
+    plain = analyze(THESIS.replace(force_loop={"flow_feedforward_gain": 0.0}), w)
     for name, entry in res.items():
         for kind in ("lq", "lqg"):
             new, old = entry[kind], plain[name][kind]
@@ -180,10 +192,15 @@ def test_lqg_needs_filter_arguments() -> None:
         analyze(CFG, 3)
 
 
-def test_cli_analyze_json_and_table(capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_analyze_json_and_table(tmp_path: Path,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """JSON on the one-layer bank (the configured vehicle's tire models, by name); the
+    table and the refused weight set on the built-in defaults, whatever their layers."""
     import json
 
-    assert main(["analyze", "--weights", "1", "--json"]) == 0
+    one_layer_config = write_one_layer_config(tmp_path)
+    assert main(["analyze", "--config", str(one_layer_config), "--weights", "1",
+                 "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     entry = out["models"]["x2_25mm"]
     assert set(entry) == {"lq", "lqg"}

@@ -16,16 +16,37 @@ from controller.artifact import (
     load_design,
     save_design,
 )
-from controller.config import config_hash, default_config, design_config_hash
+from controller.config import (
+    RigConfig,
+    config_hash,
+    default_config,
+    design_config_hash,
+    layer_params,
+    layer_scales,
+    one_layer,
+)
 from controller.design import design_bank
 from controller.fuzzy import firing_weight
 from controller.human_filter import human_filter
 from controller.lq import actuated_lq_gain, lq_gain
-from controller.plant import model_family
+from controller.plant import LinearModel, model_family
 from controller.road_noise import road_velocity_intensity
 from rig.cli import main
+from tests.support.profiles import write_one_layer_config
 
 CFG = default_config()
+
+
+def bank_models(cfg: RigConfig) -> list[LinearModel]:
+    """The bank's models in its order, from the components: the tire models of
+    :func:`model_family` for each layer's vehicle (:func:`layer_params`, layer major),
+    then the airborne model (configured vehicle)."""
+    ground = [model for M, K, C in layer_params(cfg)
+              for model in model_family(cfg.replace(vehicle={
+                  "sprung_mass_kg": M, "suspension_stiffness_n_per_m": K,
+                  "suspension_damping_ns_per_m": C}))
+              if not model.airborne]
+    return ground + [model for model in model_family(cfg) if model.airborne]
 
 
 @pytest.fixture(scope="module")
@@ -35,18 +56,24 @@ def design(default_design: Design) -> Design:
 
 
 def test_shapes_and_fields(design: Design) -> None:
-    J = len(model_family(CFG))
+    """The built-in bank, whatever its layers: each layer the three tire models of the
+    configured deflections, then the one airborne model."""
+    family = model_family(CFG)          # a layer's tire models + the airborne model
+    assert len(family) == 4
+    n_layers = len(layer_scales(CFG))
+    J = n_layers * 3 + 1
     S = len(CFG.noise.speeds_mps) * len(CFG.noise.road_roughness_gd)
-    assert design.n_models == J == 4
+    assert design.n_models == J
     assert design.n_noise == S == 20
     assert design.lq_gain.shape == (2, J, 6)
     D = CFG.design.compute_delay_ticks
     assert design.compute_delay_ticks == D
     assert design.actuator_gain.shape == (2, J, 3 + D)
     np.testing.assert_array_equal(design.servo_model, servo_model(CFG).as_array())
-    assert design.airborne.tolist() == [False, False, False, True]
-    assert design.grid_index.tolist() == [[0, 0], [1, 0], [2, 0], [-1, -1]]
-    assert np.all(np.isnan(design.equilibrium[3]))
+    assert design.airborne.tolist() == [False] * (J - 1) + [True]
+    assert design.grid_index.tolist() == [[0, 0], [1, 0], [2, 0]] * n_layers + [[-1, -1]]
+    assert np.all(np.isnan(design.equilibrium[J - 1]))
+    assert not np.any(np.isnan(design.equilibrium[:J - 1]))
     assert design.dt_s == pytest.approx(1e-3)
     assert design.y_offset.tolist() == [0.0, -CFG.vehicle.gravity_mps2]
     assert design.static_rattlespace_m == pytest.approx(500 * 9.80665 / 27.4e3)
@@ -59,16 +86,19 @@ def test_shapes_and_fields(design: Design) -> None:
 
 
 def test_gains_and_curve_are_the_component_results(design: Design) -> None:
+    """Every model of the built-in bank (each layer's vehicle; the airborne model last)."""
     hf = human_filter(CFG.design, CFG.sample_time_s)
-    for j, model in enumerate(model_family(CFG)):
+    models = bank_models(CFG)
+    assert len(models) == design.n_models
+    for j, model in enumerate(models):
         for w, ws in enumerate(CFG.design.weight_sets):
             k = actuated_lq_gain(model, hf, ws, servo_model(CFG))
             np.testing.assert_array_equal(design.lq_gain[w, j], k[:6])
             np.testing.assert_array_equal(design.actuator_gain[w, j], k[6:])
-    assert np.all(design.lq_gain[:, 3] == 0.0)
-    assert np.all(design.actuator_gain[:, 3] == 0.0)
+    assert np.all(design.lq_gain[:, -1] == 0.0)
+    assert np.all(design.actuator_gain[:, -1] == 0.0)
     ideal = design_bank(CFG.replace(design={"actuator_model": "ideal"}))
-    for j, model in enumerate(model_family(CFG)):
+    for j, model in enumerate(models):
         for w, ws in enumerate(CFG.design.weight_sets):
             np.testing.assert_array_equal(ideal.lq_gain[w, j], lq_gain(model, hf, ws))
     assert np.all(ideal.actuator_gain == 0.0)
@@ -188,11 +218,15 @@ def test_version_and_corruption_detected(design: Design, tmp_path: Path) -> None
 
 def test_cli_design_writes_artifact_and_json(tmp_path: Path,
                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """On the one-layer bank (the configured vehicle's tire models, by name): the JSON is
+    the artifact's, and its rig-loop poles are controller.analysis's."""
+    one = one_layer(CFG)
     out = tmp_path / "d.npz"
-    assert main(["design", "--out", str(out), "--json"]) == 0
+    assert main(["design", "--config", str(write_one_layer_config(tmp_path)),
+                 "--out", str(out), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert set(summary["models"]) == {"x2_40mm", "x2_25mm", "x2_10mm", "airborne"}
-    d = load_design(out, CFG)
+    d = load_design(out, one)
     m = summary["models"]["x2_25mm"]
     np.testing.assert_allclose(m["lq"]["weight_set_1"]["gain"], d.lq_gain[0, 1])
     ideal = m["lq"]["weight_set_1"]["ideal_actuator_closed_loop_poles"]
@@ -201,9 +235,9 @@ def test_cli_design_writes_artifact_and_json(tmp_path: Path,
     # same spectrum as controller.analysis builds for `rig analyze`
     from controller.analysis import rig_closed_loop
     from controller.design import design_models
-    md = design_models(CFG)[1]
-    cl = rig_closed_loop(CFG, md, list(CFG.design.weight_sets[0]), "lqg",
-                         CFG.design.compute_delay_ticks)
+    md = design_models(one)[1]
+    cl = rig_closed_loop(one, md, list(one.design.weight_sets[0]), "lqg",
+                         one.design.compute_delay_ticks)
     poles = m["lq"]["weight_set_1"]["closed_loop_poles"]
     assert len(poles) == cl.A.shape[0] > 6 and all(p["abs"] < 1.0 for p in poles)
     assert "closed_loop_poles" not in summary["models"]["airborne"]["lq"]["weight_set_1"]
@@ -212,8 +246,8 @@ def test_cli_design_writes_artifact_and_json(tmp_path: Path,
         assert p["abs"] == pytest.approx(np.exp(-p["zeta"] * p["wn_rad_s"] * d.dt_s), rel=1e-9)
     k = m["kalman"]
     np.testing.assert_allclose(k["gain"], d.kalman_gain[1, k["noise_entry"]])
-    assert k["speed_mps"] == pytest.approx(CFG.noise.nominal_speed_mps)
-    assert k["roughness_gd"] == pytest.approx(CFG.noise.nominal_roughness_gd)
+    assert k["speed_mps"] == pytest.approx(one.noise.nominal_speed_mps)
+    assert k["roughness_gd"] == pytest.approx(one.noise.nominal_roughness_gd)
 
 
 def test_cli_design_plain_and_bad_config(tmp_path: Path,
