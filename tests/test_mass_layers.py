@@ -1,14 +1,19 @@
 """Sprung-mass layers of the bank (controller/runtime/mass_layers.py, docs/design.md §11):
 the design holds the tire models once per mass layer, each exactly the design for that
 mass; the bank runs the layer nearest the sprung-mass estimate, and on a plant of another
-mass it then controls like the bank designed for that plant."""
+mass it then controls like the bank designed for that plant.
+
+The tests build their banks on the configured rig with a one-layer bank
+(:func:`controller.config.one_layer`), so each bank is exactly the one a test describes
+(layers over sprung mass only; "the bank designed for" a plant is that plant's one
+layer), whatever layers the built-in defaults have."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from controller.config import ConfigError, RigConfig, default_config
+from controller.config import ConfigError, RigConfig, default_config, one_layer
 from controller.design import design_bank
 from controller.runtime.bank import BankRuntime
 from controller.runtime.kernels import Blending
@@ -18,7 +23,7 @@ from hil.sim.plant import RigPlant
 from hil.sim.roads import make_road
 from hil.sim.sensors import SensorReading
 
-CFG = default_config()
+CFG = one_layer(default_config())
 V = CFG.vehicle
 SCALES = [0.7, 1.0, 1.3]
 LAYERED = CFG.replace(design={"sprung_mass_scales": SCALES})

@@ -2,21 +2,25 @@
 sprung-mass scales with ``design.spring_rate_scales`` and ``damping_scales``; each layer is
 exactly the design for its [M, K, C], and the bank runs the layer nearest the estimator's
 [M, K, C], so on a rig with another spring and damper it controls like the bank designed
-for that rig."""
+for that rig.
+
+CFG is the configured rig with a one-layer bank (:func:`controller.config.one_layer`):
+"the bank designed for" a rig, and the one-layer bank, are that rig's one layer,
+whatever layers the built-in defaults have."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from controller.config import ConfigError, default_config, layer_scales
+from controller.config import ConfigError, default_config, layer_scales, one_layer
 from controller.design import design_bank
 from controller.runtime.bank import BankRuntime
 from controller.runtime.mass_layers import layer_table
 from hil.sim.closed_loop import BankController, cached_design, run_closed_loop
 from hil.sim.roads import make_road
 
-CFG = default_config()
+CFG = one_layer(default_config())
 V = CFG.vehicle
 DT = CFG.sample_time_s
 SETTLE_S = 8.0

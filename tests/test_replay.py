@@ -289,12 +289,25 @@ def test_the_recording_reads_the_same_with_the_mcap_library(recording: Path) -> 
                            for f in run.frames if not f.is_rx]
 
 
+def _inside_a_chunk(recording: Path, frac: float) -> int:
+    """A byte in the middle of the chunk at ``frac`` of the recording's chunks (not at a
+    fraction of the file: the design attachment before the chunks is most of a file,
+    0.1 MB for a one-layer bank, 1.8 MB for the built-in layered one)."""
+    with recording.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 3, len(chunks)        # one before the middle one, one after
+    c = chunks[max(1, min(len(chunks) - 2, int(len(chunks) * frac)))]
+    return c.chunk_start_offset + c.chunk_length // 2
+
+
 def test_truncated_recording_replays_to_its_last_complete_chunk(recording: Path,
                                                                  work: Path) -> None:
     full = load_recorded_run(recording)
     data = recording.read_bytes()
     cut = work / "cut.mcap"
-    cut.write_bytes(data[: int(len(data) * 0.6)])
+    cut.write_bytes(data[: _inside_a_chunk(recording, 0.6)])
     res = replay_recording(cut)
     assert not res.complete and "truncated at byte" in str(res.stopped_at)
     assert any("last complete chunk" in n for n in res.notes)
@@ -332,7 +345,7 @@ def test_any_truncation_is_a_prefix_or_a_clear_error(recording: Path, frac: floa
 
 def test_corrupt_chunk_is_named_and_earlier_chunks_replay(recording: Path, work: Path) -> None:
     data = bytearray(recording.read_bytes())
-    mid = len(data) // 2
+    mid = _inside_a_chunk(recording, 0.5)
     data[mid:mid + 64] = bytes(64)
     p = work / "corrupt.mcap"
     p.write_bytes(bytes(data))
@@ -473,7 +486,7 @@ def test_reader_process_replay_equals_in_process(recording: Path, work: Path) ->
     np.testing.assert_array_equal(a.force_ref_n, b.force_ref_n)
     data = recording.read_bytes()
     cut = work / "cut-reader.mcap"
-    cut.write_bytes(data[: len(data) // 2])
+    cut.write_bytes(data[: _inside_a_chunk(recording, 0.5)])
     c = replay_recording(cut, reader_process=True)
     assert not c.complete and c.bit_exact and c.ticks < a.ticks
     foreign = _mcap(work / "foreign-reader.mcap", ["/x"], library="other", metadata=None)

@@ -1,6 +1,12 @@
 """Run report (rig/report/): plots, phases, metrics and the force-tracking analysis against
 independent computations, events from the fault codes' descriptions, the open-loop
-comparison page of a replay, bad files, and the page as headless Chromium renders it."""
+comparison page of a replay, bad files, and the page as headless Chromium renders it.
+
+The module's runs use the configured rig with a one-layer bank
+(:func:`controller.config.one_layer`, and :func:`design_path` its design): the fixture
+run's models plot shows every model of the bank in its own colour, and the page of a
+one-layer bank has no layers to show, whatever layers the built-in defaults have; a
+layered bank's page has its own test."""
 
 from __future__ import annotations
 
@@ -20,7 +26,7 @@ from scipy import signal
 
 from controller.actuator import servo_model
 from controller.artifact import save_design
-from controller.config import RigConfig, default_config
+from controller.config import RigConfig, default_config, one_layer
 from controller.design import design_bank
 from controller.runtime.kernels import StepFlag
 from hil.stepped_run import record_emulated_run
@@ -52,7 +58,7 @@ from tests.support.browser import chromium, chromium_run
 from tests.support.mcap_reference import items_of_run, reference_items
 
 pytestmark = pytest.mark.timeout(300)
-CFG = default_config()
+CFG = one_layer(default_config())
 DBC: Any = cantools.database.load_file(str(Path(__file__).parents[1] / "rig" / "wire" / "rig.dbc"))
 PLOTS = ["summary.png", "rattlespace.png", "acceleration.png", "force.png",
          "force_tracking.png", "models.png", "sprung_mass.png", "lifecycle.png", "timing.png"]
@@ -64,6 +70,14 @@ ARM_S, LATE_TICK, RESET_TICK, REARM_TICK, SECONDS = 0.4, 2000, 2600, 2700, 4.0
 def work() -> Any:
     with tempfile.TemporaryDirectory(prefix="test-report-") as d:
         yield Path(d)
+
+
+@pytest.fixture(scope="module")
+def design_path(work: Path) -> Path:
+    """The design of :data:`CFG` (one layer) as an artifact file."""
+    path = work / "design.npz"
+    save_design(design_bank(CFG), path)
+    return path
 
 
 @pytest.fixture(scope="module")
