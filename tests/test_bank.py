@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from controller.artifact import Design
-from controller.config import RigConfig, default_config
+from controller.config import RigConfig, default_config, layer_scales, one_layer
 from controller.design import design_bank, design_models, measurement_noise_cov
 from controller.road_noise import road_velocity_intensity
 from controller.runtime.bank import (
@@ -26,6 +26,7 @@ from controller.runtime.bank import (
     config_of,
 )
 from controller.runtime.kernels import MEAS_DIM, QS_INIT
+from hil.sim.closed_loop import cached_design
 from tests.support.reference_bank import ReferenceBank
 from tests.support.trajectories import SMOOTH_GD, SMOOTH_SPEED, smooth_road_config, trajectory
 
@@ -41,9 +42,24 @@ def smooth_design(smooth_cfg: RigConfig) -> Design:
 
 
 @pytest.fixture(scope="module")
+def one_layer_cfg() -> RigConfig:
+    """The smooth-road configuration with a bank of one layer: the plain-numpy reference
+    bank is the thesis's bank (no sprung-mass / spring / damping layers), so the kernel
+    is compared with it on a one-layer bank whatever the built-in layers are."""
+    return one_layer(smooth_road_config())
+
+
+@pytest.fixture(scope="module")
+def one_layer_design(one_layer_cfg: RigConfig) -> Design:
+    return design_bank(one_layer_cfg)
+
+
+@pytest.fixture(scope="module")
 def grid_cfg() -> RigConfig:
-    return smooth_road_config(linearisation_deflections_m=[0.04, 0.03, 0.025, 0.02, 0.01],
-                              tire_damping_scales=[0.5, 1.0, 2.0])
+    """A 5 x 3 tire grid of one layer (compared with the reference bank: one layer)."""
+    return one_layer(smooth_road_config(
+        linearisation_deflections_m=[0.04, 0.03, 0.025, 0.02, 0.01],
+        tire_damping_scales=[0.5, 1.0, 2.0]))
 
 
 @pytest.fixture(scope="module")
@@ -95,10 +111,11 @@ def _run_pair(design: Design, cfg: RigConfig, mode: Blending, meas: dict[str, np
 
 
 @pytest.mark.parametrize("mode", list(Blending))
-def test_kernel_matches_reference_step_by_step(smooth_design: Design, smooth_cfg: RigConfig,
+def test_kernel_matches_reference_step_by_step(one_layer_design: Design,
+                                               one_layer_cfg: RigConfig,
                                                mode: Blending) -> None:
-    meas = trajectory(smooth_cfg, 1500, seed=3, drop_at=900)
-    _run_pair(smooth_design, smooth_cfg, mode, meas, junk_seed=4)
+    meas = trajectory(one_layer_cfg, 1500, seed=3, drop_at=900)
+    _run_pair(one_layer_design, one_layer_cfg, mode, meas, junk_seed=4)
 
 
 @pytest.mark.parametrize("fallback", ["passive", "best_model"])
@@ -111,12 +128,13 @@ def test_kernel_matches_reference_on_grid_with_moving_bank(
     assert c["set_switches"] >= 2 and c["recentres"] >= 1    # the comparison covered both
 
 
-def test_kernel_matches_reference_on_default_noise_lift_off(default_design: Design) -> None:
+def test_kernel_matches_reference_on_default_noise_lift_off() -> None:
     """Default (ISO D) noise entry: the lift-off is declared by the tire-load CUSUM and
-    the touch-down by its mirror; kernel and reference agree through both."""
-    cfg = default_config()
+    the touch-down by its mirror; kernel and reference agree through both (on a bank of
+    one layer: the reference bank has no layers)."""
+    cfg = one_layer(default_config())
     meas = trajectory(cfg, 2500, seed=7, drop_at=1500)
-    rt, _ = _run_pair(default_design, cfg, Blending.MOVING, meas, junk_seed=8)
+    rt, _ = _run_pair(cached_design(cfg), cfg, Blending.MOVING, meas, junk_seed=8)
     c = rt.counters()
     assert c["set_switches"] >= 2 and c["load_liftoffs"] >= 1
 
@@ -124,8 +142,9 @@ def test_kernel_matches_reference_on_default_noise_lift_off(default_design: Desi
 @pytest.mark.parametrize("mode", [Blending.LQG, Blending.FUZZY])
 def test_kernel_matches_reference_with_the_end_stop_guard_acting(mode: Blending) -> None:
     """An end-stop guard zone as wide as the travel (0.08 m): the guard scales the force
-    on most ticks; kernel and reference agree on the force and on the factor."""
-    cfg = smooth_road_config(stop_guard_m=0.08)
+    on most ticks; kernel and reference agree on the force and on the factor (on a bank
+    of one layer: the reference bank has no layers)."""
+    cfg = one_layer(smooth_road_config(stop_guard_m=0.08))
     design = design_bank(cfg)
     meas = trajectory(cfg, 1200, seed=9, force_std=1500.0)
     rt = BankRuntime(design, blending=mode, cfg=cfg)
@@ -138,10 +157,10 @@ def test_kernel_matches_reference_with_the_end_stop_guard_acting(mode: Blending)
     assert partial > 300
 
 
-def test_kernel_matches_reference_across_mode_switches(smooth_design: Design,
-                                                       smooth_cfg: RigConfig) -> None:
-    meas = trajectory(smooth_cfg, 800, seed=8)
-    rt, ref = BankRuntime(smooth_design), ReferenceBank(smooth_design)
+def test_kernel_matches_reference_across_mode_switches(one_layer_design: Design,
+                                                       one_layer_cfg: RigConfig) -> None:
+    meas = trajectory(one_layer_cfg, 800, seed=8)
+    rt, ref = BankRuntime(one_layer_design), ReferenceBank(one_layer_design)
     order = [Blending.BAYES, Blending.LQG, Blending.MOVING, Blending.FUZZY]
     for k in range(800):
         if k % 200 == 199:
@@ -281,13 +300,14 @@ def test_weights_and_probabilities_are_convex(runtimes: dict[Blending, BankRunti
 
 
 def test_moving_set_after_touch_down_has_a_probability_distribution(
-        smooth_design: Design, smooth_cfg: RigConfig) -> None:
+        one_layer_design: Design, one_layer_cfg: RigConfig) -> None:
     """Regression (found by the property above): at touch-down the sentinel, kept at p = 0
     while airborne, rejoined the on-ground set with the two newcomers at 1/3 each, so the
     probabilities summed to 2/3.  The set now restarts uniform; the numba bank and the
-    plain-numpy reference agree tick by tick."""
-    rt = BankRuntime(smooth_design, blending=Blending.MOVING, cfg=smooth_cfg)
-    ref = ReferenceBank(smooth_design, blending=Blending.MOVING, cfg=smooth_cfg)
+    plain-numpy reference agree tick by tick (on a bank of one layer, as the reference
+    has; the property above checks the default bank)."""
+    rt = BankRuntime(one_layer_design, blending=Blending.MOVING, cfg=one_layer_cfg)
+    ref = ReferenceBank(one_layer_design, blending=Blending.MOVING, cfg=one_layer_cfg)
     rt.reset()
     landed = False
     for r, a, f in LIFT_OFF_AND_LAND:
@@ -411,8 +431,16 @@ def test_no_allocation_per_tick(runtimes: dict[Blending, BankRuntime]) -> None:
 
 
 def test_default_single_model_is_nearest_static_deflection(default_design: Design) -> None:
+    """The single model is the 25 mm model (nearest the static tire deflection) of the
+    layer of the configured vehicle (in a layered bank, the one named M1, K1, C1)."""
+    cfg = default_config()
+    d = cfg.design
     rt = BankRuntime(default_design, blending=Blending.LQG)
-    assert default_design.model_names[rt.single_model] == "x2_25mm"
+    layered = len(layer_scales(cfg)) > 1
+    name = ("x2_25mm" + "_ct1" * (len(d.tire_damping_scales) > 1)
+            + ("_M1" + "_K1" * (len(d.spring_rate_scales) > 1)
+               + "_C1" * (len(d.damping_scales) > 1)) * layered)
+    assert default_design.model_names[rt.single_model] == name
     assert rt.active.sum() == 1 and rt.active[rt.single_model]
     with pytest.raises(ValueError, match="single_model"):
         BankRuntime(default_design, single_model=int(np.flatnonzero(default_design.airborne)[0]))
@@ -458,23 +486,29 @@ def _relative_weights(qw: np.ndarray, design: Design) -> np.ndarray:
 
 def test_relative_statistic_always_fires_and_never_drops_authority(
         smooth_design: Design, smooth_cfg: RigConfig) -> None:
-    """Default statistic: each model's exponentially windowed q relative to the bank's
-    smallest, scaled to a matched filter's mean m = 2.  The best model sits at x = 2 and
-    fires (weight 0.7 of App. A before normalisation) whatever the mismatch, so the same
-    sustained inconsistent measurement that leaves the thesis statistic with no rule
-    fires normally; the weights equal the App. A curve evaluated here on the windowed
-    q (fuzzy.fuzzy_inference, exact centroid), and the force never falls to 0."""
+    """Default statistic: each model's exponentially windowed q relative to the smallest
+    of the models the bank runs (all of a one-layer bank; a layered bank's running layer
+    and the airborne model), scaled to a matched filter's mean m = 2.  The best model
+    sits at x = 2 and fires (weight 0.7 of App. A before normalisation) whatever the
+    mismatch, so the same sustained inconsistent measurement that leaves the thesis
+    statistic with no rule fires normally; the weights equal the App. A curve evaluated
+    here on the windowed q (fuzzy.fuzzy_inference, exact centroid), the models not run
+    weigh 0, and the force never falls to 0."""
     rt = BankRuntime(smooth_design, cfg=smooth_cfg)
     beta = 1.0 - math.exp(-smooth_cfg.sample_time_s / smooth_cfg.fuzzy.window_s)
     qw = np.full(rt.n_models, QS_INIT)
+    run = rt.active.copy()
     for _ in range(60):
         out = rt.step(0.02, 30.0, 0.0)
         qw += beta * (np.minimum(rt.q, 1e12) - qw)
+        assert np.array_equal(rt.active, run)         # the same models all along
         assert StepFlag.NO_RULE_FIRED not in rt.flags
         assert out != 0.0 or rt.authority < 1.0
-        np.testing.assert_allclose(rt.firing_weight, _relative_weights(qw, smooth_design),
+        np.testing.assert_allclose(rt.firing_weight[run],
+                                   _relative_weights(qw[run], smooth_design),
                                    rtol=1e-6, atol=1e-9)
-    best = int(np.argmin(qw))
+        assert np.all(rt.firing_weight[~run] == 0.0)
+    best = int(np.argmin(np.where(run, qw, np.inf)))
     assert rt.raw_firing_weight[best] == pytest.approx(0.7, abs=1e-3)
 
 

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.config import default_config
+from controller.config import default_config, layer_scales
 from controller.design import design_bank
 from controller.road_noise import road_velocity_intensity
 from controller.runtime.bank import BankRuntime, Blending
@@ -92,7 +92,8 @@ def test_floor_lets_a_model_come_back() -> None:
 
 
 def test_bayes_bank_identifies_the_true_model() -> None:
-    """Data from the plant linearised at 40 mm: the 40 mm model's probability dominates."""
+    """Data from the plant linearised at 40 mm: the 40 mm model's probability dominates
+    (in a layered bank, that of the layer of the configured vehicle, which it runs)."""
     V, GD = 5.0, 16e-6
     cfg = default_config().replace(
         noise={"speeds_mps": [V], "road_roughness_gd": [GD], "nominal_speed_mps": V,
@@ -110,6 +111,11 @@ def test_bayes_bank_identifies_the_true_model() -> None:
         rt.step(meas["rattlespace"][k], meas["accel"][k], meas["force"][k])
         if k >= n // 2:
             p_sum += rt.probability
-    j40 = list(d.model_names).index("x2_40mm")
+    dc = cfg.design
+    per_layer = len(dc.linearisation_deflections_m) * len(dc.tire_damping_scales)
+    j40 = (layer_scales(cfg).index((1.0, 1.0, 1.0)) * per_layer       # layer major
+           + dc.linearisation_deflections_m.index(0.04) * len(dc.tire_damping_scales)
+           + dc.tire_damping_scales.index(1.0))
+    assert str(d.model_names[j40]).startswith("x2_40mm")
     assert int(np.argmax(p_sum)) == j40
     assert p_sum[j40] / (n - n // 2) > 0.6

@@ -13,7 +13,13 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from controller.config import ConfigError, default_config, load_config, parse_config
+from controller.config import (
+    ConfigError,
+    default_config,
+    layer_scales,
+    load_config,
+    parse_config,
+)
 from controller.design import design_bank
 from controller.excitation import chirp_frequency_hz, excitation_force
 from controller.identify import (
@@ -187,8 +193,10 @@ def test_fitted_config_loads_and_designs(identified: dict[str, Any]) -> None:
     truth = true_values()
     assert cfg.vehicle.sprung_mass_kg * cfg.emulator.sprung_mass_scale == pytest.approx(
         truth["vehicle.sprung_mass_kg"])
-    design = design_bank(cfg)
-    assert design.n_models == len(cfg.design.linearisation_deflections_m) + 1
+    design = design_bank(cfg)       # the tire models once per layer, and the airborne one
+    assert design.n_models == (len(cfg.design.linearisation_deflections_m)
+                               * len(cfg.design.tire_damping_scales)
+                               * len(layer_scales(cfg)) + 1)
 
 
 def test_rig_design_takes_the_fitted_config(identified: dict[str, Any], tmp_path: Path

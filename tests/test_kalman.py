@@ -14,7 +14,7 @@ import scipy.signal
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.config import default_config
+from controller.config import default_config, layer_params
 from controller.design import design_models, measurement_noise_cov
 from controller.kalman import (
     discretize_filter_model,
@@ -142,13 +142,16 @@ def test_fused_update_equals_textbook_filter_on_random_data(j: int) -> None:
 
 
 def test_static_equilibrium_is_fixed_point_of_every_ground_filter() -> None:
-    """Gravity handling: at rest y = [M g / K, 0], u = 0 and x = xbar_j stays put."""
+    """Gravity handling: at rest y = [M g / K, 0], u = 0 and x = xbar_j stays put, for the
+    on-ground filters of every layer of the bank (M, K: the layer's)."""
     g = CFG.vehicle.gravity_mps2
-    y_rest = np.array([CFG.vehicle.sprung_mass_kg * g / CFG.vehicle.suspension_stiffness_n_per_m,
-                       0.0])
-    for md in MDS:
-        if md.model.airborne:
-            continue
+    ground = [md for md in MDS if not md.model.airborne]
+    layers = layer_params(CFG)
+    per_layer = len(ground) // len(layers)          # layer major (design_models)
+    assert per_layer * len(layers) == len(ground)
+    for j, md in enumerate(ground):
+        mass, spring, _ = layers[j // per_layer]
+        y_rest = np.array([mass * g / spring, 0.0])
         xbar = md.model.equilibrium
         assert xbar is not None
         np.testing.assert_allclose(md.dfm.Phi @ xbar + md.dfm.Gamma_g * g, xbar, atol=1e-12)

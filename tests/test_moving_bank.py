@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from controller.artifact import Design
-from controller.config import ConfigError, RigConfig, default_config, parse_config
+from controller.config import (
+    ConfigError,
+    RigConfig,
+    default_config,
+    layer_scales,
+    parse_config,
+)
 from controller.design import design_bank
 from controller.road_noise import road_velocity_intensity
 from controller.runtime.bank import BankRuntime, Blending
@@ -259,8 +265,10 @@ def test_tire_load_estimate_is_the_momentum_balance(grid9: tuple) -> None:
 
 @pytest.mark.parametrize("k", [1, 3, 5])
 def test_work_is_proportional_to_k_not_the_grid(grid27: tuple, k: int) -> None:
+    """The moving bank filters k models a tick, the full bank the 27 of the grid and the
+    airborne model (in a layered bank, those of the layer it runs: 27 per layer)."""
     cfg, d = grid27
-    assert d.n_models == 28
+    assert d.n_models == 27 * len(layer_scales(cfg)) + 1
     cfg_k = cfg.replace(moving_bank={"active_models": k})
     rt = BankRuntime(d, blending=Blending.MOVING, cfg=cfg_k)
     meas = measurements(cfg, 600, seed=3)

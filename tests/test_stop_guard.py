@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.config import default_config
+from controller.config import default_config, one_layer
 from controller.runtime.kernels import (
     F_BS_HI,
     F_BS_LO,
@@ -135,8 +135,10 @@ def test_guard_keeps_a_soft_spring_plant_off_the_stops() -> None:
     With it the stop contact is a fraction of that and there is no slam (passive: no
     contact at all).  The stop-contact monitor only reports here (with its degrade the
     unguarded run's contact falls to 0.13 s as well: docs/design.md §9.8): the guard alone
-    is measured."""
-    base = default_config().replace(safety={"stop_contact_degrade": False})
+    is measured.  The bank has one layer, designed for the nominal spring only (the
+    mismatch is the point): a bank with spring-rate layers (0.7 x among them) does not
+    drift into the stop even unguarded."""
+    base = one_layer(default_config().replace(safety={"stop_contact_degrade": False}))
     prm = PlantParams(ride_height_offset_m=0.0,
                       suspension_stiffness_n_per_m=0.75 * base.vehicle.suspension_stiffness_n_per_m)
     road = make_road("rough-course", 11.176, 20.0, base.sample_time_s, 1)
