@@ -230,7 +230,8 @@ class DesignConfig:
     tire_damping_scales: list[float] = _f([1.0], lo=0.0, hi=10.0, max_len=16,
                                           len_why="one model per deflection and scale",
                                           doc="grid factor on Ct (1 = nominal only)")
-    sprung_mass_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=16,
+    sprung_mass_scales: list[float] = _f([0.6, 0.7, 0.85, 1.0, 1.15, 1.3, 1.5], lo=0.25,
+                                         hi=4.0, max_len=16,
                                          len_why="one layer of tire models per scale",
                                          doc="sprung-mass layers of the bank (x "
                                              "vehicle.sprung_mass_kg): the tire models are "
@@ -238,7 +239,7 @@ class DesignConfig:
                                              "layer nearest the sprung-mass estimate "
                                              "(docs/design.md §11; [1.0] = the configured "
                                              "mass only)")
-    spring_rate_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=8,
+    spring_rate_scales: list[float] = _f([0.7, 1.0, 1.4], lo=0.25, hi=4.0, max_len=8,
                                          len_why="one layer of tire models per scale",
                                          doc="spring-rate layers of the bank (x "
                                              "vehicle.suspension_stiffness_n_per_m), crossed "
@@ -246,7 +247,7 @@ class DesignConfig:
                                              "bank runs the layer nearest the estimate of "
                                              "[M, K, C] (docs/design.md §11; [1.0] = the "
                                              "configured spring only)")
-    damping_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=8,
+    damping_scales: list[float] = _f([0.6, 1.0, 1.5], lo=0.25, hi=4.0, max_len=8,
                                      len_why="one layer of tire models per scale",
                                      doc="damping layers of the bank (x vehicle."
                                          "suspension_damping_ns_per_m), crossed with the "
@@ -1012,9 +1013,10 @@ def _cross_checks(cfg: RigConfig) -> None:
                           f"{n_models} models x {len(cfg.noise.speeds_mps)} speeds x "
                           f"{len(cfg.noise.road_roughness_gd)} road_roughness_gd = "
                           f"{n_models * n_noise} (one Riccati solve and filter each)")
-    if cfg.moving_bank.active_models > n_models:
+    if cfg.moving_bank.active_models > per_layer:
+        # the moving bank walks the running layer (docs/design.md §11)
         raise ConfigError("moving_bank.active_models", cfg.moving_bank.active_models,
-                          f"[1, {n_models}] (the number of models in the grid)")
+                          f"[1, {per_layer}] (the number of models in a layer of the bank)")
     mb = cfg.moving_bank
     if mb.liftoff_load_fraction / mb.hysteresis_ratio >= 1.0:
         raise ConfigError("moving_bank.liftoff_load_fraction", mb.liftoff_load_fraction,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from controller.config import (
+    LAYER_KEYS,
     MAX_CONFIG_BYTES,
     ConfigError,
     config_hash,
@@ -101,6 +102,11 @@ def test_grid_and_table_sizes_are_bounded_with_the_reason() -> None:
     speeds = [1.0 + i for i in range(64)]
     gd = [1e-6 * (i + 1) for i in range(20)]
     with pytest.raises(ConfigError, match=r"at most 4096 Kalman designs: 4 models x 64"):
+        parse_config({"noise": {"speeds_mps": speeds, "road_roughness_gd": gd,
+                                "nominal_roughness_gd": gd[3]},
+                      "design": {key: [1.0] for key in LAYER_KEYS}})     # one layer
+    # the layered default: 63 layers x 3 tire models + the airborne model
+    with pytest.raises(ConfigError, match=r"4096 Kalman designs: 190 models x 64 speeds"):
         parse_config({"noise": {"speeds_mps": speeds, "road_roughness_gd": gd,
                                 "nominal_roughness_gd": gd[3]}})
     with pytest.raises(ConfigError, match=r"at most 15 entries \(design.weight_set"):

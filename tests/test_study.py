@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.analysis import analyze
-from controller.config import default_config
+from controller.config import LAYER_KEYS, default_config, layer_scales, load_config
 from hil.sim.closed_loop import BankController, cached_design, run_closed_loop
 from hil.sim.fullstate import FullStateLQ
 from hil.sim.plant import RigPlant
@@ -25,6 +25,7 @@ from hil.study.cases import Case, lq_cost, run_case, study_road
 from hil.study.matrix import RATIO_METRICS, add_ratios
 from hil.study.report import LABEL_ORDER
 from hil.study.tradeoff import tradeoff_grid
+from tests.support.profiles import THESIS_PROFILE
 
 CFG = default_config()
 DT = CFG.sample_time_s
@@ -290,21 +291,25 @@ def test_quick_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[st
 STUDY_DIR = Path(__file__).resolve().parents[1] / "docs" / "study"
 
 
-def test_envelope_layers_are_the_payload_profile() -> None:
-    """The envelope group's layered bank is deploy/payload.toml's, and its true-plant
-    case designs for the plant's mass on the same emulated mass."""
-    import tomllib
-
+def test_envelope_layers_are_the_built_in_layers() -> None:
+    """The envelope group's layered bank is the built-in one (also under a one-layer
+    profile), its one-layer and true-plant cases design one layer, the true-plant case for
+    the plant's mass on the same emulated mass."""
     from hil.study.cases import LAYERED_DESIGN, LAYERED_SPRUNG_MASS_SCALES, Case, case_config
-    payload = Path(__file__).resolve().parents[1] / "deploy" / "payload.toml"
-    with payload.open("rb") as fh:
-        design = tomllib.load(fh)["design"]
-    assert {k: tuple(v) for k, v in design.items() if k.endswith("_scales")} == LAYERED_DESIGN
+    assert {k: tuple(getattr(CFG.design, k)) for k in LAYER_KEYS} == LAYERED_DESIGN
     assert LAYERED_DESIGN["sprung_mass_scales"] == LAYERED_SPRUNG_MASS_SCALES
+    assert len(layer_scales(CFG)) > 1
     case = Case("envelope", "fuzzy", sprung_mass_scale=0.7, design_mass="true-plant")
     c = case_config(CFG, case)
     assert c.vehicle.sprung_mass_kg == pytest.approx(0.7 * CFG.vehicle.sprung_mass_kg)
     assert c.emulator.sprung_mass_scale == 1.0
+    assert layer_scales(c) == [(1.0, 1.0, 1.0)]
+    one = case_config(CFG, replace(case, design_mass="one-layer"))
+    assert layer_scales(one) == [(1.0, 1.0, 1.0)] and one.vehicle == CFG.vehicle
+    assert one.emulator.sprung_mass_scale == 0.7
+    thesis = load_config(THESIS_PROFILE)
+    assert layer_scales(case_config(thesis, replace(case, design_mass="layered"))) == \
+        layer_scales(CFG)
     lay = case_config(CFG, replace(case, design_mass="layered"))
     assert lay.emulator.sprung_mass_scale == 0.7
     assert tuple(lay.design.sprung_mass_scales) == LAYERED_SPRUNG_MASS_SCALES

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from controller.config import default_config
+from controller.config import default_config, load_config
 from hil.sim.closed_loop import simulate
 from hil.sim.montecarlo import run_montecarlo
 from hil.sim.plant import P_KT, RigPlant
@@ -30,6 +30,7 @@ from hil.study.matrix import (
     selected,
 )
 from hil.study.report import _envelope, _envelope_mc, _envelope_seeds
+from tests.support.profiles import THESIS_PROFILE
 
 CFG = default_config()
 DT = CFG.sample_time_s
@@ -37,9 +38,9 @@ V25 = 11.176
 
 
 def test_tire_true_plant_design_runs_on_the_plant_it_is_designed_for() -> None:
-    """A true-plant tire case designs with the plant's tire stiffness law and emulates
-    it as configured: the same tire stiffness as the layered case's emulated rig; a
-    mass-only true-plant case keeps the configured tire (its design is unchanged)."""
+    """A true-plant tire case designs one layer with the plant's tire stiffness law and
+    emulates it as configured: the same tire stiffness as the layered case's emulated
+    rig; a mass-only true-plant case keeps the configured tire (its design is unchanged)."""
     case = Case("envelope", "fuzzy", tire_stiffness_scale=0.7, design_mass="true-plant")
     true = case_config(CFG, case)
     lay = case_config(CFG, replace(case, design_mass="layered"))
@@ -61,14 +62,19 @@ def test_envelope_plan_covers_the_issue_cases() -> None:
     assert {"Kt0.7", "Kt1.3", "M0.6", "M1.5"} <= tags
     assert len(env) == 2 * (len(p.envelope_mass_scales) + 2) * 6
     assert {c.observe_s for c in env} == {5.0}
-    assert {c.label for c in env} == {"passive", "lqg-1", "fuzzy-1 (layered)",
+    assert {c.label for c in env} == {"passive", "lqg-1 (one-layer)", "fuzzy-1 (layered)",
                                       "fuzzy-1 (true-plant)", "fuzzy-default (layered)",
                                       "fuzzy-default (true-plant)"}
+    # the defaults are layered: the Monte Carlo compares them with the one-layer bank;
+    # deploy/thesis.toml is one layer: with the layered bank
     mc = envelope_mc_cases(p, CFG)
-    assert len(mc) == 2 * 20 * (1 + len(ENVELOPE_MC_CONTROLLERS))
+    assert len(mc) == 2 * 20 * (1 + len(ENVELOPE_MC_CONTROLLERS) - 2)
     assert {c.duration_s for c in mc} == {20.0} and {c.road_seed for c in mc} == {1, 2}
     assert {c.label for c in mc} == {"passive", "fuzzy-1", "fuzzy-2", "fuzzy-default",
-                                     "fuzzy-1 (layered)", "fuzzy-default (layered)"}
+                                     "fuzzy-1 (one-layer)", "fuzzy-default (one-layer)"}
+    assert {c.label for c in envelope_mc_cases(p, load_config(THESIS_PROFILE))} == {
+        "passive", "fuzzy-1", "fuzzy-2", "fuzzy-default", "fuzzy-1 (layered)",
+        "fuzzy-default (layered)"}
     seeds = envelope_seed_cases(p)
     assert len(seeds) == 12 * 13 and {c.duration_s for c in seeds} == {60.0}
     labels = {c.label for c in seeds}

@@ -18,6 +18,9 @@ EXPECTED = {
     ("fuzzy", "statistic"): "raw",
     ("fuzzy", "no_fire_fallback"): "passive",
     ("safety", "stop_contact_degrade"): False,     # reports, does not degrade (§9.8)
+    ("design", "sprung_mass_scales"): [1.0],       # the thesis's bank: one layer (§11)
+    ("design", "spring_rate_scales"): [1.0],
+    ("design", "damping_scales"): [1.0],
 }
 
 

@@ -1138,7 +1138,7 @@ class RunningModels:
     one-layer bank's are views of the read-outs (W = J, every model, nothing copied); a
     layered bank's (docs/design.md §11) hold the running layer's on-ground models and the
     shared airborne model (W = J / L for L layers, about), refreshed by every step, so a
-    record is as wide for the payload profile's 190 models as for the default bank's 4."""
+    record is as wide for the default bank's 190 models as for a one-layer bank's 4."""
 
     __slots__ = ("active", "firing_weight", "models", "probability", "q", "u_model",
                  "x_post")

@@ -25,7 +25,7 @@ import controller.design
 # that every run of one study uses the same code even while the tree is being edited
 import controller.runtime.bank
 import controller.runtime.force_loop  # noqa: F401
-from controller.config import RigConfig
+from controller.config import LAYER_KEYS, RigConfig, default_config
 from controller.metrics import filter_signal, human_filter_tf
 from controller.modes import BANK_MODES
 from hil.sim.closed_loop import (
@@ -51,17 +51,18 @@ ROAD_BASE_RATE_HZ = 4000.0
 TRACE_DECIMATION = 10
 #: what the bank of a case is designed for (the plant is ``Case.sprung_mass_scale`` and
 #: ``Case.tire_stiffness_scale``): ``configured`` the configuration as it is; ``layered``
-#: the configuration with the layers :data:`LAYERED_DESIGN` (the payload profile);
-#: ``true-plant`` the configuration with ``vehicle.sprung_mass_kg`` and
-#: ``tire.stiffness_coefficient`` those of the plant
-DESIGN_MASSES = ("configured", "layered", "true-plant")
-#: ``[design] sprung_mass_scales`` of deploy/payload.toml (tests/test_study.py checks it)
-LAYERED_SPRUNG_MASS_SCALES = (0.6, 0.7, 0.85, 1.0, 1.15, 1.3, 1.5)
-#: the ``[design]`` layer keys of deploy/payload.toml (tests/test_study.py checks them)
+#: the configuration with the built-in layers :data:`LAYERED_DESIGN`; ``one-layer`` the
+#: configuration with a bank of one layer (``controller.config.one_layer``: the tire
+#: models of the configured vehicle only, the thesis's bank); ``true-plant`` that one
+#: layer designed with ``vehicle.sprung_mass_kg`` and ``tire.stiffness_coefficient`` those
+#: of the plant
+DESIGN_MASSES = ("configured", "layered", "one-layer", "true-plant")
+#: the built-in ``[design]`` layer keys (``controller.config.LAYER_KEYS``): the bank's
+#: layers over sprung mass, spring rate and damping (docs/design.md §11)
 LAYERED_DESIGN: dict[str, tuple[float, ...]] = {
-    "sprung_mass_scales": LAYERED_SPRUNG_MASS_SCALES,
-    "spring_rate_scales": (0.7, 1.0, 1.4),
-    "damping_scales": (0.6, 1.0, 1.5)}
+    key: tuple(getattr(default_config().design, key)) for key in LAYER_KEYS}
+#: the built-in ``[design] sprung_mass_scales``: the masses of the envelope's ballast sweep
+LAYERED_SPRUNG_MASS_SCALES = LAYERED_DESIGN["sprung_mass_scales"]
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,7 @@ def case_config(cfg: RigConfig, case: Case) -> RigConfig:
     """``cfg`` with the case's sample rate, custom weight set, plant sprung mass and tire
     stiffness (``[emulator] sprung_mass_scale`` and ``tire_stiffness_scale``, the LVDT
     zeroed at the plant's own rest) and design mass (:data:`DESIGN_MASSES`) applied.  A
-    ``true-plant`` case designs with ``vehicle.sprung_mass_kg`` and
+    ``true-plant`` case designs one layer with ``vehicle.sprung_mass_kg`` and
     ``tire.stiffness_coefficient`` = the scales x the emulated rig's and emulates that
     vehicle as configured (the same plant)."""
     sections: dict[str, dict[str, Any]] = {}
@@ -163,6 +164,8 @@ def case_config(cfg: RigConfig, case: Case) -> RigConfig:
         design["weight_set"] = 1
     if case.design_mass == "layered":
         design.update({key: list(scales) for key, scales in LAYERED_DESIGN.items()})
+    elif case.design_mass in ("one-layer", "true-plant"):
+        design.update({key: [1.0] for key in LAYER_KEYS})
     if design:
         sections["design"] = design
     em = cfg.emulator

@@ -14,13 +14,14 @@ Groups of cases:
 ``rho``       nonlinear check points of the linear rho2 trade-off (single LQG)
 ``envelope``  operating envelope (issue 22): ballast sweep, plant sprung mass x 0.6..1.5,
               and the tire stiffness x 0.7 / 1.3 on the thesis course, the single nominal
-              LQG, the fuzzy bank with the payload profile's mass layers and the fuzzy
-              bank designed for the true plant (weight set 1); runs as ``rig sim`` makes
-              them (its road, sensor seed = road seed, no settle skip) so they repeat
-              docs/study.md's "Payload" cells
+              LQG (one layer), the fuzzy bank with the built-in layers and the fuzzy
+              bank of one layer designed for the true plant (weight set 1); runs as
+              ``rig sim`` makes them (its road, sensor seed = road seed, no settle
+              skip) so they repeat docs/study.md's "Payload" cells
 ``envelope-mc``  the 25 % parameter-spread Monte Carlo as ``rig montecarlo --runs 20
               --spread 0.25 --duration 20 --seed S`` makes it (Monte Carlo seeds 1 and 2),
-              passive and the fuzzy bank with weight set 1, 2 and the configured one
+              passive and the fuzzy bank with weight set 1, 2 and the configured one,
+              and with the one-layer or the layered bank, whichever is not configured
 ``envelope-seeds``  many road seeds on the thesis course as ``rig sim --seed S`` makes them
               (1-12 x 60 s), passive and lqg / fuzzy / bayes / moving with weight set 1,
               2 and the configured one; the longest group, not run unless selected
@@ -39,12 +40,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from controller.config import RigConfig, config_to_toml
+from controller.config import RigConfig, config_to_dict, config_to_toml
 from hil.batch import BatchExecutor, LocalExecutor
 from hil.sim.montecarlo import RIDE_HEIGHT_STD_M, draw_params
 from hil.sim.plant import PlantParams
 from hil.sim.skyhook import TUNING_GRID, SkyhookGains
-from hil.study.cases import LAYERED_SPRUNG_MASS_SCALES, Case, run_case_task
+from hil.study.cases import LAYERED_SPRUNG_MASS_SCALES, Case, case_config, run_case_task
 
 __all__ = ["DEFAULT_GROUPS", "ENVELOPE_CONTROLLERS", "ENVELOPE_LABELS",
            "ENVELOPE_MC_CONTROLLERS", "ENVELOPE_PAIRS", "ENVELOPE_SEED_CONTROLLERS", "GROUPS",
@@ -57,12 +58,12 @@ RATIO_METRICS = ("absorbed_power", "wk_rms_mps2", "accel_rms_mps2", "rattlespace
                  "rattlespace_peak_m", "tire_load_rms_ratio", "tire_deflection_rms_m",
                  "lq_cost_w1", "lq_cost_w2")
 THESIS_SPEED_MPS = 11.176   # 25 mph
-#: (controller, design mass, weight set) of the envelope group: the single nominal LQG,
-#: the layered (payload) fuzzy bank and the fuzzy bank designed on the true plant, with
+#: (controller, design mass, weight set) of the envelope group: the single nominal LQG
+#: (one layer), the layered fuzzy bank and the fuzzy bank designed on the true plant, with
 #: weight set 1 and with the configured law (None: ``design.weight_set``, the travel
 #: schedule by default)
 ENVELOPE_CONTROLLERS: tuple[tuple[str, str, int | None], ...] = (
-    ("lqg", "configured", 1), ("fuzzy", "layered", 1), ("fuzzy", "true-plant", 1),
+    ("lqg", "one-layer", 1), ("fuzzy", "layered", 1), ("fuzzy", "true-plant", 1),
     ("fuzzy", "layered", None), ("fuzzy", "true-plant", None))
 #: the row label of each :data:`ENVELOPE_CONTROLLERS` entry, in that order
 ENVELOPE_LABELS = tuple(Case("envelope", c, weight_set=ws, design_mass=dm).label
@@ -77,10 +78,13 @@ ENVELOPE_PAIRS = tuple(
 #: (controller, weight set, design) of the 25 % Monte Carlo: the default controller (``rig
 #: montecarlo``'s fuzzy bank) with each weight set and the configured one (None: the
 #: configuration's ``design.weight_set`` and defaults as they are when the study runs),
-#: and the layered bank of the payload profile (``layered``, deploy/payload.toml: layers
-#: over [M, K, C]) with weight set 1 and the configured one
+#: and with weight set 1 and the configured one the bank of one layer and the layered
+#: bank over [M, K, C] (the built-in layers); :func:`envelope_mc_cases` leaves out a
+#: design that is the configured one (the one-layer bank under deploy/thesis.toml, the
+#: layered bank under the defaults)
 ENVELOPE_MC_CONTROLLERS: tuple[tuple[str, int | None, str], ...] = (
     ("fuzzy", 1, "configured"), ("fuzzy", 2, "configured"), ("fuzzy", None, "configured"),
+    ("fuzzy", 1, "one-layer"), ("fuzzy", None, "one-layer"),
     ("fuzzy", 1, "layered"), ("fuzzy", None, "layered"))
 #: (controller, weight set) of the many-road-seeds group: every bank mode x set 1, set 2,
 #: the configured one
@@ -275,7 +279,12 @@ def envelope_mc_cases(p: StudyPlan, cfg: RigConfig) -> list[Case]:
     --duration D --seed K`` makes it (``hil.sim.montecarlo.run_montecarlo``: road seed K
     at the controller rate, plants ``draw_params(cfg, R, S, K)`` with the default ride
     height spread, sensor seed K + 1000 + run, no settle skip): passive and
-    :data:`ENVELOPE_MC_CONTROLLERS` per plant (``param_tag`` ``mc<S>s<K>-<run>``)."""
+    :data:`ENVELOPE_MC_CONTROLLERS` per plant (``param_tag`` ``mc<S>s<K>-<run>``), but
+    for a design that resolves to the configured one."""
+    configured = config_to_dict(cfg)
+    laws = [(c, ws, dm) for c, ws, dm in ENVELOPE_MC_CONTROLLERS if dm == "configured"
+            or config_to_dict(case_config(cfg, Case("envelope-mc", c, design_mass=dm)))
+            != configured]
     cases: list[Case] = []
     spread = p.envelope_mc_spread
     for seed in p.envelope_mc_seeds:
@@ -287,7 +296,7 @@ def envelope_mc_cases(p: StudyPlan, cfg: RigConfig) -> list[Case]:
                         param_tag=f"mc{100 * spread:g}s{seed}-{i}", sim_road=True)
             cases.append(base)
             cases += [replace(base, controller=c, weight_set=ws, design_mass=dm)
-                      for c, ws, dm in ENVELOPE_MC_CONTROLLERS]
+                      for c, ws, dm in laws]
     return cases
 
 

@@ -33,11 +33,12 @@ def run(args: argparse.Namespace) -> int:
     print(f"weight set {ws}: rho = {cfg.design.weight_sets[ws - 1]} "
           f"(closed loop / passive, white road velocity at "
           f"{cfg.noise.nominal_speed_mps:g} m/s, Gd = {cfg.noise.nominal_roughness_gd:g} m^3)")
-    print(f"{'model':12s} {'loop':5s} {'absorbed power':>15s} {'rattlespace rms':>16s} "
+    width = max(12, *(len(name) for name in result))     # layered names are longer
+    print(f"{'model':{width}s} {'loop':5s} {'absorbed power':>15s} {'rattlespace rms':>16s} "
           f"{'tire defl. rms':>15s}")
     for name, entry in result.items():
         for kind in ("lq", "lqg"):
             r = entry[kind]
-            print(f"{name:12s} {kind:5s} {r[_KEYS[0]]:15.4f} {r[_KEYS[1]]:16.4f} "
+            print(f"{name:{width}s} {kind:5s} {r[_KEYS[0]]:15.4f} {r[_KEYS[1]]:16.4f} "
                   f"{r[_KEYS[2]]:15.4f}")
     return 0

@@ -99,11 +99,12 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"wrote {args.out}: {design.n_models} models, {design.n_noise} noise entries, "
           f"{design.n_weight_sets} weight sets, dt = {design.dt_s * 1e3:g} ms")
+    width = max(12, *(len(name) for name in summary["models"]))
     for name, entry in summary["models"].items():
         radii = [max(p["abs"] for p in v.get("closed_loop_poles",
                                              v["ideal_actuator_closed_loop_poles"]))
                  for v in entry["lq"].values()]
         frad = max(p["abs"] for p in entry["kalman"]["filter_poles"])
-        print(f"  {name:12s} closed-loop spectral radius {', '.join(f'{r:.6f}' for r in radii)}; "
-              f"filter {frad:.6f}")
+        print(f"  {name:{width}s} closed-loop spectral radius "
+              f"{', '.join(f'{r:.6f}' for r in radii)}; filter {frad:.6f}")
     return 0
