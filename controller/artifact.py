@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import io
 import json
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,6 +39,7 @@ __all__ = [
     "Design",
     "DesignMismatch",
     "build_metadata",
+    "design_from_bytes",
     "load_design",
     "save_design",
 ]
@@ -218,10 +221,21 @@ def load_design(path: str | Path, cfg: RigConfig | None = None) -> Design:
     malformed, or (when ``cfg`` is given) the artifact was designed for another
     configuration.  ``FileNotFoundError`` propagates.
     """
+    return _read_design(Path(path), str(path), cfg)
+
+
+def design_from_bytes(data: bytes, name: str = "design", cfg: RigConfig | None = None
+                      ) -> Design:
+    """An artifact held in memory (a recording's attachment), read as :func:`load_design`
+    reads a file, without writing one; ``name`` heads its error messages."""
+    return _read_design(io.BytesIO(data), name, cfg)
+
+
+def _read_design(source: Path | io.BytesIO, path: str, cfg: RigConfig | None) -> Design:
     try:
-        with np.load(Path(path), allow_pickle=False) as npz:
+        with np.load(source, allow_pickle=False) as npz:
             data = {k: npz[k] for k in npz.files}
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
         if isinstance(exc, FileNotFoundError | IsADirectoryError | PermissionError):
             raise
         raise DesignMismatch(f"{path}: not a design artifact ({exc})") from exc

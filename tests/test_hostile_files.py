@@ -300,6 +300,42 @@ def test_replay_out_on_a_full_disk_says_so_and_exits_3(recording: Path,
     assert "File too large" in summary["out_error"] and summary["bit_exact"]
 
 
+def test_replay_without_out_writes_no_file(recording: Path, tmp_path: Path) -> None:
+    """Replay reads the recorded design from memory: with no file writable at all (a file
+    size limit of 0 bytes) a replay without --out still runs and is bit-exact."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-m", "rig.cli", "replay", str(recording),
+                           "--json"],
+                          env={**os.environ, "PYTHONPATH": str(root)}, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120,
+                          preexec_fn=_limited_file_size(0))
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["bit_exact"]
+
+
+def test_a_damaged_design_artifact_is_one_line(tmp_path: Path) -> None:
+    """A cut artifact, in memory or as a file, is a DesignMismatch naming it, not a
+    zipfile traceback."""
+    from controller.artifact import DesignMismatch, design_from_bytes, load_design, save_design
+    from controller.config import one_layer
+    from controller.design import design_bank
+
+    path = tmp_path / "d.npz"
+    save_design(design_bank(one_layer(default_config())), path)
+    raw = path.read_bytes()
+    assert design_from_bytes(raw).n_models == 4
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(DesignMismatch, match=r"^attachment: not a design artifact"):
+        design_from_bytes(raw[: len(raw) // 2], "attachment")
+    with pytest.raises(DesignMismatch, match=rf"^{cut}: not a design artifact"):
+        load_design(cut)
+
+
 def _failing_close(monkeypatch: pytest.MonkeyPatch) -> None:
     from rig.recording.recorder import RunRecorder
 

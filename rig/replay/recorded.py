@@ -15,7 +15,6 @@ import binascii
 import itertools
 import json
 import re
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from controller.artifact import Design, DesignMismatch, load_design
+from controller.artifact import Design, DesignMismatch, design_from_bytes
 from controller.config import ConfigError, RigConfig, config_from_bytes
 from rig.recording import schema
 from rig.recording.scan import Handler, RecordingError, ScanResult, scan_recording, split_json
@@ -353,13 +352,6 @@ def load_recorded_run(path: str | Path) -> RecordedRun:
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise malformed_payload(path, exc) from exc
     return assemble_run(Path(path), scan, dec.pieces, dec.first)
-
-
-def design_from_bytes(data: bytes) -> Design:
-    with tempfile.NamedTemporaryFile(suffix=".npz") as fh:
-        fh.write(data)
-        fh.flush()
-        return load_design(fh.name)
 
 
 def _attachment(run: RecordedRun, name: str, option: str) -> bytes:
