@@ -4,25 +4,24 @@ Independent checks: python-control's own ``stability_margins``; closed-loop eige
 with integer delays against the predicted delay margin; the runtime bank (numba kernel)
 against the linear controller block, sample by sample; the nonlinear offline simulator.
 
-Everything but the payload profile's test is on the configured vehicle: the defaults with
+Everything but the light layers' test is on the configured vehicle: the defaults with
 a bank of one layer (:func:`controller.config.one_layer`, whatever layers the built-in
 defaults have), so the per-model checks are about the tire models designed for the
 configured sprung mass, spring rate and damping.  The lighter layers of a layered bank
 keep thinner delay margins (docs/design.md §11), checked on their own:
-test_payload_profile_lightest_layers_keep_a_delay_margin.
+test_lightest_layers_keep_a_delay_margin.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import control
 import numpy as np
 import pytest
 
-from controller.config import default_config, layer_scales, load_config, one_layer
+from controller.config import default_config, layer_scales, one_layer
 from controller.design import design_bank, design_models
 from controller.margins import (
     closed_loop_stable,
@@ -138,13 +137,13 @@ def test_actuator_aware_lqg_tolerates_up_to_two_ticks(j: int, w: int) -> None:
         assert delay_margin_s(L) >= dm_min, d
 
 
-def test_payload_profile_lightest_layers_keep_a_delay_margin() -> None:
-    """deploy/payload.toml (docs/design.md §11): the same weights on a lighter body give a
-    faster law and a thinner delay margin.  The lightest layers (0.6 x the mass, at the
+def test_lightest_layers_keep_a_delay_margin() -> None:
+    """The default bank's layers (docs/design.md §11): the same weights on a lighter body
+    give a faster law and a thinner delay margin.  The lightest layers (0.6 x the mass, at the
     spring-rate and damping extremes; the 25 mm tire model, both weight sets) keep >= 6 ms
     at 0 ticks and >= 4 ms at the CAN loop's 1 tick (measured 6.5 / 4.5 ms at the worst),
     where the configured mass keeps >= 10 ms (test above)."""
-    cfg = load_config(Path(__file__).resolve().parents[1] / "deploy" / "payload.toml")
+    cfg = default_config()
     scales = layer_scales(cfg)
     ground = [md for md in design_models(cfg) if not md.model.airborne]
     n = len(ground) // len(scales)

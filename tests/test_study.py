@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controller.analysis import analyze
-from controller.config import LAYER_KEYS, default_config, layer_scales, load_config
+from controller.config import LAYER_KEYS, default_config, layer_scales, load_config, one_layer
 from hil.sim.closed_loop import BankController, cached_design, run_closed_loop
 from hil.sim.fullstate import FullStateLQ
 from hil.sim.plant import RigPlant
@@ -212,16 +212,19 @@ def test_fullstate_on_the_true_state_runs_and_is_finite() -> None:
 
 def test_tradeoff_grid_matches_controller_analysis_at_the_thesis_sets() -> None:
     """Ideal-actuator grid == analyze() of an 'ideal' design; rig-loop rows == analyze()
-    of the configured (hydraulic) design."""
+    of the configured (hydraulic) design; both of the configured vehicle's single-LQG
+    model (the layered default's configured layer, not the first layer's)."""
     sets = CFG.design.weight_sets
     rho1, rho2 = [sets[0][0], sets[1][0]], [sets[0][1], sets[1][1]]
     hydraulic = getattr(CFG.design, "actuator_model", "ideal") == "hydraulic"
     grid = tradeoff_grid(CFG, rho1, rho2, rig_rho1=rho1 if hydraulic else ())
-    ideal_cfg = CFG.replace(design={"actuator_model": "ideal"}) if hydraulic else CFG
+    assert grid.model == "x2_25mm"
+    one = one_layer(CFG)
+    ideal_cfg = one.replace(design={"actuator_model": "ideal"}) if hydraulic else one
     for i, ws in ((0, 1), (1, 2)):
         refs = [(analyze(ideal_cfg, ws)[grid.model], grid.lq, grid.lqg)]
         if hydraulic:
-            refs.append((analyze(CFG, ws)[grid.model], grid.rig_lq, grid.rig_lqg))
+            refs.append((analyze(one, ws)[grid.model], grid.rig_lq, grid.rig_lqg))
         for ref, lq, lqg in refs:
             for kind, d in (("lq", lq), ("lqg", lqg)):
                 assert d["absorbed_power"][i, i] == pytest.approx(

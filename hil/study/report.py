@@ -600,8 +600,9 @@ def _fig_firing(rows: Sequence[Row], out: Path, q_grid: np.ndarray, curve: np.nd
         w = c["firing_weight"]
         tc = np.arange(w.shape[0]) * float(c["dt_s"])
         sel = tc <= 5.0
-        for j in range(w.shape[1]):
-            ax[1].plot(tc[sel], w[sel, j], lw=0.7, label=str(model_names[j]))
+        # the models that ran (a layered bank runs one layer's; the others weigh 0)
+        for j in np.flatnonzero(np.any(w[sel] != 0.0, axis=0)):
+            ax[1].plot(tc[sel], w[sel, j], lw=0.7, label=str(model_names[int(j)]))
         ax[1].legend(fontsize=7)
     ax[1].set_xlabel("time [s]")
     ax[1].set_ylabel("normalised firing weight")

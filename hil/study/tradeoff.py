@@ -1,6 +1,7 @@
 """Comfort / travel trade-off from the linear covariance analysis (thesis Fig. 2.2).
 
-For the single-LQG model (the on-ground model nearest the static tire deflection) and
+For the single-LQG model (the configured vehicle's on-ground model nearest the static
+tire deflection: a layered bank's configured layer, ``controller.config.one_layer``) and
 white road velocity at the nominal speed and roughness, :func:`tradeoff_grid` evaluates
 ``controller.analysis.closed_loop`` over a grid of (rho1, rho2) with rho3 and rho4
 fixed: the stationary absorbed-power ratio (F(s)-filtered acceleration mean square,
@@ -20,7 +21,7 @@ import numpy as np
 
 from controller.analysis import closed_loop, output_mean_squares
 from controller.arrays import FloatArray
-from controller.config import RigConfig
+from controller.config import RigConfig, one_layer
 from controller.design import design_models, measurement_noise_cov
 from controller.human_filter import human_filter
 from controller.kalman import steady_state_kalman
@@ -58,7 +59,7 @@ def tradeoff_grid(cfg: RigConfig, rho1: Sequence[float], rho2: Sequence[float],
     W = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
     R = measurement_noise_cov(cfg)
     x2s = static_tire_deflection_m(cfg)
-    mds = [md for md in design_models(cfg) if not md.model.airborne]
+    mds = [md for md in design_models(one_layer(cfg)) if not md.model.airborne]
     md = min(mds, key=lambda m: abs(m.model.deflection_m - x2s))
     model = md.model
     kf = steady_state_kalman(md.dfm.Phi, md.fm.C, md.dfm.Qd_unit * W, R)
