@@ -194,8 +194,12 @@ def test_service_over_can_is_bit_exact_with_the_in_process_loop(closed_loop: Sce
 def test_ride_matches_the_offline_closed_loop(closed_loop: ScenarioResult) -> None:
     """Absorbed power and rattlespace while armed against the offline closed loop with
     the loop delay the bus shows.  Needs a loop that keeps up (delay 0 on >= 95 % of the
-    commands and 5 s armed); in a UML guest it does not: the figures are printed and the
-    test is skipped with the measured delays as the reason."""
+    commands, a command for >= 99.5 % of the rig's ticks and 5 s armed); in a UML guest it
+    may not: the figures are printed and the test is skipped with the measured delays as
+    the reason.  (Missed ticks come in stalls of a few ticks; offline, 1-2 % of ticks
+    missed that way take the default law from 0.008 to 0.011-0.016 (m/s²)² on this road,
+    one-layer and layered bank alike: beyond the 25 % this test allows.)  The layers the
+    bank ran are printed."""
     r = closed_loop
     dt = r.cfg.sample_time_s
     sd, k_arm, k_end, i_arm, i_off = _armed_window(r)
@@ -210,7 +214,18 @@ def test_ride_matches_the_offline_closed_loop(closed_loop: ScenarioResult) -> No
     record("armed stretch", (k_end - k_arm) * dt, "s", (r.service_output.count("FAULT") and
            "ended by a fault") or "until the end")
     sims = _simulations(r)
-    if i1 - i0 < round(5.0 / dt) or hist[0] < 0.95 or per_tick < 0.98:
+    from rig.report.series import load_series
+
+    series = load_series(r.recordings[0])
+    layers = np.unique(series.layer_mkc[np.all(np.isfinite(series.layer_mkc), axis=1)],
+                       axis=0)
+    record("bank layers run [M kg, K N/m, C N s/m]", len(layers), "",
+           "; ".join(", ".join(f"{v:.0f}" for v in row) for row in layers))
+    est = series.sprung_mass_est_kg
+    if np.isfinite(est).any():
+        record("sprung-mass estimate min / max", float(np.nanmin(est)), "kg",
+               f"/ {float(np.nanmax(est)):.0f} kg")
+    if i1 - i0 < round(5.0 / dt) or hist[0] < 0.95 or per_tick < 0.995:
         pytest.skip(f"loop does not keep up here ({RATE_HZ:g} Hz, delays 0/1/2/3+ = "
                     f"{np.round(hist, 3).tolist()}, {per_tick:.3f} commands per rig tick, "
                     f"armed {(k_end - k_arm) * dt:.2f} s): the offline closed loop is not "
