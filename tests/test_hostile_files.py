@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from controller.config import default_config
-from tests.support.mcap_edit import rewrite
+from tests.support.mcap_edit import chunk_spans, rewrite
 from tests.support.one_line import one_line
 
 pytestmark = pytest.mark.timeout(300)
@@ -213,20 +213,6 @@ def test_a_fifo_is_refused_without_blocking(argv: list[str], fragment: str, reco
 
 # ---------------------------------------------------------------------------- attachment CRC
 
-def _chunk_spans(recording: Path) -> list[tuple[int, int]]:
-    """(first byte, end) of each chunk of ``recording``, in file order.  Tests cut and
-    fill files relative to these, not to the file's size: the design attachment before
-    the chunks is most of a short recording (0.1 MB for a one-layer bank, 1.8 MB for the
-    built-in layered one)."""
-    from mcap.reader import make_reader
-
-    with recording.open("rb") as f:
-        summary = make_reader(f).get_summary()
-    assert summary is not None
-    return sorted((c.chunk_start_offset, c.chunk_start_offset + c.chunk_length)
-                  for c in summary.chunk_indexes)
-
-
 def _damaged_config(recording: Path, dst: Path, *, cut: bool) -> Path:
     """``recording`` with one byte of its config.toml attachment changed (the attachment
     record's CRC left as it was); ``cut``: truncated in the middle of its last chunk (no
@@ -234,7 +220,7 @@ def _damaged_config(recording: Path, dst: Path, *, cut: bool) -> Path:
     raw = bytearray(recording.read_bytes())
     i = raw.index(b"stale_ticks = ") + len(b"stale_ticks = ")
     raw[i] = ord("9") if raw[i] != ord("9") else ord("8")
-    start, end = _chunk_spans(recording)[-1]
+    start, end = chunk_spans(recording)[-1]
     dst.write_bytes(raw[:(start + end) // 2] if cut else raw)
     return dst
 
@@ -277,12 +263,12 @@ def test_replay_out_on_a_full_disk_says_so_and_exits_3(recording: Path,
                                                         tmp_path: Path) -> None:
     """The disk fills half-way through the replay's records: the limit is the middle of
     the recorded run's chunks (the replay writes the same attachments and ticks;
-    :func:`_chunk_spans`)."""
+    :func:`tests.support.mcap_edit.chunk_spans`)."""
     import os
     import subprocess
     import sys
 
-    spans = _chunk_spans(recording)
+    spans = chunk_spans(recording)
     assert len(spans) >= 2
     limit = (spans[0][0] + spans[-1][1]) // 2
     root = Path(__file__).resolve().parents[1]

@@ -57,6 +57,7 @@ from rig.wire.protocol import (
     SensorData,
     ValveCommand,
 )
+from tests.support.mcap_edit import chunk_spans
 from tests.support.mcap_reference import items_of_run, reference_items
 
 pytestmark = pytest.mark.timeout(300)
@@ -293,13 +294,10 @@ def _inside_a_chunk(recording: Path, frac: float) -> int:
     """A byte in the middle of the chunk at ``frac`` of the recording's chunks (not at a
     fraction of the file: the design attachment before the chunks is most of a file,
     0.1 MB for a one-layer bank, 1.8 MB for the built-in layered one)."""
-    with recording.open("rb") as f:
-        summary = make_reader(f).get_summary()
-    assert summary is not None
-    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    chunks = chunk_spans(recording)
     assert len(chunks) >= 3, len(chunks)        # one before the middle one, one after
-    c = chunks[max(1, min(len(chunks) - 2, int(len(chunks) * frac)))]
-    return c.chunk_start_offset + c.chunk_length // 2
+    start, end = chunks[max(1, min(len(chunks) - 2, int(len(chunks) * frac)))]
+    return (start + end) // 2
 
 
 def test_truncated_recording_replays_to_its_last_complete_chunk(recording: Path,

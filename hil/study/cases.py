@@ -25,7 +25,7 @@ import controller.design
 # that every run of one study uses the same code even while the tree is being edited
 import controller.runtime.bank
 import controller.runtime.force_loop  # noqa: F401
-from controller.config import LAYER_KEYS, RigConfig, default_config
+from controller.config import LAYER_KEYS, RigConfig, default_config, one_layer
 from controller.metrics import filter_signal, human_filter_tf
 from controller.modes import BANK_MODES
 from hil.sim.closed_loop import (
@@ -164,8 +164,6 @@ def case_config(cfg: RigConfig, case: Case) -> RigConfig:
         design["weight_set"] = 1
     if case.design_mass == "layered":
         design.update({key: list(scales) for key, scales in LAYERED_DESIGN.items()})
-    elif case.design_mass in ("one-layer", "true-plant"):
-        design.update({key: [1.0] for key in LAYER_KEYS})
     if design:
         sections["design"] = design
     em = cfg.emulator
@@ -187,7 +185,8 @@ def case_config(cfg: RigConfig, case: Case) -> RigConfig:
                                                 * case.tire_stiffness_scale)
         if emulator:
             sections["emulator"] = emulator
-    return cfg.replace(**sections) if sections else cfg
+    out = cfg.replace(**sections) if sections else cfg
+    return one_layer(out) if case.design_mass in ("one-layer", "true-plant") else out
 
 
 def study_road(name: str, speed_mps: float, duration_s: float, dt_s: float,

@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"weight set {ws}: rho = {cfg.design.weight_sets[ws - 1]} "
           f"(closed loop / passive, white road velocity at "
           f"{cfg.noise.nominal_speed_mps:g} m/s, Gd = {cfg.noise.nominal_roughness_gd:g} m^3)")
-    width = max(12, *(len(name) for name in result))     # layered names are longer
+    width = max([12, *map(len, result)])     # layered names are longer
     print(f"{'model':{width}s} {'loop':5s} {'absorbed power':>15s} {'rattlespace rms':>16s} "
           f"{'tire defl. rms':>15s}")
     for name, entry in result.items():

@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"wrote {args.out}: {design.n_models} models, {design.n_noise} noise entries, "
           f"{design.n_weight_sets} weight sets, dt = {design.dt_s * 1e3:g} ms")
-    width = max(12, *(len(name) for name in summary["models"]))
+    width = max([12, *map(len, summary["models"])])     # layered names are longer
     for name, entry in summary["models"].items():
         radii = [max(p["abs"] for p in v.get("closed_loop_poles",
                                              v["ideal_actuator_closed_loop_poles"]))

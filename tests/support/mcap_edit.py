@@ -9,6 +9,20 @@ from pathlib import Path
 Change = Callable[[bytes], bytes]
 
 
+def chunk_spans(recording: Path) -> list[tuple[int, int]]:
+    """(first byte, end) of each chunk of ``recording``, in file order.  Tests cut, corrupt
+    and fill files relative to these, not to the file's size: the design attachment before
+    the chunks is most of a short recording (0.1 MB for a one-layer bank, 1.8 MB for the
+    built-in layered one)."""
+    from mcap.reader import make_reader
+
+    with recording.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    return sorted((c.chunk_start_offset, c.chunk_start_offset + c.chunk_length)
+                  for c in summary.chunk_indexes)
+
+
 def rewrite(src: Path, dst: Path, topic: str, change: Change, *, every: bool = False,
             attachments: dict[str, bytes] | None = None) -> Path:
     """Copy the recording ``src`` to ``dst`` with the first (``every``: each) payload on
