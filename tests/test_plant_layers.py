@@ -173,3 +173,49 @@ def test_on_another_spring_and_damper_the_bank_runs_that_layer(
     assert layered == pytest.approx(true, rel=0.10)
     assert layered_rms == pytest.approx(true_rms, rel=0.05)
     assert nominal > 1.2 * true
+
+
+def test_at_rest_every_model_reads_its_own_static_deflection() -> None:
+    """The LVDT reads 0 at rest (zeroed there, or the ride height set by preload), so each
+    on-ground model's filter must see its own static suspension deflection M_l g / K_l
+    there, not the configured rig's: its measurement at its equilibrium (C x̄ + y_offset,
+    from the design) is the reading the loop hands it at rest (M g / K + V_YSTAT).
+    Before, a spring layer read 51 mm (K x 1.4) or -77 mm (K x 0.7) off it: its bias state
+    took that up, and every filter started from another layer's biases was that far off."""
+    from controller.runtime import kernels as kern
+
+    d = cached_design(GRID)
+    rt = BankRuntime(d, cfg=GRID)
+    mat, vec, fv = rt._mat, rt._vec, rt._fv
+    at_rest = fv[kern.F_STATIC] + vec[:, kern.V_YSTAT]
+    for j in np.flatnonzero(~d.airborne):
+        predicted = mat[j, :, kern.M_CT] @ mat[j, :, kern.M_XBAR] + fv[kern.F_YOFF]
+        assert at_rest[j] == pytest.approx(predicted, abs=1e-9), d.model_names[j]
+    m, k, _ = np.array(layer_scales(GRID)).T
+    np.testing.assert_allclose(
+        at_rest[:-1:len(CFG.design.linearisation_deflections_m)],
+        m * V.sprung_mass_kg * V.gravity_mps2 / (k * V.suspension_stiffness_n_per_m))
+
+
+def test_the_moving_bank_on_another_spring_runs_its_layer_without_degrading() -> None:
+    """The moving bank starts the new layer's filters at the change and the airborne filter
+    at each lift-off from the running filters' biases: on a rig with a 1.4 x spring it
+    moves to that layer and flies through the course's lift-offs without a degradation
+    (before: the 1.4 x layer's biases held a 51 mm offset the airborne model does not
+    have, and each lift-off degraded the bank: 9 times in these 18 s), and controls within
+    10 % of the moving bank designed for the rig."""
+    road = make_road("rough-course", 11.176, SETTLE_S + 10.0, DT, 1)
+    plant = {"spring_rate_scale": 1.4}
+    ctrl = BankController(cached_design(GRID), GRID, "moving", 1, road)
+    res = run_closed_loop(CFG.replace(emulator=plant), road, ctrl, seed=1, settle_s=SETTLE_S)
+    c = ctrl.rt.counters()
+    assert layer_scales(GRID)[ctrl.rt.mass_layer] == (1.0, 1.4, 1.0)
+    assert c["layer_changes"] >= 1 and c["set_switches"] >= 4     # lift-offs and landings
+    assert c["degradations"] == 0 and res.metrics["n_faults"] == 0
+    true_cfg = CFG.replace(vehicle={
+        "suspension_stiffness_n_per_m": V.suspension_stiffness_n_per_m * 1.4})
+    true = run_closed_loop(true_cfg, road, BankController(cached_design(true_cfg), true_cfg,
+                                                          "moving", 1, road),
+                           seed=1, settle_s=SETTLE_S)
+    assert res.metrics["absorbed_power"] == pytest.approx(true.metrics["absorbed_power"],
+                                                          rel=0.10)

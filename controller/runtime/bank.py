@@ -946,15 +946,17 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
     """Packed per-model tables for every (noise entry, weight set): (S, W, J, 4, MAT_COLS)
     and (S, W, J, VEC_COLS)."""
     layers, layer, _ = _layers(design, cfg)
-    # each model reads the rattlespace about its own static position: a rig whose LVDT was
-    # zeroed at rest with the configured ballast sags (M_l - M) g / K_l under layer l's
-    # mass on its spring (one layer: 0, as before).  A spring or damper other than the
-    # configured one moves nothing: the rig's ride height was set (preload) and its LVDT
-    # zeroed with the spring it has.
+    # each model reads the rattlespace about its own static position, M_l g / K_l: the LVDT
+    # reads 0 at rest (zeroed there, or the ride height set by preload), and the loop adds
+    # the configured rig's M g / K (F_STATIC), so model j's filter gets the reading +
+    # M_l g / K_l - M g / K (V_YSTAT; one layer: 0, as before).  A spring rate other than
+    # the configured one moves the model's own static deflection even where the body sits
+    # (preload), as its mass does.
     veh = cfg.vehicle
     lay = layers[np.maximum(layer, 0)]
     ystat = np.where((layer >= 0) & (len(layers) > 1),
-                     (lay[:, 0] - veh.sprung_mass_kg) * veh.gravity_mps2 / lay[:, 1], 0.0)
+                     lay[:, 0] * veh.gravity_mps2 / lay[:, 1] - float(design.static_rattlespace_m),
+                     0.0)
     log_params = np.where((layer >= 0)[:, None], np.log(lay), 0.0)
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
     wc = cfg.design.schedule_weight_sets[0] - 1

@@ -15,11 +15,11 @@ transient); the newcomers start bumpless from the blended deviation and biases
 (:func:`controller.runtime.kernels.activate`), as the moving bank's do.
 
 Where the LVDT reads 0: each model reads the rattlespace about its own static position
-(the reading + (M_l - M) g / K_l, ``V_YSTAT``: the sag of the layer's ballast on its
-spring), right for a rig whose LVDT is zeroed at rest with its ballast and whose ride
-height was set with the spring it has; after a ballast change without re-zeroing the
-LVDT's sag of ΔM g / K is an offset to the heavier layer's models, which their
-rattlespace-bias state takes up (as it is for the single-layer bank).
+(the reading + M_l g / K_l - M g / K, ``V_YSTAT``: its own static deflection less the
+configured rig's), right for a rig whose LVDT reads 0 at rest with the ballast and spring
+it has (zeroed there, or the ride height set by preload); after a ballast change without
+re-zeroing the LVDT's sag of ΔM g / K is an offset to the heavier layer's models, which
+their rattlespace-bias state takes up (as it is for the single-layer bank).
 
 A candidate layer's filters (the counterparts of the running ones; not in the moving
 bank, whose supervisor re-centres onto any running filter) are warmed up while the
