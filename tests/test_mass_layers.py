@@ -77,8 +77,10 @@ def test_on_a_light_plant_the_bank_moves_to_the_light_layer(mode: str) -> None:
     running = np.flatnonzero(rt.active)
     assert all(j < 3 or rt.design.airborne[j] for j in running), running
     assert m["n_faults"] == 0
-    if mode != "moving":    # the new layer's filters were warm: the monitor saw no transient
-        assert rt.counters()["degradations"] == 0
+    # the monitor saw no transient: fuzzy, Bayes and the single LQG warmed the new layer's
+    # filters up; the moving bank starts them at the change from the running filters'
+    # deviation and biases, which every model reads in its own frame (docs/design.md §11)
+    assert rt.counters()["degradations"] == 0
 
 
 def test_light_plant_controlled_like_the_design_for_it() -> None:
