@@ -32,6 +32,15 @@ to the same multiples of theirs.  After a reset the filters start as if the rig 
 rest; the fit takes data only after :data:`SETTLE_TIME_CONSTANTS` time constants of the
 high-pass (1.8 s at 0.5 Hz), so a start on a moving rig does not enter it as a transient.
 
+Near an isolated stop contact the fit takes no data: F_bs is the least known term (1 MN/m
+on a geometry known to the calibration's millimetres; 3 mm off is 3 kN on every tick on
+a stop, and the band-pass spreads one contact over a second).  While contacts are rare
+(``contacts_rare``: the bank's stop-contact window within its budget) a reading within
+:data:`STOP_BAND_M` of a stop's engagement holds the fit for :data:`HOLD_TIME_CONSTANTS`
+time constants of the high-pass; the old data keep fading meanwhile.  When contacts are
+frequent (a sagged rig living on a stop) they are all the data there is and the fit
+takes them (docs/design.md §10).
+
 :func:`mass_estimator_parameters` gives the kernel's parameter array
 (``controller.runtime.kernels.mass_estimate``, slots ``F_ME*``); :class:`MassEstimator`
 is the same recursion in plain Python (the reference the kernel is tested against).
@@ -58,7 +67,9 @@ RELATIVE_RANGE = (0.25, 4.0)
 ME_HP = 9        # high-pass b0, b1, b2, a1, a2
 ME_LP = 14       # low-pass b0, b1, b2, a1, a2
 ME_WK, ME_WC = 19, 20    # prior weights of K and C
-ME_SIZE = 21
+ME_HOLD_TICKS = 21       # ticks the fit takes no data after an isolated stop contact
+ME_STOP_LO, ME_STOP_HI = 22, 23   # ... a reading outside (LO, HI) [m]
+ME_SIZE = 24
 # state layout: band-pass states (2 floats each) of a, y, z, z'; the information matrix
 # R (a, z, z' order; symmetric: 6 floats) and vector b; the estimates M, K, C
 (ME_ZPREV, ME_HPA, ME_LPA, ME_HPY, ME_LPY, ME_SAA, ME_SAY, ME_EST,
@@ -67,10 +78,16 @@ ME_HPZ, ME_LPZ, ME_HPV, ME_LPV = 14, 16, 18, 20
 ME_RAZ, ME_RAV, ME_RZZ, ME_RZV, ME_RVV, ME_BZ, ME_BV = range(22, 29)
 ME_KEST, ME_CEST = 29, 30
 ME_APREV, ME_FPREV = 31, 32      # the last sample's acceleration and force
-ME_STATE_SIZE = 33
+ME_HOLD = 33                     # ticks the fit still holds
+ME_STATE_SIZE = 34
 #: after a reset the band-pass settles this many time constants of its high-pass before
 #: the fit takes data (the filters start as if the rig were at rest; it may be moving)
 SETTLE_TIME_CONSTANTS = 4.0
+#: a reading this close to a stop's engagement [m] counts as a stop contact for the fit
+STOP_BAND_M = 0.003
+#: after an isolated stop contact the fit takes no data for this many time constants of
+#: the high-pass
+HOLD_TIME_CONSTANTS = 2.0
 
 
 def _biquad(kind: str, corner_hz: float, fs_hz: float) -> FloatArray:
@@ -79,9 +96,13 @@ def _biquad(kind: str, corner_hz: float, fs_hz: float) -> FloatArray:
     return np.array([b[0], b[1], b[2], a[1], a[2]])
 
 
-def mass_estimator_parameters(cfg: RigConfig) -> FloatArray:
-    """The kernel's parameters from ``[design] mass_estimator_*``; only the configured
-    mass when the estimator is off (``mass_estimator_window_s`` = 0: λ = 0)."""
+def mass_estimator_parameters(cfg: RigConfig, stops_lvdt_m: tuple[float, float]
+                              ) -> FloatArray:
+    """The kernel's parameters from ``[design] mass_estimator_*``; ``stops_lvdt_m`` the
+    LVDT readings [m] at which the rebound and compression stops engage (the design's
+    ``bump_stop[1:]``); only the configured mass when the estimator is off
+    (``mass_estimator_window_s`` = 0: λ = 0)."""
+
     p = np.zeros(ME_SIZE)
     d, v = cfg.design, cfg.vehicle
     p[ME_M0] = v.sprung_mass_kg
@@ -100,6 +121,13 @@ def mass_estimator_parameters(cfg: RigConfig) -> FloatArray:
     # decay time constant of the 2nd-order Butterworth high-pass: 1 / (ζ ω) = √2 / (2π lo)
     p[ME_SETTLE] = math.ceil(SETTLE_TIME_CONSTANTS * math.sqrt(2.0) / (2.0 * math.pi * lo)
                              / dt)
+    # near an isolated stop contact the fit takes no data for HOLD_TIME_CONSTANTS time
+    # constants of the high-pass (the band-pass's memory of the contact)
+    p[ME_HOLD_TICKS] = math.ceil(HOLD_TIME_CONSTANTS * math.sqrt(2.0) / (2.0 * math.pi * lo)
+                                 / dt)
+    stop_lo, stop_hi = stops_lvdt_m
+    p[ME_STOP_LO] = stop_lo + STOP_BAND_M
+    p[ME_STOP_HI] = stop_hi - STOP_BAND_M
     p[ME_HP:ME_HP + 5] = _biquad("highpass", lo, fs)
     p[ME_LP:ME_LP + 5] = _biquad("lowpass", hi, fs)
     # the prior on K and C: one window of data at the gate's excitation, the force
@@ -151,6 +179,7 @@ class MassEstimator:
         self.damping_ns_per_m = float(self.p[ME_C])
         self.updates = 0
         self.seen = 0
+        self.hold = 0
 
     @staticmethod
     def _df2t(c: FloatArray, s: FloatArray, x: float) -> float:
@@ -159,9 +188,11 @@ class MassEstimator:
         s[1] = c[2] * x - c[4] * y
         return float(y)
 
-    def step(self, force_n: float, rattlespace_m: float, accel_mps2: float) -> float:
+    def step(self, force_n: float, rattlespace_m: float, accel_mps2: float,
+             contacts_rare: bool = True) -> float:
         """One sample: actuator + bump-stop force [N], LVDT reading [m], acceleration
-        [m/s^2]; returns the estimate [kg]."""
+        [m/s^2], whether stop contacts are rare (a contact then holds the fit); returns
+        the estimate [kg]."""
         p = self.p
         if not p[ME_LAMBDA] > 0.0:          # off
             return self.estimate_kg
@@ -178,13 +209,19 @@ class MassEstimator:
         self.z_prev, self.a_prev, self.f_prev = rattlespace_m, accel_mps2, force_n
         bp = [self._df2t(lp, self.s_lp[i], self._df2t(hp, self.s_hp[i], x))
               for i, x in enumerate(mid)]
+        if contacts_rare and not p[ME_STOP_LO] < rattlespace_m < p[ME_STOP_HI]:
+            self.hold = int(p[ME_HOLD_TICKS])
         if self.seen < p[ME_SETTLE]:
             self.seen += 1
             return self.estimate_kg
+        weight = 1.0
+        if self.hold > 0:                   # near an isolated contact: no data, old fades
+            self.hold -= 1
+            weight = 0.0
         phi = np.array([bp[0], -bp[2], -bp[3]])
         lam = p[ME_LAMBDA]
-        self.info = lam * self.info + np.outer(phi, phi)
-        self.vec = lam * self.vec + phi * bp[1]
+        self.info = lam * self.info + weight * np.outer(phi, phi)
+        self.vec = lam * self.vec + weight * phi * bp[1]
         if self.info[0, 0] > p[ME_SMIN]:
             r = self.info + np.diag([0.0, p[ME_WK], p[ME_WC]])
             b = self.vec + np.array([0.0, p[ME_WK] * p[ME_K], p[ME_WC] * p[ME_C]])

@@ -660,7 +660,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     blend = iv[I_BLEND]
     sentinel = iv[I_SENTINEL] if blend == _MOVING and iv[I_MODE] == MODE_AIR else -1
     u_in, y0, y1 = _measurements(fv, rattlespace_m, accel_mps2, force_meas_n)
-    mass_estimate(fv, u_in, rattlespace_m, accel_mps2)
+    # contacts are rare while the stop-contact window (last tick's) is within its budget
+    mass_estimate(fv, u_in, rattlespace_m, accel_mps2, fv[F_SC_TIME] < fv[F_SC_BUDGET])
     mass_schedule(st, active, fv, iv, nbr, vec, mat, fv[F_MES + ME_EST], fv[F_MES + ME_KEST],
                   fv[F_MES + ME_CEST], blend)
     xf0 = fv[F_XF]
@@ -1042,7 +1043,8 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_GUARD_W] = cfg.design.stop_guard_m
     fv[F_GUARD_LEAD] = cfg.design.stop_guard_lead_s
     fv[F_GUARD_V0] = cfg.design.stop_guard_lead_deadband_mps
-    fv[F_ME:F_ME + ME_SIZE] = mass_estimator_parameters(cfg)
+    fv[F_ME:F_ME + ME_SIZE] = mass_estimator_parameters(
+        cfg, (float(design.bump_stop[1]), float(design.bump_stop[2])))
     fv[F_LHYST] = LAYER_HYSTERESIS
     layers = _layers(design, cfg)[0]     # the layer distance counts the axes that vary
     fv[F_LWK] = float(np.unique(layers[:, 1]).size > 1)

@@ -45,6 +45,8 @@ from controller.mass_estimator import (
     ME_EST,
     ME_FPREV,
     ME_HI,
+    ME_HOLD,
+    ME_HOLD_TICKS,
     ME_HP,
     ME_HPA,
     ME_HPV,
@@ -74,6 +76,8 @@ from controller.mass_estimator import (
     ME_SIZE,
     ME_SMIN,
     ME_STATE_SIZE,
+    ME_STOP_HI,
+    ME_STOP_LO,
     ME_WC,
     ME_WK,
     ME_ZPREV,
@@ -732,11 +736,13 @@ def _body_fit(fv: np.ndarray, p: int, s: int) -> None:
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def mass_estimate(fv: np.ndarray, force_n: float, rattlespace_m: float,
-                  accel_mps2: float) -> None:
+                  accel_mps2: float, contacts_rare: bool) -> None:
     """One tick of the sprung-mass estimator (controller/mass_estimator.py, the plain
     reference ``MassEstimator``): band-passed least squares with forgetting on
-    F + F_bs = M a - K z - C z' for [M, K, C] with a weak prior on K and C; the
-    estimates in ``fv[F_MES + ME_EST]`` (M), ``ME_KEST`` (K), ``ME_CEST`` (C)."""
+    F + F_bs = M a - K z - C z' for [M, K, C] with a weak prior on K and C, without
+    the samples near an isolated stop contact (``contacts_rare``: the stop-contact
+    window is within its budget); the estimates in ``fv[F_MES + ME_EST]`` (M),
+    ``ME_KEST`` (K), ``ME_CEST`` (C)."""
     p = F_ME
     s = F_MES
     if not (fv[p + ME_LAMBDA] > 0.0):      # off: the estimate stays the configured mass
@@ -763,9 +769,15 @@ def mass_estimate(fv: np.ndarray, force_n: float, rattlespace_m: float,
     yb = _biquad(fv, lp, s + ME_LPY, _biquad(fv, hp, s + ME_HPY, f_mid))
     pz = -_biquad(fv, lp, s + ME_LPZ, _biquad(fv, hp, s + ME_HPZ, z_mid))
     pv = -_biquad(fv, lp, s + ME_LPV, _biquad(fv, hp, s + ME_HPV, zdot))
+    if contacts_rare and not (fv[p + ME_STOP_LO] < rattlespace_m < fv[p + ME_STOP_HI]):
+        fv[s + ME_HOLD] = fv[p + ME_HOLD_TICKS]     # an isolated stop contact: F_bs unsure
     if fv[s + ME_NSEEN] < fv[p + ME_SETTLE]:    # the band-pass settling after a reset
         fv[s + ME_NSEEN] += 1.0
         return
+    w = 1.0                                     # weight of this sample in the fit
+    if fv[s + ME_HOLD] > 0.0:                   # near an isolated contact: none (the old
+        fv[s + ME_HOLD] -= 1.0                  # data keep fading)
+        w = 0.0
     lam = fv[p + ME_LAMBDA]
     saa = lam * fv[s + ME_SAA] + pa * pa
     if not (math.isfinite(saa) and math.isfinite(yb) and math.isfinite(pz)
@@ -774,15 +786,16 @@ def mass_estimate(fv: np.ndarray, force_n: float, rattlespace_m: float,
         for i in (ME_SAA, ME_RAZ, ME_RAV, ME_RZZ, ME_RZV, ME_RVV, ME_SAY, ME_BZ, ME_BV):
             fv[s + i] = 0.0
         return
+    saa = lam * fv[s + ME_SAA] + w * pa * pa
     fv[s + ME_SAA] = saa
-    fv[s + ME_RAZ] = lam * fv[s + ME_RAZ] + pa * pz
-    fv[s + ME_RAV] = lam * fv[s + ME_RAV] + pa * pv
-    fv[s + ME_RZZ] = lam * fv[s + ME_RZZ] + pz * pz
-    fv[s + ME_RZV] = lam * fv[s + ME_RZV] + pz * pv
-    fv[s + ME_RVV] = lam * fv[s + ME_RVV] + pv * pv
-    fv[s + ME_SAY] = lam * fv[s + ME_SAY] + pa * yb
-    fv[s + ME_BZ] = lam * fv[s + ME_BZ] + pz * yb
-    fv[s + ME_BV] = lam * fv[s + ME_BV] + pv * yb
+    fv[s + ME_RAZ] = lam * fv[s + ME_RAZ] + w * pa * pz
+    fv[s + ME_RAV] = lam * fv[s + ME_RAV] + w * pa * pv
+    fv[s + ME_RZZ] = lam * fv[s + ME_RZZ] + w * pz * pz
+    fv[s + ME_RZV] = lam * fv[s + ME_RZV] + w * pz * pv
+    fv[s + ME_RVV] = lam * fv[s + ME_RVV] + w * pv * pv
+    fv[s + ME_SAY] = lam * fv[s + ME_SAY] + w * pa * yb
+    fv[s + ME_BZ] = lam * fv[s + ME_BZ] + w * pz * yb
+    fv[s + ME_BV] = lam * fv[s + ME_BV] + w * pv * yb
     if saa > fv[p + ME_SMIN]:
         _body_fit(fv, p, s)
 

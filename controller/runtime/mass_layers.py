@@ -11,7 +11,8 @@ estimate (the sum of |log ratio| over the axes with more than one value) once th
 has been nearer than the current one by more than the hysteresis ``F_LHYST`` for
 ``I_LDWELL`` ticks in a row (the estimate dips for a few tenths of a second just after a
 ballast change: the weight the spring does not carry yet passes the band-pass as a
-transient); the newcomers start bumpless from the blended deviation and biases
+transient; while the estimator holds after an isolated stop contact the estimate is no
+news, and the count waits); the newcomers start bumpless from the blended deviation and biases
 (:func:`controller.runtime.kernels.activate`), as the moving bank's do.
 
 Where the LVDT reads 0: each model reads the rattlespace about its own static position
@@ -41,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
+from controller.mass_estimator import ME_HOLD
 from controller.runtime import kernels as kern
 from controller.runtime.moving_bank import enter_moving
 
@@ -157,6 +159,8 @@ def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.nda
         return
     if not (mass_est_kg > 0.0 and spring_est_n_per_m > 0.0 and damping_est_ns_per_m > 0.0):
         return
+    if fv[kern.F_MES + ME_HOLD] > 0.0:
+        return      # the estimator holds (an isolated stop contact): no news, the dwell waits
     log_m = math.log(mass_est_kg)
     log_k = math.log(spring_est_n_per_m)
     log_c = math.log(damping_est_ns_per_m)
