@@ -102,7 +102,6 @@ def mass_estimator_parameters(cfg: RigConfig, stops_lvdt_m: tuple[float, float]
     LVDT readings [m] at which the rebound and compression stops engage (the design's
     ``bump_stop[1:]``); only the configured mass when the estimator is off
     (``mass_estimator_window_s`` = 0: λ = 0)."""
-
     p = np.zeros(ME_SIZE)
     d, v = cfg.design, cfg.vehicle
     p[ME_M0] = v.sprung_mass_kg
@@ -119,12 +118,11 @@ def mass_estimator_parameters(cfg: RigConfig, stops_lvdt_m: tuple[float, float]
     p[ME_HI] = RELATIVE_RANGE[1] * v.sprung_mass_kg
     lo, hi = d.mass_estimator_band_hz
     # decay time constant of the 2nd-order Butterworth high-pass: 1 / (ζ ω) = √2 / (2π lo)
-    p[ME_SETTLE] = math.ceil(SETTLE_TIME_CONSTANTS * math.sqrt(2.0) / (2.0 * math.pi * lo)
-                             / dt)
+    hp_tau_ticks = math.sqrt(2.0) / (2.0 * math.pi * lo) / dt
+    p[ME_SETTLE] = math.ceil(SETTLE_TIME_CONSTANTS * hp_tau_ticks)
     # near an isolated stop contact the fit takes no data for HOLD_TIME_CONSTANTS time
     # constants of the high-pass (the band-pass's memory of the contact)
-    p[ME_HOLD_TICKS] = math.ceil(HOLD_TIME_CONSTANTS * math.sqrt(2.0) / (2.0 * math.pi * lo)
-                                 / dt)
+    p[ME_HOLD_TICKS] = math.ceil(HOLD_TIME_CONSTANTS * hp_tau_ticks)
     stop_lo, stop_hi = stops_lvdt_m
     p[ME_STOP_LO] = stop_lo + STOP_BAND_M
     p[ME_STOP_HI] = stop_hi - STOP_BAND_M

@@ -18,7 +18,8 @@ from hil.sim.roads import make_road
 
 CFG = default_config()
 V = CFG.vehicle
-STOPS = (float(bump_stop_input(CFG)[1]), float(bump_stop_input(CFG)[2]))
+_, _STOP_LO, _STOP_HI = bump_stop_input(CFG)
+STOPS = (float(_STOP_LO), float(_STOP_HI))      # rebound, compression stop readings [m]
 DT = CFG.sample_time_s
 COURSE_SPEED_MPS = 11.176
 

@@ -779,14 +779,13 @@ def mass_estimate(fv: np.ndarray, force_n: float, rattlespace_m: float,
         fv[s + ME_HOLD] -= 1.0                  # data keep fading)
         w = 0.0
     lam = fv[p + ME_LAMBDA]
-    saa = lam * fv[s + ME_SAA] + pa * pa
+    saa = lam * fv[s + ME_SAA] + w * pa * pa
     if not (math.isfinite(saa) and math.isfinite(yb) and math.isfinite(pz)
             and math.isfinite(pv)):         # restart the fit
         fv[s + ME_ZPREV] = np.nan
         for i in (ME_SAA, ME_RAZ, ME_RAV, ME_RZZ, ME_RZV, ME_RVV, ME_SAY, ME_BZ, ME_BV):
             fv[s + i] = 0.0
         return
-    saa = lam * fv[s + ME_SAA] + w * pa * pa
     fv[s + ME_SAA] = saa
     fv[s + ME_RAZ] = lam * fv[s + ME_RAZ] + w * pa * pz
     fv[s + ME_RAV] = lam * fv[s + ME_RAV] + w * pa * pv
