@@ -582,3 +582,21 @@ def test_ride_height_row_is_the_largest_magnitude_and_nan_where_not_recorded() -
     assert "ride height (mean LVDT reading from mid-travel)" in _summary_table(ph)
     s.ride_height_m = np.zeros(0)
     assert math.isnan(phase_metrics(s)["active"]["ride_height_max_m"])
+
+
+def test_wheel_hop_row_is_each_phases_own_fit_and_nan_on_a_short_phase() -> None:
+    """The wheel-hop row: each phase's AR(2) fit on its own LVDT readings (a 9 Hz
+    oscillation while passive, 11 Hz while active, a slow body motion under both);
+    a phase shorter than the fit's minimum gives NaN, not a number."""
+    s = _passive_then_active(passive=8000, active=8000)
+    t = np.arange(16000) * 1e-3
+    rng = np.random.default_rng(5)
+    f = np.where(t < 8.0, 9.0, 11.0)
+    s.signals["rattlespace_m"] = (0.002 * np.sin(2 * np.pi * np.cumsum(f) * 1e-3)
+                                  + 0.01 * np.sin(2 * np.pi * 1.2 * t)
+                                  + 1e-4 * rng.standard_normal(t.size))
+    ph = phase_metrics(s)
+    assert ph["passive"]["wheel_hop_hz"] == pytest.approx(9.0, abs=0.2)
+    assert ph["active"]["wheel_hop_hz"] == pytest.approx(11.0, abs=0.2)
+    assert "wheel-hop frequency (AR(2) fit on the LVDT, 5-20 Hz)" in _summary_table(ph)
+    assert math.isnan(phase_metrics(_passive_then_active())["active"]["wheel_hop_hz"])

@@ -13,6 +13,9 @@ from :mod:`controller.metrics` run over the whole series and are then averaged p
   contact test, :mod:`controller.stop_contact`, on the recorded configuration), contact
   episodes, and the stop-contact monitor's degradations (StepFlag.STOP_DEGRADED rising
   edges in ``/controller/internals.flags``).
+* the wheel-hop frequency of each phase: an AR(2) fit on the band-passed LVDT reading
+  (:mod:`controller.wheel_hop`); a tire change between runs under the same law shows
+  there, NaN under 5 s of readings.
 
 "Passive" is every tick with the valve off (:attr:`~rig.report.series.Phase.PASSIVE` and
 :attr:`~rig.report.series.Phase.FAULT`: the bypass is open either way).
@@ -30,6 +33,7 @@ from controller.arrays import FloatArray
 from controller.metrics import filter_signal, wk_tf
 from controller.runtime.kernels import StepFlag
 from controller.stop_contact import EPISODE_GAP_S
+from controller.wheel_hop import wheel_hop_frequency_hz
 from rig.report.series import Phase, RunSeries
 
 __all__ = ["SUMMARY_ROWS", "SummaryRow", "phase_metrics", "run_metrics", "stop_contact"]
@@ -82,6 +86,8 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "/controller/internals.comfort_share", 3, ratio=False),
     SummaryRow("ride_height_max_m", "ride height (mean LVDT reading from mid-travel), "
                "largest |value|", "m", "/controller/internals.ride_height_m", 3, ratio=False),
+    SummaryRow("wheel_hop_hz", "wheel-hop frequency (AR(2) fit on the LVDT, 5-20 Hz)",
+               "Hz", "/rig/signals.rattlespace_m", 3, ratio=False),
     SummaryRow("no_rule_fired_pct", "ticks on which no fuzzy rule fired", "%",
                "/controller/internals.flags", 3, ratio=False),
     SummaryRow("lateness_p50_us", "wake-up lateness p50", "µs", "/rig/timing.wake_late_s"),
@@ -223,6 +229,7 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
                                    and np.isfinite(s.comfort_share[m]).any() else math.nan),
             "ride_height_max_m": (_max(np.abs(s.ride_height_m[m]))
                                   if s.ride_height_m.size == m.size else math.nan),
+            "wheel_hop_hz": wheel_hop_frequency_hz(rs, s.dt_s, m),
             "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
                                   if m.any() and np.any(s.flags[m] >= 0) else math.nan),
         }
