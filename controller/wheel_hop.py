@@ -11,7 +11,9 @@ rattlespace, wheel minus body) carries it.  The fit:
 3. fit an AR(2) model  y_k = a1 y_{k-1} + a2 y_{k-2}  by least squares over the samples
    of ``mask``; its complex pole pair p gives the frequency  angle(p) / (2 pi T_fit).
 
-The fit compares runs; it is not an absolute measurement.  The band-pass colours the
+The model is of order 2 (one resonance): higher orders fit the band-pass's own poles,
+which are less damped than a wheel hop.  The fit compares runs; it is not an absolute
+measurement.  The band-pass colours the
 noise that drives the fit's residual, which pulls the estimate toward the band's centre
 (10 Hz): on a white-noise-driven oscillator with damping ratio 0.2, +12 % at 7 Hz, +2 % at
 10 Hz, -4 % at 13 Hz (tests/test_wheel_hop.py).  A wider band or a higher order was
@@ -38,9 +40,6 @@ __all__ = ["MIN_FIT_S", "wheel_hop_frequency_hz"]
 
 #: shortest stretch of readings [s] a fit is made from (a few hundred wheel-hop cycles)
 MIN_FIT_S = 5.0
-#: order of the autoregressive model (2: one resonance; higher orders fit the band-pass's
-#: own poles, which are less damped than a wheel hop)
-AR_ORDER = 2
 
 
 def wheel_hop_frequency_hz(rattlespace_m: FloatArray, dt_s: float,
@@ -68,22 +67,13 @@ def wheel_hop_frequency_hz(rattlespace_m: FloatArray, dt_s: float,
     y = sosfiltfilt(sos, x)
     step = max(1, int(fs // fit_rate_hz))
     yd, md = y[::step], m[::step]
-    n = yd.size
-    order = AR_ORDER
-    if n <= order + 3:
+    rows = md[2:] & md[1:-1] & md[:-2]          # all three samples of a row in the mask
+    if np.count_nonzero(rows) < 6:
         return math.nan
-    rows = md[order:].copy()                    # every sample of a row in the mask
-    for k in range(1, order + 1):
-        rows &= md[order - k:n - k]
-    if np.count_nonzero(rows) < 3 * order:
+    regressors = np.column_stack([yd[1:-1][rows], yd[:-2][rows]])
+    a1, a2 = np.linalg.lstsq(regressors, yd[2:][rows], rcond=None)[0]
+    p = np.roots([1.0, -a1, -a2])[0]            # one of the pair (conjugates: same angle)
+    if p.imag == 0.0 or not abs(p) < 1.0:       # not a damped oscillation
         return math.nan
-    regressors = np.column_stack([yd[order - k:n - k][rows] for k in range(1, order + 1)])
-    coef = np.linalg.lstsq(regressors, yd[order:][rows], rcond=None)[0]
-    poles = np.roots(np.r_[1.0, -coef])
-    t_fit = dt_s * step
-    freqs = np.abs(np.angle(poles)) / (2.0 * math.pi * t_fit)
-    ok = (np.abs(poles.imag) > 0.0) & (np.abs(poles) < 1.0) & (freqs >= lo) & (freqs <= hi)
-    if not ok.any():
-        return math.nan
-    f = float(freqs[ok][np.argmax(np.abs(poles[ok]))])     # the least damped in the band
+    f = abs(math.atan2(p.imag, p.real)) / (2.0 * math.pi * dt_s * step)
     return f if lo <= f <= hi else math.nan
