@@ -24,6 +24,19 @@ Hz for a tire 0.7 / 1 / 1.3 x as stiff under passive, within 0.06 Hz over the se
 is the closed loop's wheel hop: compare runs under the same law, or with the design's
 closed-loop mode, not with sqrt((K + Kt) / m).  Pure numpy / scipy; NaN where no fit is
 possible.
+
+What the fit reads on the passive rig can be predicted (:func:`passive_wheel_hop_hz`):
+the fit's least-squares AR(2) tends to the Yule-Walker solution on the autocovariance of
+the band-passed reading, and that of the linear quarter car at its static tire
+deflection (the tire's tangent stiffness e f_k(x2) / x2 there, its damping Ct(x2)),
+driven by a road whose velocity is white, comes from one discrete Lyapunov equation.
+It predicts the bias toward the band's centre with the rest: 8.69 / 9.49 / 10.21 Hz for
+a tire 0.7 / 1 / 1.3 x as stiff, against 8.67 / 9.46 / 10.16 Hz fitted on the emulated
+rig's passive runs (thesis course; ISO B road 8.68 / 9.48 / 10.22).  Inverted
+(:func:`tire_stiffness_scale`), a passive stretch of the LVDT gives the tire's stiffness
+against the configured one: the frequency goes about as the scale^0.23, so 0.05 Hz is
+about 2 % of stiffness.  The prediction takes the configured M, m, K and C: a rig that
+differs there reads as a tire that differs (docs/design.md §11).
 """
 
 from __future__ import annotations
@@ -31,12 +44,26 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import scipy.linalg
 from numpy.typing import NDArray
-from scipy.signal import butter, sosfiltfilt
+from scipy.optimize import brentq
+from scipy.signal import butter, cont2discrete, sosfiltfilt, zpk2ss
 
 from controller.arrays import FloatArray
+from controller.config import RigConfig
+from controller.plant import (
+    linear_model,
+    static_tire_deflection_m,
+    tire_damping_ns_per_m,
+    tire_secant_stiffness_n_per_m,
+)
 
-__all__ = ["MIN_FIT_S", "wheel_hop_frequency_hz"]
+__all__ = ["MIN_FIT_S", "TIRE_SCALE_RANGE", "passive_wheel_hop_hz", "tire_stiffness_scale",
+           "wheel_hop_frequency_hz"]
+
+#: tire stiffness scales (x ``tire.stiffness_coefficient``) :func:`tire_stiffness_scale`
+#: searches; a frequency outside their predictions gives NaN
+TIRE_SCALE_RANGE = (0.25, 4.0)
 
 #: shortest stretch of readings [s] a fit is made from (a few hundred wheel-hop cycles)
 MIN_FIT_S = 5.0
@@ -72,8 +99,87 @@ def wheel_hop_frequency_hz(rattlespace_m: FloatArray, dt_s: float,
         return math.nan
     regressors = np.column_stack([yd[1:-1][rows], yd[:-2][rows]])
     a1, a2 = np.linalg.lstsq(regressors, yd[2:][rows], rcond=None)[0]
+    return _pole_frequency_hz(a1, a2, dt_s * step, band_hz)
+
+
+def _pole_frequency_hz(a1: float, a2: float, t_fit_s: float,
+                       band_hz: tuple[float, float]) -> float:
+    """Frequency [Hz] of the AR(2) y_k = a1 y_{k-1} + a2 y_{k-2} sampled every
+    ``t_fit_s``; NaN unless its poles are a damped oscillation within ``band_hz``."""
     p = np.roots([1.0, -a1, -a2])[0]            # one of the pair (conjugates: same angle)
     if p.imag == 0.0 or not abs(p) < 1.0:       # not a damped oscillation
         return math.nan
-    f = abs(math.atan2(p.imag, p.real)) / (2.0 * math.pi * dt_s * step)
-    return f if lo <= f <= hi else math.nan
+    f = abs(math.atan2(p.imag, p.real)) / (2.0 * math.pi * t_fit_s)
+    return f if band_hz[0] <= f <= band_hz[1] else math.nan
+
+
+def passive_wheel_hop_hz(cfg: RigConfig, *, dt_s: float | None = None,
+                         band_hz: tuple[float, float] = (5.0, 20.0),
+                         fit_rate_hz: float = 200.0) -> float:
+    """What :func:`wheel_hop_frequency_hz` reads [Hz] on a long passive run of the rig
+    ``cfg`` (its vehicle and tire; LVDT sampled every ``dt_s``, default the loop's
+    ``cfg.sample_time_s``), a road whose velocity is white driving it.  The linear quarter
+    car at the static tire deflection x2 (tire stiffness e f_k(x2) / x2, the tangent;
+    damping Ct(x2)) is discretised with the band-pass twice after it (forward and
+    backward have the spectrum of twice forward), its state covariance solved from the
+    discrete Lyapunov equation, and the fit's AR(2) taken from the Yule-Walker equations
+    on the autocovariance at the fit's lags.  NaN where the fit would be."""
+    dt = cfg.sample_time_s if dt_s is None else dt_s
+    fs = 1.0 / dt
+    lo, hi = band_hz
+    if not (0.0 < lo < hi < 0.5 * fs):
+        return math.nan
+    x2 = static_tire_deflection_m(cfg)
+    kt = tire_secant_stiffness_n_per_m(x2, cfg.tire) * cfg.tire.stiffness_exponent
+    lm = linear_model(cfg.vehicle, kt, tire_damping_ns_per_m(x2, cfg.tire))
+    ap, bp, cp, _, _ = cont2discrete((lm.A, lm.B1[:, None], lm.C_meas[:1],
+                                      np.zeros((1, 1))), dt)
+    af, bf, cf, df = zpk2ss(*butter(2, [lo, hi], btype="band", fs=fs, output="zpk"))
+    n_p, n_f = ap.shape[0], af.shape[0]
+    n = n_p + 2 * n_f           # plant, band-pass, band-pass
+    a = np.zeros((n, n))
+    b = np.zeros((n, 1))
+    c = np.zeros((1, n))
+    first = slice(n_p, n_p + n_f)
+    second = slice(n_p + n_f, n)
+    a[:n_p, :n_p] = ap
+    b[:n_p] = bp
+    a[first, :n_p] = bf @ cp
+    a[first, first] = af
+    a[second, :n_p] = bf @ df @ cp
+    a[second, first] = bf @ cf
+    a[second, second] = af
+    c[:, :n_p] = df @ df @ cp
+    c[:, first] = df @ cf
+    c[:, second] = cf
+    cov = scipy.linalg.solve_discrete_lyapunov(a, b @ b.T)
+    step = max(1, int(fs // fit_rate_hz))
+    a_step = np.linalg.matrix_power(a, step)
+    lag1 = a_step @ cov
+    c0 = float((c @ cov @ c.T)[0, 0])
+    c1 = float((c @ lag1 @ c.T)[0, 0])
+    c2 = float((c @ a_step @ lag1 @ c.T)[0, 0])
+    a1, a2 = np.linalg.solve([[c0, c1], [c1, c0]], [c1, c2])
+    return _pole_frequency_hz(float(a1), float(a2), dt * step, band_hz)
+
+
+def tire_stiffness_scale(wheel_hop_hz: float, cfg: RigConfig, *,
+                         dt_s: float | None = None) -> float:
+    """The factor on ``cfg.tire.stiffness_coefficient`` [-] whose rig reads
+    ``wheel_hop_hz`` [Hz] (a passive run's :func:`wheel_hop_frequency_hz`, sampled every
+    ``dt_s``) by :func:`passive_wheel_hop_hz`, the rest of ``cfg`` as configured.  NaN
+    for a non-finite frequency or one outside the predictions for
+    :data:`TIRE_SCALE_RANGE`."""
+    if not math.isfinite(wheel_hop_hz):
+        return math.nan
+    coeff = cfg.tire.stiffness_coefficient
+
+    def miss(scale: float) -> float:
+        tire = cfg.replace(tire={"stiffness_coefficient": coeff * scale})
+        return passive_wheel_hop_hz(tire, dt_s=dt_s) - wheel_hop_hz
+
+    lo, hi = TIRE_SCALE_RANGE
+    m_lo, m_hi = miss(lo), miss(hi)
+    if not (m_lo <= 0.0 <= m_hi):       # (NaN compares False)
+        return math.nan
+    return float(brentq(miss, lo, hi, xtol=1e-4))

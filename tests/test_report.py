@@ -29,6 +29,7 @@ from controller.artifact import save_design
 from controller.config import RigConfig, default_config, one_layer
 from controller.design import design_bank
 from controller.runtime.kernels import StepFlag
+from controller.wheel_hop import passive_wheel_hop_hz, tire_stiffness_scale
 from hil.stepped_run import record_emulated_run
 from rig.cli import main as rig_main
 from rig.recording.recorder import read_run
@@ -600,3 +601,49 @@ def test_wheel_hop_row_is_each_phases_own_fit_and_nan_on_a_short_phase() -> None
     assert ph["active"]["wheel_hop_hz"] == pytest.approx(11.0, abs=0.2)
     assert "wheel-hop frequency (AR(2) fit on the LVDT, 5-20 Hz)" in _summary_table(ph)
     assert math.isnan(phase_metrics(_passive_then_active())["active"]["wheel_hop_hz"])
+
+
+def _wheel_hop_run(f_passive_hz: float) -> RunSeries:
+    """10 s passive with a noise-driven oscillation (2 mm RMS) at ``f_passive_hz``
+    (damped; damping ratio 0.2) on a slow body motion, then 10 s active at 11 Hz."""
+    s = _passive_then_active(passive=10000, active=10000)
+    rng = np.random.default_rng(6)
+    t = np.arange(20000) * 1e-3
+    y = np.zeros(t.size)
+    for k, f in enumerate((f_passive_hz / math.sqrt(0.96), 11.0)):
+        w0 = 2 * np.pi * f
+        part = slice(10000 * k, 10000 * (k + 1))
+        _, osc, _ = signal.lsim(([1.0], [1.0, 0.4 * w0, w0 * w0]),
+                                rng.standard_normal(10000), t[:10000])
+        y[part] = 0.002 * osc / np.std(osc)
+    s.signals["rattlespace_m"] = y + 0.01 * np.sin(2 * np.pi * 1.2 * t)
+    return s
+
+
+def test_tire_row_inverts_the_passive_wheel_hop_and_uses_the_estimated_rig() -> None:
+    """The tire row: the passive phase's wheel hop through the prediction of
+    controller.wheel_hop (the rig of a 0.7 x tire reads about 0.7 x; the fit's bias on
+    a lone oscillator is a few %), NaN for the active phase (the law moves the wheel
+    hop); with the estimator's spring rate and damping recorded at the end of the active
+    phase the same frequency reads as the tire of that rig, not the configured one."""
+    cfg = default_config()
+    soft = cfg.replace(tire={"stiffness_coefficient": 0.7 * cfg.tire.stiffness_coefficient})
+    s = _wheel_hop_run(passive_wheel_hop_hz(soft))
+    ph = phase_metrics(s)
+    f = ph["passive"]["wheel_hop_hz"]
+    assert ph["passive"]["tire_stiffness_scale"] == pytest.approx(
+        tire_stiffness_scale(f, cfg), rel=1e-6)
+    assert ph["passive"]["tire_stiffness_scale"] == pytest.approx(0.7, abs=0.07)
+    assert math.isnan(ph["active"]["tire_stiffness_scale"])
+    assert "tire stiffness from the passive wheel hop (x the configured tire)" in \
+        _summary_table(ph)
+    n = s.signals["rattlespace_m"].size
+    v = cfg.vehicle
+    s.sprung_mass_est_kg = np.full(n, v.sprung_mass_kg)
+    s.spring_rate_est_n_per_m = np.full(n, v.suspension_stiffness_n_per_m)
+    s.damping_est_ns_per_m = np.full(n, 1.5 * v.suspension_damping_ns_per_m)
+    damped = cfg.replace(vehicle={"suspension_damping_ns_per_m":
+                                  1.5 * v.suspension_damping_ns_per_m})
+    got = phase_metrics(s)["passive"]["tire_stiffness_scale"]
+    assert got == pytest.approx(tire_stiffness_scale(f, damped), rel=1e-6)
+    assert got > ph["passive"]["tire_stiffness_scale"] * 1.1

@@ -15,7 +15,11 @@ from :mod:`controller.metrics` run over the whole series and are then averaged p
   edges in ``/controller/internals.flags``).
 * the wheel-hop frequency of each phase: an AR(2) fit on the band-passed LVDT reading
   (:mod:`controller.wheel_hop`); a tire change between runs under the same law shows
-  there, NaN under 5 s of readings.
+  there, NaN under 5 s of readings; and, from the passive phase's, the tire's stiffness
+  against the configured tire (:func:`controller.wheel_hop.tire_stiffness_scale` on the
+  recording's configuration, with the sprung mass, spring rate and damping the
+  controller estimated at the end of the active phase where it ran: the wheel hop moves
+  with them too).  The law moves the wheel hop, so the active phase has no such row.
 
 "Passive" is every tick with the valve off (:attr:`~rig.report.series.Phase.PASSIVE` and
 :attr:`~rig.report.series.Phase.FAULT`: the bypass is open either way).
@@ -30,10 +34,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
+from controller.config import RigConfig
 from controller.metrics import filter_signal, wk_tf
 from controller.runtime.kernels import StepFlag
 from controller.stop_contact import EPISODE_GAP_S
-from controller.wheel_hop import wheel_hop_frequency_hz
+from controller.wheel_hop import tire_stiffness_scale, wheel_hop_frequency_hz
 from rig.report.series import Phase, RunSeries
 
 __all__ = ["SUMMARY_ROWS", "SummaryRow", "phase_metrics", "run_metrics", "stop_contact"]
@@ -88,6 +93,8 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "largest |value|", "m", "/controller/internals.ride_height_m", 3, ratio=False),
     SummaryRow("wheel_hop_hz", "wheel-hop frequency (AR(2) fit on the LVDT, 5-20 Hz)",
                "Hz", "/rig/signals.rattlespace_m", 3, ratio=False),
+    SummaryRow("tire_stiffness_scale", "tire stiffness from the passive wheel hop "
+               "(x the configured tire)", "", "/rig/signals.rattlespace_m", 3, ratio=False),
     SummaryRow("no_rule_fired_pct", "ticks on which no fuzzy rule fired", "%",
                "/controller/internals.flags", 3, ratio=False),
     SummaryRow("lateness_p50_us", "wake-up lateness p50", "µs", "/rig/timing.wake_late_s"),
@@ -230,7 +237,24 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "ride_height_max_m": (_max(np.abs(s.ride_height_m[m]))
                                   if s.ride_height_m.size == m.size else math.nan),
             "wheel_hop_hz": wheel_hop_frequency_hz(rs, s.dt_s, m),
+            "tire_stiffness_scale": math.nan,
             "no_rule_fired_pct": (100.0 * float(s.no_rule_fired[m].mean())
                                   if m.any() and np.any(s.flags[m] >= 0) else math.nan),
         }
+    out["passive"]["tire_stiffness_scale"] = tire_stiffness_scale(
+        out["passive"]["wheel_hop_hz"], _estimated_rig(s, active), dt_s=s.dt_s)
     return out
+
+
+def _estimated_rig(s: RunSeries, active: NDArray[np.bool_]) -> RigConfig:
+    """The recording's configuration with the sprung mass, spring rate and damping the
+    controller estimated at the end of the active phase, where all three were recorded
+    there (with the valve off the estimator cannot tell their common scale,
+    docs/design.md §11); else as configured."""
+    est = (_last_in(s.sprung_mass_est_kg, active), _last_in(s.spring_rate_est_n_per_m, active),
+           _last_in(s.damping_est_ns_per_m, active))
+    if not all(math.isfinite(x) and x > 0.0 for x in est):
+        return s.cfg
+    return s.cfg.replace(vehicle={"sprung_mass_kg": est[0],
+                                  "suspension_stiffness_n_per_m": est[1],
+                                  "suspension_damping_ns_per_m": est[2]})
