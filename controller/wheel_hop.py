@@ -37,6 +37,20 @@ rig's passive runs (thesis course; ISO B road 8.68 / 9.48 / 10.22).  Inverted
 against the configured one: the frequency goes about as the scale^0.23, so 0.05 Hz is
 about 2 % of stiffness.  The prediction takes the configured M, m, K and C: a rig that
 differs there reads as a tire that differs (docs/design.md §11).
+
+The runtime tracks the same fit while the rig is passive
+(``controller.runtime.kernels.wheel_hop_track``, parameters
+:func:`wheel_hop_tracker_parameters`): the band-pass run twice forward (the spectrum of
+forward-backward, so the same prediction holds), one sample in ``step`` kept, and the
+AR(2) least squares with exponential forgetting over :data:`TRACK_WINDOW_S`.  It takes
+samples only while the load cell reads no force (its envelope, :data:`FORCE_RELEASE_S`
+release, below :data:`PASSIVE_FORCE_N`: the valve is safe, the suspension is the passive one the
+prediction is of) and :data:`TRACK_SETTLE_S` after that began, and gives an estimate
+once :data:`TRACK_MIN_DATA_S` of such samples are in the window and their band-passed
+mean square is :data:`TRACK_SNR` ² x the band-passed LVDT noise's (a quiet rig's
+reading is noise, whose fit is the band's centre); otherwise it holds the last one.
+The tire's stiffness follows from a table of the prediction over :data:`TIRE_SCALE_RANGE`
+for the configured rig, interpolated in logs.
 """
 
 from __future__ import annotations
@@ -47,7 +61,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 from scipy.optimize import brentq
-from scipy.signal import butter, cont2discrete, sosfiltfilt, zpk2ss
+from scipy.signal import butter, cont2discrete, sosfilt, sosfiltfilt, zpk2ss
 
 from controller.arrays import FloatArray
 from controller.config import RigConfig
@@ -58,12 +72,42 @@ from controller.plant import (
     tire_secant_stiffness_n_per_m,
 )
 
-__all__ = ["MIN_FIT_S", "TIRE_SCALE_RANGE", "passive_wheel_hop_hz", "tire_stiffness_scale",
-           "wheel_hop_frequency_hz"]
+__all__ = ["MIN_FIT_S", "TIRE_SCALE_RANGE", "WH_SIZE", "WH_STATE_SIZE", "passive_wheel_hop_hz",
+           "tire_stiffness_scale", "wheel_hop_frequency_hz", "wheel_hop_tracker_parameters"]
 
 #: tire stiffness scales (x ``tire.stiffness_coefficient``) :func:`tire_stiffness_scale`
 #: searches; a frequency outside their predictions gives NaN
 TIRE_SCALE_RANGE = (0.25, 4.0)
+
+#: forgetting time of the runtime's fit [s]
+TRACK_WINDOW_S = 20.0
+#: the rig is passive while the load cell's |force| envelope (0.5 s release) is below this [N]
+PASSIVE_FORCE_N = 200.0
+#: release time of the load cell's |force| envelope [s]
+FORCE_RELEASE_S = 0.5
+#: samples are taken this long after the rig became passive [s] (the band-pass settles)
+TRACK_SETTLE_S = 0.5
+#: an estimate needs this much passive data in the window [s]
+TRACK_MIN_DATA_S = 8.0
+#: ... and the band-passed reading's RMS this many times the band-passed sensor noise's
+TRACK_SNR = 5.0
+#: points of the frequency-to-stiffness table
+TABLE_POINTS = 25
+
+# parameter layout (wheel_hop_tracker_parameters)
+(WH_ON, WH_STEP, WH_LAMBDA, WH_FDECAY, WH_FMAX, WH_SETTLE, WH_NMIN, WH_RMIN, WH_TFIT,
+ WH_LO, WH_HI) = range(11)
+WH_SOS = 11                         # band-pass sections: 2 x (b0, b1, b2, a1, a2)
+WH_TAB_F = WH_SOS + 10              # log of the predicted frequency at each table point
+WH_TAB_S = WH_TAB_F + TABLE_POINTS  # log of the tire stiffness scale at each table point
+WH_SIZE = WH_TAB_S + TABLE_POINTS
+# state layout: band-pass states (2 passes x 2 sections x 2), the decimation count, the
+# last two kept samples, the information (r11, r12, r22) and vector (b1, b2), the force
+# envelope, ticks passive, samples in the window (forgetting), the estimates
+WHS_BP = 0
+(WHS_COUNT, WHS_Y1, WHS_Y2, WHS_R11, WHS_R12, WHS_R22, WHS_B1, WHS_B2, WHS_FENV,
+ WHS_NPASS, WHS_NWIN, WHS_HZ, WHS_SCALE, WHS_NUPD) = range(8, 22)
+WH_STATE_SIZE = 22
 
 #: shortest stretch of readings [s] a fit is made from (a few hundred wheel-hop cycles)
 MIN_FIT_S = 5.0
@@ -161,6 +205,45 @@ def passive_wheel_hop_hz(cfg: RigConfig, *, dt_s: float | None = None,
     c2 = float((c @ a_step @ lag1 @ c.T)[0, 0])
     a1, a2 = np.linalg.solve([[c0, c1], [c1, c0]], [c1, c2])
     return _pole_frequency_hz(float(a1), float(a2), dt * step, band_hz)
+
+
+def wheel_hop_tracker_parameters(cfg: RigConfig, *, band_hz: tuple[float, float] = (5.0, 20.0),
+                                 fit_rate_hz: float = 200.0) -> FloatArray:
+    """The runtime tracker's parameter array (layout ``WH_*``) for the loop of ``cfg``;
+    all zeros (off) when the band does not fit below the loop's Nyquist frequency."""
+    out = np.zeros(WH_SIZE)
+    dt = cfg.sample_time_s
+    fs = 1.0 / dt
+    lo, hi = band_hz
+    if not (0.0 < lo < hi < 0.5 * fs):
+        return out
+    sos = butter(2, [lo, hi], btype="band", fs=fs, output="sos")
+    step = max(1, int(fs // fit_rate_hz))
+    t_fit = dt * step
+    impulse = np.zeros(round(5.0 / dt))
+    impulse[0] = 1.0
+    h = sosfilt(sos, sosfilt(sos, impulse))
+    noise_ms = cfg.noise.rattlespace_std_m ** 2 * float(np.sum(h * h))
+    lam = math.exp(-t_fit / TRACK_WINDOW_S)
+    n_min = round(TRACK_MIN_DATA_S / t_fit)
+    out[WH_ON] = 1.0
+    out[WH_STEP] = step
+    out[WH_LAMBDA] = lam
+    out[WH_FDECAY] = math.exp(-dt / FORCE_RELEASE_S)
+    out[WH_FMAX] = PASSIVE_FORCE_N
+    out[WH_SETTLE] = round(TRACK_SETTLE_S / dt)
+    out[WH_NMIN] = (1.0 - lam ** n_min) / (1.0 - lam)  # n_min samples in a row, weighted
+    out[WH_RMIN] = TRACK_SNR ** 2 * noise_ms
+    out[WH_TFIT] = t_fit
+    out[WH_LO], out[WH_HI] = lo, hi
+    out[WH_SOS:WH_SOS + 10] = np.concatenate([np.r_[sec[:3], sec[4:]] for sec in sos])
+    scales = np.geomspace(*TIRE_SCALE_RANGE, TABLE_POINTS)
+    coeff = cfg.tire.stiffness_coefficient
+    freqs = [passive_wheel_hop_hz(cfg.replace(tire={"stiffness_coefficient": coeff * k}),
+                                  band_hz=band_hz, fit_rate_hz=fit_rate_hz) for k in scales]
+    out[WH_TAB_F:WH_TAB_F + TABLE_POINTS] = np.log(freqs)
+    out[WH_TAB_S:WH_TAB_S + TABLE_POINTS] = np.log(scales)
+    return out
 
 
 def tire_stiffness_scale(wheel_hop_hz: float, cfg: RigConfig, *,

@@ -153,6 +153,8 @@ from controller.runtime.kernels import (
     F_TS_ON,
     F_UNUSE_A,
     F_UNUSE_R,
+    F_WH,
+    F_WHS,
     F_XDEV,
     F_XDEVM,
     F_XF,
@@ -298,6 +300,8 @@ from controller.runtime.kernels import (
     stop_contact,
     stop_guard,
     travel_comfort_share,
+    wheel_hop_reset,
+    wheel_hop_track,
 )
 from controller.runtime.layout import SlotValue
 from controller.runtime.mass_layers import (
@@ -323,6 +327,7 @@ from controller.stop_barrier import BARRIER_SIZE
 from controller.stop_barrier import stop_barrier as stop_barrier_parameters
 from controller.stop_contact import StopContactSettings, stop_contact_settings
 from controller.travel_schedule import SCHEDULE_SIZE, travel_schedule
+from controller.wheel_hop import WH_SIZE, WHS_HZ, WHS_NUPD, WHS_SCALE, wheel_hop_tracker_parameters
 
 __all__ = ["BankRuntime", "Blending", "RunningModels", "StepFlag", "config_of",
            "default_single_model"]
@@ -662,6 +667,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     u_in, y0, y1 = _measurements(fv, rattlespace_m, accel_mps2, force_meas_n)
     # contacts are rare while the stop-contact window (last tick's) is within its budget
     mass_estimate(fv, u_in, rattlespace_m, accel_mps2, fv[F_SC_TIME] < fv[F_SC_BUDGET])
+    wheel_hop_track(fv, rattlespace_m, force_meas_n)
     mass_schedule(st, active, fv, iv, nbr, vec, mat, fv[F_MES + ME_EST], fv[F_MES + ME_KEST],
                   fv[F_MES + ME_CEST], blend)
     xf0 = fv[F_XF]
@@ -829,6 +835,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     fv[F_TS_ENV] = 0.0
     fv[F_TS_BETA] = 0.0
     mass_estimate_reset(fv)
+    wheel_hop_reset(fv)
     for i in range(MAX_DELAY):
         fv[F_PEND + i] = 0.0
     for i in range(4):
@@ -1045,6 +1052,7 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_GUARD_V0] = cfg.design.stop_guard_lead_deadband_mps
     fv[F_ME:F_ME + ME_SIZE] = mass_estimator_parameters(
         cfg, (float(design.bump_stop[1]), float(design.bump_stop[2])))
+    fv[F_WH:F_WH + WH_SIZE] = wheel_hop_tracker_parameters(cfg)
     fv[F_LHYST] = LAYER_HYSTERESIS
     layers = _layers(design, cfg)[0]     # the layer distance counts the axes that vary
     fv[F_LWK] = float(np.unique(layers[:, 1]).size > 1)
@@ -1453,6 +1461,15 @@ class BankRuntime:
         "_fv", F_MES + ME_KEST, float,
         "The suspension spring rate the sprung-mass estimator fits beside the mass [N/m] "
         "(the configured K until it updates).")
+    wheel_hop_hz = SlotValue(
+        "_fv", F_WHS + WHS_HZ, float,
+        "The passive rig's wheel-hop frequency [Hz] (controller/wheel_hop.py: an AR(2) fit "
+        "on the band-passed LVDT while the load cell reads no force; NaN until 5 s of "
+        "such data, held while armed).")
+    tire_stiffness_est = SlotValue(
+        "_fv", F_WHS + WHS_SCALE, float,
+        "The tire's stiffness against the configured tire [-], from wheel_hop_hz through "
+        "the prediction for the configured rig (controller/wheel_hop.py; NaN with it).")
     damping_est_ns_per_m = SlotValue(
         "_fv", F_MES + ME_CEST, float,
         "The suspension damping the sprung-mass estimator fits beside the mass [N s/m] "
@@ -1479,6 +1496,7 @@ class BankRuntime:
                 "stop_degradations": int(iv[I_SC_NDEG]),
                 "stop_degraded_ticks": int(iv[I_SC_DEGTICKS]),
                 "mass_estimate_updates": int(self._fv[F_MES + ME_NUPD]),
+                "wheel_hop_updates": int(self._fv[F_WHS + WHS_NUPD]),
                 "layer_changes": int(iv[I_NLAYERSW])}
 
     def snapshot(self) -> dict[str, Any]:

@@ -85,6 +85,39 @@ from controller.mass_estimator import (
 from controller.modes import Blending
 from controller.runtime.layout import BufferLayout
 from controller.travel_schedule import SCHEDULE_SIZE
+from controller.wheel_hop import (
+    WH_FDECAY,
+    WH_FMAX,
+    WH_HI,
+    WH_LAMBDA,
+    WH_LO,
+    WH_NMIN,
+    WH_ON,
+    WH_RMIN,
+    WH_SETTLE,
+    WH_SIZE,
+    WH_SOS,
+    WH_STATE_SIZE,
+    WH_STEP,
+    WH_TAB_F,
+    WH_TAB_S,
+    WH_TFIT,
+    WHS_B1,
+    WHS_B2,
+    WHS_BP,
+    WHS_COUNT,
+    WHS_FENV,
+    WHS_HZ,
+    WHS_NPASS,
+    WHS_NUPD,
+    WHS_NWIN,
+    WHS_R11,
+    WHS_R12,
+    WHS_R22,
+    WHS_SCALE,
+    WHS_Y1,
+    WHS_Y2,
+)
 
 __all__ = ["Blending", "StepFlag"]
 
@@ -263,6 +296,8 @@ F_TS_ON = FV.slot()  # travel schedule on (weight set 0; docs/design.md §12)
 F_TS = FV.slot(SCHEDULE_SIZE)  # travel schedule: TravelSchedule.as_array() (travel_schedule.py)
 F_TS_ENV = FV.slot()  # travel schedule: usage envelope [m] (state)
 F_TS_BETA = FV.slot()  # travel schedule: the comfort law's share of the last tick (read-out)
+F_WH = FV.slot(WH_SIZE)  # wheel-hop tracker: wheel_hop_tracker_parameters() (WH_ON = 0: off)
+F_WHS = FV.slot(WH_STATE_SIZE)  # wheel-hop tracker: state (controller/wheel_hop.py)
 FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
@@ -810,3 +845,101 @@ def mass_estimate_reset(fv: np.ndarray) -> None:
     fv[s + ME_EST] = fv[F_ME + ME_M0]
     fv[s + ME_KEST] = fv[F_ME + ME_K]
     fv[s + ME_CEST] = fv[F_ME + ME_C]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _wheel_hop_scale(fv: np.ndarray, f_hz: float) -> float:
+    """The tire stiffness scale the table of ``F_WH`` gives for the passive wheel-hop
+    frequency ``f_hz`` (interpolated in logs; NaN outside the table)."""
+    p = F_WH
+    n = WH_TAB_S - WH_TAB_F
+    lf = math.log(f_hz)
+    if not (fv[p + WH_TAB_F] <= lf <= fv[p + WH_TAB_F + n - 1]):
+        return np.nan
+    i = 0
+    while i < n - 2 and fv[p + WH_TAB_F + i + 1] < lf:
+        i += 1
+    f0 = fv[p + WH_TAB_F + i]
+    f1 = fv[p + WH_TAB_F + i + 1]
+    s0 = fv[p + WH_TAB_S + i]
+    s1 = fv[p + WH_TAB_S + i + 1]
+    return math.exp(s0 + (s1 - s0) * (lf - f0) / (f1 - f0))
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def wheel_hop_track(fv: np.ndarray, rattlespace_m: float, force_n: float) -> None:
+    """One tick of the wheel-hop tracker (controller/wheel_hop.py): the LVDT reading
+    band-passed twice, every ``WH_STEP``-th sample of a passive stretch into an AR(2)
+    least squares with forgetting; the passive wheel-hop frequency in
+    ``fv[F_WHS + WHS_HZ]`` [Hz] and the tire stiffness scale in ``WHS_SCALE`` (NaN
+    until the rig has been passive and moving enough; held otherwise)."""
+    p = F_WH
+    s = F_WHS
+    if not (fv[p + WH_ON] > 0.0):
+        return
+    y = rattlespace_m
+    for k in range(4):                  # two passes of two sections
+        y = _biquad(fv, p + WH_SOS + 5 * (k % 2), s + WHS_BP + 2 * k, y)
+    env = max(abs(force_n), fv[p + WH_FDECAY] * fv[s + WHS_FENV])
+    fv[s + WHS_FENV] = env if math.isfinite(env) else 0.0
+    if not math.isfinite(y):            # restart the band-pass
+        for i in range(8):
+            fv[s + WHS_BP + i] = 0.0
+    if not (math.isfinite(y) and env < fv[p + WH_FMAX]):
+        fv[s + WHS_NPASS] = 0.0         # not passive: the sums hold, the chain restarts
+        fv[s + WHS_COUNT] = 0.0
+        return
+    fv[s + WHS_NPASS] += 1.0
+    settle = fv[p + WH_SETTLE]
+    if fv[s + WHS_NPASS] <= settle:
+        return
+    fv[s + WHS_COUNT] += 1.0
+    step = fv[p + WH_STEP]
+    if fv[s + WHS_COUNT] < step:
+        return
+    fv[s + WHS_COUNT] = 0.0
+    y1 = fv[s + WHS_Y1]
+    y2 = fv[s + WHS_Y2]
+    fv[s + WHS_Y2] = y1
+    fv[s + WHS_Y1] = y
+    if fv[s + WHS_NPASS] < settle + 3.0 * step:
+        return                          # not two samples of this stretch before it yet
+    lam = fv[p + WH_LAMBDA]
+    r11 = lam * fv[s + WHS_R11] + y1 * y1
+    r12 = lam * fv[s + WHS_R12] + y1 * y2
+    r22 = lam * fv[s + WHS_R22] + y2 * y2
+    b1 = lam * fv[s + WHS_B1] + y1 * y
+    b2 = lam * fv[s + WHS_B2] + y2 * y
+    nwin = lam * fv[s + WHS_NWIN] + 1.0
+    fv[s + WHS_R11] = r11
+    fv[s + WHS_R12] = r12
+    fv[s + WHS_R22] = r22
+    fv[s + WHS_B1] = b1
+    fv[s + WHS_B2] = b2
+    fv[s + WHS_NWIN] = nwin
+    if not (nwin >= fv[p + WH_NMIN] and r11 > fv[p + WH_RMIN] * nwin):
+        return                          # too little passive data, or a quiet rig: hold
+    det = r11 * r22 - r12 * r12
+    if not det > 0.0:
+        return
+    a1 = (b1 * r22 - b2 * r12) / det
+    a2 = (b2 * r11 - b1 * r12) / det
+    if not (a1 * a1 + 4.0 * a2 < 0.0 and 0.0 < -a2 < 1.0):
+        return                          # not a damped oscillation
+    f = math.acos(max(-1.0, min(1.0, a1 / (2.0 * math.sqrt(-a2))))) / (
+        2.0 * math.pi * fv[p + WH_TFIT])
+    if not (fv[p + WH_LO] <= f <= fv[p + WH_HI]):
+        return
+    fv[s + WHS_HZ] = f
+    fv[s + WHS_SCALE] = _wheel_hop_scale(fv, f)
+    fv[s + WHS_NUPD] += 1.0
+
+
+@nb.njit(cache=True, nogil=True)
+def wheel_hop_reset(fv: np.ndarray) -> None:
+    """The tracker's state after a reset: no data, no estimate (NaN)."""
+    s = F_WHS
+    for i in range(WH_STATE_SIZE):
+        fv[s + i] = 0.0
+    fv[s + WHS_HZ] = np.nan
+    fv[s + WHS_SCALE] = np.nan
