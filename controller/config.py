@@ -65,8 +65,10 @@ __all__ = [
     "default_config",
     "excitation_problems",
     "host_problem",
+    "layer_grid",
     "layer_params",
     "layer_scales",
+    "layer_tire_scales",
     "load_config",
     "one_layer",
     "parse_config",
@@ -254,6 +256,14 @@ class DesignConfig:
                                          "sprung-mass and spring-rate layers "
                                          "(docs/design.md §11; [1.0] = the configured "
                                          "damper only)")
+    tire_stiffness_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=8,
+                                            len_why="one layer of tire models per scale",
+                                            doc="tire layers of the bank (x tire."
+                                                "stiffness_coefficient), crossed with the "
+                                                "sprung-mass, spring-rate and damping layers; "
+                                                "the bank runs the layer nearest the passive "
+                                                "wheel hop's tire estimate (docs/design.md "
+                                                "§11; [1.0] = the configured tire only)")
     weight_set: int = _f(0, lo=0, hi=15, doc="index into weight_sets (1-based); 0 = the "
                                              "travel schedule between the two sets of "
                                              "schedule_weight_sets (docs/design.md §12)")
@@ -994,7 +1004,7 @@ def _cross_checks(cfg: RigConfig) -> None:
         ls = getattr(d, key)
         if not ls or any(b <= a for a, b in itertools.pairwise(ls)):
             raise ConfigError(f"design.{key}", ls, "at least one scale, strictly increasing")
-    n_layers = len(d.sprung_mass_scales) * len(d.spring_rate_scales) * len(d.damping_scales)
+    n_layers = len(layer_grid(cfg))
     per_layer = len(pts) * len(d.tire_damping_scales) + int(d.include_airborne_model)
     if per_layer > MAX_BANK_MODELS:
         raise ConfigError("design.linearisation_deflections_m", pts,
@@ -1204,17 +1214,30 @@ def parse_toml(text: str, path: str | Path) -> dict[str, Any]:
                           "valid TOML nested at most a few hundred levels deep") from None
 
 
-def layer_scales(cfg: RigConfig) -> list[tuple[float, float, float]]:
-    """(sprung mass, spring rate, damping) scale of each layer of the bank, in the bank's
-    order: ``design.sprung_mass_scales`` x ``spring_rate_scales`` x ``damping_scales``,
-    mass major, damping minor."""
+def layer_grid(cfg: RigConfig) -> list[tuple[float, float, float, float]]:
+    """(sprung mass, spring rate, damping, tire stiffness) scale of each layer of the
+    bank, in the bank's order: ``design.sprung_mass_scales`` x ``spring_rate_scales`` x
+    ``damping_scales`` x ``tire_stiffness_scales``, mass major, tire minor."""
     d = cfg.design
     return list(itertools.product(d.sprung_mass_scales, d.spring_rate_scales,
-                                  d.damping_scales))
+                                  d.damping_scales, d.tire_stiffness_scales))
 
 
-#: the ``[design]`` keys of the bank's layers (:func:`layer_scales`)
-LAYER_KEYS = ("sprung_mass_scales", "spring_rate_scales", "damping_scales")
+def layer_scales(cfg: RigConfig) -> list[tuple[float, float, float]]:
+    """(sprung mass, spring rate, damping) scale of each layer of the bank, in the bank's
+    order (:func:`layer_grid`; the tire layers of one [M, K, C] repeat it)."""
+    return [(m, k, c) for m, k, c, _t in layer_grid(cfg)]
+
+
+def layer_tire_scales(cfg: RigConfig) -> list[float]:
+    """Tire stiffness scale (x ``tire.stiffness_coefficient``) of each layer of the bank,
+    in the bank's order (:func:`layer_grid`)."""
+    return [t for _m, _k, _c, t in layer_grid(cfg)]
+
+
+#: the ``[design]`` keys of the bank's layers (:func:`layer_grid`)
+LAYER_KEYS = ("sprung_mass_scales", "spring_rate_scales", "damping_scales",
+              "tire_stiffness_scales")
 
 
 def one_layer(cfg: RigConfig) -> RigConfig:

@@ -23,7 +23,7 @@ import numpy as np
 from controller.actuator import servo_model
 from controller.arrays import FloatArray
 from controller.artifact import Design, build_metadata
-from controller.config import RigConfig, layer_scales
+from controller.config import RigConfig, layer_grid
 from controller.fuzzy import firing_weight_curve
 from controller.human_filter import HumanFilter, human_filter
 from controller.kalman import (
@@ -70,23 +70,29 @@ def bump_stop_input(cfg: RigConfig) -> FloatArray:
 
 
 def layer_config(cfg: RigConfig, mass_scale: float, spring_scale: float = 1.0,
-                 damping_scale: float = 1.0) -> RigConfig:
+                 damping_scale: float = 1.0, tire_scale: float = 1.0) -> RigConfig:
     """The configuration of one layer of the bank: the vehicle's sprung mass, suspension
-    spring rate and damping x the scales."""
-    if (mass_scale, spring_scale, damping_scale) == (1.0, 1.0, 1.0):
+    spring rate and damping x the scales, the tire's stiffness coefficient x
+    ``tire_scale`` (its damping law as configured)."""
+    if (mass_scale, spring_scale, damping_scale, tire_scale) == (1.0, 1.0, 1.0, 1.0):
         return cfg
     v = cfg.vehicle
-    return cfg.replace(vehicle={
+    out = cfg.replace(vehicle={
         "sprung_mass_kg": v.sprung_mass_kg * mass_scale,
         "suspension_stiffness_n_per_m": v.suspension_stiffness_n_per_m * spring_scale,
         "suspension_damping_ns_per_m": v.suspension_damping_ns_per_m * damping_scale})
+    if tire_scale != 1.0:
+        out = out.replace(tire={
+            "stiffness_coefficient": cfg.tire.stiffness_coefficient * tire_scale})
+    return out
 
 
-def _layer_suffix(cfg: RigConfig, scales: tuple[float, float, float]) -> str:
+def _layer_suffix(cfg: RigConfig, scales: tuple[float, float, float, float]) -> str:
     d = cfg.design
-    m, k, c = scales
+    m, k, c, t = scales
     return (f"_M{m:g}" + (f"_K{k:g}" if len(d.spring_rate_scales) > 1 else "")
-            + (f"_C{c:g}" if len(d.damping_scales) > 1 else ""))
+            + (f"_C{c:g}" if len(d.damping_scales) > 1 else "")
+            + (f"_T{t:g}" if len(d.tire_stiffness_scales) > 1 else ""))
 
 
 def _model_design(model: LinearModel, cfg: RigConfig) -> ModelDesign:
@@ -96,11 +102,11 @@ def _model_design(model: LinearModel, cfg: RigConfig) -> ModelDesign:
 
 def design_models(cfg: RigConfig) -> list[ModelDesign]:
     """The bank's models: the tire family of :func:`controller.plant.model_family` once per
-    layer (:func:`layer_scales`, layer major; with more than one layer the names carry
-    ``_M<scale>``, and ``_K<scale>`` / ``_C<scale>`` where those axes have more than one
-    value), then the airborne model (configured vehicle)."""
-    layers = layer_scales(cfg)
-    if layers == [(1.0, 1.0, 1.0)]:
+    layer (:func:`layer_grid`, layer major; with more than one layer the names carry
+    ``_M<scale>``, and ``_K<scale>`` / ``_C<scale>`` / ``_T<scale>`` where those axes have
+    more than one value), then the airborne model (configured vehicle)."""
+    layers = layer_grid(cfg)
+    if layers == [(1.0, 1.0, 1.0, 1.0)]:
         return [_model_design(model, cfg) for model in model_family(cfg)]
     out = []
     for scales in layers:

@@ -3,6 +3,7 @@ points drop the bank's cached kernels when a source they compile in changed."""
 
 from __future__ import annotations
 
+import ast
 import os
 import shutil
 import subprocess
@@ -61,3 +62,22 @@ def test_changed_sources_drop_the_cached_kernels(tmp_path: Path,
     (tmp_path / "mass_estimator.py").write_text("# changed\n")
     assert kernel_cache.drop_stale_kernel_cache() is True
     assert not cached.exists()
+
+
+def test_every_module_the_kernels_import_from_is_a_source_of_the_stamp() -> None:
+    """A constant the kernels compile in from outside controller/runtime/ (a slot
+    offset, an enum) must change the stamp when its module changes, or numba keeps the
+    kernel compiled with the old value: every ``controller.*`` module the kernel sources
+    import from (bank.py's Python side aside: its kernels use the listed ones) is in
+    KERNEL_CONSTANT_SOURCES."""
+    here = Path(controller.runtime.__file__).resolve().parent
+    listed = {Path(f).name for f in kernel_cache.KERNEL_CONSTANT_SOURCES}
+    for name in kernel_cache.KERNEL_SOURCES:
+        if name == "bank.py":
+            continue
+        tree = ast.parse((here / name).read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module and \
+                    node.module.startswith("controller.") and \
+                    not node.module.startswith("controller.runtime"):
+                assert node.module.split(".")[1] + ".py" in listed, (name, node.module)

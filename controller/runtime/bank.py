@@ -58,7 +58,13 @@ from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
 from controller.artifact import Design
-from controller.config import RigConfig, default_config, layer_params, parse_config
+from controller.config import (
+    RigConfig,
+    default_config,
+    layer_params,
+    layer_tire_scales,
+    parse_config,
+)
 from controller.mass_estimator import (
     ME_CEST,
     ME_EST,
@@ -110,6 +116,7 @@ from controller.runtime.kernels import (
     F_LON,
     F_LWC,
     F_LWK,
+    F_LWT,
     F_ME,
     F_MES,
     F_MON_REARM,
@@ -669,7 +676,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     mass_estimate(fv, u_in, rattlespace_m, accel_mps2, fv[F_SC_TIME] < fv[F_SC_BUDGET])
     wheel_hop_track(fv, rattlespace_m, force_meas_n)
     mass_schedule(st, active, fv, iv, nbr, vec, mat, fv[F_MES + ME_EST], fv[F_MES + ME_KEST],
-                  fv[F_MES + ME_CEST], blend)
+                  fv[F_MES + ME_CEST], fv[F_WHS + WHS_SCALE], blend)
     xf0 = fv[F_XF]
     xf1 = fv[F_XF + 1]
     alpha = fv[F_ALPHA]
@@ -921,11 +928,19 @@ def _layers(design: Design, cfg: RigConfig) -> tuple[FloatArray, NDArray[np.int6
     return layer_table(design.equilibrium, design.airborne, layers, cfg.vehicle.gravity_mps2)
 
 
-def _nominal_layer(layers: FloatArray, cfg: RigConfig) -> int:
-    """The layer nearest the configured vehicle (the bank's layer after a reset)."""
-    if not np.all(layers > 0.0):
+def _layer_tires(design: Design) -> FloatArray:
+    """Tire stiffness scale of each layer of the design (its own configuration's
+    ``design.tire_stiffness_scales``, :func:`controller.config.layer_tire_scales`)."""
+    return np.array(layer_tire_scales(config_of(design)), dtype=float)
+
+
+def _nominal_layer(layers: FloatArray, tires: FloatArray, cfg: RigConfig) -> int:
+    """The layer nearest the configured vehicle and tire (the bank's layer after a
+    reset)."""
+    if not (np.all(layers > 0.0) and np.all(tires > 0.0)):
         return 0
-    return int(np.argmin(np.sum(np.abs(np.log(layers / _vehicle_mkc(cfg))), axis=1)))
+    return int(np.argmin(np.sum(np.abs(np.log(layers / _vehicle_mkc(cfg))), axis=1)
+                         + np.abs(np.log(tires))))
 
 
 def default_single_model(design: Design, cfg: RigConfig) -> int:
@@ -936,7 +951,7 @@ def default_single_model(design: Design, cfg: RigConfig) -> int:
     defl = cfg.design.linearisation_deflections_m
     scales = cfg.design.tire_damping_scales
     layers, layer, _ = _layers(design, cfg)
-    home = _nominal_layer(layers, cfg)
+    home = _nominal_layer(layers, _layer_tires(design), cfg)
     best, key_best = -1, (math.inf, math.inf)
     for j in range(design.n_models):
         if design.airborne[j] or layer[j] != home:
@@ -965,7 +980,8 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
     ystat = np.where((layer >= 0) & (len(layers) > 1),
                      lay[:, 0] * veh.gravity_mps2 / lay[:, 1] - float(design.static_rattlespace_m),
                      0.0)
-    log_params = np.where((layer >= 0)[:, None], np.log(lay), 0.0)
+    tires = _layer_tires(design)[np.maximum(layer, 0)]
+    log_params = np.where((layer >= 0)[:, None], np.log(np.column_stack([lay, tires])), 0.0)
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
     wc = cfg.design.schedule_weight_sets[0] - 1
     mat = np.zeros((S, W, J, 4, MAT_COLS))
@@ -998,7 +1014,7 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
             v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
                            for ld in design.innovation_logdet[:, s]]
             v[:, V_LAYER] = layer
-            v[:, V_LOGP:V_LOGP + 3] = log_params
+            v[:, V_LOGP:V_LOGP + 4] = log_params
             v[:, V_YSTAT] = ystat
     return mat, vec
 
@@ -1057,6 +1073,7 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     layers = _layers(design, cfg)[0]     # the layer distance counts the axes that vary
     fv[F_LWK] = float(np.unique(layers[:, 1]).size > 1)
     fv[F_LWC] = float(np.unique(layers[:, 2]).size > 1)
+    fv[F_LWT] = float(np.unique(_layer_tires(design)).size > 1)
     fv[F_TS:F_TS + SCHEDULE_SIZE] = travel_schedule(cfg).as_array()
     fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
         cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()

@@ -134,16 +134,19 @@ def _warm(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _layer_distance(vec: np.ndarray, j: int, fv: np.ndarray, log_m: float, log_k: float,
-                    log_c: float) -> float:
-    """Distance of the estimate (logs of [M, K, C]) from model j's layer: the sum of
-    |log ratio| over the axes on which the bank has more than one layer (``F_LWK`` /
-    ``F_LWC`` 0 or 1 for spring rate and damping; mass always)."""
+                    log_c: float, log_t: float) -> float:
+    """Distance of the estimate (logs of [M, K, C] and of the tire's stiffness scale)
+    from model j's layer: the sum of |log ratio| over the axes on which the bank has more
+    than one layer (``F_LWK`` / ``F_LWC`` / ``F_LWT`` 0 or 1 for spring rate, damping
+    and tire; mass always)."""
     p = kern.V_LOGP
     d = abs(log_m - vec[j, p])
     if fv[kern.F_LWK] > 0.0:
         d += abs(log_k - vec[j, p + 1])
     if fv[kern.F_LWC] > 0.0:
         d += abs(log_c - vec[j, p + 2])
+    if fv[kern.F_LWT] > 0.0:
+        d += abs(log_t - vec[j, p + 3])
     return d
 
 
@@ -151,9 +154,10 @@ def _layer_distance(vec: np.ndarray, j: int, fv: np.ndarray, log_m: float, log_k
 def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
                   nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray, mass_est_kg: float,
                   spring_est_n_per_m: float, damping_est_ns_per_m: float,
-                  blend: int) -> None:
-    """Move the bank to the layer nearest the estimate of [M, K, C] (see the module
-    docstring)."""
+                  tire_est: float, blend: int) -> None:
+    """Move the bank to the layer nearest the estimate of [M, K, C] and the tire's
+    stiffness scale ``tire_est`` (the configured tire, 1, while it is NaN: the rig has
+    not been seen passive; see the module docstring)."""
     nl = iv[kern.I_NLAYER]
     if nl <= 1:
         return
@@ -164,13 +168,14 @@ def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.nda
     log_m = math.log(mass_est_kg)
     log_k = math.log(spring_est_n_per_m)
     log_c = math.log(damping_est_ns_per_m)
+    log_t = math.log(tire_est) if tire_est > 0.0 else 0.0   # (NaN compares False)
     n = iv[kern.I_NTIRE]
     cur = iv[kern.I_LAYER]
-    d_cur = _layer_distance(vec, cur * n, fv, log_m, log_k, log_c)
+    d_cur = _layer_distance(vec, cur * n, fv, log_m, log_k, log_c, log_t)
     best = cur
     d_best = d_cur
     for lay in range(nl):
-        d = _layer_distance(vec, lay * n, fv, log_m, log_k, log_c)
+        d = _layer_distance(vec, lay * n, fv, log_m, log_k, log_c, log_t)
         if d < d_best:
             best = lay
             d_best = d

@@ -21,9 +21,12 @@ __all__ = ["KERNEL_CONSTANT_SOURCES", "KERNEL_SOURCES", "drop_stale_kernel_cache
 KERNEL_SOURCES = ("bank.py", "kernels.py", "layout.py", "moving_bank.py", "bayes.py",
                   "mass_layers.py")
 #: sources outside controller/runtime/ whose constants the kernels compile in (the
-#: sprung-mass estimator's parameter and state offsets, the travel schedule's parameter
-#: count), relative to it
-KERNEL_CONSTANT_SOURCES = ("../mass_estimator.py", "../travel_schedule.py")
+#: sprung-mass estimator's and the wheel-hop tracker's parameter and state offsets, the
+#: travel schedule's parameter count, the blending modes, the largest compute delay),
+#: relative to it: every controller module the kernel sources other than bank.py import
+#: from (tests/test_kernel_cache.py)
+KERNEL_CONSTANT_SOURCES = ("../arrays.py", "../config.py", "../mass_estimator.py",
+                           "../modes.py", "../travel_schedule.py", "../wheel_hop.py")
 _STAMP = "bank_kernels.sha256"
 
 
