@@ -76,3 +76,18 @@ def test_without_a_passive_stretch_the_bank_keeps_the_configured_tire() -> None:
     ctrl, _ = _run(0.0, seed=2)
     assert np.isnan(ctrl.rt.tire_stiffness_est)
     assert ctrl.rt.mass_layer == 1 and ctrl.rt.counters()["layer_changes"] == 0
+
+
+def test_the_tire_is_read_against_the_layers_own_rig_not_the_configured_one() -> None:
+    """A softer damper raises the passive wheel hop as a stiffer tire does (0.6 x C on
+    the configured tire reads as a 1.1-1.2 x tire against the configured rig): each
+    layer compares the wheel hop with its own rig's prediction, so the bank ends on the
+    0.6 x damper's layer with the configured tire, not on the stiff tire's."""
+    cfg = CFG.replace(design={"damping_scales": [0.6, 1.0], "tire_stiffness_scales": [1.0, 1.3]})
+    plant = cfg.replace(emulator={"damping_scale": 0.6})
+    road = make_road("rough-course", 11.176, OBSERVE_S + ARMED_S, CFG.sample_time_s, 2)
+    ctrl = BankController(cached_design(cfg), plant, "fuzzy", 0, road)
+    res = run_closed_loop(plant, road, ctrl, seed=2, observe_s=OBSERVE_S)
+    assert res.metrics["n_faults"] == 0
+    assert ctrl.rt.tire_stiffness_est > 1.1             # against the configured rig
+    assert layer_grid(cfg)[ctrl.rt.mass_layer] == (1.0, 1.0, 0.6, 1.0)

@@ -334,7 +334,14 @@ from controller.stop_barrier import BARRIER_SIZE
 from controller.stop_barrier import stop_barrier as stop_barrier_parameters
 from controller.stop_contact import StopContactSettings, stop_contact_settings
 from controller.travel_schedule import SCHEDULE_SIZE, travel_schedule
-from controller.wheel_hop import WH_SIZE, WHS_HZ, WHS_NUPD, WHS_SCALE, wheel_hop_tracker_parameters
+from controller.wheel_hop import (
+    WH_SIZE,
+    WHS_HZ,
+    WHS_NUPD,
+    WHS_SCALE,
+    passive_wheel_hop_hz,
+    wheel_hop_tracker_parameters,
+)
 
 __all__ = ["BankRuntime", "Blending", "RunningModels", "StepFlag", "config_of",
            "default_single_model"]
@@ -676,7 +683,7 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     mass_estimate(fv, u_in, rattlespace_m, accel_mps2, fv[F_SC_TIME] < fv[F_SC_BUDGET])
     wheel_hop_track(fv, rattlespace_m, force_meas_n)
     mass_schedule(st, active, fv, iv, nbr, vec, mat, fv[F_MES + ME_EST], fv[F_MES + ME_KEST],
-                  fv[F_MES + ME_CEST], fv[F_WHS + WHS_SCALE], blend)
+                  fv[F_MES + ME_CEST], fv[F_WHS + WHS_HZ], blend)
     xf0 = fv[F_XF]
     xf1 = fv[F_XF + 1]
     alpha = fv[F_ALPHA]
@@ -934,6 +941,33 @@ def _layer_tires(design: Design) -> FloatArray:
     return np.array(layer_tire_scales(config_of(design)), dtype=float)
 
 
+def _layer_wheel_hops(layers: FloatArray, tires: FloatArray, cfg: RigConfig) -> FloatArray:
+    """The passive wheel-hop frequency [Hz] each layer's rig reads
+    (:func:`controller.wheel_hop.passive_wheel_hop_hz` of its sprung mass, spring rate,
+    damping and tire; the unsprung mass configured), where the bank has tire layers; 1
+    elsewhere (the layer distance does not use it then)."""
+    if np.unique(tires).size < 2:
+        return np.ones(len(tires))
+    k = cfg.tire.stiffness_coefficient
+    return np.array([passive_wheel_hop_hz(cfg.replace(
+        vehicle={"sprung_mass_kg": m, "suspension_stiffness_n_per_m": kk,
+                 "suspension_damping_ns_per_m": c},
+        tire={"stiffness_coefficient": k * t})) for (m, kk, c), t in zip(layers, tires,
+                                                                         strict=True)])
+
+
+#: tire stiffness scales about the configured tire the wheel hop's sensitivity is taken on
+_TIRE_SPAN = (0.85, 1.15)
+
+
+def _tire_weight(cfg: RigConfig) -> float:
+    """1 / (d log wheel hop / d log tire stiffness) of the configured rig: the tire
+    layers' distance in units of log tire stiffness (about 1 / 0.25)."""
+    lo, hi = (passive_wheel_hop_hz(cfg.replace(tire={
+        "stiffness_coefficient": cfg.tire.stiffness_coefficient * t})) for t in _TIRE_SPAN)
+    return math.log(_TIRE_SPAN[1] / _TIRE_SPAN[0]) / math.log(hi / lo)
+
+
 def _nominal_layer(layers: FloatArray, tires: FloatArray, cfg: RigConfig) -> int:
     """The layer nearest the configured vehicle and tire (the bank's layer after a
     reset)."""
@@ -980,8 +1014,10 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
     ystat = np.where((layer >= 0) & (len(layers) > 1),
                      lay[:, 0] * veh.gravity_mps2 / lay[:, 1] - float(design.static_rattlespace_m),
                      0.0)
-    tires = _layer_tires(design)[np.maximum(layer, 0)]
-    log_params = np.where((layer >= 0)[:, None], np.log(np.column_stack([lay, tires])), 0.0)
+    tires = _layer_tires(design)
+    hop = _layer_wheel_hops(layers, tires, cfg)[np.maximum(layer, 0)]
+    log_params = np.where((layer >= 0)[:, None],
+                          np.log(np.column_stack([lay, tires[np.maximum(layer, 0)], hop])), 0.0)
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
     wc = cfg.design.schedule_weight_sets[0] - 1
     mat = np.zeros((S, W, J, 4, MAT_COLS))
@@ -1014,7 +1050,7 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
             v[:, V_LLC] = [log_likelihood_constant(float(ld), MEAS_DIM)
                            for ld in design.innovation_logdet[:, s]]
             v[:, V_LAYER] = layer
-            v[:, V_LOGP:V_LOGP + 4] = log_params
+            v[:, V_LOGP:V_LOGP + 5] = log_params
             v[:, V_YSTAT] = ystat
     return mat, vec
 
@@ -1073,7 +1109,7 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     layers = _layers(design, cfg)[0]     # the layer distance counts the axes that vary
     fv[F_LWK] = float(np.unique(layers[:, 1]).size > 1)
     fv[F_LWC] = float(np.unique(layers[:, 2]).size > 1)
-    fv[F_LWT] = float(np.unique(_layer_tires(design)).size > 1)
+    fv[F_LWT] = _tire_weight(cfg) if np.unique(_layer_tires(design)).size > 1 else 0.0
     fv[F_TS:F_TS + SCHEDULE_SIZE] = travel_schedule(cfg).as_array()
     fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
         cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()
@@ -1481,7 +1517,7 @@ class BankRuntime:
     wheel_hop_hz = SlotValue(
         "_fv", F_WHS + WHS_HZ, float,
         "The passive rig's wheel-hop frequency [Hz] (controller/wheel_hop.py: an AR(2) fit "
-        "on the band-passed LVDT while the load cell reads no force; NaN until 5 s of "
+        "on the band-passed LVDT while the load cell reads no force; NaN until 8 s of "
         "such data, held while armed).")
     tire_stiffness_est = SlotValue(
         "_fv", F_WHS + WHS_SCALE, float,

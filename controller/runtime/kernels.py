@@ -177,7 +177,7 @@ V_LLC = VEC.slot()  # log-likelihood constant -(m/2) log 2π - ½ log|F|
 V_KA = VEC.slot(3 + MAX_DELAY)  # actuator part of the gain (spool, force, w, pending)
 V_LAYER = VEC.slot()  # sprung-mass layer of the model (-1: airborne)
 V_YSTAT = VEC.slot()  # own static deflection less the rig's: M_l g / K_l - M g / K [m]
-V_LOGP = VEC.slot(4)  # log of the layer's [M, K, C, tire scale] (layer distance, mass_layers.py)
+V_LOGP = VEC.slot(5)  # log of the layer's [M, K, C, tire scale, passive wheel hop] (mass_layers.py)
 V_KFC = VEC.slot(2)  # travel schedule's comfort gain: human-filter part
 V_KAC = VEC.slot(3 + MAX_DELAY)  # travel schedule's comfort gain: actuator part
 VEC_COLS = VEC.size
@@ -290,7 +290,7 @@ F_RH = FV.slot()  # ride height: mean LVDT reading about the stops' centre [m] (
 F_LHYST = FV.slot()  # layer hysteresis: switch when distance(new) + this < distance(current)
 F_LWK = FV.slot()  # 1: the layers differ in spring rate (the layer distance counts K), else 0
 F_LWC = FV.slot()  # 1: the layers differ in damping (the layer distance counts C), else 0
-F_LWT = FV.slot()  # 1: the layers differ in tire stiffness (the distance counts it), else 0
+F_LWT = FV.slot()  # layers differ in tire stiffness: 1 / d log(wheel hop) / d log(tire), else 0
 F_ME = FV.slot(ME_SIZE)  # sprung-mass estimator: mass_estimator_parameters() (λ = 0: off)
 F_MES = FV.slot(ME_STATE_SIZE)  # sprung-mass estimator: state (controller/mass_estimator.py)
 F_TS_ON = FV.slot()  # travel schedule on (weight set 0; docs/design.md §12)

@@ -134,11 +134,14 @@ def _warm(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _layer_distance(vec: np.ndarray, j: int, fv: np.ndarray, log_m: float, log_k: float,
-                    log_c: float, log_t: float) -> float:
-    """Distance of the estimate (logs of [M, K, C] and of the tire's stiffness scale)
-    from model j's layer: the sum of |log ratio| over the axes on which the bank has more
-    than one layer (``F_LWK`` / ``F_LWC`` / ``F_LWT`` 0 or 1 for spring rate, damping
-    and tire; mass always)."""
+                    log_c: float, log_f: float) -> float:
+    """Distance of the estimate (logs of [M, K, C] and of the passive wheel-hop
+    frequency) from model j's layer: the sum of |log ratio| over the axes on which the
+    bank has more than one layer (``F_LWK`` / ``F_LWC`` 0 or 1 for spring rate and
+    damping; mass always).  Tire layers (``F_LWT`` > 0) count the wheel hop against the
+    layer's own predicted one, |log ratio| x ``F_LWT`` (in units of log tire
+    stiffness), or, while there is no estimate (``log_f`` NaN), the layer's tire against
+    the configured one."""
     p = kern.V_LOGP
     d = abs(log_m - vec[j, p])
     if fv[kern.F_LWK] > 0.0:
@@ -146,7 +149,10 @@ def _layer_distance(vec: np.ndarray, j: int, fv: np.ndarray, log_m: float, log_k
     if fv[kern.F_LWC] > 0.0:
         d += abs(log_c - vec[j, p + 2])
     if fv[kern.F_LWT] > 0.0:
-        d += abs(log_t - vec[j, p + 3])
+        if math.isnan(log_f):
+            d += abs(vec[j, p + 3])
+        else:
+            d += abs(log_f - vec[j, p + 4]) * fv[kern.F_LWT]
     return d
 
 
@@ -154,10 +160,10 @@ def _layer_distance(vec: np.ndarray, j: int, fv: np.ndarray, log_m: float, log_k
 def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.ndarray,
                   nbr: np.ndarray, vec: np.ndarray, mat: np.ndarray, mass_est_kg: float,
                   spring_est_n_per_m: float, damping_est_ns_per_m: float,
-                  tire_est: float, blend: int) -> None:
-    """Move the bank to the layer nearest the estimate of [M, K, C] and the tire's
-    stiffness scale ``tire_est`` (the configured tire, 1, while it is NaN: the rig has
-    not been seen passive; see the module docstring)."""
+                  wheel_hop_hz: float, blend: int) -> None:
+    """Move the bank to the layer nearest the estimate of [M, K, C] and of the passive
+    wheel-hop frequency ``wheel_hop_hz`` (NaN: the rig has not been seen passive; the
+    configured tire's layers then; see the module docstring)."""
     nl = iv[kern.I_NLAYER]
     if nl <= 1:
         return
@@ -168,14 +174,14 @@ def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.nda
     log_m = math.log(mass_est_kg)
     log_k = math.log(spring_est_n_per_m)
     log_c = math.log(damping_est_ns_per_m)
-    log_t = math.log(tire_est) if tire_est > 0.0 else 0.0   # (NaN compares False)
+    log_f = math.log(wheel_hop_hz) if wheel_hop_hz > 0.0 else np.nan  # (NaN: False)
     n = iv[kern.I_NTIRE]
     cur = iv[kern.I_LAYER]
-    d_cur = _layer_distance(vec, cur * n, fv, log_m, log_k, log_c, log_t)
+    d_cur = _layer_distance(vec, cur * n, fv, log_m, log_k, log_c, log_f)
     best = cur
     d_best = d_cur
     for lay in range(nl):
-        d = _layer_distance(vec, lay * n, fv, log_m, log_k, log_c, log_t)
+        d = _layer_distance(vec, lay * n, fv, log_m, log_k, log_c, log_f)
         if d < d_best:
             best = lay
             d_best = d
