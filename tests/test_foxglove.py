@@ -32,6 +32,7 @@ from rig.argtypes import foxglove_address
 from rig.recording.scene import scene_messages
 from rig.recording.schema import (
     LOG_SCHEMA,
+    NONFINITE_NUMBER,
     TOPIC_EVENTS,
     TOPIC_INTERNALS,
     TOPIC_LOG,
@@ -283,6 +284,18 @@ def test_layout_uses_the_recording_channel_names() -> None:
         used |= set(conf.get("topics", {}))
     assert {TOPIC_SIGNALS, TOPIC_INTERNALS, TOPIC_LOG, TOPIC_SCENE} <= used
     assert panels["RosOut!log"]["topicToRender"] == TOPIC_LOG
+    # the controller's estimates are plotted; the runtime's tire estimate is written as
+    # NONFINITE_NUMBER until it has one: its plot's fixed y range keeps that off the
+    # chart and holds the stiffness scales and the fit's band (5-20 Hz)
+    plotted = {p["value"]: panel_id for panel_id, conf in panels.items()
+               for p in conf.get("paths", [])}
+    for key in ("sprung_mass_est_kg", "spring_rate_est_n_per_m", "damping_est_ns_per_m",
+                "wheel_hop_hz", "tire_stiffness_est"):
+        assert f"{TOPIC_INTERNALS}.{key}" in plotted, key
+    tire = panels[plotted[f"{TOPIC_INTERNALS}.tire_stiffness_est"]]
+    assert plotted[f"{TOPIC_INTERNALS}.wheel_hop_hz"] == plotted[
+        f"{TOPIC_INTERNALS}.tire_stiffness_est"]
+    assert NONFINITE_NUMBER < tire["minYValue"] <= 0.0 and tire["maxYValue"] >= 20.0
 
     def leaves(node: Any) -> set[str]:
         if isinstance(node, str):

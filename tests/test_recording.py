@@ -222,6 +222,19 @@ def strict_json(data: bytes) -> Any:
     return json.loads(data, parse_constant=bad)
 
 
+def test_the_writer_process_runs_this_copy_of_the_package(tmp_path: Path) -> None:
+    """The writer process (``-m rig.recording.writer``) starts in the directory that
+    holds this very ``rig`` package, so it writes this copy's schemas even where
+    another copy is installed (an editable install of another checkout, a worktree)."""
+    import rig
+
+    with recorder(tmp_path / "run.mcap") as rec:
+        assert rec._proc is not None
+        cwd = Path(os.readlink(f"/proc/{rec._proc.pid}/cwd"))
+    assert (cwd / "rig" / "recording" / "writer.py").is_file()
+    assert cwd == Path(rig.__file__).resolve().parents[1]
+
+
 def test_schemas_messages_attachments_metadata(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
     with recorder(path) as rec:

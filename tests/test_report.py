@@ -207,6 +207,20 @@ def test_sprung_mass_estimate_is_a_row_and_a_plot(report: Path, recording: Path)
         assert x.size == s.t_s.size and np.all(np.isfinite(x) & (x > 0.0)), key
         assert phase_metrics(s)["active"][key] == x[active][-1]
         assert f"{label} at the end of the phase" in html
+    # the runtime's tire estimate: in every record, but none yet (its passive stretches,
+    # 0.4 s and the fault's 0.7 s, are short of the 8 s the estimate needs); rows shown
+    internals = [r.data for r in read_run(recording).records if "models" in r.data]
+    assert len(internals) == s.t_s.size
+    for key, row, label in (
+            ("wheel_hop_hz", "wheel_hop_est_hz",
+             "passive wheel-hop frequency estimate at the end of the phase"),
+            ("tire_stiffness_est", "tire_stiffness_est",
+             "tire-stiffness estimate at the end of the phase")):
+        assert all(key in r and r[key] is None for r in internals), key
+        x = getattr(s, key)
+        assert x.size == s.t_s.size and np.isnan(x).all(), key
+        assert math.isnan(phase_metrics(s)["passive"][row]), key
+        assert label in html
 
 
 def test_long_series_envelope_keeps_every_extreme() -> None:
@@ -583,6 +597,109 @@ def test_ride_height_row_is_the_largest_magnitude_and_nan_where_not_recorded() -
     assert "ride height (mean LVDT reading from mid-travel)" in _summary_table(ph)
     s.ride_height_m = np.zeros(0)
     assert math.isnan(phase_metrics(s)["active"]["ride_height_max_m"])
+
+
+def _row(table: str, label: str) -> list[str]:
+    """The passive and active cells of the summary table's row ``label``."""
+    m = re.search(re.escape(label) + r'[^<]*</th><td class="num">([^<]*)</td>'
+                  r'<td class="num">([^<]*)</td>', table)
+    assert m, label
+    return [m.group(1), m.group(2)]
+
+
+TIRE_ROW = "tire-stiffness estimate at the end of the phase [x configured]"
+HOP_ROW = "passive wheel-hop frequency estimate at the end of the phase [Hz]"
+
+
+def test_tire_estimate_rows_are_the_last_of_each_phase_and_nan_where_not_recorded() -> None:
+    """The runtime's tire estimate rows: the last recorded value of each phase (none
+    yet: NaN; a value, then held while armed), not the offline fit's rows; a recording
+    without the fields (before the runtime had them) gives NaN, not 0."""
+    s = _passive_then_active()
+    hop = np.concatenate([np.full(150, np.nan), np.linspace(9.0, 9.4, 250),
+                          np.linspace(9.4, 9.6, 600)])
+    s.wheel_hop_hz = hop
+    s.tire_stiffness_est = hop / 10.0
+    ph = phase_metrics(s)
+    assert ph["passive"]["wheel_hop_est_hz"] == hop[399] == 9.4
+    assert ph["active"]["wheel_hop_est_hz"] == hop[-1] == 9.6
+    assert ph["passive"]["tire_stiffness_est"] == pytest.approx(0.94, rel=1e-12)
+    assert ph["active"]["tire_stiffness_est"] == pytest.approx(0.96, rel=1e-12)
+    assert math.isnan(ph["passive"]["wheel_hop_hz"])   # the offline fit's row is its own
+    table = _summary_table(ph)
+    assert _row(table, HOP_ROW) == ["9.4", "9.6"]
+    assert _row(table, TIRE_ROW) == ["0.94", "0.96"]
+    s.wheel_hop_hz = np.full(1000, np.nan)             # recorded, not yet estimated
+    assert math.isnan(phase_metrics(s)["active"]["wheel_hop_est_hz"])
+    s.wheel_hop_hz = s.tire_stiffness_est = np.zeros(0)
+    ph = phase_metrics(s)
+    for name in ("passive", "active"):
+        assert math.isnan(ph[name]["wheel_hop_est_hz"])
+        assert math.isnan(ph[name]["tire_stiffness_est"])
+    assert _row(_summary_table(ph), TIRE_ROW) == ["–", "–"]
+
+
+def test_runtime_tire_estimate_is_recorded_and_reported(work: Path, design_path: Path
+                                                       ) -> None:
+    """9 s passive on the road, then armed: the bank's estimate is in every tick record,
+    none before 8 s of passive readings, then the wheel hop and the tire it reads
+    (about the configured tire: the emulated rig's is) and held while armed; the rows
+    show the last of each phase (the passive one, and under the law the held one)."""
+    rec = record_emulated_run(work / "tire.mcap", 9.6, cfg=CFG,
+                              design_bytes=design_path.read_bytes(), arm_at_s=9.0)
+    s = load_series(rec)
+    internals = [r.data for r in read_run(rec).records if "models" in r.data]
+    assert len(internals) == s.t_s.size
+    for key in ("wheel_hop_hz", "tire_stiffness_est"):
+        raw = np.array([math.nan if r[key] is None else r[key] for r in internals])
+        assert np.array_equal(getattr(s, key), raw, equal_nan=True), key
+    hop, tire = s.wheel_hop_hz, s.tire_stiffness_est
+    active = s.phase == Phase.ACTIVE
+    arm = int(np.argmax(active))                  # one passive phase, then one active
+    assert arm > 8000 and active[arm:].all() and not active[:arm].any()
+    assert np.isnan(hop[:8000]).all() and np.isnan(tire[:8000]).all()
+    assert np.isfinite(hop[~active][-1]) and np.isfinite(hop[active]).all()
+    assert np.array_equal(np.isfinite(hop), np.isfinite(tire))
+    assert 5.0 < hop[~active][-1] < 20.0 and 0.8 < tire[~active][-1] < 1.2
+    assert tire[~active][-1] == pytest.approx(tire_stiffness_scale(hop[~active][-1], CFG),
+                                              rel=0.01)
+    assert hop[active][-1] == pytest.approx(hop[~active][-1], abs=1e-3)    # held
+    ph = phase_metrics(s)
+    for name, m in (("passive", ~active), ("active", active)):
+        assert ph[name]["wheel_hop_est_hz"] == hop[m][-1]
+        assert ph[name]["tire_stiffness_est"] == tire[m][-1]
+    table = _summary_table(ph)
+    assert _row(table, HOP_ROW)[0] == f"{hop[~active][-1]:.3g}"
+    assert _row(table, TIRE_ROW)[1] == f"{tire[active][-1]:.3g}"
+
+
+def test_a_recording_without_the_tire_estimate_loads_and_reports_nan(
+        work: Path, design_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recording made before the tick record had wheel_hop_hz and tire_stiffness_est
+    (the loop's record without them) loads: both columns NaN, the rows NaN, the page
+    written."""
+    import rig.service.loop as loop_module
+
+    old = tuple(f for f in loop_module.TICK_RECORD_FIELDS
+                if f[0] not in ("wheel_hop_hz", "tire_stiffness_est"))
+    assert len(old) == len(loop_module.TICK_RECORD_FIELDS) - 2
+    monkeypatch.setattr(loop_module, "TICK_RECORD_FIELDS", old)
+    rec = record_emulated_run(work / "before-tire.mcap", 0.6, cfg=CFG,
+                              design_bytes=design_path.read_bytes(), arm_at_s=0.3)
+    internals = [r.data for r in read_run(rec).records if "models" in r.data]
+    assert internals and not any("wheel_hop_hz" in r or "tire_stiffness_est" in r
+                                 for r in internals)
+    assert all("damping_est_ns_per_m" in r for r in internals)
+    s = load_series(rec)
+    for key in ("wheel_hop_hz", "tire_stiffness_est"):
+        x = getattr(s, key)
+        assert x.size == s.t_s.size > 0 and np.isnan(x).all(), key
+    ph = phase_metrics(s)
+    for name in ("passive", "active"):
+        assert math.isnan(ph[name]["wheel_hop_est_hz"])
+        assert math.isnan(ph[name]["tire_stiffness_est"])
+    table = write_report(rec, work / "before-tire-report").read_text()
+    assert _row(table, HOP_ROW) == ["–", "–"] and _row(table, TIRE_ROW) == ["–", "–"]
 
 
 def test_wheel_hop_row_is_each_phases_own_fit_and_nan_on_a_short_phase() -> None:

@@ -1,10 +1,14 @@
 """The wheel-hop frequency fit (controller/wheel_hop.py): it recovers a known oscillator,
-tells the emulated rig's tires apart, honours its mask and says NaN where it cannot fit."""
+tells the emulated rig's tires apart, honours its mask and says NaN where it cannot fit;
+the runtime's tracker, and the loop's tick record and telemetry state carrying its
+estimate."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -28,6 +32,18 @@ from controller.wheel_hop import (
 )
 from hil.sim.closed_loop import simulate
 from hil.sim.roads import make_road
+from rig.recording.codec import TickDecoder, iter_items
+from rig.recording.schema import (
+    NONFINITE_NUMBER,
+    TOPIC_INTERNALS,
+    TOPICS,
+    encode_json,
+    encode_message,
+    split_record,
+)
+from rig.service.loop import TICK_RECORD_FIELDS
+from rig.telemetry_process.child import snapshot_of
+from tests.support.loop_harness import LoopHarness
 
 DT = 1e-3
 
@@ -203,3 +219,40 @@ def test_runtime_tracker_holds_while_the_load_cell_reads_force_and_on_a_quiet_ri
     noise = cfg.noise.rattlespace_std_m * np.random.default_rng(3).standard_normal(15000)
     _run(rt, noise, np.zeros(noise.size), np.zeros(noise.size))
     assert math.isnan(rt.wheel_hop_hz) and rt.counters()["wheel_hop_updates"] == 0
+
+
+def test_the_loop_records_and_publishes_the_tire_estimate(armed: LoopHarness) -> None:
+    """The tick record carries the bank's wheel hop and tire stiffness right after the
+    damping estimate, as they were on that tick: through the packed record (recording
+    and telemetry) into the recording's /controller/internals message and the Zenoh
+    state; not yet estimated (NaN) they are the non-finite marker there and null in the
+    state, their keys listed in ``nonfinite``."""
+    h = armed
+    keys = [k for k, _kind, _src in TICK_RECORD_FIELDS]
+    i = keys.index("damping_est_ns_per_m")
+    assert keys[i + 1:i + 3] == ["wheel_hop_hz", "tire_stiffness_est"]
+    for key, unit in (("wheel_hop_hz", "[Hz]"), ("tire_stiffness_est", "[x configured]")):
+        prop = TOPICS[TOPIC_INTERNALS]["properties"][key]
+        assert prop["type"] == "number" and unit in prop["description"], key
+
+    def published(hop: float, scale: float) -> tuple[dict[str, Any], dict[str, Any],
+                                                     dict[str, Any]]:
+        h.rt.wheel_hop_hz, h.rt.tire_stiffness_est = hop, scale
+        h.step()
+        packed = bytes(h.loop._tick_record(0))
+        _t, rec = TickDecoder(h.loop._packer.layout).decode(next(iter_items(packed)))
+        parts = dict(split_record(0, rec))
+        internals = json.loads(encode_message(parts[TOPIC_INTERNALS]))
+        state = json.loads(encode_json(snapshot_of(0, rec, h.loop.status())["state"]))
+        return rec, internals, state
+
+    rec, internals, state = published(9.31, 0.93)
+    for key, v in (("wheel_hop_hz", 9.31), ("tire_stiffness_est", 0.93)):
+        assert rec[key] == internals[key] == state[key] == v, key
+    assert "nonfinite" not in internals and "nonfinite" not in state
+    rec, internals, state = published(math.nan, math.nan)
+    for key in ("wheel_hop_hz", "tire_stiffness_est"):
+        assert math.isnan(rec[key]), key
+        assert internals[key] == NONFINITE_NUMBER and key in internals["nonfinite"], key
+        assert state[key] is None and key in state["nonfinite"], key
+    assert rec["damping_est_ns_per_m"] == internals["damping_est_ns_per_m"] == 1650.0

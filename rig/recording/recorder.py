@@ -203,7 +203,8 @@ class RunRecorder:
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "rig.recording.writer"], stdin=subprocess.PIPE,
             # cwd: where `-m rig.recording.writer` finds this very copy of the package
-            stdout=subprocess.PIPE, cwd=Path(__file__).resolve().parents[1],
+            # (the directory holding rig/; an installed copy elsewhere must not stand in)
+            stdout=subprocess.PIPE, cwd=Path(__file__).resolve().parents[2],
             start_new_session=True, text=False)
         assert self._proc.stdin is not None and self._proc.stdout is not None
         self._fd = self._proc.stdin.fileno()

@@ -194,6 +194,13 @@ INTERNALS_SCHEMA: Final = _obj(
                                     "the estimator fits beside the mass [N/m]"},
         "damping_est_ns_per_m": {**_NUM, "description": "the suspension damping the "
                                  "estimator fits beside the mass [N s/m]"},
+        "wheel_hop_hz": {**_NUM, "description": "the passive rig's wheel-hop frequency "
+                         "[Hz] the runtime fits on the band-passed LVDT while the load "
+                         "cell reads no force (controller/wheel_hop.py; non-finite until "
+                         "estimated, held while armed)"},
+        "tire_stiffness_est": {**_NUM, "description": "the tire's stiffness against the "
+                               "configured tire [x configured], from wheel_hop_hz "
+                               "(non-finite until estimated; docs/design.md §11)"},
         "x_post": {**_NUM_ARRAY, "description": "(W, 4) estimates of the W models in "
                    "models, flat row-major: column k at [4k, 4k + 4)"},
         "xf": _NUM_ARRAY,

@@ -20,6 +20,11 @@ from :mod:`controller.metrics` run over the whole series and are then averaged p
   recording's configuration, with the sprung mass, spring rate and damping the
   controller estimated at the end of the active phase where it ran: the wheel hop moves
   with them too).  The law moves the wheel hop, so the active phase has no such row.
+* the controller's own estimates at the end of each phase, as recorded: sprung mass,
+  spring rate and damping (docs/design.md §10), and the runtime's passive wheel-hop
+  frequency and tire stiffness (``/controller/internals.wheel_hop_hz``,
+  ``tire_stiffness_est``, docs/design.md §11: held while armed, so the active phase
+  shows the last passive estimate); NaN where a recording lacks the field.
 
 "Passive" is every tick with the valve off (:attr:`~rig.report.series.Phase.PASSIVE` and
 :attr:`~rig.report.series.Phase.FAULT`: the bypass is open either way).
@@ -87,6 +92,10 @@ SUMMARY_ROWS: tuple[SummaryRow, ...] = (
                "N/m", "/controller/internals.spring_rate_est_n_per_m", ratio=False),
     SummaryRow("damping_est_ns_per_m", "damping estimate at the end of the phase", "N s/m",
                "/controller/internals.damping_est_ns_per_m", ratio=False),
+    SummaryRow("tire_stiffness_est", "tire-stiffness estimate at the end of the phase",
+               "x configured", "/controller/internals.tire_stiffness_est", 3, ratio=False),
+    SummaryRow("wheel_hop_est_hz", "passive wheel-hop frequency estimate at the end of "
+               "the phase", "Hz", "/controller/internals.wheel_hop_hz", 3, ratio=False),
     SummaryRow("comfort_share_mean", "travel-schedule comfort share, mean", "",
                "/controller/internals.comfort_share", 3, ratio=False),
     SummaryRow("ride_height_max_m", "ride height (mean LVDT reading from mid-travel), "
@@ -231,6 +240,8 @@ def phase_metrics(s: RunSeries) -> dict[str, dict[str, float]]:
             "sprung_mass_est_kg": _last_in(s.sprung_mass_est_kg, m),
             "spring_rate_est_n_per_m": _last_in(s.spring_rate_est_n_per_m, m),
             "damping_est_ns_per_m": _last_in(s.damping_est_ns_per_m, m),
+            "tire_stiffness_est": _last_in(s.tire_stiffness_est, m),
+            "wheel_hop_est_hz": _last_in(s.wheel_hop_hz, m),
             "comfort_share_mean": (float(np.nanmean(s.comfort_share[m]))
                                    if s.comfort_share.size == m.size and m.any()
                                    and np.isfinite(s.comfort_share[m]).any() else math.nan),

@@ -115,6 +115,12 @@ class RunSeries:
     #: (n, 3) sprung mass [kg], spring rate [N/m] and damping [N s/m] of the layer the
     #: bank ran each tick (a layered bank, docs/design.md §11; NaN rows otherwise)
     layer_mkc: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    #: /controller/internals.wheel_hop_hz per tick: the runtime's passive wheel-hop
+    #: frequency [Hz] (NaN: not yet estimated, or not recorded)
+    wheel_hop_hz: FloatArray = field(default_factory=lambda: np.zeros(0))
+    #: /controller/internals.tire_stiffness_est per tick: the runtime's tire stiffness
+    #: [x configured] (NaN: not yet estimated, or not recorded)
+    tire_stiffness_est: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def no_sensor_data(self) -> str | None:
         """Why the run has nothing to show -- tick records, but on none of them a fresh
@@ -333,7 +339,8 @@ def load_series(path: str | Path) -> RunSeries:
                      _model_names(scan, J), config, problem, flags,
                      column("sprung_mass_est_kg"), column("comfort_share"),
                      column("ride_height_m"), column("spring_rate_est_n_per_m"),
-                     column("damping_est_ns_per_m"), layers)
+                     column("damping_est_ns_per_m"), layers, column("wheel_hop_hz"),
+                     column("tire_stiffness_est"))
 
 
 def _running_layers(cfg: RigConfig | None, models: list[Any], n_models: int) -> FloatArray:

@@ -128,6 +128,8 @@ TICK_RECORD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("sprung_mass_est_kg", "float", "rt.sprung_mass_est_kg"),
     ("spring_rate_est_n_per_m", "float", "rt.spring_rate_est_n_per_m"),
     ("damping_est_ns_per_m", "float", "rt.damping_est_ns_per_m"),
+    ("wheel_hop_hz", "float", "rt.wheel_hop_hz"),
+    ("tire_stiffness_est", "float", "rt.tire_stiffness_est"),
     ("x_post", "array", "rt.running.x_post"),
     ("xf", "array", "rt.xf"),
     ("stop_contact_s", "float", "rt.stop_contact_s"),

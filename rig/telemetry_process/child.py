@@ -72,7 +72,7 @@ _STATE_KEYS = ("rattlespace_m", "sprung_accel_mps2", "force_meas_n", "force_ref_
                "flags",
                "blending", "weight_set", "stop_contact_s", "stop_degraded",
                "sprung_mass_est_kg", "spring_rate_est_n_per_m", "damping_est_ns_per_m",
-               "comfort_share", "ride_height_m")
+               "wheel_hop_hz", "tire_stiffness_est", "comfort_share", "ride_height_m")
 
 
 def _finite_or_none(v: Any) -> Any:

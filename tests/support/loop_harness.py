@@ -54,6 +54,8 @@ class FakeRuntime:
         self.sprung_mass_est_kg = 500.0
         self.spring_rate_est_n_per_m = 27400.0
         self.damping_est_ns_per_m = 1650.0
+        self.wheel_hop_hz = 9.49                # the configured rig's passive wheel hop
+        self.tire_stiffness_est = 1.0
         self.steps = 0
         self.resets = 0
         self.output: float | None = None      # force the output when set
