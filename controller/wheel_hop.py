@@ -41,16 +41,19 @@ differs there reads as a tire that differs (docs/design.md §11).
 The runtime tracks the same fit while the rig is passive
 (``controller.runtime.kernels.wheel_hop_track``, parameters
 :func:`wheel_hop_tracker_parameters`): the band-pass run twice forward (the spectrum of
-forward-backward, so the same prediction holds), one sample in ``step`` kept, and the
-AR(2) least squares with exponential forgetting over :data:`TRACK_WINDOW_S`.  It takes
+forward-backward, so the same prediction holds), every ``fs // fit_rate_hz``-th sample
+kept (the offline fit's decimation), and the AR(2) least squares with exponential
+forgetting over :data:`TRACK_WINDOW_S`.  It takes
 samples only while the load cell reads no force (its envelope, :data:`FORCE_RELEASE_S`
 release, below :data:`PASSIVE_FORCE_N`: the valve is safe, the suspension is the passive one the
 prediction is of) and :data:`TRACK_SETTLE_S` after that began, and gives an estimate
 once :data:`TRACK_MIN_DATA_S` of such samples are in the window and their band-passed
 mean square is :data:`TRACK_SNR` ² x the band-passed LVDT noise's (a quiet rig's
 reading is noise, whose fit is the band's centre); otherwise it holds the last one.
-The tire's stiffness follows from a table of the prediction over :data:`TIRE_SCALE_RANGE`
-for the configured rig, interpolated in logs.
+The tire's stiffness it publishes follows from a table of the prediction over
+:data:`TIRE_SCALE_RANGE` for the configured rig, interpolated in logs; the bank's tire
+layers compare the frequency itself with each layer's own prediction
+(``controller.runtime.bank``), so a layer's M, K and C do not read as its tire.
 """
 
 from __future__ import annotations
