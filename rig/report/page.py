@@ -226,10 +226,13 @@ def _write_page(s: RunSeries, path: str | Path, compare: str | Path | None,
     if not s.tick.size:
         banner += '<p class="warn">The recording holds no tick records.</p>'
 
-    summary = ""
+    # the bars and the events first (what a person looks for on the first screen: the
+    # table of numbers is long and grows with what the controller estimates)
+    summary = numbers = ""
     if phases:
         glance = _figure(by_name["summary.png"]) if "summary.png" in by_name else ""
-        summary = (f'<section id="summary"><h2>Passive vs active</h2>{glance}'
+        summary = f'<section id="summary"><h2>Passive vs active</h2>{glance}</section>'
+        numbers = (f'<section id="numbers"><h2>Passive vs active, the numbers</h2>'
                    f"{_summary_table(phases)}</section>")
     sections = []
     for heading, names in _SECTIONS:
@@ -253,6 +256,7 @@ def _write_page(s: RunSeries, path: str | Path, compare: str | Path | None,
 {summary}
 <section id="events"><h2>Events</h2>
 {_events_table(events)}</section>
+{numbers}
 {"".join(sections)}
 <section id="run"><h2>Whole run</h2><table>{run_rows}</table></section>
 <details><summary>Recording metadata</summary><table>{meta_rows}</table></details>
