@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import math
 
+import numba as nb
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
@@ -75,8 +76,9 @@ from controller.plant import (
     tire_secant_stiffness_n_per_m,
 )
 
-__all__ = ["MIN_FIT_S", "TIRE_SCALE_RANGE", "WH_SIZE", "WH_STATE_SIZE", "passive_wheel_hop_hz",
-           "tire_stiffness_scale", "wheel_hop_frequency_hz", "wheel_hop_tracker_parameters"]
+__all__ = ["MIN_FIT_S", "TIRE_SCALE_RANGE", "WH_SIZE", "WH_STATE_SIZE", "ar2_frequency_hz",
+           "passive_wheel_hop_hz", "tire_stiffness_scale", "wheel_hop_frequency_hz",
+           "wheel_hop_tracker_parameters"]
 
 #: tire stiffness scales (x ``tire.stiffness_coefficient``) :func:`tire_stiffness_scale`
 #: searches; a frequency outside their predictions gives NaN
@@ -146,18 +148,23 @@ def wheel_hop_frequency_hz(rattlespace_m: FloatArray, dt_s: float,
         return math.nan
     regressors = np.column_stack([yd[1:-1][rows], yd[:-2][rows]])
     a1, a2 = np.linalg.lstsq(regressors, yd[2:][rows], rcond=None)[0]
-    return _pole_frequency_hz(a1, a2, dt_s * step, band_hz)
+    return float(ar2_frequency_hz.py_func(float(a1), float(a2), dt_s * step, lo, hi))
 
 
-def _pole_frequency_hz(a1: float, a2: float, t_fit_s: float,
-                       band_hz: tuple[float, float]) -> float:
-    """Frequency [Hz] of the AR(2) y_k = a1 y_{k-1} + a2 y_{k-2} sampled every
-    ``t_fit_s``; NaN unless its poles are a damped oscillation within ``band_hz``."""
-    p = np.roots([1.0, -a1, -a2])[0]            # one of the pair (conjugates: same angle)
-    if p.imag == 0.0 or not abs(p) < 1.0:       # not a damped oscillation
+@nb.njit(nogil=True, inline="always")
+def ar2_frequency_hz(a1: float, a2: float, t_fit_s: float, lo_hz: float,
+                     hi_hz: float) -> float:
+    """Frequency [Hz] of the AR(2)  y_k = a1 y_{k-1} + a2 y_{k-2}  sampled every
+    ``t_fit_s`` [s]: the angle of its pole pair; NaN unless the poles are a damped
+    oscillation (complex, a1² + 4 a2 < 0, inside the unit circle, |p|² = -a2 < 1) at a
+    frequency within [``lo_hz``, ``hi_hz``].  The one statement of this rule: the
+    offline fits call it as plain Python (``ar2_frequency_hz.py_func``), the runtime's
+    tracker compiled into the bank's step."""
+    if not (a1 * a1 + 4.0 * a2 < 0.0 and 0.0 < -a2 < 1.0):
         return math.nan
-    f = abs(math.atan2(p.imag, p.real)) / (2.0 * math.pi * t_fit_s)
-    return f if band_hz[0] <= f <= band_hz[1] else math.nan
+    f = math.acos(max(-1.0, min(1.0, a1 / (2.0 * math.sqrt(-a2))))) / (
+        2.0 * math.pi * t_fit_s)
+    return f if lo_hz <= f <= hi_hz else math.nan
 
 
 def passive_wheel_hop_hz(cfg: RigConfig, *, dt_s: float | None = None,
@@ -207,7 +214,7 @@ def passive_wheel_hop_hz(cfg: RigConfig, *, dt_s: float | None = None,
     c1 = float((c @ lag1 @ c.T)[0, 0])
     c2 = float((c @ a_step @ lag1 @ c.T)[0, 0])
     a1, a2 = np.linalg.solve([[c0, c1], [c1, c0]], [c1, c2])
-    return _pole_frequency_hz(float(a1), float(a2), dt * step, band_hz)
+    return float(ar2_frequency_hz.py_func(float(a1), float(a2), dt * step, lo, hi))
 
 
 def wheel_hop_tracker_parameters(cfg: RigConfig, *, band_hz: tuple[float, float] = (5.0, 20.0),

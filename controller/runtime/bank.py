@@ -1514,6 +1514,10 @@ class BankRuntime:
         "_fv", F_MES + ME_KEST, float,
         "The suspension spring rate the sprung-mass estimator fits beside the mass [N/m] "
         "(the configured K until it updates).")
+    damping_est_ns_per_m = SlotValue(
+        "_fv", F_MES + ME_CEST, float,
+        "The suspension damping the sprung-mass estimator fits beside the mass [N s/m] "
+        "(the configured C until it updates).")
     wheel_hop_hz = SlotValue(
         "_fv", F_WHS + WHS_HZ, float,
         "The passive rig's wheel-hop frequency [Hz] (controller/wheel_hop.py: an AR(2) fit "
@@ -1523,10 +1527,6 @@ class BankRuntime:
         "_fv", F_WHS + WHS_SCALE, float,
         "The tire's stiffness against the configured tire [-], from wheel_hop_hz through "
         "the prediction for the configured rig (controller/wheel_hop.py; NaN with it).")
-    damping_est_ns_per_m = SlotValue(
-        "_fv", F_MES + ME_CEST, float,
-        "The suspension damping the sprung-mass estimator fits beside the mass [N s/m] "
-        "(the configured C until it updates).")
 
     @property
     def bias_estimate(self) -> tuple[float, float]:

@@ -117,6 +117,7 @@ from controller.wheel_hop import (
     WHS_SCALE,
     WHS_Y1,
     WHS_Y2,
+    ar2_frequency_hz,
 )
 
 __all__ = ["Blending", "StepFlag"]
@@ -923,14 +924,10 @@ def wheel_hop_track(fv: np.ndarray, rattlespace_m: float, force_n: float) -> Non
     det = r11 * r22 - r12 * r12
     if not det > 0.0:
         return
-    a1 = (b1 * r22 - b2 * r12) / det
-    a2 = (b2 * r11 - b1 * r12) / det
-    if not (a1 * a1 + 4.0 * a2 < 0.0 and 0.0 < -a2 < 1.0):
-        return                          # not a damped oscillation
-    f = math.acos(max(-1.0, min(1.0, a1 / (2.0 * math.sqrt(-a2))))) / (
-        2.0 * math.pi * fv[p + WH_TFIT])
-    if not (fv[p + WH_LO] <= f <= fv[p + WH_HI]):
-        return
+    f = ar2_frequency_hz((b1 * r22 - b2 * r12) / det, (b2 * r11 - b1 * r12) / det,
+                         fv[p + WH_TFIT], fv[p + WH_LO], fv[p + WH_HI])
+    if math.isnan(f):
+        return                          # not a damped oscillation within the band
     fv[s + WHS_HZ] = f
     fv[s + WHS_SCALE] = _wheel_hop_scale(fv, f)
     fv[s + WHS_NUPD] += 1.0

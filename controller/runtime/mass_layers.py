@@ -174,7 +174,8 @@ def mass_schedule(st: np.ndarray, active: np.ndarray, fv: np.ndarray, iv: np.nda
     log_m = math.log(mass_est_kg)
     log_k = math.log(spring_est_n_per_m)
     log_c = math.log(damping_est_ns_per_m)
-    log_f = math.log(wheel_hop_hz) if wheel_hop_hz > 0.0 else np.nan  # (NaN: False)
+    # (only a bank with tire layers reads it; NaN compares False)
+    log_f = math.log(wheel_hop_hz) if fv[kern.F_LWT] > 0.0 and wheel_hop_hz > 0.0 else np.nan
     n = iv[kern.I_NTIRE]
     cur = iv[kern.I_LAYER]
     d_cur = _layer_distance(vec, cur * n, fv, log_m, log_k, log_c, log_f)
