@@ -25,11 +25,11 @@ import numpy as np
 
 from controller.artifact import load_design, save_design
 from controller.config import RigConfig, config_to_toml, default_config
-from controller.design import design_bank
 from hil.faults import FaultSchedule
 from hil.node import RigNode
 from hil.sim.roads import make_road
 from rig.bus.core import open_bus, shutdown_all
+from rig.design_cache import design_for
 from rig.recording.recorder import RunRecorder
 from rig.rt.lockstep import START_NS
 from rig.rt.pacing import SteppedClock
@@ -66,7 +66,7 @@ def record_emulated_run(path: str | Path, seconds: float, *, cfg: RigConfig | No
     if design_bytes is None:
         with tempfile.TemporaryDirectory() as d:
             p = Path(d) / "design.npz"
-            save_design(design_bank(cfg), p)
+            save_design(design_for(cfg), p)
             design_bytes = p.read_bytes()
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "design.npz"

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -23,6 +26,27 @@ from tests.support.loop_harness import LoopHarness, make_harness  # noqa: E402
 
 if TYPE_CHECKING:
     from controller.runtime.bank import BankRuntime
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """One on-disk design cache (rig.design_cache) for the session: its xdist workers and
+    every process they start design a configuration once; a fresh directory per session
+    (``RIG_DESIGN_CACHE`` set beforehand is kept: a developer's own cache)."""
+    from rig.design_cache import ENV
+
+    if not hasattr(config, "workerinput") and ENV not in os.environ:
+        path = tempfile.mkdtemp(prefix="rig-design-cache-")
+        os.environ[ENV] = path
+        config.stash[_CACHE_KEY] = path
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    path = config.stash.get(_CACHE_KEY, None)
+    if path is not None:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+_CACHE_KEY = pytest.StashKey[str]()
 
 
 @pytest.fixture(scope="session")

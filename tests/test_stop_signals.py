@@ -95,6 +95,7 @@ def test_rig_run_sigterm_during_the_design(tmp_path: Path, monkeypatch: pytest.M
         raise AssertionError("the design was not interrupted")
 
     monkeypatch.setattr(controller.design, "design_bank", slow_design)
+    monkeypatch.setenv("RIG_DESIGN_CACHE", "off")   # a cached design would skip it
     t0 = time.monotonic()
     assert main(_run_argv(None, tmp_path / "run.mcap")) == 0
     assert time.monotonic() - t0 < 20
@@ -141,6 +142,7 @@ def test_rig_demo_sigterm_before_the_loop(phase: str, tmp_path: Path,
                 time.sleep(0.01)
             raise AssertionError("the design was not interrupted")
         monkeypatch.setattr(controller.design, "design_bank", slow_design)
+        monkeypatch.setenv("RIG_DESIGN_CACHE", "off")   # a cached design would skip it
     else:
         name = "wait_built" if phase == "rig set-up" else "wait_ready"
         _patch_then_signal(monkeypatch, hil.rig_process.RigProcess, name, True)

@@ -116,13 +116,14 @@ def config_from_text(toml_text: str) -> RigConfig:
 def cached_design(cfg: RigConfig) -> Design:
     """``design_bank(cfg)``, memoised in this process per hash of the sections the design
     reads (:func:`controller.config.design_config_hash`): configurations that differ only
-    in e.g. the emulated plant share one design."""
-    from controller.design import design_bank
+    in e.g. the emulated plant share one design; across processes by the on-disk design
+    cache (:mod:`rig.design_cache`)."""
+    from rig.design_cache import design_for
     key = design_config_hash(cfg)
     if key not in _DESIGNS:
         if len(_DESIGNS) >= 8:
             _DESIGNS.pop(next(iter(_DESIGNS)))
-        _DESIGNS[key] = design_bank(cfg)
+        _DESIGNS[key] = design_for(cfg)
     return _DESIGNS[key]
 
 

@@ -104,10 +104,10 @@ def run(args: argparse.Namespace) -> int:
             design_bytes = Path(args.design).read_bytes()
             design = load_design(args.design, cfg)
         elif is_log:
-            from controller.design import design_bank
+            from rig.design_cache import design_for
 
             assert cfg is not None
-            design = design_bank(cfg)
+            design = design_for(cfg)
         elif cfg is not None:
             design = _matching_design(path, cfg)
         res = replay_file(path, cfg=cfg, design=design, design_bytes=design_bytes,
@@ -131,7 +131,7 @@ def _matching_design(path: Path, cfg: Any) -> Any:
     """--config without --design: the recorded design if it was made for this
     configuration, else a fresh design for it (``rig design``'s result)."""
     from controller.config import config_hash
-    from controller.design import design_bank
+    from rig.design_cache import design_for
     from rig.replay import load_recorded_run, recorded_design
 
     rec = recorded_design(load_recorded_run(path))
@@ -139,4 +139,4 @@ def _matching_design(path: Path, cfg: Any) -> Any:
         return rec
     print("rig replay: the recorded design was made for another configuration; "
           "designing for --config", file=sys.stderr)
-    return design_bank(cfg)
+    return design_for(cfg)

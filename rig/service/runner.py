@@ -153,13 +153,13 @@ class Service:
             self.design_blob = Path(opts.design_path).read_bytes()
             log.info("design loaded from %s", opts.design_path)
         else:
-            from controller.design import design_bank
+            from rig.design_cache import design_for
 
             with (self._stop.interruptible() if self._stop is not None
                   else contextlib.nullcontext()):
-                self.design = design_bank(cfg)
+                self.design = design_for(cfg)
             self.design_blob = design_bytes(self.design)
-            log.info("bank designed at start in %.1f s", time.monotonic() - t0)
+            log.info("bank ready at start in %.1f s", time.monotonic() - t0)
         self._check_stop()
         blending = int(blending_of(opts.controller))
         weight_set = cfg.design.weight_set if opts.weights is None else opts.weights
