@@ -3,6 +3,7 @@ fault handling, allocation-freedom and blending invariants."""
 
 from __future__ import annotations
 
+import copy
 import math
 import tracemalloc
 
@@ -260,6 +261,13 @@ def runtimes(smooth_design: Design) -> dict[Blending, BankRuntime]:
     return {b: BankRuntime(smooth_design, blending=b) for b in Blending}
 
 
+@pytest.fixture(scope="module")
+def pristine(smooth_design: Design) -> dict[Blending, BankRuntime]:
+    """Runtimes never stepped: a deep copy of one is a freshly built controller (without
+    building one per hypothesis example, 0.5 s each for the layered default bank)."""
+    return {b: BankRuntime(smooth_design, blending=b) for b in Blending}
+
+
 def _fresh(runtimes: dict[Blending, BankRuntime], mode: Blending) -> BankRuntime:
     """The module's runtime of ``mode``, reset (hypothesis reuses it across examples)."""
     rt = runtimes[mode]
@@ -327,6 +335,7 @@ def test_moving_set_after_touch_down_has_a_probability_distribution(
 @given(st.lists(st.tuples(FINITE, FINITE, FINITE), min_size=1, max_size=20),
        st.sampled_from(list(Blending)))
 def test_any_finite_input_gives_finite_output(runtimes: dict[Blending, BankRuntime],
+                                              pristine: dict[Blending, BankRuntime],
                                               seq: list[tuple[float, float, float]],
                                               mode: Blending) -> None:
     rt = _fresh(runtimes, mode)
@@ -338,7 +347,7 @@ def test_any_finite_input_gives_finite_output(runtimes: dict[Blending, BankRunti
         assert np.all(np.isfinite(rt.x_prior)) and np.all(np.isfinite(rt.xf))
     # ... and it recovers: after a reset it is exactly the fresh controller again
     rt.reset()
-    fresh = BankRuntime(rt.design, blending=mode)
+    fresh = copy.deepcopy(pristine[mode])
     for k in range(20):
         assert rt.step(1e-4 * k, 0.01, 5.0) == fresh.step(1e-4 * k, 0.01, 5.0)
 
@@ -432,14 +441,15 @@ def test_no_allocation_per_tick(runtimes: dict[Blending, BankRuntime]) -> None:
 
 def test_default_single_model_is_nearest_static_deflection(default_design: Design) -> None:
     """The single model is the 25 mm model (nearest the static tire deflection) of the
-    layer of the configured vehicle (in a layered bank, the one named M1, K1, C1)."""
+    layer of the configured vehicle (in a layered bank, the one named M1, K1, C1, T1)."""
     cfg = default_config()
     d = cfg.design
     rt = BankRuntime(default_design, blending=Blending.LQG)
     layered = len(layer_scales(cfg)) > 1
     name = ("x2_25mm" + "_ct1" * (len(d.tire_damping_scales) > 1)
             + ("_M1" + "_K1" * (len(d.spring_rate_scales) > 1)
-               + "_C1" * (len(d.damping_scales) > 1)) * layered)
+               + "_C1" * (len(d.damping_scales) > 1)
+               + "_T1" * (len(d.tire_stiffness_scales) > 1)) * layered)
     assert default_design.model_names[rt.single_model] == name
     assert rt.active.sum() == 1 and rt.active[rt.single_model]
     with pytest.raises(ValueError, match="single_model"):

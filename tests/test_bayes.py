@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.config import default_config, layer_scales
+from controller.config import default_config, layer_grid
 from controller.design import design_bank
 from controller.road_noise import road_velocity_intensity
 from controller.runtime.bank import BankRuntime, Blending
@@ -113,7 +113,7 @@ def test_bayes_bank_identifies_the_true_model() -> None:
             p_sum += rt.probability
     dc = cfg.design
     per_layer = len(dc.linearisation_deflections_m) * len(dc.tire_damping_scales)
-    j40 = (layer_scales(cfg).index((1.0, 1.0, 1.0)) * per_layer       # layer major
+    j40 = (layer_grid(cfg).index((1.0, 1.0, 1.0, 1.0)) * per_layer    # layer major
            + dc.linearisation_deflections_m.index(0.04) * len(dc.tire_damping_scales)
            + dc.tire_damping_scales.index(1.0))
     assert str(d.model_names[j40]).startswith("x2_40mm")

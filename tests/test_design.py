@@ -23,6 +23,7 @@ from controller.config import (
     design_config_hash,
     layer_params,
     layer_scales,
+    layer_tire_scales,
     one_layer,
 )
 from controller.design import design_bank
@@ -39,12 +40,15 @@ CFG = default_config()
 
 def bank_models(cfg: RigConfig) -> list[LinearModel]:
     """The bank's models in its order, from the components: the tire models of
-    :func:`model_family` for each layer's vehicle (:func:`layer_params`, layer major),
-    then the airborne model (configured vehicle)."""
-    ground = [model for M, K, C in layer_params(cfg)
+    :func:`model_family` for each layer's vehicle and tire (:func:`layer_params`,
+    :func:`layer_tire_scales`, layer major), then the airborne model (configured
+    vehicle)."""
+    kt = cfg.tire.stiffness_coefficient
+    ground = [model for (M, K, C), t in zip(layer_params(cfg), layer_tire_scales(cfg),
+                                            strict=True)
               for model in model_family(cfg.replace(vehicle={
                   "sprung_mass_kg": M, "suspension_stiffness_n_per_m": K,
-                  "suspension_damping_ns_per_m": C}))
+                  "suspension_damping_ns_per_m": C}, tire={"stiffness_coefficient": kt * t}))
               if not model.airborne]
     return ground + [model for model in model_family(cfg) if model.airborne]
 

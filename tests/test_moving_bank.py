@@ -41,10 +41,14 @@ DEFL_9 = [0.045, 0.04, 0.035, 0.03, 0.025, 0.02, 0.015, 0.01, 0.005]
 
 
 def grid_config(deflections: list[float], scales: list[float], k: int = 3) -> RigConfig:
+    """The default's layers over [M, K, C] (not its tire layers: 3 x the models, and the
+    grid within a layer is what is under test) with a grid of ``deflections`` x
+    ``scales`` models in each."""
     return default_config().replace(
         noise={"speeds_mps": [V], "road_roughness_gd": [GD], "nominal_speed_mps": V,
                "nominal_roughness_gd": GD},
-        design={"linearisation_deflections_m": deflections, "tire_damping_scales": scales},
+        design={"linearisation_deflections_m": deflections, "tire_damping_scales": scales,
+                "tire_stiffness_scales": [1.0]},
         moving_bank={"active_models": k})
 
 

@@ -11,11 +11,12 @@ import numpy as np
 from controller.analysis import rig_closed_loop
 from controller.artifact import Design, save_design
 from controller.config import RigConfig, load_config
-from controller.design import design_bank, design_models
+from controller.design import design_models
 from controller.human_filter import discretize_zoh, human_filter
 from controller.lq import augmented_plant
 from controller.road_noise import nearest_noise_entry
 from rig import argtypes, strict_json
+from rig.design_cache import design_for
 from rig.terminal import refuse
 
 
@@ -88,7 +89,7 @@ def design_summary(design: Design, cfg: RigConfig) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     try:
-        design = design_bank(cfg)
+        design = design_for(cfg)        # designed, or the same artifact from the cache
     except ValueError as exc:
         refuse("design", f"design failed: {exc}")
         return 1
