@@ -65,6 +65,7 @@ __all__ = [
     "default_config",
     "excitation_problems",
     "host_problem",
+    "layer_config",
     "layer_grid",
     "layer_params",
     "layer_scales",
@@ -1233,6 +1234,28 @@ def layer_tire_scales(cfg: RigConfig) -> list[float]:
     """Tire stiffness scale (x ``tire.stiffness_coefficient``) of each layer of the bank,
     in the bank's order (:func:`layer_grid`)."""
     return [t for _m, _k, _c, t in layer_grid(cfg)]
+
+
+def layer_config(cfg: RigConfig, mass_scale: float, spring_scale: float = 1.0,
+                 damping_scale: float = 1.0, tire_scale: float = 1.0) -> RigConfig:
+    """The configuration of one layer of the bank: the vehicle's sprung mass, suspension
+    spring rate and damping x the scales, the tire's stiffness coefficient x
+    ``tire_scale`` (its damping law as configured).  The design of each layer, the
+    runtime's per-layer wheel-hop predictions and the wheel-hop tracker's tire table all
+    take their rigs from here."""
+    if (mass_scale, spring_scale, damping_scale, tire_scale) == (1.0, 1.0, 1.0, 1.0):
+        return cfg
+    # the two sections copied with the scaled values, not the whole configuration
+    # re-parsed (cfg.replace validates every section: 7 ms a layer, 0.4 s of the default
+    # bank's design); the scales are within their keys' validated bounds
+    v = cfg.vehicle
+    return dataclasses.replace(
+        cfg, vehicle=dataclasses.replace(
+            v, sprung_mass_kg=v.sprung_mass_kg * mass_scale,
+            suspension_stiffness_n_per_m=v.suspension_stiffness_n_per_m * spring_scale,
+            suspension_damping_ns_per_m=v.suspension_damping_ns_per_m * damping_scale),
+        tire=dataclasses.replace(
+            cfg.tire, stiffness_coefficient=cfg.tire.stiffness_coefficient * tire_scale))
 
 
 #: the ``[design]`` keys of the bank's layers (:func:`layer_grid`)

@@ -23,7 +23,7 @@ import numpy as np
 from controller.actuator import servo_model
 from controller.arrays import FloatArray
 from controller.artifact import Design, build_metadata
-from controller.config import RigConfig, layer_grid
+from controller.config import RigConfig, layer_config, layer_grid
 from controller.fuzzy import firing_weight_curve
 from controller.human_filter import HumanFilter, human_filter
 from controller.kalman import (
@@ -67,26 +67,6 @@ def bump_stop_input(cfg: RigConfig) -> FloatArray:
     k = v.bump_stop_stiffness_n_per_m if d.bump_stop_filter_input else 0.0
     c = d.bump_stop_centre_lvdt_m
     return np.array([k, c - v.rattlespace_travel_m, c + v.rattlespace_travel_m])
-
-
-def layer_config(cfg: RigConfig, mass_scale: float, spring_scale: float = 1.0,
-                 damping_scale: float = 1.0, tire_scale: float = 1.0) -> RigConfig:
-    """The configuration of one layer of the bank: the vehicle's sprung mass, suspension
-    spring rate and damping x the scales, the tire's stiffness coefficient x
-    ``tire_scale`` (its damping law as configured)."""
-    if (mass_scale, spring_scale, damping_scale, tire_scale) == (1.0, 1.0, 1.0, 1.0):
-        return cfg
-    # the two sections copied with the scaled values, not the whole configuration
-    # re-parsed (cfg.replace validates every section: 7 ms a layer, 0.4 s of the default
-    # bank's design); the scales are within their keys' validated bounds
-    v = cfg.vehicle
-    return dataclasses.replace(
-        cfg, vehicle=dataclasses.replace(
-            v, sprung_mass_kg=v.sprung_mass_kg * mass_scale,
-            suspension_stiffness_n_per_m=v.suspension_stiffness_n_per_m * spring_scale,
-            suspension_damping_ns_per_m=v.suspension_damping_ns_per_m * damping_scale),
-        tire=dataclasses.replace(
-            cfg.tire, stiffness_coefficient=cfg.tire.stiffness_coefficient * tire_scale))
 
 
 def _layer_suffix(cfg: RigConfig, scales: tuple[float, float, float, float]) -> str:

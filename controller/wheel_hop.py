@@ -58,7 +58,6 @@ layers compare the frequency itself with each layer's own prediction
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numba as nb
@@ -69,7 +68,7 @@ from scipy.optimize import brentq
 from scipy.signal import butter, cont2discrete, sosfilt, sosfiltfilt, zpk2ss
 
 from controller.arrays import FloatArray
-from controller.config import RigConfig
+from controller.config import RigConfig, layer_config
 from controller.plant import (
     linear_model,
     static_tire_deflection_m,
@@ -249,12 +248,8 @@ def wheel_hop_tracker_parameters(cfg: RigConfig, *, band_hz: tuple[float, float]
     out[WH_LO], out[WH_HI] = lo, hi
     out[WH_SOS:WH_SOS + 10] = np.concatenate([np.r_[sec[:3], sec[4:]] for sec in sos])
     scales = np.geomspace(*TIRE_SCALE_RANGE, TABLE_POINTS)
-    coeff = cfg.tire.stiffness_coefficient
-    # the tire section copied with the scaled coefficient, not the configuration re-parsed
-    # (cfg.replace validates every section: 7 ms a point, at every runtime build)
-    freqs = [passive_wheel_hop_hz(dataclasses.replace(cfg, tire=dataclasses.replace(
-        cfg.tire, stiffness_coefficient=coeff * float(k))), band_hz=band_hz,
-        fit_rate_hz=fit_rate_hz) for k in scales]
+    freqs = [passive_wheel_hop_hz(layer_config(cfg, 1.0, tire_scale=float(k)),
+                                  band_hz=band_hz, fit_rate_hz=fit_rate_hz) for k in scales]
     out[WH_TAB_F:WH_TAB_F + TABLE_POINTS] = np.log(freqs)
     out[WH_TAB_S:WH_TAB_S + TABLE_POINTS] = np.log(scales)
     return out

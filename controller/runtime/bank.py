@@ -47,7 +47,6 @@ fault for the loop); DEGRADED is not a fault.  q is clamped to ``Q_MAX``.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass
@@ -62,6 +61,8 @@ from controller.artifact import Design
 from controller.config import (
     RigConfig,
     default_config,
+    layer_config,
+    layer_grid,
     layer_params,
     layer_tire_scales,
     parse_config,
@@ -942,23 +943,15 @@ def _layer_tires(design: Design) -> FloatArray:
     return np.array(layer_tire_scales(config_of(design)), dtype=float)
 
 
-def _layer_wheel_hops(layers: FloatArray, tires: FloatArray, cfg: RigConfig) -> FloatArray:
+def _layer_wheel_hops(design: Design, cfg: RigConfig) -> FloatArray:
     """The passive wheel-hop frequency [Hz] each layer's rig reads
-    (:func:`controller.wheel_hop.passive_wheel_hop_hz` of its sprung mass, spring rate,
-    damping and tire; the unsprung mass configured), where the bank has tire layers; 1
-    elsewhere (the layer distance does not use it then)."""
-    if np.unique(tires).size < 2:
-        return np.ones(len(tires))
-    k = cfg.tire.stiffness_coefficient
-    # the sections copied with the layer's values, not re-parsed (cfg.replace validates
-    # the whole configuration: 7 ms a layer); the layer's values are the configured ones
-    # scaled within the layer keys' validated bounds
-    return np.array([passive_wheel_hop_hz(dataclasses.replace(
-        cfg, vehicle=dataclasses.replace(cfg.vehicle, sprung_mass_kg=float(m),
-                                         suspension_stiffness_n_per_m=float(kk),
-                                         suspension_damping_ns_per_m=float(c)),
-        tire=dataclasses.replace(cfg.tire, stiffness_coefficient=k * float(t))))
-        for (m, kk, c), t in zip(layers, tires, strict=True)])
+    (:func:`controller.wheel_hop.passive_wheel_hop_hz` of :func:`layer_config` of ``cfg``
+    with the layer's scales, the design's own configuration's :func:`layer_grid`), where
+    the bank has tire layers; 1 elsewhere (the layer distance does not use it then)."""
+    grid = layer_grid(config_of(design))
+    if len({t for *_mkc, t in grid}) < 2:
+        return np.ones(len(grid))
+    return np.array([passive_wheel_hop_hz(layer_config(cfg, *scales)) for scales in grid])
 
 
 #: tire stiffness scales about the configured tire the wheel hop's sensitivity is taken on
@@ -968,8 +961,7 @@ _TIRE_SPAN = (0.85, 1.15)
 def _tire_weight(cfg: RigConfig) -> float:
     """1 / (d log wheel hop / d log tire stiffness) of the configured rig: the tire
     layers' distance in units of log tire stiffness (about 1 / 0.25)."""
-    lo, hi = (passive_wheel_hop_hz(cfg.replace(tire={
-        "stiffness_coefficient": cfg.tire.stiffness_coefficient * t})) for t in _TIRE_SPAN)
+    lo, hi = (passive_wheel_hop_hz(layer_config(cfg, 1.0, tire_scale=t)) for t in _TIRE_SPAN)
     return math.log(_TIRE_SPAN[1] / _TIRE_SPAN[0]) / math.log(hi / lo)
 
 
@@ -1020,7 +1012,7 @@ def _pack(design: Design, cfg: RigConfig) -> tuple[FloatArray, FloatArray]:
                      lay[:, 0] * veh.gravity_mps2 / lay[:, 1] - float(design.static_rattlespace_m),
                      0.0)
     tires = _layer_tires(design)
-    hop = _layer_wheel_hops(layers, tires, cfg)[np.maximum(layer, 0)]
+    hop = _layer_wheel_hops(design, cfg)[np.maximum(layer, 0)]
     log_params = np.where((layer >= 0)[:, None],
                           np.log(np.column_stack([lay, tires[np.maximum(layer, 0)], hop])), 0.0)
     J, S, W = design.n_models, design.n_noise, design.n_weight_sets
