@@ -32,7 +32,7 @@ from controller.kalman import (
     discretize_filter_model,
     filter_model,
     fused_prior_update,
-    steady_state_kalman,
+    steady_state_kalman_stack,
 )
 from controller.lq import actuated_lq_gain, lq_gain
 from controller.plant import LinearModel, model_family
@@ -141,16 +141,18 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
     for j, md in enumerate(mds):
         if md.model.equilibrium is not None:
             eq[j] = md.model.equilibrium
-        for s, (_v, _gd, w_int) in enumerate(entries):
-            kf = steady_state_kalman(md.dfm.Phi, md.fm.C,
-                                     md.dfm.Qd_unit * w_int + md.dfm.Qd_fixed, R, bias_qd)
+        w_ints = np.array([w_int for _v, _gd, w_int in entries])
+        try:
+            kf = steady_state_kalman_stack(
+                np.broadcast_to(md.dfm.Phi, (S, 4, 4)), np.broadcast_to(md.fm.C, (S, 2, 4)),
+                md.dfm.Qd_unit * w_ints[:, None, None] + md.dfm.Qd_fixed, R, bias_qd)
+        except ValueError as exc:
+            raise ValueError(f"model {md.model.name}: {exc}") from exc
+        kalman_gain[j], bias_gain[j], f_cov[j], f_inv[j] = kf.L, kf.L_bias, kf.F, kf.F_inv
+        f_logdet[j] = kf.logdet
+        for s in range(S):
             fused = fused_prior_update(md.dfm.Phi, md.dfm.Gamma_u, md.dfm.Gamma_g, g,
-                                       md.fm.C, md.fm.D, md.fm.y_offset, kf.L)
-            kalman_gain[j, s] = kf.L
-            bias_gain[j, s] = kf.L_bias
-            f_cov[j, s] = kf.F
-            f_inv[j, s] = kf.F_inv
-            f_logdet[j, s] = kf.logdet
+                                       md.fm.C, md.fm.D, md.fm.y_offset, kalman_gain[j, s])
             fA[j, s], fBy[j, s], fBu[j, s], fb[j, s] = fused.A, fused.By, fused.Bu, fused.b
         for w, weights in enumerate(cfg.design.weight_sets):
             if cfg.design.actuator_model == "hydraulic":

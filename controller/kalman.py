@@ -56,6 +56,7 @@ import scipy.linalg
 
 from controller.arrays import FloatArray
 from controller.config import RigConfig
+from controller.dare import solve_filter_dares
 from controller.human_filter import discretize_zoh
 from controller.plant import GRAVITY_INPUT, LinearModel
 
@@ -63,6 +64,7 @@ __all__ = [
     "DiscreteFilterModel",
     "FilterModel",
     "FusedFilter",
+    "KalmanStack",
     "SteadyStateKalman",
     "bias_augmented",
     "discretize_filter_model",
@@ -70,6 +72,7 @@ __all__ = [
     "fused_prior_update",
     "process_noise_cov",
     "steady_state_kalman",
+    "steady_state_kalman_stack",
 ]
 
 
@@ -215,36 +218,74 @@ def steady_state_kalman(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
     ``bias_qd`` (per measurement channel, per-sample variance of a random-walk bias;
     0 = none) augments the model with measurement-bias states (:func:`bias_augmented`);
     the plant-state gain is then ``L`` and the bias gain ``L_bias``.
-    Raises ``ValueError`` if the DARE has no stabilising solution.
+    Raises ``ValueError`` if the DARE has no stabilising solution.  The same numbers as
+    one system of :func:`steady_state_kalman_stack`, bit for bit.
     """
-    n = Phi.shape[0]
+    t = steady_state_kalman_stack(Phi[None], C[None], Qd[None], R, bias_qd)
+    return SteadyStateKalman(t.P_prior[0], t.L[0], t.F[0], t.F_inv[0],
+                             float(t.logdet[0]), t.L_bias[0])
+
+
+@dataclass(frozen=True)
+class KalmanStack:
+    """:class:`SteadyStateKalman` of N systems, stacked along a leading axis."""
+
+    P_prior: FloatArray   # (N, n, n); with bias states (N, n + n_b, n + n_b)
+    L: FloatArray         # (N, n, 2)
+    F: FloatArray         # (N, 2, 2)
+    F_inv: FloatArray     # (N, 2, 2)
+    logdet: FloatArray    # (N,)
+    L_bias: FloatArray    # (N, 2, 2)
+
+
+def steady_state_kalman_stack(Phi: FloatArray, C: FloatArray, Qd: FloatArray,
+                              R: FloatArray,
+                              bias_qd: FloatArray | None = None) -> KalmanStack:
+    """:func:`steady_state_kalman` of N systems at once: ``Phi`` (N, n, n), ``C``
+    (N, 2, n), ``Qd`` (N, n, n), one ``R`` (2, 2) and ``bias_qd`` (2,) for all.  The
+    DAREs are solved together (:func:`controller.dare.solve_filter_dares`).
+    Raises ``ValueError`` naming the first system i (stack index) without a stabilising
+    solution."""
+    Phi = np.asarray(Phi, dtype=float)
+    C = np.asarray(C, dtype=float)
+    Qd = np.asarray(Qd, dtype=float)
+    N, n, _ = Phi.shape
     kept: list[int] = []
     if bias_qd is not None and np.any(np.asarray(bias_qd) > 0.0):
-        Phi, C, Qd, kept = bias_augmented(Phi, C, Qd, np.asarray(bias_qd, dtype=float))
+        aug = [bias_augmented(Phi[i], C[i], Qd[i], np.asarray(bias_qd, dtype=float))
+               for i in range(N)]
+        kept = aug[0][3]
+        Phi = np.stack([a[0] for a in aug])
+        C = np.stack([a[1] for a in aug])
+        Qd = np.stack([a[2] for a in aug])
     try:
-        P = scipy.linalg.solve_discrete_are(Phi.T, C.T, Qd, R)
+        P = solve_filter_dares(Phi, C, Qd, R)
     except (np.linalg.LinAlgError, ValueError) as exc:
         raise ValueError(f"Kalman filter DARE has no stabilising solution ({exc})") from exc
-    P = 0.5 * (P + P.T)
-    F = C @ P @ C.T + R
-    F = 0.5 * (F + F.T)
+    Ct = np.swapaxes(C, 1, 2)
+    F = C @ P @ Ct + R
+    F = 0.5 * (F + np.swapaxes(F, 1, 2))
     F_inv = np.linalg.inv(F)
-    F_inv = 0.5 * (F_inv + F_inv.T)
-    L_all = P @ C.T @ F_inv
+    F_inv = 0.5 * (F_inv + np.swapaxes(F_inv, 1, 2))
+    L_all = P @ Ct @ F_inv
     # solve_discrete_are may return a non-stabilising solution without raising (scipy
     # 1.17: the maximal solution for a model with unobservable modes on the unit circle,
     # such as the airborne model's centre of mass): check the error dynamics.
-    rho = float(np.max(np.abs(np.linalg.eigvals(Phi @ (np.eye(Phi.shape[0]) - L_all @ C)))))
-    if not rho < 1.0 - _STABLE_MARGIN:
+    rho = np.max(np.abs(np.linalg.eigvals(Phi @ (np.eye(Phi.shape[1]) - L_all @ C))),
+                 axis=1)
+    bad = np.flatnonzero(~(rho < 1.0 - _STABLE_MARGIN))
+    if bad.size:
+        i = int(bad[0])
+        where = f"system {i}: " if N > 1 else ""
         raise ValueError(f"Kalman filter DARE has no stabilising solution "
-                         f"(error dynamics spectral radius {rho:.12f})")
+                         f"({where}error dynamics spectral radius {rho[i]:.12f})")
     sign, logdet = np.linalg.slogdet(F)
-    if sign <= 0:
+    if np.any(sign <= 0):
         raise ValueError("innovation covariance is not positive definite")
-    L_bias = np.zeros((2, C.shape[0]))
+    L_bias = np.zeros((N, 2, C.shape[1]))
     for b, i in enumerate(kept):
-        L_bias[i] = L_all[n + b]
-    return SteadyStateKalman(P, L_all[:n].copy(), F, F_inv, float(logdet), L_bias)
+        L_bias[:, i] = L_all[:, n + b]
+    return KalmanStack(P, L_all[:, :n].copy(), F, F_inv.astype(np.float64), logdet, L_bias)
 
 
 def fused_prior_update(Phi: FloatArray, Gamma_u: FloatArray, Gamma_g: FloatArray,
