@@ -58,6 +58,7 @@ layers compare the frequency itself with each layer's own prediction
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba as nb
@@ -68,7 +69,7 @@ from scipy.optimize import brentq
 from scipy.signal import butter, cont2discrete, sosfilt, sosfiltfilt, zpk2ss
 
 from controller.arrays import FloatArray
-from controller.config import RigConfig, layer_config
+from controller.config import RigConfig, TireConfig, VehicleConfig, layer_config
 from controller.plant import (
     linear_model,
     static_tire_deflection_m,
@@ -179,13 +180,23 @@ def passive_wheel_hop_hz(cfg: RigConfig, *, dt_s: float | None = None,
     discrete Lyapunov equation, and the fit's AR(2) taken from the Yule-Walker equations
     on the autocovariance at the fit's lags.  NaN where the fit would be."""
     dt = cfg.sample_time_s if dt_s is None else dt_s
+    return _passive_wheel_hop_hz(cfg.vehicle, cfg.tire, static_tire_deflection_m(cfg),
+                                 float(dt), (float(band_hz[0]), float(band_hz[1])),
+                                 float(fit_rate_hz))
+
+
+@functools.lru_cache(maxsize=4096)
+def _passive_wheel_hop_hz(vehicle: VehicleConfig, tire: TireConfig, x2: float, dt: float,
+                          band_hz: tuple[float, float], fit_rate_hz: float) -> float:
+    """:func:`passive_wheel_hop_hz` of the rig (``vehicle``, ``tire``) at the static tire
+    deflection ``x2`` [m]; remembered (a bank with tire layers asks for each of its
+    layers' rigs whenever a runtime is built, ~1 ms each)."""
     fs = 1.0 / dt
     lo, hi = band_hz
     if not (0.0 < lo < hi < 0.5 * fs):
         return math.nan
-    x2 = static_tire_deflection_m(cfg)
-    kt = tire_secant_stiffness_n_per_m(x2, cfg.tire) * cfg.tire.stiffness_exponent
-    lm = linear_model(cfg.vehicle, kt, tire_damping_ns_per_m(x2, cfg.tire))
+    kt = tire_secant_stiffness_n_per_m(x2, tire) * tire.stiffness_exponent
+    lm = linear_model(vehicle, kt, tire_damping_ns_per_m(x2, tire))
     ap, bp, cp, _, _ = cont2discrete((lm.A, lm.B1[:, None], lm.C_meas[:1],
                                       np.zeros((1, 1))), dt)
     af, bf, cf, df = zpk2ss(*butter(2, [lo, hi], btype="band", fs=fs, output="zpk"))

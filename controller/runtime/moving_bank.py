@@ -122,19 +122,17 @@ def neighbour_table(grid_index: NDArray[np.int64], airborne: NDArray[np.bool_],
     then model index); with sprung-mass ``layer``s, c's own layer first, then the nearer
     layers.  Row c starts with c itself.  Airborne rows are -1."""
     J = int(grid_index.shape[0])
-    ground = [j for j in range(J) if not airborne[j]]
-    lay = np.zeros(J, dtype=np.int64) if layer is None else layer
-    out = -np.ones((J, len(ground)), dtype=np.int64)
+    ground = np.flatnonzero(~np.asarray(airborne, dtype=bool))
+    lay = np.zeros(J, dtype=np.int64) if layer is None else np.asarray(layer, dtype=np.int64)
+    out = -np.ones((J, ground.size), dtype=np.int64)
+    gi = np.asarray(grid_index, dtype=np.int64)[ground]
+    gl = lay[ground]
     for c in ground:
-        dc, sc, lc = int(grid_index[c, 0]), int(grid_index[c, 1]), int(lay[c])
-
-        def key(j: int, dc: int = dc, sc: int = sc, lc: int = lc
-                ) -> tuple[int, int, int, int]:
-            dd = int(grid_index[j, 0]) - dc
-            ds = int(grid_index[j, 1]) - sc
-            return (abs(int(lay[j]) - lc), dd * dd + ds * ds, abs(ds), j)
-
-        out[c, :] = sorted(ground, key=key)
+        dd = gi[:, 0] - gi[ground == c, 0]
+        ds = gi[:, 1] - gi[ground == c, 1]
+        # lexsort: the last key is the primary one
+        order = np.lexsort((ground, np.abs(ds), dd * dd + ds * ds, np.abs(gl - lay[c])))
+        out[c, :] = ground[order]
     return out
 
 
