@@ -86,8 +86,10 @@ MAX_LIST_LEN = 64
 #: or Bayesian bank runs its filter every tick); the moving bank's ``active_models`` <= this
 MAX_BANK_MODELS = 64
 #: most (model, noise entry) Kalman designs: ``rig design`` solves one Riccati equation
-#: per entry (~1.5 ms each) and the artifact stores a filter per entry
-MAX_BANK_TABLE_ENTRIES = 4096
+#: per entry (~0.1 ms each, controller/dare.py) and the artifact stores a filter per
+#: entry (the default, 568 models x 20 entries, is 11 360: 2.5 s of design, a 5.2 MB
+#: artifact)
+MAX_BANK_TABLE_ENTRIES = 12000
 
 _BANK_WHY = (f"one linear tire model each; at most {MAX_BANK_MODELS} models in the bank, "
              "every model's Kalman filter runs each tick")
@@ -257,7 +259,7 @@ class DesignConfig:
                                          "sprung-mass and spring-rate layers "
                                          "(docs/design.md §11; [1.0] = the configured "
                                          "damper only)")
-    tire_stiffness_scales: list[float] = _f([1.0], lo=0.25, hi=4.0, max_len=8,
+    tire_stiffness_scales: list[float] = _f([0.7, 1.0, 1.3], lo=0.25, hi=4.0, max_len=8,
                                             len_why="one layer of tire models per scale",
                                             doc="tire layers of the bank (x tire."
                                                 "stiffness_coefficient), crossed with the "

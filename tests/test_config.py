@@ -98,15 +98,15 @@ def test_grid_and_table_sizes_are_bounded_with_the_reason() -> None:
                        match=r"at most 64 models in a layer of the bank: 20 deflections"):
         parse_config({"design": {"linearisation_deflections_m": grid[:20],
                                  "tire_damping_scales": [0.5, 1.0, 1.5, 2.0]}})
-    # 4 models x 64 speeds x 20 roughness = 5120 Kalman designs
+    # 4 models x 64 speeds x 50 roughness = 12800 Kalman designs
     speeds = [1.0 + i for i in range(64)]
-    gd = [1e-6 * (i + 1) for i in range(20)]
-    with pytest.raises(ConfigError, match=r"at most 4096 Kalman designs: 4 models x 64"):
+    gd = [1e-6 * (i + 1) for i in range(50)]
+    with pytest.raises(ConfigError, match=r"at most 12000 Kalman designs: 4 models x 64"):
         parse_config({"noise": {"speeds_mps": speeds, "road_roughness_gd": gd,
                                 "nominal_roughness_gd": gd[3]},
                       "design": {key: [1.0] for key in LAYER_KEYS}})     # one layer
-    # the layered default: 63 layers x 3 tire models + the airborne model
-    with pytest.raises(ConfigError, match=r"4096 Kalman designs: 190 models x 64 speeds"):
+    # the layered default: 189 layers x 3 tire models + the airborne model
+    with pytest.raises(ConfigError, match=r"12000 Kalman designs: 568 models x 64 speeds"):
         parse_config({"noise": {"speeds_mps": speeds, "road_roughness_gd": gd,
                                 "nominal_roughness_gd": gd[3]}})
     with pytest.raises(ConfigError, match=r"at most 15 entries \(design.weight_set"):

@@ -61,7 +61,7 @@ def test_envelope_plan_covers_the_issue_cases() -> None:
     tags = {c.param_tag for c in env}
     assert {"Kt0.7", "Kt1.3", "M0.6", "M1.5"} <= tags
     assert len(env) == 2 * (len(p.envelope_mass_scales) + 2) * 6
-    assert {c.observe_s for c in env} == {5.0}
+    assert {c.observe_s for c in env} == {10.0}
     assert {c.label for c in env} == {"passive", "lqg-1 (one-layer)", "fuzzy-1 (layered)",
                                       "fuzzy-1 (true-plant)", "fuzzy-default (layered)",
                                       "fuzzy-default (true-plant)"}

@@ -21,6 +21,7 @@ EXPECTED = {
     ("design", "sprung_mass_scales"): [1.0],       # the thesis's bank: one layer (§11)
     ("design", "spring_rate_scales"): [1.0],
     ("design", "damping_scales"): [1.0],
+    ("design", "tire_stiffness_scales"): [1.0],
 }
 
 

@@ -168,7 +168,7 @@ def plan(quick: bool) -> StudyPlan:
                      envelope_tire_scales=(0.7, 1.3), envelope_mc_runs=20,
                      envelope_mc_spread=0.25, envelope_mc_seeds=(1, 2),
                      envelope_mc_duration_s=20.0, envelope_road_seeds=tuple(range(1, 13)),
-                     envelope_road_duration_s=60.0, envelope_observe_s=5.0)
+                     envelope_road_duration_s=60.0, envelope_observe_s=10.0)
 
 
 def bank_labels() -> list[tuple[str, int]]:
