@@ -47,6 +47,7 @@ fault for the loop); DEGRADED is not a fault.  q is clamped to ``Q_MAX``.
 
 from __future__ import annotations
 
+import functools
 import math
 import tomllib
 from dataclasses import dataclass
@@ -919,7 +920,14 @@ def config_of(design: Design) -> RigConfig:
     text = design.metadata.get("config_toml") if isinstance(design.metadata, dict) else None
     if not text:
         return default_config()
-    return parse_config(tomllib.loads(str(text)))
+    return _parsed_config(str(text))
+
+
+@functools.lru_cache(maxsize=16)
+def _parsed_config(text: str) -> RigConfig:
+    """The configuration of a TOML text, remembered: a runtime's build reads its
+    design's configuration several times (7 ms a parse); RigConfig is immutable."""
+    return parse_config(tomllib.loads(text))
 
 
 def _vehicle_mkc(cfg: RigConfig) -> FloatArray:
