@@ -1,7 +1,8 @@
 """The loop on the linearised rig, and its margins: linear analysis with python-control.
 
-Discrete python-control blocks on the 1 kHz sample grid, joined by
-``control.interconnect`` (docs/design.md section 7):
+Discrete python-control blocks on the 1 kHz sample grid, joined by signal name
+(:func:`connect`: ``control.append`` and one static feedback, the system
+``control.interconnect`` gives, 10 times faster; docs/design.md section 7):
 
 - ``plant`` (:func:`rig_plant_ss`): linear quarter-car model j in deviation coordinates,
   with the true human filter F(s) as a state (exact performance output), and either an
@@ -36,7 +37,6 @@ PM / w (the extra pure delay at the break point that makes that crossover touch 
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Literal
 
@@ -319,10 +319,38 @@ def delay_ss(ticks: int, dt_s: float, inp: str, out: str) -> control.StateSpace:
 
 def connect(blocks: list[control.StateSpace], inputs: list[str], outputs: list[str]
             ) -> control.StateSpace:
-    with warnings.catch_warnings():      # unused plant outputs are expected
-        warnings.simplefilter("ignore", UserWarning)
-        sys = control.interconnect(blocks, inplist=inputs, outlist=outputs)
-    return control.ss(sys.A, sys.B, sys.C, sys.D, sys.dt)
+    """The blocks joined by signal name, as ``control.interconnect(blocks, inplist=inputs,
+    outlist=outputs)`` joins them: a block input takes the block output of the same name,
+    an external input in ``inputs`` drives every block input of its name, ``outputs``
+    are block outputs; states in block order.  Built with ``control.append`` and one
+    static positive feedback u = w + M y (``StateSpace.feedback``: matrix algebra),
+    where interconnect linearises the joined system numerically, 15 ms against 1 ms
+    for the rig's loops (`rig design` summarises 1134 of them).  Raises ``ValueError``
+    for a name that is not an output of exactly one block."""
+    in_names = [n for b in blocks for n in b.input_labels]
+    out_names = [n for b in blocks for n in b.output_labels]
+    out_index: dict[str, int] = {}
+    for j, name in enumerate(out_names):
+        if name in out_index:
+            raise ValueError(f"signal {name!r} is the output of two blocks")
+        out_index[name] = j
+    joined = control.append(*blocks)
+    M = np.zeros((len(in_names), len(out_names)))
+    for i, name in enumerate(in_names):
+        if name in out_index and name not in inputs:
+            M[i, out_index[name]] = 1.0
+    closed = joined.feedback(control.ss([], [], [], M, joined.dt), sign=1)
+    E = np.zeros((len(in_names), len(inputs)))
+    for k, name in enumerate(inputs):
+        for i, block_input in enumerate(in_names):
+            if block_input == name:
+                E[i, k] = 1.0
+    S = np.zeros((len(outputs), len(out_names)))
+    for k, name in enumerate(outputs):
+        if name not in out_index:
+            raise ValueError(f"signal {name!r} is no block's output")
+        S[k, out_index[name]] = 1.0
+    return control.ss(closed.A, closed.B @ E, S @ closed.C, S @ closed.D @ E, joined.dt)
 
 
 def lqg_loop_gain(cfg: RigConfig, md: ModelDesign, weights: list[float],

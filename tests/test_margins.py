@@ -249,3 +249,51 @@ def test_actuated_transition_matches_continuous_integration() -> None:
     s_ff, w_next = ff.step(float(z0[8]), float(z0[0] - z0[1]), 0.0)
     want = np.concatenate([sol.y[:, -1], [w_next, servo.kp_per_n * (fref - z0[7]) + s_ff]])
     np.testing.assert_allclose(p.Ad @ z0 + p.Bd * fref, want, rtol=1e-7, atol=1e-12)
+
+
+def _interconnect(blocks: list[control.StateSpace], inputs: list[str], outputs: list[str]
+                  ) -> control.StateSpace:
+    """python-control's own join by signal name (the reference for ``connect``)."""
+    import warnings
+    with warnings.catch_warnings():      # unused plant outputs are expected
+        warnings.simplefilter("ignore", UserWarning)
+        sys = control.interconnect(blocks, inplist=inputs, outlist=outputs)
+    return control.ss(sys.A, sys.B, sys.C, sys.D, sys.dt)
+
+
+def test_connect_is_control_interconnect(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The matrix-algebra join gives python-control's interconnect, state for state, on
+    every loop the package builds: the LQG loop gain (hydraulic with inner and outer
+    delays, ideal), the force loop alone, and the LQ / LQG covariance loops."""
+    import controller.analysis as analysis
+    import controller.margins as mg
+    layered = default_config()
+    ws = layered.design.weight_sets[0]
+    mds = [m for m in design_models(layered) if not m.model.airborne]
+    builds = [(mg.lqg_loop_gain, ("hydraulic", 2, 1)), (mg.lqg_loop_gain, ("ideal", 1)),
+              (mg.force_loop_gain, None), (analysis.rig_closed_loop, ("lqg", 1)),
+              (analysis.rig_closed_loop, ("lq", 0))]
+    for md in (mds[0], mds[len(mds) // 2], mds[-1]):
+        for fn, extra in builds:
+            args = (layered, md, 1) if extra is None else (layered, md, ws, *extra)
+            got = fn(*args)
+            with monkeypatch.context() as m:
+                m.setattr(mg, "connect", _interconnect)
+                ref = fn(*args)
+            names = ("A", "Bw", "Bv", "Co", "Dv") if hasattr(ref, "Bw") else "ABCD"
+            for name in names:
+                x, y = np.asarray(getattr(got, name)), np.asarray(getattr(ref, name))
+                assert x.shape == y.shape, (fn.__name__, name)
+                np.testing.assert_allclose(x, y, rtol=0.0,
+                                           atol=1e-12 * max(1.0, float(np.max(np.abs(y)))),
+                                           err_msg=f"{fn.__name__} {name} {md.model.name}")
+
+
+def test_connect_refuses_ambiguous_and_missing_signals() -> None:
+    from controller.margins import connect
+    a = control.ss([], [], [], [[1.0]], 0.001, inputs=["x"], outputs=["y"], name="a")
+    b = control.ss([], [], [], [[2.0]], 0.001, inputs=["x"], outputs=["y"], name="b")
+    with pytest.raises(ValueError, match="output of two blocks"):
+        connect([a, b], ["x"], ["y"])
+    with pytest.raises(ValueError, match="no block's output"):
+        connect([a], ["x"], ["z"])
