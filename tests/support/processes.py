@@ -39,9 +39,22 @@ def stop_and_wait_stopped(pid: int, timeout_s: float = 30.0) -> None:
     os.kill(pid, signal.SIGSTOP)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
-            state = f.read().rsplit(")", 1)[1].split()[0]
-        if state in ("T", "t"):
+        if all(state in ("T", "t") for state in _thread_states(pid)):
             return
         time.sleep(0.001)
     raise TimeoutError(f"process {pid} not stopped {timeout_s:g} s after SIGSTOP")
+
+
+def _thread_states(pid: int) -> list[str]:
+    """The state letter of every thread of ``pid`` (/proc/PID/task/TID/stat).  The
+    process's own stat shows its main thread only: a group stop reaches the threads one
+    by one, and a reader thread can still take data after the main thread shows T."""
+    import os
+    states = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat", encoding="ascii") as f:
+                states.append(f.read().rsplit(")", 1)[1].split()[0])
+        except FileNotFoundError:       # the thread ended meanwhile
+            continue
+    return states
