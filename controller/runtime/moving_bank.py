@@ -127,11 +127,11 @@ def neighbour_table(grid_index: NDArray[np.int64], airborne: NDArray[np.bool_],
     out = -np.ones((J, ground.size), dtype=np.int64)
     gi = np.asarray(grid_index, dtype=np.int64)[ground]
     gl = lay[ground]
-    for c in ground:
-        dd = gi[:, 0] - gi[ground == c, 0]
-        ds = gi[:, 1] - gi[ground == c, 1]
+    for row, c in enumerate(ground):
+        dd = gi[:, 0] - gi[row, 0]
+        ds = gi[:, 1] - gi[row, 1]
         # lexsort: the last key is the primary one
-        order = np.lexsort((ground, np.abs(ds), dd * dd + ds * ds, np.abs(gl - lay[c])))
+        order = np.lexsort((ground, np.abs(ds), dd * dd + ds * ds, np.abs(gl - gl[row])))
         out[c, :] = ground[order]
     return out
 
