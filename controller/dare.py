@@ -40,10 +40,11 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
 
-__all__ = ["solve_filter_dares"]
+__all__ = ["doubling_dares", "solve_filter_dares"]
 
 #: a system has converged when max |H_{k+1} - H_k| <= _TOLERANCE * max |H_{k+1}|
 _TOLERANCE = 1e-14
@@ -113,27 +114,47 @@ def _doubling(Phi: FloatArray, C: FloatArray, Q: FloatArray,
     return H, converged
 
 
+def _stein(Ac: FloatArray, rhs: FloatArray) -> FloatArray:
+    """X = Ac X Ac' + rhs for each system of a stack (Smith's doubling: X = sum of
+    Ac^k rhs Ac'^k, summed in 2^j blocks by squaring Ac), every system to its own
+    convergence (so a result does not depend on the stack); NaN where Ac is not
+    contracting within ``_MAX_ITERATIONS`` squarings."""
+    X = rhs.copy()
+    A = Ac.copy()
+    active = np.arange(X.shape[0])
+    for _ in range(_MAX_ITERATIONS):
+        if active.size == 0:
+            break
+        a, x = A[active], X[active]
+        step = a @ x @ _transpose(a)
+        x_next = x + step
+        X[active] = x_next
+        A[active] = a @ a
+        small = np.max(np.abs(step), axis=(1, 2)) <= _TOLERANCE * np.max(np.abs(x_next),
+                                                                           axis=(1, 2))
+        decayed = np.max(np.abs(A[active]), axis=(1, 2)) <= _DECAYED
+        finite = np.all(np.isfinite(x_next), axis=(1, 2))
+        active = active[finite & ~(small & decayed)]
+    X[active] = np.nan
+    return _sym(X)
+
+
 def _newton_step(P: FloatArray, Phi: FloatArray, C: FloatArray, Q: FloatArray,
                  R: FloatArray) -> FloatArray:
     """One Newton (Hewer) step from P: with the filter gain K of P and the closed loop
-    A_c = Phi - K C, the P' solving the Stein equation P' = A_c P' A_c' + Q + K R K'
-    (Kronecker form, an n^2 x n^2 solve per system)."""
-    N, n, _ = P.shape
+    A_c = Phi - K C, the P' solving the Stein equation P' = A_c P' A_c' + Q + K R K'."""
     Ct = _transpose(C)
     K = Phi @ P @ Ct @ np.linalg.inv(C @ P @ Ct + R)
     Ac = Phi - K @ C
-    rhs = Q + K @ R @ _transpose(K)
-    kron = np.einsum("nij,nkl->nikjl", Ac, Ac).reshape(N, n * n, n * n)
-    x = np.linalg.solve(np.eye(n * n) - kron, rhs.reshape(N, n * n, 1))
-    return _sym(x.reshape(N, n, n))
+    return _stein(Ac, Q + K @ R @ _transpose(K))
 
 
-def solve_filter_dares(Phi: FloatArray, C: FloatArray, Q: FloatArray,
-                       R: FloatArray) -> FloatArray:
-    """Stabilising solutions P of the filter DAREs of a stack of systems (module doc).
-
-    Raises ``ValueError`` (naming the stack index i of a stack) for a system that
-    neither method solves."""
+def doubling_dares(Phi: FloatArray, C: FloatArray, Q: FloatArray,
+                   R: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The doubling and Newton steps of :func:`solve_filter_dares` without the QZ
+    fallback: (P, solved) with ``solved[i]`` False where system i did not converge or
+    left a residual above ``_RESIDUAL`` (its P is then not a solution).  For a caller
+    with its own fallback (:func:`controller.lq.dlqr_cross_stack`)."""
     Phi = np.asarray(Phi, dtype=float)
     C = np.asarray(C, dtype=float)
     Q = np.asarray(Q, dtype=float)
@@ -149,6 +170,21 @@ def solve_filter_dares(Phi: FloatArray, C: FloatArray, Q: FloatArray,
             except np.linalg.LinAlgError:
                 res = np.full(idx.size, np.inf)
         ok[idx[~(res <= _RESIDUAL)]] = False
+    return P, ok
+
+
+def solve_filter_dares(Phi: FloatArray, C: FloatArray, Q: FloatArray,
+                       R: FloatArray) -> FloatArray:
+    """Stabilising solutions P of the filter DAREs of a stack of systems (module doc).
+
+    Raises ``ValueError`` (naming the stack index i of a stack) for a system that
+    neither method solves."""
+    Phi = np.asarray(Phi, dtype=float)
+    C = np.asarray(C, dtype=float)
+    Q = np.asarray(Q, dtype=float)
+    N = Phi.shape[0]
+    R = np.broadcast_to(np.asarray(R, dtype=float), (N, *np.shape(R)[-2:]))
+    P, ok = doubling_dares(Phi, C, Q, R)
     for i in np.flatnonzero(~ok):
         try:
             P[i] = _sym(scipy.linalg.solve_discrete_are(Phi[i].T, C[i].T, Q[i], R[i]))

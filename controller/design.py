@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controller.actuator import servo_model
+from controller.actuator import ServoModel, servo_model
 from controller.arrays import FloatArray
 from controller.artifact import Design, build_metadata
 from controller.config import RigConfig, layer_config, layer_grid
@@ -34,7 +34,7 @@ from controller.kalman import (
     fused_prior_update,
     steady_state_kalman_stack,
 )
-from controller.lq import actuated_lq_gain, lq_gain
+from controller.lq import LQStackError, actuated_lq_problem, dlqr_cross_stack, lq_problem
 from controller.plant import LinearModel, model_family
 from controller.road_noise import noise_table_entries
 
@@ -110,6 +110,37 @@ def _grid_index(cfg: RigConfig, j: int, airborne: bool) -> tuple[int, int]:
     return (j // n_scale, j % n_scale)
 
 
+def _lq_gains(cfg: RigConfig, mds: list[ModelDesign], hf: HumanFilter, servo: ServoModel,
+              gains: FloatArray, act_gains: FloatArray) -> None:
+    """Fill ``gains`` (W, J, 6) and ``act_gains`` (W, J, 3 + D) with every on-ground
+    model's LQ gain for every weight set, the DAREs solved as one stack
+    (:func:`controller.lq.dlqr_cross_stack`: the numbers of :func:`actuated_lq_gain` /
+    :func:`lq_gain` model by model); the airborne model keeps 0.  Raises ValueError
+    naming the model and weight set whose DARE has no stabilising solution."""
+    hydraulic = cfg.design.actuator_model == "hydraulic"
+    cases = [(w, j) for j, md in enumerate(mds) if not md.model.airborne
+             for w in range(len(cfg.design.weight_sets))]
+    if not cases:
+        return
+    probs = [actuated_lq_problem(mds[j].model, hf, cfg.design.weight_sets[w], servo)
+             if hydraulic else lq_problem(mds[j].model, hf, cfg.design.weight_sets[w])
+             for w, j in cases]
+    try:
+        K, _ = dlqr_cross_stack(np.stack([p.Ad for p in probs]),
+                                np.stack([p.Bd for p in probs]),
+                                np.stack([p.Qd for p in probs]),
+                                np.array([p.Rd for p in probs]),
+                                np.stack([p.Nd for p in probs]))
+    except LQStackError as exc:
+        w, j = cases[exc.index]
+        raise ValueError(f"model {mds[j].model.name}, weight set {w + 1}: {exc.reason}"
+                         ) from exc
+    for (w, j), k in zip(cases, K, strict=True):
+        gains[w, j] = k[:6]
+        if hydraulic:
+            act_gains[w, j] = k[6:]
+
+
 def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Design:
     """Design every filter and gain of the bank for ``cfg`` (raises ValueError if a
     Riccati equation has no stabilising solution)."""
@@ -154,13 +185,7 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
             fused = fused_prior_update(md.dfm.Phi, md.dfm.Gamma_u, md.dfm.Gamma_g, g,
                                        md.fm.C, md.fm.D, md.fm.y_offset, kalman_gain[j, s])
             fA[j, s], fBy[j, s], fBu[j, s], fb[j, s] = fused.A, fused.By, fused.Bu, fused.b
-        for w, weights in enumerate(cfg.design.weight_sets):
-            if cfg.design.actuator_model == "hydraulic":
-                k_full = actuated_lq_gain(md.model, hf, weights, servo)
-                gains[w, j] = k_full[:6]
-                act_gains[w, j] = k_full[6:]
-            else:       # thesis design for a force source: no actuator terms
-                gains[w, j] = lq_gain(md.model, hf, weights)
+    _lq_gains(cfg, mds, hf, servo, gains, act_gains)
 
     q_grid, w_curve = firing_weight_curve(cfg.fuzzy, fuzzy_points)
     v = cfg.vehicle

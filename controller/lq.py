@@ -31,6 +31,7 @@ import scipy.linalg
 
 from controller.actuator import ServoModel
 from controller.arrays import FloatArray
+from controller.dare import doubling_dares
 from controller.human_filter import HumanFilter, discretize_zoh
 from controller.plant import LinearModel
 
@@ -38,12 +39,14 @@ __all__ = [
     "ACTUATOR_GAIN_OFFSET",
     "AugmentedPlant",
     "DiscreteLQProblem",
+    "LQStackError",
     "actuated_lq_gain",
     "actuated_lq_problem",
     "actuated_plant",
     "augmented_plant",
     "discretize_cost",
     "dlqr_cross",
+    "dlqr_cross_stack",
     "lq_gain",
     "lq_problem",
 ]
@@ -131,42 +134,91 @@ def discretize_cost(A: FloatArray, B: FloatArray, Qc: FloatArray, Rc: float,
                              float(dt_s))
 
 
-def dlqr_cross(Ad: FloatArray, Bd: FloatArray, Qd: FloatArray, Rd: float,
-               Nd: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Discrete LQR with cross term: (K (n,), P (n, n)) for u = -K z.
+class LQStackError(ValueError):
+    """A problem of :func:`dlqr_cross_stack` has no stabilising solution: ``index`` is
+    its place in the stack, ``reason`` what failed (the message names the index only
+    for a stack of more than one)."""
 
-    The input is rescaled to unit cost weight before the DARE (rho3 = 1e-8 makes Rd tiny
-    next to Qd in SI units) and the state by the diagonal similarity z = T z~ that
-    balances Ad (``scipy.linalg.matrix_balance``, powers of two: exact; SI states span
-    metres to newtons, and with the actuator's pending commands the pencil is otherwise
-    too ill-conditioned for the QZ reordering); gain and P are transformed back.  If
-    scipy's own pencil balancing still leaves the QZ reordering ill-conditioned (some
-    actuated problems with D >= 2), the DARE is solved again without it.  Raises
-    ``ValueError`` if the DARE has no stabilising solution.
+    def __init__(self, index: int, size: int, reason: str) -> None:
+        super().__init__(f"system {index}: {reason}" if size > 1 else reason)
+        self.index = index
+        self.reason = reason
+
+
+def dlqr_cross_stack(Ad: FloatArray, Bd: FloatArray, Qd: FloatArray, Rd: FloatArray,
+                     Nd: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Discrete LQR with cross term for a stack of single-input problems: (K (S, n),
+    P (S, n, n)) with u = -K[i] z for problem i.  Shapes: ``Ad`` (S, n, n), ``Bd``, ``Nd``
+    (S, n), ``Qd`` (S, n, n), ``Rd`` (S,).
+
+    Each problem's input is rescaled to unit cost weight (rho3 = 1e-8 makes Rd tiny next
+    to Qd in SI units) and its state by the diagonal similarity z = T z~ that balances
+    Ad (``scipy.linalg.matrix_balance``, powers of two: exact; SI states span metres to
+    newtons, and with the actuator's pending commands the pencil is otherwise too
+    ill-conditioned); gain and P are transformed back.  The cross term is taken into
+    the standard form (A - B N', Q - N N' with the unit input weight), and the stack is
+    solved together by doubling (:func:`controller.dare.doubling_dares`, the filter
+    DARE of the dual system).  A problem the doubling does not solve goes to scipy's
+    QZ solver with the cross term, and, if scipy's own pencil balancing leaves the QZ
+    reordering ill-conditioned (some actuated problems with D >= 2), again without it.
+    Each problem's result does not depend on the others in the stack.  Raises
+    ``ValueError`` (naming the stack index i of a stack) if a DARE has no stabilising
+    solution.
     """
-    n = Ad.shape[0]
-    _, (t, _) = scipy.linalg.matrix_balance(Ad, permute=False, separate=True)
+    Ad = np.asarray(Ad, dtype=float)
+    S, n, _ = Ad.shape
+    Bd = np.asarray(Bd, dtype=float).reshape(S, n)
+    Nd = np.asarray(Nd, dtype=float).reshape(S, n)
+    Qd = np.asarray(Qd, dtype=float)
+    Rd = np.asarray(Rd, dtype=float).reshape(S)
+    t = np.empty((S, n))
+    for i in range(S):
+        _, (t[i], _) = scipy.linalg.matrix_balance(Ad[i], permute=False, separate=True)
     t_inv = 1.0 / t
     scale = 1.0 / np.sqrt(Rd)  # u = scale * v  ->  cost weight on v is 1
-    Ab = Ad * t_inv[:, None] * t[None, :]
-    Qb = Qd * t[:, None] * t[None, :]
-    Bv = (Bd * t_inv).reshape(n, 1) * scale
-    Nv = (Nd * t).reshape(n, 1) * scale
-    try:
-        Pb = scipy.linalg.solve_discrete_are(Ab, Bv, Qb, np.array([[1.0]]), s=Nv)
-    except (np.linalg.LinAlgError, ValueError):
+    Ab = Ad * t_inv[:, :, None] * t[:, None, :]
+    Qb = Qd * t[:, :, None] * t[:, None, :]
+    Bv = Bd * t_inv * scale[:, None]
+    Nv = Nd * t * scale[:, None]
+    one = np.ones((1, 1))
+    # standard form: A~ = Ab - Bv Nv', Q~ = Qb - Nv Nv'; its filter DARE dual is
+    # Phi = A~', C = Bv'
+    A_std = Ab - Bv[:, :, None] * Nv[:, None, :]
+    Q_std = Qb - Nv[:, :, None] * Nv[:, None, :]
+    Q_std = 0.5 * (Q_std + np.swapaxes(Q_std, 1, 2))
+    Pb, ok = doubling_dares(np.swapaxes(A_std, 1, 2), Bv[:, None, :], Q_std, one)
+    for k in np.flatnonzero(~ok):
+        b, nv = Bv[k].reshape(n, 1), Nv[k].reshape(n, 1)
         try:
-            Pb = scipy.linalg.solve_discrete_are(Ab, Bv, Qb, np.array([[1.0]]), s=Nv,
-                                                 balanced=False)
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            raise ValueError(f"LQ DARE has no stabilising solution ({exc})") from exc
-    Kv = np.linalg.solve(np.array([[1.0]]) + Bv.T @ Pb @ Bv, Bv.T @ Pb @ Ab + Nv.T)
-    K = (Kv * scale).reshape(n) * t_inv
-    P = Pb * t_inv[:, None] * t_inv[None, :]
-    rho = float(np.max(np.abs(np.linalg.eigvals(Ad - np.outer(Bd, K)))))
-    if not rho < 1.0:
-        raise ValueError(f"LQ closed loop not stable (spectral radius {rho:.6f})")
+            Pb[k] = scipy.linalg.solve_discrete_are(Ab[k], b, Qb[k], one, s=nv)
+        except (np.linalg.LinAlgError, ValueError):
+            try:
+                Pb[k] = scipy.linalg.solve_discrete_are(Ab[k], b, Qb[k], one, s=nv,
+                                                        balanced=False)
+            except (np.linalg.LinAlgError, ValueError) as exc:
+                raise LQStackError(int(k), S, "LQ DARE has no stabilising solution "
+                                   f"({exc})") from exc
+    PB = Pb @ Bv[:, :, None]                                        # (S, n, 1)
+    denom = 1.0 + (Bv[:, None, :] @ PB)[:, 0, 0]
+    Kv = ((np.swapaxes(PB, 1, 2) @ Ab)[:, 0, :] + Nv) / denom[:, None]
+    K = Kv * scale[:, None] * t_inv
+    P = Pb * t_inv[:, :, None] * t_inv[:, None, :]
+    rho = np.max(np.abs(np.linalg.eigvals(Ad - Bd[:, :, None] * K[:, None, :])), axis=1)
+    for k in np.flatnonzero(~(rho < 1.0)):
+        raise LQStackError(int(k), S, f"LQ closed loop not stable (spectral radius "
+                                      f"{rho[k]:.6f})")
     return K, P
+
+
+def dlqr_cross(Ad: FloatArray, Bd: FloatArray, Qd: FloatArray, Rd: float,
+               Nd: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Discrete LQR with cross term: (K (n,), P (n, n)) for u = -K z; the one-problem
+    case of :func:`dlqr_cross_stack` (the same numbers as in a stack).  Raises
+    ``ValueError`` if the DARE has no stabilising solution."""
+    n = Ad.shape[0]
+    K, P = dlqr_cross_stack(Ad.reshape(1, n, n), np.reshape(Bd, (1, n)), Qd.reshape(1, n, n),
+                            np.array([Rd], dtype=float), np.reshape(Nd, (1, n)))
+    return K[0], P[0]
 
 
 def lq_problem(model: LinearModel, hf: HumanFilter,
