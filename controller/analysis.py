@@ -33,7 +33,7 @@ force update, a_k = A[2] x_k + u_k / M.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import control
 import numpy as np
@@ -48,6 +48,9 @@ from controller.kalman import process_noise_cov, steady_state_kalman
 from controller.lq import augmented_plant, lq_gain
 from controller.plant import LinearModel
 from controller.road_noise import road_velocity_intensity
+
+if TYPE_CHECKING:
+    from controller.margins import LoopParts
 
 __all__ = [
     "OUTPUTS",
@@ -150,15 +153,18 @@ def closed_loop(kind: LoopKind, model: LinearModel, hf: HumanFilter, K: FloatArr
 
 
 def rig_closed_loop(cfg: RigConfig, md: ModelDesign, weights: list[float],
-                    kind: Literal["lq", "lqg"], delay_ticks: int) -> ClosedLoop:
+                    kind: Literal["lq", "lqg"], delay_ticks: int,
+                    parts: LoopParts | None = None) -> ClosedLoop:
     """LQ or LQG loop of model j on the linearised rig (:mod:`controller.margins`), with
     road noise (Van Loan), rattlespace / accelerometer / load-cell noise, and
     ``delay_ticks`` between the PI and the valve.  Outputs as :data:`OUTPUTS` (the last
-    is the sampled true acceleration)."""
+    is the sampled true acceleration).  ``parts``: the loop's gains if the caller has
+    them (default :func:`controller.margins.loop_parts` of ``weights``)."""
     from controller import margins as mg
 
     dt = cfg.sample_time_s
-    parts = mg.loop_parts(cfg, md, weights)
+    if parts is None:
+        parts = mg.loop_parts(cfg, md, weights)
     plant, Qw = mg.rig_plant_ss(md, cfg, "hydraulic", noise=True)
     n = Qw.shape[0]
     close = control.ss([], [], [], [[1.0]], dt, inputs=["fref_out"], outputs=["fref"],

@@ -64,6 +64,7 @@ __all__ = [
     "force_loop_gain",
     "force_loop_ss",
     "fullstate_controller_ss",
+    "loop_kalman_gain",
     "loop_parts",
     "lqg_loop_gain",
     "rig_plant_ss",
@@ -96,20 +97,32 @@ class LoopParts:
     servo: ServoModel
 
 
-def loop_parts(cfg: RigConfig, md: ModelDesign, weights: list[float]) -> LoopParts:
+def loop_kalman_gain(cfg: RigConfig, md: ModelDesign) -> FloatArray:
+    """The (4, 2) Kalman gain of model j's loop: the plant filter (no bias states) at the
+    nominal noise entry (road velocity of the nominal speed and roughness)."""
+    W = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
+    return steady_state_kalman(md.dfm.Phi, md.fm.C, md.dfm.Qd_unit * W,
+                               measurement_noise_cov(cfg)).L
+
+
+def loop_parts(cfg: RigConfig, md: ModelDesign, weights: list[float], *,
+               gains: tuple[FloatArray, FloatArray] | None = None,
+               kalman_gain: FloatArray | None = None) -> LoopParts:
     """Gains as ``design_bank(cfg)`` makes them (``design.actuator_model``), Kalman gain at
-    the nominal noise entry."""
+    the nominal noise entry (:func:`loop_kalman_gain`).  ``gains`` = (K, Ka) and
+    ``kalman_gain`` skip recomputing what the caller has already (the design's
+    ``lq_gain[w, j]`` and ``actuator_gain[w, j]`` are these gains, bit for bit)."""
     dt = cfg.sample_time_s
     hf = human_filter(cfg.design, dt)
     servo = servo_model(cfg)
-    if cfg.design.actuator_model == "hydraulic":
+    if gains is not None:
+        K, Ka = gains
+    elif cfg.design.actuator_model == "hydraulic":
         k = actuated_lq_gain(md.model, hf, weights, servo)
         K, Ka = k[:6], k[6:]
     else:
         K, Ka = lq_gain(md.model, hf, weights), np.zeros(3 + servo.delay_ticks)
-    W = road_velocity_intensity(cfg.noise.nominal_speed_mps, cfg.noise.nominal_roughness_gd)
-    L = steady_state_kalman(md.dfm.Phi, md.fm.C, md.dfm.Qd_unit * W,
-                            measurement_noise_cov(cfg)).L
+    L = loop_kalman_gain(cfg, md) if kalman_gain is None else kalman_gain
     return LoopParts(hf, K, Ka, L, servo)
 
 

@@ -244,6 +244,9 @@ def test_cli_design_writes_artifact_and_json(tmp_path: Path,
                          one.design.compute_delay_ticks)
     poles = m["lq"]["weight_set_1"]["closed_loop_poles"]
     assert len(poles) == cl.A.shape[0] > 6 and all(p["abs"] < 1.0 for p in poles)
+    # (the summary builds the loop from the artifact's gains; the same poles)
+    np.testing.assert_allclose([p["abs"] for p in poles],
+                               np.sort(np.abs(np.linalg.eigvals(cl.A)))[::-1], rtol=1e-9)
     assert "closed_loop_poles" not in summary["models"]["airborne"]["lq"]["weight_set_1"]
     # continuous equivalent of a discrete pole: |z| = exp(-zeta wn dt)
     for p in poles:

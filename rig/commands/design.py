@@ -14,6 +14,7 @@ from controller.config import RigConfig, load_config
 from controller.design import design_models
 from controller.human_filter import discretize_zoh, human_filter
 from controller.lq import augmented_plant
+from controller.margins import loop_kalman_gain, loop_parts
 from controller.road_noise import nearest_noise_entry
 from rig import argtypes, strict_json
 from rig.design_cache import design_for
@@ -58,6 +59,7 @@ def design_summary(design: Design, cfg: RigConfig) -> dict[str, Any]:
         entry: dict[str, Any] = {"airborne": bool(design.airborne[j]), "lq": {}}
         aug = augmented_plant(md.model, hf, (0.0, 0.0, 1.0, 0.0))
         Pa, Ga = discretize_zoh(aug.A, aug.B, dt)
+        L: np.ndarray | None = None
         for w in range(design.n_weight_sets):
             K = design.lq_gain[w, j]
             lq: dict[str, Any] = {
@@ -69,8 +71,14 @@ def design_summary(design: Design, cfg: RigConfig) -> dict[str, Any]:
             if not design.airborne[j]:
                 # the loop the rig really runs: LQG + PI force loop + servo-hydraulics +
                 # the design's compute delay (controller.analysis.rig_closed_loop)
+                # (the design's gains are loop_parts' own, bit for bit; the loop's
+                # Kalman gain is computed once per model)
+                if L is None:
+                    L = loop_kalman_gain(cfg, md)
+                parts = loop_parts(cfg, md, list(cfg.design.weight_sets[w]),
+                                   gains=(K, design.actuator_gain[w, j]), kalman_gain=L)
                 cl = rig_closed_loop(cfg, md, list(cfg.design.weight_sets[w]), "lqg",
-                                     cfg.design.compute_delay_ticks)
+                                     cfg.design.compute_delay_ticks, parts)
                 lq["closed_loop_poles"] = _poles(cl.A, dt)
             entry["lq"][f"weight_set_{w + 1}"] = lq
         entry["kalman"] = {
