@@ -149,17 +149,22 @@ def _newton_step(P: FloatArray, Phi: FloatArray, C: FloatArray, Q: FloatArray,
     return _stein(Ac, Q + K @ R @ _transpose(K))
 
 
+def _as_stack(Phi: FloatArray, C: FloatArray, Q: FloatArray, R: FloatArray
+              ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The arguments as float stacks, R broadcast to one (m, m) per system."""
+    Phi = np.asarray(Phi, dtype=float)
+    R = np.asarray(R, dtype=float)
+    return (Phi, np.asarray(C, dtype=float), np.asarray(Q, dtype=float),
+            np.broadcast_to(R, (Phi.shape[0], *R.shape[-2:])))
+
+
 def doubling_dares(Phi: FloatArray, C: FloatArray, Q: FloatArray,
                    R: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
     """The doubling and Newton steps of :func:`solve_filter_dares` without the QZ
     fallback: (P, solved) with ``solved[i]`` False where system i did not converge or
     left a residual above ``_RESIDUAL`` (its P is then not a solution).  For a caller
     with its own fallback (:func:`controller.lq.dlqr_cross_stack`)."""
-    Phi = np.asarray(Phi, dtype=float)
-    C = np.asarray(C, dtype=float)
-    Q = np.asarray(Q, dtype=float)
-    N = Phi.shape[0]
-    R = np.broadcast_to(np.asarray(R, dtype=float), (N, *np.shape(R)[-2:]))
+    Phi, C, Q, R = _as_stack(Phi, C, Q, R)
     P, ok = _doubling(Phi, C, Q, R)
     if np.any(ok):
         idx = np.flatnonzero(ok)
@@ -179,11 +184,8 @@ def solve_filter_dares(Phi: FloatArray, C: FloatArray, Q: FloatArray,
 
     Raises ``ValueError`` (naming the stack index i of a stack) for a system that
     neither method solves."""
-    Phi = np.asarray(Phi, dtype=float)
-    C = np.asarray(C, dtype=float)
-    Q = np.asarray(Q, dtype=float)
+    Phi, C, Q, R = _as_stack(Phi, C, Q, R)
     N = Phi.shape[0]
-    R = np.broadcast_to(np.asarray(R, dtype=float), (N, *np.shape(R)[-2:]))
     P, ok = doubling_dares(Phi, C, Q, R)
     for i in np.flatnonzero(~ok):
         try:
