@@ -304,7 +304,9 @@ def test_unattended_excite_run_arms_after_rest_and_stops_after_it(design_path: P
                                                                   tmp_path: Path) -> None:
     """`rig run --excite` as the service runs it (here against the emulated rig in its
     own process with the road 'flat', as `rig hil --excite`): rest, arm, excitation,
-    disarm, stop by itself."""
+    disarm, stop by itself.  In lockstep, so the run is the same whatever the machine's
+    load (in real time a busy host once stretched the loop's ticks enough for the
+    excitation to cross its travel limit at sample 1807 of 2000)."""
     from hil.harness import RigHarness, RigProcessOptions
     from rig.service.runner import ServiceOptions
 
@@ -316,8 +318,8 @@ def test_unattended_excite_run_arms_after_rest_and_stops_after_it(design_path: P
                           install_signal_handlers=False, record=str(record), arm=True,
                           excite=True)
     rig_opts = RigProcessOptions(road="flat", road_s=10.0, watchdog_s=10.0, realtime=None,
-                                 trace_ticks=20_000)
-    h = RigHarness(cfg, opts, rig_opts, rig_start_ticks=20)
+                                 trace_ticks=20_000, lockstep=True)
+    h = RigHarness(cfg, opts, rig_opts, max_speedup=0.0)
     try:
         res = h.run()
     finally:
