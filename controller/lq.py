@@ -204,9 +204,11 @@ def dlqr_cross_stack(Ad: FloatArray, Bd: FloatArray, Qd: FloatArray, Rd: FloatAr
     K = Kv * scale[:, None] * t_inv
     P = Pb * t_inv[:, :, None] * t_inv[:, None, :]
     rho = np.max(np.abs(np.linalg.eigvals(Ad - Bd[:, :, None] * K[:, None, :])), axis=1)
-    for k in np.flatnonzero(~(rho < 1.0)):
-        raise LQStackError(int(k), S, f"LQ closed loop not stable (spectral radius "
-                                      f"{rho[k]:.6f})")
+    unstable = np.flatnonzero(~(rho < 1.0))
+    if unstable.size:
+        first = int(unstable[0])
+        raise LQStackError(first, S, "LQ closed loop not stable (spectral radius "
+                                     f"{rho[first]:.6f})")
     return K, P
 
 
