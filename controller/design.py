@@ -169,10 +169,10 @@ def design_bank(cfg: RigConfig, *, fuzzy_points: int = FUZZY_GRID_POINTS) -> Des
     gains = np.zeros((W, J, 6))
     act_gains = np.zeros((W, J, 3 + servo.delay_ticks))
     eq = np.full((J, 4), np.nan)
+    w_ints = np.array([w_int for _v, _gd, w_int in entries])
     for j, md in enumerate(mds):
         if md.model.equilibrium is not None:
             eq[j] = md.model.equilibrium
-        w_ints = np.array([w_int for _v, _gd, w_int in entries])
         try:
             kf = steady_state_kalman_stack(
                 np.broadcast_to(md.dfm.Phi, (S, 4, 4)), np.broadcast_to(md.fm.C, (S, 2, 4)),

@@ -59,7 +59,9 @@ def design_summary(design: Design, cfg: RigConfig) -> dict[str, Any]:
         entry: dict[str, Any] = {"airborne": bool(design.airborne[j]), "lq": {}}
         aug = augmented_plant(md.model, hf, (0.0, 0.0, 1.0, 0.0))
         Pa, Ga = discretize_zoh(aug.A, aug.B, dt)
-        L: np.ndarray | None = None
+        # the rig loop's Kalman gain, once per model (the design's gains are loop_parts'
+        # own, bit for bit)
+        L = None if design.airborne[j] else loop_kalman_gain(cfg, md)
         for w in range(design.n_weight_sets):
             K = design.lq_gain[w, j]
             lq: dict[str, Any] = {
@@ -71,10 +73,6 @@ def design_summary(design: Design, cfg: RigConfig) -> dict[str, Any]:
             if not design.airborne[j]:
                 # the loop the rig really runs: LQG + PI force loop + servo-hydraulics +
                 # the design's compute delay (controller.analysis.rig_closed_loop)
-                # (the design's gains are loop_parts' own, bit for bit; the loop's
-                # Kalman gain is computed once per model)
-                if L is None:
-                    L = loop_kalman_gain(cfg, md)
                 parts = loop_parts(cfg, md, list(cfg.design.weight_sets[w]),
                                    gains=(K, design.actuator_gain[w, j]), kalman_gain=L)
                 cl = rig_closed_loop(cfg, md, list(cfg.design.weight_sets[w]), "lqg",

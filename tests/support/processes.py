@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import subprocess
+import time
 from collections.abc import Iterator
 
 
@@ -31,11 +33,9 @@ def killed_on_exit(proc: subprocess.Popen[str]) -> Iterator[subprocess.Popen[str
 
 def stop_and_wait_stopped(pid: int, timeout_s: float = 30.0) -> None:
     """SIGSTOP the test's own child ``pid`` and wait until the kernel shows it stopped
-    (state T in /proc/PID/stat).  kill() only queues the signal: a child blocked in a
-    read completes that read first, so a test that wrote to it at once could still see
-    it take data after the kill."""
-    import os
-    import time
+    (state T in /proc/PID/task/*/stat, every thread).  kill() only queues the signal: a
+    child blocked in a read completes that read first, so a test that wrote to it at
+    once could still see it take data after the kill."""
     os.kill(pid, signal.SIGSTOP)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -49,7 +49,6 @@ def _thread_states(pid: int) -> list[str]:
     """The state letter of every thread of ``pid`` (/proc/PID/task/TID/stat).  The
     process's own stat shows its main thread only: a group stop reaches the threads one
     by one, and a reader thread can still take data after the main thread shows T."""
-    import os
     states = []
     for tid in os.listdir(f"/proc/{pid}/task"):
         try:
