@@ -351,6 +351,21 @@ class DesignConfig:
     schedule_release_s: float = _f(0.7, lo=0.0, hi=100.0,
                                    doc="travel schedule: time constant with which the usage "
                                        "envelope falls after a peak (it rises at once)")
+    preview_horizon_s: float = _f(0.0, lo=0.0, hi=1.0,
+                                  doc="road preview (travel schedule only): how far ahead "
+                                      "the road velocity the rig will play is used to "
+                                      "predict the LVDT reading; a predicted peak beyond "
+                                      "preview_trigger_m turns the schedule to the travel "
+                                      "law before the excursion [s] (0 = off; only the "
+                                      "simulator supplies a preview so far: docs/design.md "
+                                      "§12)")
+    preview_trigger_m: float = _f(0.06, lo=0.0, hi=1.0, lo_open=True,
+                                  doc="road preview: predicted distance of the LVDT reading "
+                                      "from the stops' centre that turns the schedule to "
+                                      "the travel law")
+    preview_check_s: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True,
+                                doc="road preview: spacing of the look-ahead times at which "
+                                    "the prediction is checked, up to preview_horizon_s")
     stop_barrier: bool = _f(False, doc="end-stop barrier: a safety filter on the force "
                                        "reference that keeps the rattlespace short of the "
                                        "bump stops given the body's momentum and the "
@@ -960,6 +975,13 @@ def _cross_checks(cfg: RigConfig) -> None:
     if d.schedule_full_m <= d.schedule_start_m:
         raise ConfigError("design.schedule_full_m", d.schedule_full_m,
                           f"above design.schedule_start_m ({d.schedule_start_m:g})")
+    if d.preview_horizon_s > 0.0 and d.schedule_release_s == 0.0:
+        raise ConfigError("design.preview_horizon_s", d.preview_horizon_s,
+                          "0 while design.schedule_release_s is 0 (the preview holds the "
+                          "travel law through the schedule's release)")
+    if 0.0 < d.preview_horizon_s < d.preview_check_s:
+        raise ConfigError("design.preview_check_s", d.preview_check_s,
+                          f"at most design.preview_horizon_s ({d.preview_horizon_s:g})")
     for i, w in enumerate(d.weight_sets):
         if len(w) != 4:
             raise ConfigError(f"design.weight_sets[{i}]", w, "4 numbers [rho1, rho2, rho3, rho4]")

@@ -1405,6 +1405,20 @@ class BankRuntime:
             self._iv[I_FLAGS] = _NONFINITE_INPUT
             return 0.0
 
+    def call_travel_law(self) -> None:
+        """Road preview (controller/road_preview.py): raise the travel schedule's usage
+        envelope so that the next step finds it at ``design.schedule_full_m`` at least:
+        the travel law has the whole force, then the schedule's usual release follows.
+        No effect when the schedule is off (a fixed weight set).  Allocates nothing."""
+        fv = self._fv
+        if fv[F_TS_ON] == 0.0:
+            return
+        full = fv[F_TS + 1] + 1.0 / fv[F_TS + 2]
+        decay = fv[F_TS + 3]
+        target = full / decay if decay > 0.0 else full     # the step decays it once first
+        if not fv[F_TS_ENV] >= target:
+            fv[F_TS_ENV] = target
+
     # ------------------------------------------------------------------ read-outs
     @property
     def flags(self) -> StepFlag:

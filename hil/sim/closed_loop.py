@@ -48,6 +48,7 @@ from controller.arrays import FloatArray
 from controller.config import RigConfig, design_config_hash
 from controller.metrics import compute_metrics
 from controller.modes import BANK_MODES, CONTROLLER_MODES
+from controller.road_preview import predicted_peak_m, road_preview
 from hil.sim.plant import PlantParams, RigPlant
 from hil.sim.roads import Road
 from hil.sim.sensors import SensorReading, SensorSuite
@@ -144,6 +145,12 @@ class BankController:
         self.rt = BankRuntime(design, blending=modes[blending], weight_set=weight_set, cfg=cfg)
         gd = road.roughness_gd if road.roughness_gd is not None else cfg.noise.nominal_roughness_gd
         self.rt.set_road(road.speed_mps, gd)
+        # road preview (controller/road_preview.py): the simulator knows the road ahead
+        self.preview = road_preview(cfg) if weight_set == 0 else None
+        self._road_velocity = road.velocity_mps
+        self._centre = cfg.design.bump_stop_centre_lvdt_m
+        self._xbar = np.asarray(design.equilibrium[self.rt.single_model], dtype=float)
+        self._dx = np.zeros(4)
         self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
                          | StepFlag.DIVERGED)
         self._no_rule = int(StepFlag.NO_RULE_FIRED)
@@ -161,8 +168,19 @@ class BankController:
         self.off_centre_ticks = 0
         self.off_centre_first_tick = -1
         self.ride_height_max_m = 0.0
+        self.preview_calls = 0
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
+        pv = self.preview
+        if pv is not None:
+            k = self.ticks
+            np.subtract(self.rt.x_blend, self._xbar, out=self._dx)
+            peak = predicted_peak_m(pv.rows, pv.ticks, pv.impulse, self._dx,
+                                    reading.rattlespace_m, self._centre,
+                                    self._road_velocity[k:k + pv.horizon_ticks])
+            if peak > pv.trigger_m:
+                self.rt.call_travel_law()
+                self.preview_calls += 1
         u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
         self.flags = flags = int(self.rt.flags)
         self.ticks += 1
@@ -199,7 +217,9 @@ class BankController:
         (§9.8): contact time by the LVDT reading [s], contact episodes, stop degradations
         and the fraction of ticks stop-degraded (the plant's own time on the stops is
         ``bump_stop_time_s``), the travel schedule's mean comfort share (§12; 0 when
-        the schedule is off), and the ride-height monitor's (§9.9): the largest |ride
+        the schedule is off), the fraction of ticks in which the road preview called
+        the travel law (controller/road_preview.py; 0 when it is off), and the
+        ride-height monitor's (§9.9): the largest |ride
         height| [m], the time off centre [s] and when it first found the body off centre
         [s of the run; -1 never]."""
         n = self.ticks
@@ -216,6 +236,7 @@ class BankController:
                 "stop_degradations": float(c["stop_degradations"]),
                 "stop_degraded_fraction": c["stop_degraded_ticks"] / n if n else 0.0,
                 "schedule_comfort_share": self.comfort_share_sum / n if n else 0.0,
+                "preview_call_fraction": self.preview_calls / n if n else 0.0,
                 "ride_height_max_m": self.ride_height_max_m,
                 "ride_height_off_centre_s": self.off_centre_ticks * dt,
                 "ride_height_first_off_centre_s": (self.off_centre_first_tick * dt

@@ -1,0 +1,134 @@
+"""Road preview for the travel schedule: predict the LVDT reading from the road the rig
+is about to play (docs/design.md §12).
+
+A shaker rig knows the profile it will play, so the road velocity of the next H seconds
+can be an input of the controller.  The schedule's usage envelope reacts to the reading
+only once the road has asked for travel; the wheel passes a road edge to the
+rattlespace within about a quarter wheel-hop period, too fast for that.  With a preview
+the schedule can instead turn to the travel law *before* a predicted excursion and run
+the comfort law alone the rest of the time.
+
+The prediction is the *no-force* linear quarter car at the static tire deflection
+(secant tire stiffness and tire damping there, the configured M, m, K, C), discretised
+with the road velocity held over each tick::
+
+    x_{k+1} = Phi x_k + Gamma w'_k        r = c x = x1 - x2
+
+from the bank's estimate x_k (deviation from that model's equilibrium) and the
+previewed road velocity w'_k .. w'_{k+H-1}.  The predicted LVDT reading j ticks ahead is
+
+    r_pred(j) = r_meas + (c Phi^j - c) x_k + sum_{i<j} c Phi^{j-1-i} Gamma w'_{k+i}
+
+(the measured reading carries the LVDT zero and the stops' centre; the model supplies
+only the change).  The law's own force is left out on purpose: on the emulated rig the
+comfort law's force does not arrive as an ideal force would on a fast compression
+(force loop, valve flow), and a closed-loop prediction under-read every excursion
+measured, while the no-force one read them (docs/design.md §12).
+
+:func:`road_preview` designs the predictor offline into plain arrays;
+:func:`predicted_peak_m` is the per-tick kernel (numba, allocates nothing).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import expm
+
+from controller.arrays import FloatArray
+from controller.config import RigConfig
+from controller.plant import (
+    linear_model,
+    static_tire_deflection_m,
+    tire_damping_ns_per_m,
+    tire_secant_stiffness_n_per_m,
+)
+
+__all__ = ["RoadPreview", "predicted_peak_m", "road_preview"]
+
+
+@dataclass(frozen=True)
+class RoadPreview:
+    """The predictor of :func:`road_preview` (SI units).
+
+    ``rows`` (P, 4): c Phi^j - c at the checked look-ahead ticks ``ticks`` (P,), so that
+    ``rows[p] @ dx`` is the state's part of the predicted change of the reading;
+    ``impulse`` (H,): c Phi^m Gamma, m = 0 .. H-1, the reading's response m ticks after a
+    tick of unit road velocity [m per (m/s)]; ``horizon_ticks`` H = ``ticks[-1]``;
+    ``trigger_m``: predicted distance from the stops' centre that calls the travel law.
+    """
+
+    rows: FloatArray
+    ticks: NDArray[np.int64]
+    impulse: FloatArray
+    horizon_ticks: int
+    trigger_m: float
+
+
+def road_preview(cfg: RigConfig) -> RoadPreview | None:
+    """The predictor of ``cfg`` (``design.preview_*``), or None when the preview is off
+    (``design.preview_horizon_s`` = 0 or shorter than one tick)."""
+    d = cfg.design
+    dt = cfg.sample_time_s
+    horizon = round(d.preview_horizon_s / dt)
+    if horizon < 1:
+        return None
+    step = max(1, round(d.preview_check_s / dt))
+    ticks = np.arange(step, horizon + 1, step, dtype=np.int64)
+    if ticks.size == 0 or ticks[-1] != horizon:
+        ticks = np.append(ticks, np.int64(horizon))
+    x2 = static_tire_deflection_m(cfg)
+    lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
+                      tire_damping_ns_per_m(x2, cfg.tire))
+    n = 4
+    big = np.zeros((n + 1, n + 1))
+    big[:n, :n] = lm.A
+    big[:n, n] = lm.B1
+    e = expm(big * dt)
+    phi, gamma = e[:n, :n], e[:n, n]
+    c = np.array([1.0, -1.0, 0.0, 0.0])
+    impulse = np.zeros(horizon)
+    powers = np.zeros((horizon + 1, n))
+    row = c.copy()
+    for m in range(horizon + 1):
+        powers[m] = row                 # c Phi^m
+        if m < horizon:
+            impulse[m] = row @ gamma
+        row = row @ phi
+    rows = powers[ticks] - c[None, :]
+    return RoadPreview(rows=np.ascontiguousarray(rows), ticks=ticks,
+                       impulse=np.ascontiguousarray(impulse), horizon_ticks=horizon,
+                       trigger_m=d.preview_trigger_m)
+
+
+@nb.njit(cache=True, nogil=True)
+def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
+                     dx: np.ndarray, reading_m: float, centre_m: float,
+                     road_velocity: np.ndarray) -> float:
+    """The largest predicted distance of the LVDT reading from the stops' centre [m] over
+    the checked look-ahead ticks (:class:`RoadPreview`), from the state deviation ``dx``
+    (4,), the measured reading ``reading_m`` and the previewed road velocity
+    ``road_velocity`` [m/s] of this tick and the ones after (at least ``ticks[-1]``
+    samples; fewer: the missing ones count as 0).  NaN in, NaN out."""
+    peak = abs(reading_m - centre_m)
+    if peak != peak:
+        return math.nan
+    nw = road_velocity.shape[0]
+    for p in range(ticks.shape[0]):
+        j = ticks[p]
+        r = reading_m - centre_m
+        for s in range(4):
+            r += rows[p, s] * dx[s]
+        top = min(j, nw)
+        for i in range(top):
+            r += impulse[j - 1 - i] * road_velocity[i]
+        a = abs(r)
+        if a != a:                  # NaN: no prediction
+            return math.nan
+        if a > peak:
+            peak = a
+    return peak

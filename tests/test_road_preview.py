@@ -1,0 +1,141 @@
+"""Road preview (controller/road_preview.py, docs/design.md §12): the predictor against
+python-control's discretisation and simulation of the same no-force quarter car, the
+kernel's edge cases, the runtime's travel-law call, the configuration's checks, and a
+course run on the nonlinear rig."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import control
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controller.config import ConfigError, default_config, load_config
+from controller.plant import (
+    linear_model,
+    static_tire_deflection_m,
+    tire_damping_ns_per_m,
+    tire_secant_stiffness_n_per_m,
+)
+from controller.road_preview import predicted_peak_m, road_preview
+from controller.runtime.bank import BankRuntime
+from hil.sim.closed_loop import cached_design, simulate
+from hil.sim.roads import make_road
+
+PREVIEW = {"preview_horizon_s": 0.15, "preview_trigger_m": 0.06, "preview_check_s": 0.01}
+CFG = default_config().replace(design=PREVIEW)
+PV = road_preview(CFG)
+
+
+def _reference_readings(dx: np.ndarray, road_velocity: np.ndarray, reading_m: float
+                        ) -> np.ndarray:
+    """The LVDT reading over the horizon by python-control: the same no-force model,
+    zero-order-hold discretised by control.c2d and simulated by control.forced_response
+    from dx, the measured reading's offset added."""
+    cfg = CFG
+    x2 = static_tire_deflection_m(cfg)
+    lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
+                      tire_damping_ns_per_m(x2, cfg.tire))
+    sys_d = control.c2d(control.ss(lm.A, lm.B1[:, None], [[1.0, -1.0, 0.0, 0.0]], [[0.0]]),
+                        cfg.sample_time_s, method="zoh")
+    n = road_velocity.size
+    t = np.arange(n + 1) * cfg.sample_time_s
+    u = np.append(road_velocity, 0.0)
+    resp = control.forced_response(sys_d, T=t, U=u, X0=dx)
+    r = np.asarray(resp.outputs).ravel()
+    return reading_m + (r - r[0])
+
+
+def test_off_by_default_and_shapes() -> None:
+    assert road_preview(default_config()) is None
+    assert PV is not None
+    assert PV.horizon_ticks == 150 and PV.ticks[0] == 10 and PV.ticks[-1] == 150
+    assert PV.rows.shape == (15, 4) and PV.impulse.shape == (150,)
+    odd = road_preview(default_config().replace(design={"preview_horizon_s": 0.105}))
+    assert odd is not None and odd.ticks[-1] == 105     # the horizon itself is checked
+
+
+@settings(max_examples=30, deadline=None)
+@given(dx=st.lists(st.floats(-0.05, 0.05), min_size=4, max_size=4),
+       velocity=st.lists(st.floats(-2.0, 2.0), min_size=150, max_size=150),
+       reading=st.floats(-0.08, 0.08))
+def test_peak_is_the_reference_prediction(dx: list[float], velocity: list[float],
+                                          reading: float) -> None:
+    assert PV is not None
+    x = np.array([*dx[:2], 10.0 * dx[2], 10.0 * dx[3]])        # velocities up to 0.5 m/s
+    w = np.array(velocity)
+    ref = _reference_readings(x, w, reading)
+    want = max(abs(reading), *(abs(ref[j]) for j in PV.ticks))
+    got = predicted_peak_m(PV.rows, PV.ticks, PV.impulse, x, reading, 0.0, w)
+    assert got == pytest.approx(want, rel=1e-9, abs=1e-12)
+
+
+def test_kernel_edges() -> None:
+    assert PV is not None
+    zeros = np.zeros(4)
+    w = np.full(150, 0.3)
+    args = (PV.rows, PV.ticks, PV.impulse)
+    # at rest on a flat road: the reading itself, measured from the stops' centre
+    assert predicted_peak_m(*args, zeros, 0.02, 0.005, np.zeros(150)) == pytest.approx(0.015)
+    # a short window: the missing road counts as 0 (the end of a recorded road)
+    short = predicted_peak_m(*args, zeros, 0.0, 0.0, w[:20])
+    padded = predicted_peak_m(*args, zeros, 0.0, 0.0, np.append(w[:20], np.zeros(130)))
+    assert short == padded > 0.0
+    # a rising road compresses the suspension: the prediction grows with the velocity
+    assert predicted_peak_m(*args, zeros, 0.0, 0.0, 2.0 * w) > short
+    for bad in ((np.full(4, math.nan), 0.0, w), (zeros, math.nan, w),
+                (zeros, 0.0, np.full(150, math.nan))):
+        assert math.isnan(predicted_peak_m(*args, bad[0], bad[1], 0.0, bad[2]))
+
+
+def test_travel_law_call_sets_the_travel_law_for_the_next_step() -> None:
+    design = cached_design(CFG)
+    rt = BankRuntime(design, weight_set=0, cfg=CFG)
+    rt.step(0.0, 0.0, 0.0)
+    assert rt.comfort_share == 1.0           # quiet: the comfort law alone
+    rt.call_travel_law()
+    rt.step(0.0, 0.0, 0.0)
+    assert rt.comfort_share == 0.0
+    assert rt.schedule_usage_m == pytest.approx(CFG.design.schedule_full_m)
+    for _ in range(1500):                    # then the usual release (0.55 s here)
+        rt.step(0.0, 0.0, 0.0)
+    assert rt.comfort_share == 1.0
+    fixed = BankRuntime(design, weight_set=2, cfg=CFG)
+    fixed.call_travel_law()
+    fixed.step(0.0, 0.0, 0.0)
+    assert fixed.schedule_usage_m == 0.0 and fixed.comfort_share == 0.0
+
+
+def test_configuration_checks_name_the_key() -> None:
+    with pytest.raises(ConfigError, match=r"design\.preview_horizon_s"):
+        default_config().replace(design={"preview_horizon_s": 0.1, "schedule_release_s": 0.0})
+    with pytest.raises(ConfigError, match=r"design\.preview_check_s"):
+        default_config().replace(design={"preview_horizon_s": 0.01, "preview_check_s": 0.02})
+    with pytest.raises(ConfigError, match=r"design\.preview_trigger_m"):
+        default_config().replace(design={"preview_trigger_m": 0.0})
+
+
+def test_course_run_with_the_preview_profile() -> None:
+    """deploy/preview.toml on the thesis course, road seed 7: the comfort set runs alone
+    except where the preview calls the travel law.  Against the same profile without a
+    preview (the comfort set alone, the stop-contact monitor degrading it) and against
+    the default law: less absorbed power than either, no slam, no fault, stop contact
+    within passive's + 0.1 % of the run."""
+    cfg = load_config(Path(__file__).resolve().parents[1] / "deploy" / "preview.toml")
+    seed = 7
+    road = make_road("rough-course", 11.176, 60.0, cfg.sample_time_s, seed)
+    passive = simulate(cfg, road, "passive", 0, seed=seed).metrics
+    with_preview = simulate(cfg, road, "fuzzy", 0, seed=seed).metrics
+    without = simulate(cfg.replace(design={"preview_horizon_s": 0.0}), road, "fuzzy", 0,
+                       seed=seed).metrics
+    default = simulate(default_config(), road, "fuzzy", 0, seed=seed).metrics
+    assert with_preview["n_faults"] == 0 and not with_preview["bump_stop_slam"]
+    assert with_preview["bump_stop_time_s"] <= passive["bump_stop_time_s"] + 0.001 * 60.0
+    assert 0.0 < with_preview["preview_call_fraction"] < 0.1
+    assert without["preview_call_fraction"] == 0.0
+    assert with_preview["absorbed_power"] < 0.7 * without["absorbed_power"]
+    assert with_preview["absorbed_power"] < 0.9 * default["absorbed_power"]
