@@ -9,12 +9,14 @@ the schedule can instead turn to the travel law *before* a predicted excursion a
 the comfort law alone the rest of the time.
 
 The prediction is the *no-force* linear quarter car at the static tire deflection
-(secant tire stiffness and tire damping there, the configured M, m, K, C), discretised
+(secant tire stiffness and tire damping there) of the bank layer the bank runs (its
+sprung mass, spring rate, damping and tire; the configured unsprung mass), discretised
 with the road velocity held over each tick::
 
     x_{k+1} = Phi x_k + Gamma w'_k        r = c x = x1 - x2
 
-from the bank's estimate x_k (deviation from that model's equilibrium) and the
+from the bank's estimate x_k (the blended deviation of its models from their own
+equilibria) and the
 previewed road velocity w'_k .. w'_{k+H-1}.  The predicted LVDT reading j ticks ahead is
 
     r_pred(j) = r_meas + (c Phi^j - c) x_k + sum_{i<j} c Phi^{j-1-i} Gamma w'_{k+i}
@@ -40,7 +42,7 @@ from numpy.typing import NDArray
 from scipy.linalg import expm
 
 from controller.arrays import FloatArray
-from controller.config import RigConfig
+from controller.config import RigConfig, layer_config, layer_grid
 from controller.plant import (
     linear_model,
     static_tire_deflection_m,
@@ -53,13 +55,16 @@ __all__ = ["RoadPreview", "predicted_peak_m", "road_preview"]
 
 @dataclass(frozen=True)
 class RoadPreview:
-    """The predictor of :func:`road_preview` (SI units).
+    """The predictor of :func:`road_preview` (SI units), one per layer of the bank.
 
-    ``rows`` (P, 4): c Phi^j - c at the checked look-ahead ticks ``ticks`` (P,), so that
-    ``rows[p] @ dx`` is the state's part of the predicted change of the reading;
-    ``impulse`` (H,): c Phi^m Gamma, m = 0 .. H-1, the reading's response m ticks after a
-    tick of unit road velocity [m per (m/s)]; ``horizon_ticks`` H = ``ticks[-1]``;
-    ``trigger_m``: predicted distance from the stops' centre that calls the travel law.
+    ``rows`` (L, P, 4): c Phi^j - c of layer l at the checked look-ahead ticks ``ticks``
+    (P,), so that ``rows[l, p] @ dx`` is the state's part of the predicted change of the
+    reading; ``impulse`` (L, H): c Phi^m Gamma, m = 0 .. H-1, the reading's response m
+    ticks after a tick of unit road velocity [m per (m/s)]; ``horizon_ticks`` H =
+    ``ticks[-1]``; ``trigger_m``: predicted distance from the stops' centre that calls
+    the travel law.  Layer l is the bank's (:func:`controller.config.layer_grid`: its
+    sprung mass, spring rate, damping and tire), so the prediction follows the layer the
+    bank runs.
     """
 
     rows: FloatArray
@@ -69,18 +74,9 @@ class RoadPreview:
     trigger_m: float
 
 
-def road_preview(cfg: RigConfig) -> RoadPreview | None:
-    """The predictor of ``cfg`` (``design.preview_*``), or None when the preview is off
-    (``design.preview_horizon_s`` = 0 or shorter than one tick)."""
-    d = cfg.design
-    dt = cfg.sample_time_s
-    horizon = round(d.preview_horizon_s / dt)
-    if horizon < 1:
-        return None
-    step = max(1, round(d.preview_check_s / dt))
-    ticks = np.arange(step, horizon + 1, step, dtype=np.int64)
-    if ticks.size == 0 or ticks[-1] != horizon:
-        ticks = np.append(ticks, np.int64(horizon))
+def _layer_predictor(cfg: RigConfig, ticks: NDArray[np.int64], horizon: int
+                     ) -> tuple[FloatArray, FloatArray]:
+    """(rows (P, 4), impulse (H,)) of the no-force model of ``cfg``'s rig."""
     x2 = static_tire_deflection_m(cfg)
     lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
                       tire_damping_ns_per_m(x2, cfg.tire))
@@ -88,7 +84,7 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
     big = np.zeros((n + 1, n + 1))
     big[:n, :n] = lm.A
     big[:n, n] = lm.B1
-    e = expm(big * dt)
+    e = expm(big * cfg.sample_time_s)
     phi, gamma = e[:n, :n], e[:n, n]
     c = np.array([1.0, -1.0, 0.0, 0.0])
     impulse = np.zeros(horizon)
@@ -99,19 +95,38 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
         if m < horizon:
             impulse[m] = row @ gamma
         row = row @ phi
-    rows = powers[ticks] - c[None, :]
-    return RoadPreview(rows=np.ascontiguousarray(rows), ticks=ticks,
-                       impulse=np.ascontiguousarray(impulse), horizon_ticks=horizon,
-                       trigger_m=d.preview_trigger_m)
+    return powers[ticks] - c[None, :], impulse
+
+
+def road_preview(cfg: RigConfig) -> RoadPreview | None:
+    """The predictor of ``cfg`` (``design.preview_*``) for every layer of its bank
+    (:func:`controller.config.layer_grid`, :func:`controller.config.layer_config`), or
+    None when the preview is off (``design.preview_horizon_s`` = 0 or shorter than one
+    tick)."""
+    d = cfg.design
+    dt = cfg.sample_time_s
+    horizon = round(d.preview_horizon_s / dt)
+    if horizon < 1:
+        return None
+    step = max(1, round(d.preview_check_s / dt))
+    ticks = np.arange(step, horizon + 1, step, dtype=np.int64)
+    if ticks.size == 0 or ticks[-1] != horizon:
+        ticks = np.append(ticks, np.int64(horizon))
+    parts = [_layer_predictor(layer_config(cfg, *scales), ticks, horizon)
+             for scales in layer_grid(cfg)]
+    return RoadPreview(rows=np.ascontiguousarray([r for r, _ in parts]), ticks=ticks,
+                       impulse=np.ascontiguousarray([h for _, h in parts]),
+                       horizon_ticks=horizon, trigger_m=d.preview_trigger_m)
 
 
 @nb.njit(cache=True, nogil=True)
-def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
+def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, layer: int,
                      dx: np.ndarray, reading_m: float, centre_m: float,
                      road_velocity: np.ndarray) -> float:
     """The largest predicted distance of the LVDT reading from the stops' centre [m] over
-    the checked look-ahead ticks (:class:`RoadPreview`), from the state deviation ``dx``
-    (4,), the measured reading ``reading_m`` and the previewed road velocity
+    the checked look-ahead ticks (:class:`RoadPreview`) by the model of layer ``layer``,
+    from the state deviation ``dx`` (4,), the measured reading ``reading_m`` and the
+    previewed road velocity
     ``road_velocity`` [m/s] of this tick and the ones after (at least ``ticks[-1]``
     samples; fewer: the missing ones count as 0).  NaN in, NaN out."""
     peak = abs(reading_m - centre_m)
@@ -122,10 +137,10 @@ def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
         j = ticks[p]
         r = reading_m - centre_m
         for s in range(4):
-            r += rows[p, s] * dx[s]
+            r += rows[layer, p, s] * dx[s]
         top = min(j, nw)
         for i in range(top):
-            r += impulse[j - 1 - i] * road_velocity[i]
+            r += impulse[layer, j - 1 - i] * road_velocity[i]
         a = abs(r)
         if a != a:                  # NaN: no prediction
             return math.nan

@@ -14,7 +14,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.config import ConfigError, default_config, load_config
+from controller.config import (
+    ConfigError,
+    default_config,
+    layer_config,
+    layer_grid,
+    load_config,
+)
 from controller.plant import (
     linear_model,
     static_tire_deflection_m,
@@ -31,12 +37,12 @@ CFG = default_config().replace(design=PREVIEW)
 PV = road_preview(CFG)
 
 
-def _reference_readings(dx: np.ndarray, road_velocity: np.ndarray, reading_m: float
-                        ) -> np.ndarray:
-    """The LVDT reading over the horizon by python-control: the same no-force model,
-    zero-order-hold discretised by control.c2d and simulated by control.forced_response
-    from dx, the measured reading's offset added."""
-    cfg = CFG
+def _reference_readings(layer: int, dx: np.ndarray, road_velocity: np.ndarray,
+                        reading_m: float) -> np.ndarray:
+    """The LVDT reading over the horizon by python-control: the no-force model of the
+    bank layer's rig, zero-order-hold discretised by control.c2d and simulated by
+    control.forced_response from dx, the measured reading's offset added."""
+    cfg = layer_config(CFG, *layer_grid(CFG)[layer])
     x2 = static_tire_deflection_m(cfg)
     lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
                       tire_damping_ns_per_m(x2, cfg.tire))
@@ -54,23 +60,25 @@ def test_off_by_default_and_shapes() -> None:
     assert road_preview(default_config()) is None
     assert PV is not None
     assert PV.horizon_ticks == 150 and PV.ticks[0] == 10 and PV.ticks[-1] == 150
-    assert PV.rows.shape == (15, 4) and PV.impulse.shape == (150,)
+    layers = len(layer_grid(CFG))
+    assert PV.rows.shape == (layers, 15, 4) and PV.impulse.shape == (layers, 150)
     odd = road_preview(default_config().replace(design={"preview_horizon_s": 0.105}))
     assert odd is not None and odd.ticks[-1] == 105     # the horizon itself is checked
 
 
 @settings(max_examples=30, deadline=None)
-@given(dx=st.lists(st.floats(-0.05, 0.05), min_size=4, max_size=4),
+@given(layer=st.integers(0, len(layer_grid(CFG)) - 1),
+       dx=st.lists(st.floats(-0.05, 0.05), min_size=4, max_size=4),
        velocity=st.lists(st.floats(-2.0, 2.0), min_size=150, max_size=150),
        reading=st.floats(-0.08, 0.08))
-def test_peak_is_the_reference_prediction(dx: list[float], velocity: list[float],
-                                          reading: float) -> None:
+def test_peak_is_the_reference_prediction(layer: int, dx: list[float],
+                                          velocity: list[float], reading: float) -> None:
     assert PV is not None
     x = np.array([*dx[:2], 10.0 * dx[2], 10.0 * dx[3]])        # velocities up to 0.5 m/s
     w = np.array(velocity)
-    ref = _reference_readings(x, w, reading)
+    ref = _reference_readings(layer, x, w, reading)
     want = max(abs(reading), *(abs(ref[j]) for j in PV.ticks))
-    got = predicted_peak_m(PV.rows, PV.ticks, PV.impulse, x, reading, 0.0, w)
+    got = predicted_peak_m(PV.rows, PV.ticks, PV.impulse, layer, x, reading, 0.0, w)
     assert got == pytest.approx(want, rel=1e-9, abs=1e-12)
 
 
@@ -78,7 +86,7 @@ def test_kernel_edges() -> None:
     assert PV is not None
     zeros = np.zeros(4)
     w = np.full(150, 0.3)
-    args = (PV.rows, PV.ticks, PV.impulse)
+    args = (PV.rows, PV.ticks, PV.impulse, len(layer_grid(CFG)) // 2)
     # at rest on a flat road: the reading itself, measured from the stops' centre
     assert predicted_peak_m(*args, zeros, 0.02, 0.005, np.zeros(150)) == pytest.approx(0.015)
     # a short window: the missing road counts as 0 (the end of a recorded road)

@@ -1237,7 +1237,8 @@ class BankRuntime:
     ``probability`` (MMAE p_j, kept in every mode), ``u_model`` (each model's LQ force),
     ``q_smoothed``, ``active`` (the filters that ran).  ``x_post`` (J, 4), ``x_prior``
     (J, 4), ``xf`` (2,), ``x_blend`` (4,), absolute states (positions from the unloaded
-    springs).  Inactive filters read 0 in q/weights/forces.  ``running``
+    springs); ``x_deviation`` (4,), the blended deviation of the models' estimates from
+    their own equilibria.  Inactive filters read 0 in q/weights/forces.  ``running``
     (:class:`RunningModels`): the same read-outs for the models of the layer the bank
     runs, which the loop records (for a one-layer bank, views of the above).
     """
@@ -1331,6 +1332,7 @@ class BankRuntime:
         self.x_prior = st[:, S_XPRIOR:S_XPRIOR + 4]
         self.xf = self._fv[F_XF:F_XF + 2]
         self.x_blend = self._fv[F_XHAT:F_XHAT + 4]
+        self.x_deviation = self._fv[F_XDEV:F_XDEV + 4]
 
     # ------------------------------------------------------------------ control
     def _warm_up(self) -> None:

@@ -149,8 +149,6 @@ class BankController:
         self.preview = road_preview(cfg) if weight_set == 0 else None
         self._road_velocity = road.velocity_mps
         self._centre = cfg.design.bump_stop_centre_lvdt_m
-        self._xbar = np.asarray(design.equilibrium[self.rt.single_model], dtype=float)
-        self._dx = np.zeros(4)
         self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
                          | StepFlag.DIVERGED)
         self._no_rule = int(StepFlag.NO_RULE_FIRED)
@@ -174,8 +172,8 @@ class BankController:
         pv = self.preview
         if pv is not None:
             k = self.ticks
-            np.subtract(self.rt.x_blend, self._xbar, out=self._dx)
-            peak = predicted_peak_m(pv.rows, pv.ticks, pv.impulse, self._dx,
+            peak = predicted_peak_m(pv.rows, pv.ticks, pv.impulse, self.rt.mass_layer,
+                                    self.rt.x_deviation,
                                     reading.rattlespace_m, self._centre,
                                     self._road_velocity[k:k + pv.horizon_ticks])
             if peak > pv.trigger_m:
