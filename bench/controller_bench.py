@@ -15,7 +15,10 @@ J=4 (with the airborne model), Bayes J=3, single (plain LQG), and a 9 x 3 grid +
 mass, spring rate, damping and tire stiffness, 568 models, the default law; its step
 runs one layer and
 copies that layer's rows for the tick record, docs/design.md §11; its kernel column is
-``bank_step`` alone).  The goal is a median
+``bank_step`` alone); and the road preview's per-tick prediction
+(``controller.road_preview.predicted_peak_m`` of ``deploy/preview.toml``'s horizon: 15
+look-ahead times up to 150 ms, called alone, not part of the step: docs/design.md §12;
+its J column is the bank's layers, one predictor each).  The goal is a median
 below 10 us and p99.9 below 50 us for fuzzy J=3, and the 28-model moving bank within
 1.3x of fuzzy J=3.  ``python -m bench.controller_bench [--quick]`` prints the table.
 """
@@ -28,11 +31,13 @@ import sys
 import time
 from typing import Any
 
+import numba as nb
 import numpy as np
 
 from controller.config import RigConfig, default_config, one_layer
 from controller.design import design_bank
 from controller.road_noise import road_velocity_intensity
+from controller.road_preview import predicted_peak_m, road_preview
 from controller.runtime.bank import BankRuntime, Blending, bank_steps
 from tests.support.reference_bank import quarter_car_measurements
 
@@ -90,6 +95,62 @@ def _time_case(rt: BankRuntime, data: np.ndarray) -> dict[str, float]:
             "kernel_mean_us": kernel_ns / 1000.0, "filters_per_tick": updates / len(rows)}
 
 
+#: the road preview's settings timed (deploy/preview.toml's)
+PREVIEW = {"preview_horizon_s": 0.15, "preview_check_s": 0.01, "preview_trigger_m": 0.05}
+
+
+@nb.njit(cache=True)
+def _preview_calls(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, layer: int,
+                   dx: np.ndarray, data: np.ndarray, velocity: np.ndarray) -> float:
+    """predicted_peak_m on every tick of ``data`` from a compiled loop (the kernel column)."""
+    acc = 0.0
+    h = ticks[-1]
+    for k in range(data.shape[0]):
+        acc += predicted_peak_m(rows, ticks, impulse, layer, dx, data[k, 0], 0.0,
+                                velocity[k:k + h])
+    return acc
+
+
+def _time_preview(cfg: RigConfig, data: np.ndarray) -> dict[str, Any]:
+    """The road preview's prediction per tick: one call of predicted_peak_m on the
+    default bank's nominal layer, the road velocity the inputs were made with."""
+    pv = road_preview(cfg.replace(design=PREVIEW))
+    assert pv is not None
+    layer = pv.rows.shape[0] // 2
+    rng = np.random.default_rng(2)
+    velocity = rng.normal(0.0, 0.3, data.shape[0] + pv.horizon_ticks)
+    dx = np.array([0.01, 0.002, 0.1, -0.3])
+    args = (pv.rows, pv.ticks, pv.impulse, layer, dx)
+    h = pv.horizon_ticks
+    rows = [float(r) for r in data[:, 0]]
+    for k, r in enumerate(rows[: min(2000, len(rows))]):        # warm-up
+        predicted_peak_m(*args, r, 0.0, velocity[k:k + h])
+    times = np.empty(len(rows), dtype=np.int64)
+    gc_was = gc.isenabled()
+    gc.disable()
+    try:
+        pc = time.perf_counter_ns
+        for k, r in enumerate(rows):
+            w = velocity[k:k + h]
+            t0 = pc()
+            predicted_peak_m(*args, r, 0.0, w)
+            times[k] = pc() - t0
+    finally:
+        if gc_was:
+            gc.enable()
+    _preview_calls(*args, data[:10], velocity)
+    kernel_ns = math.inf
+    for _ in range(KERNEL_PASSES):
+        t0 = time.perf_counter_ns()
+        _preview_calls(*args, data, velocity)
+        kernel_ns = min(kernel_ns, (time.perf_counter_ns() - t0) / len(rows))
+    us = times / 1000.0
+    return {"case": "road preview (150 ms, 15 checks)", "J": pv.rows.shape[0],
+            "median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
+            "p99.9_us": float(np.percentile(us, 99.9)), "max_us": float(us.max()),
+            "kernel_mean_us": kernel_ns / 1000.0, "filters_per_tick": 0.0}
+
+
 def run(quick: bool = False) -> list[dict[str, Any]]:
     n = 20_000 if quick else 200_000
     layered = default_config()
@@ -118,6 +179,7 @@ def run(quick: bool = False) -> list[dict[str, Any]]:
         row: dict[str, Any] = {"case": name, "J": d.n_models}
         row.update(_time_case(rt, data))
         rows.append(row)
+    rows.append(_time_preview(layered, data))
     return rows
 
 
@@ -139,6 +201,11 @@ def notes(rows: list[dict[str, Any]]) -> list[str]:
                    f"{default['median_us'] / one['median_us']:.2f}x "
                    f"({default['median_us']:.2f} us; issue 22's goal for the default bank: "
                    "<= 5 us)")
+    preview = next((r for r in rows if r["case"].startswith("road preview")), None)
+    if default and preview:
+        total = default["median_us"] + preview["median_us"]
+        out.append(f"default bank step + road preview: {total:.2f} us of medians (the "
+                   "preview is not in the CAN loop yet; goal for the default bank <= 5 us)")
     return out
 
 
