@@ -3,6 +3,7 @@ notify protocol (READY, WATCHDOG from the loop, STOPPING), command handler, CLI 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -204,3 +205,24 @@ def test_command_handler_and_stop_event(design_path: Path) -> None:
     assert svc.loop.lifecycle.state is LifecycleState.STOPPING
 
 
+
+
+def test_preview_profile_warns_that_the_loop_has_no_preview(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """deploy/preview.toml's road preview exists only in the simulator: a service started
+    with it says at start-up that its travel schedule runs on the LVDT reading alone."""
+    from controller.config import load_config
+    cfg = load_config(ROOT / "deploy" / "preview.toml")
+    opts = ServiceOptions(design_path=None, interface="virtual",
+                          channel=f"svc-{uuid.uuid4().hex}", recording=False, telemetry=False,
+                          realtime=None, install_signal_handlers=False, duration_s=0.05)
+    with caplog.at_level("WARNING", logger="rig.service.runner"):
+        svc = Service(cfg, opts)
+        assert svc.run() == 0
+    assert "design.preview_horizon_s = 0.15 s: the CAN loop has no road preview" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="rig.service.runner"):
+        fixed = Service(cfg, dataclasses.replace(opts, weights=1,
+                                                 channel=f"svc-{uuid.uuid4().hex}"))
+        assert fixed.run() == 0
+    assert "no road preview" not in caplog.text      # a fixed weight set has no schedule

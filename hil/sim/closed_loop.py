@@ -176,7 +176,7 @@ class BankController:
                                     self.rt.x_deviation,
                                     reading.rattlespace_m, self._centre,
                                     self._road_velocity[k:k + pv.horizon_ticks])
-            if peak > pv.trigger_m:
+            if not peak <= pv.trigger_m:        # also NaN: the travel law
                 self.rt.call_travel_law()
                 self.preview_calls += 1
         u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
