@@ -60,6 +60,14 @@ def _inputs(cfg: RigConfig, n: int, seed: int = 1) -> np.ndarray:
     return np.column_stack([m["rattlespace"], m["accel"], m["force"]])
 
 
+def _stats(times_ns: np.ndarray, kernel_ns: float) -> dict[str, float]:
+    """Median, p99, p99.9 and max of the per-call times and the kernel mean, in us."""
+    us = times_ns / 1000.0
+    return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
+            "p99.9_us": float(np.percentile(us, 99.9)), "max_us": float(us.max()),
+            "kernel_mean_us": kernel_ns / 1000.0}
+
+
 def _time_case(rt: BankRuntime, data: np.ndarray) -> dict[str, float]:
     rows = [(float(a), float(b), float(c)) for a, b, c in data]
     step = rt.step
@@ -89,10 +97,7 @@ def _time_case(rt: BankRuntime, data: np.ndarray) -> dict[str, float]:
         t0 = time.perf_counter_ns()
         bank_steps(*args, data)
         kernel_ns = min(kernel_ns, (time.perf_counter_ns() - t0) / len(rows))
-    us = times / 1000.0
-    return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
-            "p99.9_us": float(np.percentile(us, 99.9)), "max_us": float(us.max()),
-            "kernel_mean_us": kernel_ns / 1000.0, "filters_per_tick": updates / len(rows)}
+    return {**_stats(times, kernel_ns), "filters_per_tick": updates / len(rows)}
 
 
 #: the road preview's settings timed (deploy/preview.toml's)
@@ -144,11 +149,8 @@ def _time_preview(cfg: RigConfig, data: np.ndarray) -> dict[str, Any]:
         t0 = time.perf_counter_ns()
         _preview_calls(*args, data, velocity)
         kernel_ns = min(kernel_ns, (time.perf_counter_ns() - t0) / len(rows))
-    us = times / 1000.0
     return {"case": "road preview (150 ms, 15 checks)", "J": pv.rows.shape[0],
-            "median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)),
-            "p99.9_us": float(np.percentile(us, 99.9)), "max_us": float(us.max()),
-            "kernel_mean_us": kernel_ns / 1000.0, "filters_per_tick": 0.0}
+            **_stats(times, kernel_ns), "filters_per_tick": 0.0}
 
 
 def run(quick: bool = False) -> list[dict[str, Any]]:

@@ -39,10 +39,10 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import expm
 
 from controller.arrays import FloatArray
 from controller.config import RigConfig, layer_config, layer_grid
+from controller.human_filter import discretize_zoh
 from controller.plant import (
     linear_model,
     static_tire_deflection_m,
@@ -80,15 +80,10 @@ def _layer_predictor(cfg: RigConfig, ticks: NDArray[np.int64], horizon: int
     x2 = static_tire_deflection_m(cfg)
     lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
                       tire_damping_ns_per_m(x2, cfg.tire))
-    n = 4
-    big = np.zeros((n + 1, n + 1))
-    big[:n, :n] = lm.A
-    big[:n, n] = lm.B1
-    e = expm(big * cfg.sample_time_s)
-    phi, gamma = e[:n, :n], e[:n, n]
-    c = np.array([1.0, -1.0, 0.0, 0.0])
+    phi, gamma = discretize_zoh(lm.A, lm.B1, cfg.sample_time_s)
+    c = lm.C_meas[0]                    # the LVDT row: x1 - x2
     impulse = np.zeros(horizon)
-    powers = np.zeros((horizon + 1, n))
+    powers = np.zeros((horizon + 1, c.size))
     row = c.copy()
     for m in range(horizon + 1):
         powers[m] = row                 # c Phi^m
