@@ -147,3 +147,24 @@ def test_course_run_with_the_preview_profile() -> None:
     assert without["preview_call_fraction"] == 0.0
     assert with_preview["absorbed_power"] < 0.7 * without["absorbed_power"]
     assert with_preview["absorbed_power"] < 0.95 * default["absorbed_power"]
+
+
+def test_simulator_calls_the_travel_law_on_a_nonfinite_prediction() -> None:
+    """The simulator's preview: a road whose velocity ahead is not finite gives a NaN
+    prediction, which calls the travel law (the conservative side); the same road at
+    rest ahead calls nothing."""
+    import dataclasses
+
+    from hil.sim.closed_loop import BankController
+    from hil.sim.sensors import SensorReading
+    cfg = load_config(Path(__file__).resolve().parents[1] / "deploy" / "preview.toml")
+    flat = make_road("flat", 11.176, 1.0, cfg.sample_time_s)
+    velocity = flat.velocity_mps.copy()
+    velocity[100:] = math.nan                # inside the first tick's 150 ms window
+    bad = dataclasses.replace(flat, velocity_mps=velocity)
+    reading = SensorReading(0.0, 0.0, 0.0, 0)
+    for road, calls, share in ((flat, 0, 1.0), (bad, 1, 0.0)):
+        ctrl = BankController(cached_design(cfg), cfg, "fuzzy", 0, road)
+        ctrl.step(reading, None)  # type: ignore[arg-type]   # the plant is not read
+        assert ctrl.preview_calls == calls
+        assert ctrl.rt.comfort_share == share
