@@ -30,6 +30,8 @@ SAMPLE = {
                     "FaultTick": 123456, "FaultDetail": 3},
     "SensorData": {"SensorData_Counter": 5, "SensorStatus": 0, "Rattlespace": 0.0123,
                    "LoadCellForce": 2345.5, "SprungAccel": -1.234},
+    "RoadPreview": {"RoadPreview_Counter": 5, "PreviewStatus": 0, "RoadVelocity": -0.321,
+                    "PreviewLead": 250, "PreviewSensorCounter": 5},
     "RigStatus": {"RigStatus_Counter": 5, "BypassOpen": 0, "WatchdogTripped": 0,
                   "SupplyOk": 1, "SupplyPressure": 10342000, "SpoolPosition": 0.25,
                   "LoadPressure": 1234000},

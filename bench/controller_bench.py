@@ -109,10 +109,9 @@ def _preview_calls(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, lay
                    dx: np.ndarray, data: np.ndarray, velocity: np.ndarray) -> float:
     """predicted_peak_m on every tick of ``data`` from a compiled loop (the kernel column)."""
     acc = 0.0
-    h = ticks[-1]
     for k in range(data.shape[0]):
         acc += predicted_peak_m(rows, ticks, impulse, layer, dx, data[k, 0], 0.0,
-                                velocity[k:k + h])
+                                velocity, k)
     return acc
 
 
@@ -126,19 +125,17 @@ def _time_preview(cfg: RigConfig, data: np.ndarray) -> dict[str, Any]:
     velocity = rng.normal(0.0, 0.3, data.shape[0] + pv.horizon_ticks)
     dx = np.array([0.01, 0.002, 0.1, -0.3])
     args = (pv.rows, pv.ticks, pv.impulse, layer, dx)
-    h = pv.horizon_ticks
     rows = [float(r) for r in data[:, 0]]
     for k, r in enumerate(rows[: min(2000, len(rows))]):        # warm-up
-        predicted_peak_m(*args, r, 0.0, velocity[k:k + h])
+        predicted_peak_m(*args, r, 0.0, velocity, k)
     times = np.empty(len(rows), dtype=np.int64)
     gc_was = gc.isenabled()
     gc.disable()
     try:
         pc = time.perf_counter_ns
         for k, r in enumerate(rows):
-            w = velocity[k:k + h]
             t0 = pc()
-            predicted_peak_m(*args, r, 0.0, w)
+            predicted_peak_m(*args, r, 0.0, velocity, k)
             times[k] = pc() - t0
     finally:
         if gc_was:

@@ -356,9 +356,9 @@ class DesignConfig:
                                       "the road velocity the rig will play is used to "
                                       "predict the LVDT reading; a predicted peak beyond "
                                       "preview_trigger_m turns the schedule to the travel "
-                                      "law before the excursion [s] (0 = off; only the "
-                                      "simulator supplies a preview so far: docs/design.md "
-                                      "§12)")
+                                      "law before the excursion [s] (0 = off; the "
+                                      "simulator and a rig that sends RoadPreview frames "
+                                      "supply it: docs/design.md §12)")
     preview_trigger_m: float = _f(0.06, lo=0.0, hi=1.0, lo_open=True,
                                   doc="road preview: predicted distance of the LVDT reading "
                                       "from the stops' centre that turns the schedule to "
@@ -366,6 +366,14 @@ class DesignConfig:
     preview_check_s: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True,
                                 doc="road preview: spacing of the look-ahead times at which "
                                     "the prediction is checked, up to preview_horizon_s")
+    preview_schedule_start_m: float = _f(0.5, lo=0.0, hi=1.0,
+                                         doc="road preview: schedule_start_m while a road "
+                                             "preview is live (schedule_start_m applies "
+                                             "without one); the default, beyond the travel, "
+                                             "leaves the call to the preview alone")
+    preview_schedule_full_m: float = _f(1.0, lo=0.0, hi=1.0, lo_open=True,
+                                        doc="road preview: schedule_full_m while a road "
+                                            "preview is live (above preview_schedule_start_m)")
     stop_barrier: bool = _f(False, doc="end-stop barrier: a safety filter on the force "
                                        "reference that keeps the rattlespace short of the "
                                        "bump stops given the body's momentum and the "
@@ -611,6 +619,11 @@ class EmulatorConfig:
                             "position (zeroed at rest, as on a rig), 'nominal' = M g / K of "
                             "the configured rig (a mis-zeroed sensor when they differ)")
 
+    road_preview_s: float = _f(0.25, lo=0.0, hi=10.0,
+                               doc="how far ahead of each SensorData frame the emulated "
+                                   "rig sends the road velocity it will play (RoadPreview "
+                                   "frames, docs/design.md §12) [s]; 0 = no RoadPreview "
+                                   "frames (a rig that does not know its road)")
     ballast_step_time_s: float = _f(0.0, lo=0.0, hi=1e7,
                                     doc="run time at which ballast is put on (or taken "
                                         "off) the sprung mass [s]; 0 = no ballast change "
@@ -975,6 +988,10 @@ def _cross_checks(cfg: RigConfig) -> None:
     if d.schedule_full_m <= d.schedule_start_m:
         raise ConfigError("design.schedule_full_m", d.schedule_full_m,
                           f"above design.schedule_start_m ({d.schedule_start_m:g})")
+    if d.preview_schedule_full_m <= d.preview_schedule_start_m:
+        raise ConfigError("design.preview_schedule_full_m", d.preview_schedule_full_m,
+                          f"above design.preview_schedule_start_m "
+                          f"({d.preview_schedule_start_m:g})")
     if d.preview_horizon_s > 0.0 and d.schedule_release_s == 0.0:
         raise ConfigError("design.preview_horizon_s", d.preview_horizon_s,
                           "0 while design.schedule_release_s is 0 (the preview holds the "

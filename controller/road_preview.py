@@ -117,17 +117,17 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
 @nb.njit(cache=True, nogil=True)
 def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, layer: int,
                      dx: np.ndarray, reading_m: float, centre_m: float,
-                     road_velocity: np.ndarray) -> float:
+                     road_velocity: np.ndarray, start: int) -> float:
     """The largest predicted distance of the LVDT reading from the stops' centre [m] over
     the checked look-ahead ticks (:class:`RoadPreview`) by the model of layer ``layer``,
     from the state deviation ``dx`` (4,), the measured reading ``reading_m`` and the
-    previewed road velocity
-    ``road_velocity`` [m/s] of this tick and the ones after (at least ``ticks[-1]``
-    samples; fewer: the missing ones count as 0).  NaN in, NaN out."""
+    previewed road velocity [m/s] of this tick and the ones after,
+    ``road_velocity[start:]`` (at least ``ticks[-1]`` samples; fewer: the missing ones
+    count as 0; no copy is made).  NaN in, NaN out."""
     peak = abs(reading_m - centre_m)
     if peak != peak:
         return math.nan
-    nw = road_velocity.shape[0]
+    nw = road_velocity.shape[0] - start
     for p in range(ticks.shape[0]):
         j = ticks[p]
         r = reading_m - centre_m
@@ -135,7 +135,7 @@ def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, l
             r += rows[layer, p, s] * dx[s]
         top = min(j, nw)
         for i in range(top):
-            r += impulse[layer, j - 1 - i] * road_velocity[i]
+            r += impulse[layer, j - 1 - i] * road_velocity[start + i]
         a = abs(r)
         if a != a:                  # NaN: no prediction
             return math.nan

@@ -53,13 +53,17 @@ class TravelSchedule:
                          self.release_decay])
 
 
-def travel_schedule(cfg: RigConfig) -> TravelSchedule:
-    """The schedule of ``cfg`` (``design.schedule_*``, ``design.bump_stop_centre_lvdt_m``)."""
+def travel_schedule(cfg: RigConfig, preview: bool = False) -> TravelSchedule:
+    """The schedule of ``cfg`` (``design.schedule_*``, ``design.bump_stop_centre_lvdt_m``);
+    with ``preview`` the one that runs while a road preview is live (its thresholds
+    ``design.preview_schedule_start_m`` / ``preview_schedule_full_m``)."""
     d = cfg.design
     tau = d.schedule_release_s
     decay = math.exp(-cfg.sample_time_s / tau) if tau > 0.0 else 0.0
-    return TravelSchedule(centre_m=d.bump_stop_centre_lvdt_m, start_m=d.schedule_start_m,
-                          full_m=d.schedule_full_m, release_decay=decay)
+    start, full = ((d.preview_schedule_start_m, d.preview_schedule_full_m) if preview
+                   else (d.schedule_start_m, d.schedule_full_m))
+    return TravelSchedule(centre_m=d.bump_stop_centre_lvdt_m, start_m=start, full_m=full,
+                          release_decay=decay)
 
 
 def comfort_share(envelope_m: float, schedule: TravelSchedule) -> float:

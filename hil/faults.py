@@ -3,7 +3,7 @@
 A :class:`FaultSchedule` is a list of time windows ``[start_s, end_s)`` (rig time, i.e.
 tick x dt, so tick-stepped tests are exact), each with a fault kind and parameters, plus
 a seed for the random ones.  Kinds (``frames`` selects "sensor" = SensorData, "status" =
-RigStatus or "all"; default "sensor"):
+RigStatus, "preview" = RoadPreview or "all"; default "sensor"):
 
 ==================  ==============================================  =====================
 kind                effect on the bus / rig                          params (default)
@@ -61,7 +61,7 @@ class FaultKind(StrEnum):
     SUPPLY_LOSS = "supply_loss"
 
 
-_FRAMES = ("sensor", "status", "all")
+_FRAMES = ("sensor", "status", "preview", "all")
 _SIGNALS = ("rattlespace", "force", "accel", "all")
 #: kind -> {param: (default, validator description, check)}
 _PARAMS: dict[FaultKind, dict[str, Any]] = {
@@ -146,7 +146,7 @@ class FaultWindow:
         return cls(float(start_s), float(end_s), fk, merged)
 
     def hits(self, frame: str) -> bool:
-        """Whether this window acts on ``frame`` ("sensor" or "status")."""
+        """Whether this window acts on ``frame`` ("sensor", "status" or "preview")."""
         target = self.params.get("frames", "sensor")
         return bool(target == "all" or target == frame)
 

@@ -46,6 +46,8 @@ from rig.wire.protocol import (
     FAULT_REPORT_ID,
     RIG_STATUS,
     RIG_STATUS_ID,
+    ROAD_PREVIEW,
+    ROAD_PREVIEW_ID,
     SENSOR_DATA,
     SENSOR_DATA_ID,
     VALVE_COMMAND,
@@ -184,6 +186,10 @@ class RigNode:
         self.last_bus_fault = FaultCode.NONE
         # transmit state
         self._sensor_msg = make_tx_message(SENSOR_DATA_ID, fd)
+        self._preview_msg = make_tx_message(ROAD_PREVIEW_ID, fd)
+        #: RoadPreview lead [ticks] (emulator.road_preview_s; 0: no RoadPreview frames)
+        self.preview_lead = round(cfg.emulator.road_preview_s / self.dt_s)
+        self._preview_counter = 15
         self._status_msg = make_tx_message(RIG_STATUS_ID, fd)
         self._late_msg = make_tx_message(SENSOR_DATA_ID, fd)
         self._sensor_counter = 15  # first frame carries 0
@@ -331,6 +337,11 @@ class RigNode:
         sensor_sent = self._send_frame(self._sensor_msg, "sensor", active, silent,
                                        status, rs, force, acc)
 
+        # RoadPreview: the road velocity played preview_lead ticks after this one
+        if self.preview_lead:
+            v = float(self.road.velocity_mps[(k + self.preview_lead) % self.road.n_ticks])
+            self._send_frame(self._preview_msg, "preview", active, silent, v)
+
         # RigStatus
         if k % self._status_every == 0:
             self._send_frame(self._status_msg, "status", active, silent)
@@ -366,6 +377,11 @@ class RigNode:
                 self._sensor_counter = (self._sensor_counter + 1) & 0xF
             s, rs, force, acc = values
             SENSOR_DATA.encode(msg.data, self._sensor_counter, int(s), rs, force, acc)
+        elif frame == "preview":
+            if not stuck:
+                self._preview_counter = (self._preview_counter + 1) & 0xF
+            ROAD_PREVIEW.encode(msg.data, self._preview_counter, 0, values[0],
+                                self.preview_lead, self._sensor_counter)
         else:
             if not stuck:
                 self._status_counter = (self._status_counter + 1) & 0xF

@@ -135,7 +135,8 @@ def test_corrupt_crc_in_window_only() -> None:
     for r in h.rx:
         expected = DecodeStatus.BAD_CRC if in_window(r.tick) else DecodeStatus.OK
         assert r.status is expected, r.tick
-    assert sum(r.status is DecodeStatus.BAD_CRC for r in h.rx) == 50 + 5
+    # SensorData and RoadPreview every tick, RigStatus every 10th
+    assert sum(r.status is DecodeStatus.BAD_CRC for r in h.rx) == 50 + 50 + 5
 
 
 def test_stuck_counter() -> None:
@@ -196,7 +197,7 @@ def test_silence_stops_all_transmission() -> None:
     h = _run(one("silence"))
     assert not [r for r in h.rx if in_window(r.tick)]
     assert {r.tick for r in h.sensor_frames()} == {k for k in range(200) if not in_window(k)}
-    assert h.node.stats.frames_sent == 150 + 15
+    assert h.node.stats.frames_sent == 150 + 150 + 15     # SensorData, RoadPreview, RigStatus
 
 
 def test_supply_loss() -> None:

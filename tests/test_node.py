@@ -18,6 +18,8 @@ from controller.config import default_config
 from rig.bus.core import make_tx_message, open_bus, set_receive_buffer
 from rig.wire.protocol import (
     RIG_RX_IDS,
+    ROAD_PREVIEW,
+    ROAD_PREVIEW_ID,
     SENSOR_DATA,
     VALVE_COMMAND,
     DecodeStatus,
@@ -50,7 +52,37 @@ def test_sensor_frame_every_tick_with_consecutive_counters() -> None:
         assert all(s.bypass_open and not s.watchdog_tripped and s.supply_ok for s in rig)
         assert rig[0].supply_pressure_pa == pytest.approx(CFG.actuator.supply_pressure_pa,
                                                           abs=500)
-        assert h.node.stats.frames_sent == 220 and h.node.stats.bad_frames == 0
+        # RoadPreview right after each SensorData (emulator.road_preview_s ahead)
+        preview = [r for r in h.rx if r.frame_id == ROAD_PREVIEW_ID]
+        assert [r.tick for r in preview] == list(range(200))
+        assert h.node.stats.frames_sent == 420 and h.node.stats.bad_frames == 0
+
+
+def test_road_preview_frames_carry_the_road_ahead() -> None:
+    """RoadPreview of tick k: the road velocity of tick k + lead (emulator.road_preview_s
+    = 0.25 s: 250 ticks; the road replayed cyclically, as the plant plays it), to the
+    frame's 1 mm/s, naming the SensorData frame of the same tick."""
+    from hil.node import RigNode
+    from hil.sim.roads import make_road
+
+    road = make_road("iso-C", 11.176, 0.3, CFG.sample_time_s, seed=3)   # 300 ticks
+    with harness(road="iso-C", duration_s=0.3) as h:
+        h.step(400)
+        out = ROAD_PREVIEW.FRAME_TYPE()
+        got = [r for r in h.rx if r.frame_id == ROAD_PREVIEW_ID]
+        assert len(got) == 400
+        for r in got:
+            assert ROAD_PREVIEW.decode(r.data, out) is DecodeStatus.OK
+            assert out.preview_lead == 250 and out.preview_status == 0
+            assert out.preview_sensor_counter == r.tick % 16
+            assert out.road_velocity_mps == pytest.approx(
+                road.velocity_mps[(r.tick + 250) % road.n_ticks], abs=0.5e-3 + 1e-12)
+    bus = can.Bus(interface="virtual", channel=f"t-{uuid.uuid4().hex}")
+    try:
+        node = RigNode(bus, CFG.replace(emulator={"road_preview_s": 0.0}), road)
+        assert node.preview_lead == 0
+    finally:
+        bus.shutdown()
 
 
 @pytest.mark.parametrize("spool", [0.2, -0.2])
@@ -250,7 +282,8 @@ def test_rig_hil_cli_runs_and_summarises(capsys: pytest.CaptureFixture[str],
                "--road", "bump", "--duration", "0.05", "--faults", str(faults), "--seed", "2"])
     out = capsys.readouterr().out
     assert rc == 0
-    assert "ticks=50 sent=33 " in out  # 50 + 5 frames minus 20 + 2 silenced
+    # 50 SensorData + 50 RoadPreview + 5 RigStatus, minus 20 + 20 + 2 silenced
+    assert "ticks=50 sent=63 " in out
     assert "watchdog_trips=0" in out
 
 

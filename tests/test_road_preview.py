@@ -78,7 +78,7 @@ def test_peak_is_the_reference_prediction(layer: int, dx: list[float],
     w = np.array(velocity)
     ref = _reference_readings(layer, x, w, reading)
     want = max(abs(reading), *(abs(ref[j]) for j in PV.ticks))
-    got = predicted_peak_m(PV.rows, PV.ticks, PV.impulse, layer, x, reading, 0.0, w)
+    got = predicted_peak_m(PV.rows, PV.ticks, PV.impulse, layer, x, reading, 0.0, w, 0)
     assert got == pytest.approx(want, rel=1e-9, abs=1e-12)
 
 
@@ -88,16 +88,19 @@ def test_kernel_edges() -> None:
     w = np.full(150, 0.3)
     args = (PV.rows, PV.ticks, PV.impulse, len(layer_grid(CFG)) // 2)
     # at rest on a flat road: the reading itself, measured from the stops' centre
-    assert predicted_peak_m(*args, zeros, 0.02, 0.005, np.zeros(150)) == pytest.approx(0.015)
+    assert predicted_peak_m(*args, zeros, 0.02, 0.005, np.zeros(150), 0) == pytest.approx(0.015)
     # a short window: the missing road counts as 0 (the end of a recorded road)
-    short = predicted_peak_m(*args, zeros, 0.0, 0.0, w[:20])
-    padded = predicted_peak_m(*args, zeros, 0.0, 0.0, np.append(w[:20], np.zeros(130)))
+    short = predicted_peak_m(*args, zeros, 0.0, 0.0, w[:20], 0)
+    padded = predicted_peak_m(*args, zeros, 0.0, 0.0, np.append(w[:20], np.zeros(130)), 0)
     assert short == padded > 0.0
+    # the window starts at ``start`` of the array, without a copy (the loop's ring)
+    assert predicted_peak_m(*args, zeros, 0.0, 0.0, np.append(np.full(7, 5.0), w[:20]),
+                            7) == short
     # a rising road compresses the suspension: the prediction grows with the velocity
-    assert predicted_peak_m(*args, zeros, 0.0, 0.0, 2.0 * w) > short
+    assert predicted_peak_m(*args, zeros, 0.0, 0.0, 2.0 * w, 0) > short
     for bad in ((np.full(4, math.nan), 0.0, w), (zeros, math.nan, w),
                 (zeros, 0.0, np.full(150, math.nan))):
-        assert math.isnan(predicted_peak_m(*args, bad[0], bad[1], 0.0, bad[2]))
+        assert math.isnan(predicted_peak_m(*args, bad[0], bad[1], 0.0, bad[2], 0))
 
 
 def test_travel_law_call_sets_the_travel_law_for_the_next_step() -> None:
@@ -125,21 +128,52 @@ def test_configuration_checks_name_the_key() -> None:
         default_config().replace(design={"preview_horizon_s": 0.01, "preview_check_s": 0.02})
     with pytest.raises(ConfigError, match=r"design\.preview_trigger_m"):
         default_config().replace(design={"preview_trigger_m": 0.0})
+    with pytest.raises(ConfigError, match=r"design\.preview_schedule_full_m"):
+        default_config().replace(design={"preview_schedule_start_m": 0.2,
+                                         "preview_schedule_full_m": 0.1})
+
+
+def test_runtime_switches_the_schedule_for_a_live_preview() -> None:
+    """use_preview_schedule swaps the schedule's thresholds (the envelope carries over):
+    at 40 mm of usage the reading-only schedule (25 / 55 mm) gives the travel law part
+    of the force, the preview's (0.5 / 1.0 m) none; call_travel_law reaches the running
+    schedule's full usage either way."""
+    from controller.runtime.bank import BankRuntime
+    from hil.sim.closed_loop import cached_design
+
+    cfg = default_config()
+    rt = BankRuntime(cached_design(cfg), weight_set=0, cfg=cfg)
+    centre = cfg.design.bump_stop_centre_lvdt_m
+    shares = []
+    for live in (False, True):
+        rt.reset()
+        rt.use_preview_schedule(live)
+        assert rt.preview_schedule is live
+        for _ in range(3):
+            rt.step(centre + 0.04, 0.0, 0.0)
+        shares.append(rt.comfort_share)
+        rt.call_travel_law()
+        rt.step(centre, 0.0, 0.0)
+        full = (cfg.design.preview_schedule_full_m if live else cfg.design.schedule_full_m)
+        assert rt.schedule_usage_m >= full - 1e-12
+        assert rt.comfort_share == 0.0
+    assert 0.0 < shares[0] < 1.0 and shares[1] == 1.0
 
 
 def test_course_run_with_the_preview_profile() -> None:
     """deploy/preview.toml on the thesis course, road seed 7: the comfort set runs alone
-    except where the preview calls the travel law.  Against the same profile without a
-    preview (the comfort set alone, the stop-contact monitor degrading it) and against
-    the default law: less absorbed power than either, no slam, no fault, stop contact
-    within passive's + 0.1 % of the run."""
+    except where the preview calls the travel law.  Against the comfort set alone (the
+    profile without a preview and with the reading's thresholds out of the way, the
+    stop-contact monitor degrading it) and against the default law: less absorbed power
+    than either, no slam, no fault, stop contact within passive's + 0.1 % of the run."""
     cfg = load_config(Path(__file__).resolve().parents[1] / "deploy" / "preview.toml")
     seed = 7
     road = make_road("rough-course", 11.176, 60.0, cfg.sample_time_s, seed)
     passive = simulate(cfg, road, "passive", 0, seed=seed).metrics
     with_preview = simulate(cfg, road, "fuzzy", 0, seed=seed).metrics
-    without = simulate(cfg.replace(design={"preview_horizon_s": 0.0}), road, "fuzzy", 0,
-                       seed=seed).metrics
+    without = simulate(cfg.replace(design={"preview_horizon_s": 0.0,
+                                           "schedule_start_m": 0.5, "schedule_full_m": 1.0}),
+                       road, "fuzzy", 0, seed=seed).metrics
     default = simulate(default_config(), road, "fuzzy", 0, seed=seed).metrics
     assert with_preview["n_faults"] == 0 and not with_preview["bump_stop_slam"]
     assert with_preview["bump_stop_time_s"] <= passive["bump_stop_time_s"] + 0.001 * 60.0

@@ -80,6 +80,7 @@ from controller.monitor import MonitorSettings, monitor_settings
 from controller.plant import static_tire_deflection_m
 from controller.ride_height import ride_height_settings
 from controller.road_noise import nearest_noise_entry
+from controller.road_preview import RoadPreview, predicted_peak_m
 from controller.runtime.bayes import bayes_update, log_likelihood_constant
 from controller.runtime.kernels import (
     F_ALPHA,
@@ -1299,6 +1300,11 @@ class BankRuntime:
         self.noise_index = design.noise_index(0, 0)
         self.weight_set = 1
         self._table_w = 0               # the packed table of the selected weight set
+        # the travel schedule's thresholds without / with a live road preview (rows 0 / 1;
+        # use_preview_schedule switches; the reading alone runs row 0)
+        self._schedules = np.stack([travel_schedule(cfg_).as_array(),
+                                    travel_schedule(cfg_, preview=True).as_array()])
+        self.preview_schedule = False
         self.blending = Blending(int(blending))
         self.set_road(cfg_.noise.nominal_speed_mps, cfg_.noise.nominal_roughness_gd)
         self.set_weight_set(weight_set)
@@ -1407,9 +1413,35 @@ class BankRuntime:
             self._iv[I_FLAGS] = _NONFINITE_INPUT
             return 0.0
 
+    def use_preview_schedule(self, live: bool) -> None:
+        """Road preview (controller/road_preview.py): run the travel schedule on the
+        thresholds for a live preview (``design.preview_schedule_*``, ``live``) or on the
+        reading-only ones (``design.schedule_start_m`` / ``schedule_full_m``).  The usage
+        envelope carries over.  Allocates nothing."""
+        self.preview_schedule = bool(live)
+        self._fv[F_TS:F_TS + SCHEDULE_SIZE] = self._schedules[1 if live else 0]
+
+    def check_road_preview(self, preview: RoadPreview, reading_m: float,
+                           road_velocity: np.ndarray, start: int) -> bool:
+        """Road preview (controller/road_preview.py), before :meth:`step`: predict the
+        LVDT reading over the preview's horizon by the running layer's model from this
+        estimate, the reading ``reading_m`` and the road velocity ahead
+        ``road_velocity[start:]`` [m/s] (this tick's first), and call the travel law
+        (:meth:`call_travel_law`) when the predicted peak passes ``preview.trigger_m`` or
+        is not finite.  True when it called.  Allocates nothing."""
+        fv = self._fv
+        peak = predicted_peak_m(preview.rows, preview.ticks, preview.impulse,
+                                int(self._iv[I_LAYER]), self.x_deviation, reading_m,
+                                fv[F_TS], road_velocity, start)
+        if peak <= preview.trigger_m:
+            return False
+        self.call_travel_law()
+        return True
+
     def call_travel_law(self) -> None:
         """Road preview (controller/road_preview.py): raise the travel schedule's usage
-        envelope so that the next step finds it at ``design.schedule_full_m`` at least:
+        envelope so that the next step finds it at the running schedule's full-travel
+        usage (``design.preview_schedule_full_m`` under :meth:`use_preview_schedule`) at least:
         the travel law has the whole force, then the schedule's usual release follows.
         No effect when the schedule is off (a fixed weight set).  Allocates nothing."""
         fv = self._fv

@@ -49,7 +49,7 @@ from controller.arrays import FloatArray
 from controller.config import RigConfig, design_config_hash
 from controller.metrics import compute_metrics
 from controller.modes import BANK_MODES, CONTROLLER_MODES
-from controller.road_preview import RoadPreview, predicted_peak_m, road_preview
+from controller.road_preview import RoadPreview, road_preview
 from hil.sim.plant import PlantParams, RigPlant
 from hil.sim.roads import Road
 from hil.sim.sensors import SensorReading, SensorSuite
@@ -164,8 +164,8 @@ class BankController:
         self.rt.set_road(road.speed_mps, gd)
         # road preview (controller/road_preview.py): the simulator knows the road ahead
         self.preview = cached_road_preview(cfg) if weight_set == 0 else None
+        self.rt.use_preview_schedule(self.preview is not None)   # the preview is always live
         self._road_velocity = road.velocity_mps
-        self._centre = cfg.design.bump_stop_centre_lvdt_m
         self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
                          | StepFlag.DIVERGED)
         self._no_rule = int(StepFlag.NO_RULE_FIRED)
@@ -187,15 +187,9 @@ class BankController:
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
         pv = self.preview
-        if pv is not None:
-            k = self.ticks
-            peak = predicted_peak_m(pv.rows, pv.ticks, pv.impulse, self.rt.mass_layer,
-                                    self.rt.x_deviation,
-                                    reading.rattlespace_m, self._centre,
-                                    self._road_velocity[k:k + pv.horizon_ticks])
-            if not peak <= pv.trigger_m:        # also NaN: the travel law
-                self.rt.call_travel_law()
-                self.preview_calls += 1
+        if pv is not None and self.rt.check_road_preview(pv, reading.rattlespace_m,
+                                                         self._road_velocity, self.ticks):
+            self.preview_calls += 1
         u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
         self.flags = flags = int(self.rt.flags)
         self.ticks += 1

@@ -27,6 +27,7 @@ from typing import Any
 import can
 
 from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
+from rig.service.road_preview_stream import RoadPreviewStream
 from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
 from rig.service.seams import Recorder
 from rig.wire.protocol import (
@@ -34,12 +35,15 @@ from rig.wire.protocol import (
     FAULT_REPORT,
     RIG_STATUS,
     RIG_STATUS_ID,
+    ROAD_PREVIEW,
+    ROAD_PREVIEW_ID,
     SENSOR_DATA,
     SENSOR_DATA_ID,
     VALVE_COMMAND,
     DecodeStatus,
     FaultCode,
     RigStatus,
+    RoadPreview,
     SensorData,
 )
 from rig.wire_modes import to_wire
@@ -79,6 +83,10 @@ class RigIO:
         self._status_msg = make_tx_message(CONTROLLER_STATUS.frame_id)
         self._sd = SensorData()
         self._rs = RigStatus()
+        self._rp = RoadPreview()
+        #: the road ahead from RoadPreview frames (set by the loop when the road preview
+        #: is on; None: the frames are counted and recorded, not decoded)
+        self.preview: RoadPreviewStream | None = None
         # the frame log (see the module docstring): per slot the time, tick, message
         # (received) or None (sent: id, flags and bytes copied into the slot)
         self._log_n = 0
@@ -148,8 +156,17 @@ class RigIO:
                         self.force_meas_n = sd.load_cell_force_n
                         self.accel_mps2 = sd.sprung_accel_mps2
                         self.sensor_counter = sd.counter
+                        if self.preview is not None:
+                            self.preview.sensor(sd.counter)
                 else:
                     mon.sensor_frame(False, 0, 0, 0.0, 0.0, 0.0)
+            elif fid == ROAD_PREVIEW_ID and not msg.is_extended_id:
+                pv = self.preview
+                if pv is not None:
+                    rp = self._rp
+                    good = ROAD_PREVIEW.decode(msg.data, rp) is _OK
+                    pv.frame(good, rp.preview_status, rp.road_velocity_mps, rp.preview_lead,
+                             rp.preview_sensor_counter)
             elif fid == RIG_STATUS_ID and not msg.is_extended_id:
                 st = RIG_STATUS.decode(msg.data, rs)
                 if st is _OK or st is _OUT_OF_RANGE:

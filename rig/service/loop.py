@@ -58,6 +58,7 @@ import can
 import numpy as np
 
 from controller.config import RigConfig
+from controller.road_preview import road_preview
 from controller.runtime.kernels import StepFlag
 from rig.operator_commands import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout, TickPacker
@@ -66,6 +67,7 @@ from rig.rt.sdnotify import SdNotifier
 from rig.service.hardware import RigIO
 from rig.service.host_lateness import PeerLateness, assess
 from rig.service.lifecycle import CommandResult, Lifecycle, Transition
+from rig.service.road_preview_stream import RoadPreviewStream
 from rig.service.safety import DETAIL_SEND, FaultMonitor
 from rig.service.seams import ForceLoop, Recorder, Runtime, Telemetry
 from rig.service.timing import TimingStats
@@ -229,6 +231,14 @@ class ControlLoop:
         self.io = RigIO(bus, self.monitor, recorder,
                         lambda t, k, detail: self._record_event(t, k, "note", detail),
                         self._on_output_error)
+        #: road preview (controller/road_preview.py, design.preview_*): the predictor and
+        #: the road ahead from the rig's RoadPreview frames; None when it is off
+        self.road_preview = road_preview(cfg) if self.weight_set == 0 else None
+        self.preview_stream = (None if self.road_preview is None
+                               else RoadPreviewStream(self.road_preview.horizon_ticks))
+        self.io.preview = self.preview_stream
+        self.preview_live = False
+        self.preview_calls = 0          # ticks in which the preview called the travel law
         self._requests: collections.deque[_Request] = collections.deque(maxlen=64)
         #: one handler per operator command (rig.operator_commands owns the table)
         self._handlers: dict[str, Callable[[Any], CommandResult]] = {
@@ -491,6 +501,15 @@ class ControlLoop:
                 self.good_ticks = 0
             if mon.sensor_seen:
                 rt = self.rt
+                pv = self.road_preview
+                if pv is not None:
+                    stream = self.preview_stream
+                    start = stream.window_start()     # type: ignore[union-attr]
+                    if (start >= 0) is not self.preview_live:
+                        self._on_preview_change(start >= 0, now_ns, tick)
+                    if start >= 0 and rt.check_road_preview(
+                            pv, io.rattlespace_m, stream.ring, start):  # type: ignore[union-attr]
+                        self.preview_calls += 1
                 force_ref = rt.step(io.rattlespace_m, io.accel_mps2, io.force_meas_n)
                 flags = int(rt.flags)
                 if (flags ^ self.bank_flags) & _DEGRADED:
@@ -674,6 +693,23 @@ class ControlLoop:
             "ride_height_m": height_m, "side": side, "travel_left_m": left_m,
             "off_centre_episodes": self.off_centre_episodes})
 
+    def _on_preview_change(self, live: bool, now_ns: int, tick: int) -> None:
+        """The road preview became live or was lost (not a fault: without it the travel
+        schedule runs on the LVDT reading with design.schedule_start_m / schedule_full_m):
+        switch the schedule's thresholds, log and record a note that says why."""
+        self.preview_live = live
+        self.rt.use_preview_schedule(live)
+        why = self.preview_stream.why_not_live()    # type: ignore[union-attr]
+        if live:
+            log.info("road preview live: the schedule calls the travel law ahead of a "
+                     "predicted excursion")
+        else:
+            log.warning("road preview not live (%s): the travel schedule runs on the LVDT "
+                        "reading alone", why)
+        self._record_event(now_ns, tick, "note", {
+            "road_preview": "live" if live else "lost", "why": why,
+            "preview_calls": self.preview_calls})
+
     def _latch(self, code: FaultCode, detail: int, now_ns: int, message: str = "") -> None:
         """Latch FAULT (if not already) and send the FaultReport now."""
         lc = self.lifecycle
@@ -765,6 +801,9 @@ class ControlLoop:
             "tick": self.tick_count,
             "blending": self.blending,
             "weight_set": self.weight_set,
+            "road_preview": ("off" if self.preview_stream is None
+                             else self.preview_stream.why_not_live()),
+            "preview_calls": self.preview_calls,
             "rx_frames": self.rx_frames,
             "tx_frames": self.tx_frames,
             "tx_errors": self.tx_errors,

@@ -163,13 +163,18 @@ class Service:
         self._check_stop()
         blending = int(blending_of(opts.controller))
         weight_set = cfg.design.weight_set if opts.weights is None else opts.weights
-        if cfg.design.preview_horizon_s > 0.0 and weight_set == 0:
-            # the rig sends no road ahead yet: only the simulator has a road preview
-            log.warning("design.preview_horizon_s = %g s: the CAN loop has no road preview; "
-                        "the travel schedule runs on the LVDT reading alone "
-                        "(schedule_start_m %g m, schedule_full_m %g m; docs/design.md §12)",
-                        cfg.design.preview_horizon_s, cfg.design.schedule_start_m,
-                        cfg.design.schedule_full_m)
+        if cfg.design.preview_horizon_s > 0.0:
+            if weight_set == 0:
+                log.info("road preview on (%g s ahead): while the rig's RoadPreview frames "
+                         "are live the travel schedule calls the travel law ahead of a "
+                         "predicted excursion; without them it runs on the LVDT reading "
+                         "(schedule_start_m %g m, schedule_full_m %g m; docs/design.md §12)",
+                         cfg.design.preview_horizon_s, cfg.design.schedule_start_m,
+                         cfg.design.schedule_full_m)
+            else:
+                log.warning("design.preview_horizon_s = %g s is unused: weight set %d is "
+                            "a fixed law, only the travel schedule (weight set 0) takes a "
+                            "road preview", cfg.design.preview_horizon_s, weight_set)
         warmup_ticks = round(cfg.safety.arm_warmup_s * cfg.design.sample_rate_hz)
         settings = LoopSettings(blending, weight_set, warmup_ticks, excite=opts.excite)
         if bus is None:

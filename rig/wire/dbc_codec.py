@@ -29,6 +29,8 @@ _FAULT_REPORT_PACK: Final = struct.Struct('<BBBIB').pack_into
 _FAULT_REPORT_UNPACK: Final = struct.Struct('<BBBIB').unpack
 _SENSOR_DATA_PACK: Final = struct.Struct('<BBhhh').pack_into
 _SENSOR_DATA_UNPACK: Final = struct.Struct('<BBhhh').unpack
+_ROAD_PREVIEW_PACK: Final = struct.Struct('<BBhHBx').pack_into
+_ROAD_PREVIEW_UNPACK: Final = struct.Struct('<BBhHBx').unpack
 _RIG_STATUS_PACK: Final = struct.Struct('<BBHhh').pack_into
 _RIG_STATUS_UNPACK: Final = struct.Struct('<BBHhh').unpack
 _CONTROLLER_STATUS_PACK: Final = struct.Struct('<BBBHBH').pack_into
@@ -310,6 +312,88 @@ class SensorDataCodec(Codec):
         return _OK
 
 
+class RoadPreview(Frame):
+    """RoadPreview as decoded: ``counter``, ``range_mask`` and one attribute per signal
+    (SI units)."""
+
+    __slots__ = ('preview_lead', 'preview_sensor_counter', 'preview_status', 'road_velocity_mps')
+    FIELDS = ('preview_status', 'road_velocity_mps', 'preview_lead', 'preview_sensor_counter')
+    #: PreviewStatus : 12|4@1+ (1,0) [0|15] ""
+    preview_status: int
+    #: RoadVelocity : 16|16@1- (0.001,0) [-32.768|32.767] "m/s"
+    road_velocity_mps: float
+    #: PreviewLead : 32|16@1+ (1,0) [0|65535] ""
+    preview_lead: int
+    #: PreviewSensorCounter : 48|4@1+ (1,0) [0|15] ""
+    preview_sensor_counter: int
+
+
+class RoadPreviewCodec(Codec):
+    """RoadPreview 0x101, Rig -> Controller, Cyclic every 1 ms."""
+
+    FRAME_ID = 0x101
+    NAME = 'RoadPreview'
+    FRAME_TYPE = RoadPreview
+    COUNTER_SIGNAL = 'RoadPreview_Counter'
+    SIGNALS = (
+        SignalSpec('preview_status', 'PreviewStatus', 12, 4, False, 1, 0, 15),
+        SignalSpec('road_velocity_mps', 'RoadVelocity', 16, 16, True, 0.001, -32.768, 32.767),
+        SignalSpec('preview_lead', 'PreviewLead', 32, 16, False, 1, 0, 65535),
+        SignalSpec('preview_sensor_counter', 'PreviewSensorCounter', 48, 4, False, 1, 0, 15),
+    )
+
+    def encode(self, buf: bytearray | memoryview, counter: int, preview_status: int,
+               road_velocity_mps: float, preview_lead: int, preview_sensor_counter: int) -> int:
+        """Counter (modulo 16), signals and CRC into ``buf``; the mask of clamped
+        or undefined values (bit i = ``FIELDS[i]``)."""
+        m = 0
+        if not 0 <= preview_status <= 15:
+            m |= 0x1  # PreviewStatus
+            preview_status = 0 if preview_status < 0 else 15
+        if not -32.768 <= road_velocity_mps <= 32.767:
+            m |= 0x2  # RoadVelocity
+            if road_velocity_mps < -32.768:
+                road_velocity_mps = -32.768
+            elif road_velocity_mps > 32.767:
+                road_velocity_mps = 32.767
+            else:  # NaN
+                road_velocity_mps = 0.0
+        if not 0 <= preview_lead <= 65535:
+            m |= 0x4  # PreviewLead
+            preview_lead = 0 if preview_lead < 0 else 65535
+        if not 0 <= preview_sensor_counter <= 15:
+            m |= 0x8  # PreviewSensorCounter
+            preview_sensor_counter = 0 if preview_sensor_counter < 0 else 15
+        b1 = ((counter & 0xf) | (preview_status << 4))
+        _ROAD_PREVIEW_PACK(buf, 0, 0, b1, round(road_velocity_mps / 0.001), preview_lead,
+                           preview_sensor_counter)
+        w1, w2, w3, b7 = _CRC_WORDS(buf)
+        s = _T2[0x1000 ^ w1]
+        s = _T2[(s << 8) ^ w2]
+        s = _T2[(s << 8) ^ w3]
+        buf[0] = _T1[s ^ b7] ^ 0xff
+        return m
+
+    def decode(self, data: bytes | bytearray | memoryview, out: RoadPreview) -> DecodeStatus:
+        """Check length and CRC, then fill ``out``; never raises."""
+        if len(data) != 8:
+            return _BAD_LENGTH
+        crc, b1, r_road_velocity, r_preview_lead, b6 = _ROAD_PREVIEW_UNPACK(data)
+        w1, w2, w3, b7 = _CRC_WORDS(data)
+        s = _T2[0x1000 ^ w1]
+        s = _T2[(s << 8) ^ w2]
+        s = _T2[(s << 8) ^ w3]
+        if crc != _T1[s ^ b7] ^ 0xff:
+            return _BAD_CRC
+        out.counter = b1 & 0xf
+        out.preview_status = b1 >> 4
+        out.road_velocity_mps = r_road_velocity * 0.001
+        out.preview_lead = r_preview_lead
+        out.preview_sensor_counter = b6 & 0xf
+        out.range_mask = 0  # every raw value of this frame is in range
+        return _OK
+
+
 class RigStatus(Frame):
     """RigStatus as decoded: ``counter``, ``range_mask`` and one attribute per signal
     (SI units)."""
@@ -533,11 +617,13 @@ class ControllerStatusCodec(Codec):
 VALVE_COMMAND: Final = ValveCommandCodec()
 FAULT_REPORT: Final = FaultReportCodec()
 SENSOR_DATA: Final = SensorDataCodec()
+ROAD_PREVIEW: Final = RoadPreviewCodec()
 RIG_STATUS: Final = RigStatusCodec()
 CONTROLLER_STATUS: Final = ControllerStatusCodec()
 #: frame ID -> codec
 CODECS: Final[Mapping[int, Codec]] = {VALVE_COMMAND.FRAME_ID: VALVE_COMMAND,
                                       FAULT_REPORT.FRAME_ID: FAULT_REPORT,
                                       SENSOR_DATA.FRAME_ID: SENSOR_DATA,
+                                      ROAD_PREVIEW.FRAME_ID: ROAD_PREVIEW,
                                       RIG_STATUS.FRAME_ID: RIG_STATUS,
                                       CONTROLLER_STATUS.FRAME_ID: CONTROLLER_STATUS}

@@ -46,7 +46,8 @@ OUT_PATH = Path(__file__).with_name("dbc_constants.py")
 CODEC_PATH = Path(__file__).with_name("dbc_codec.py")
 
 #: DBC unit -> attribute suffix (SI)
-UNIT_SUFFIX = {"": "", "m": "_m", "N": "_n", "m/s^2": "_mps2", "Pa": "_pa", "s": "_s"}
+UNIT_SUFFIX = {"": "", "m": "_m", "N": "_n", "m/s": "_mps", "m/s^2": "_mps2", "Pa": "_pa",
+               "s": "_s"}
 #: VAL_ tables that several signals share, by the enumeration they define
 ENUMS = {"LifecycleState": ("ValveCommand", "Lifecycle"),
          "FaultCode": ("FaultReport", "FaultCode"),

@@ -42,6 +42,7 @@ from rig.wire.dbc_codec import (
     CONTROLLER_STATUS,
     FAULT_REPORT,
     RIG_STATUS,
+    ROAD_PREVIEW,
     SENSOR_DATA,
     VALVE_COMMAND,
     ControllerStatus,
@@ -50,12 +51,20 @@ from rig.wire.dbc_codec import (
     FaultReportCodec,
     RigStatus,
     RigStatusCodec,
+    RoadPreview,
+    RoadPreviewCodec,
     SensorData,
     SensorDataCodec,
     ValveCommand,
     ValveCommandCodec,
 )
-from rig.wire.dbc_constants import Blending, FaultCode, LifecycleState, SensorStatus
+from rig.wire.dbc_constants import (
+    Blending,
+    FaultCode,
+    LifecycleState,
+    PreviewStatus,
+    SensorStatus,
+)
 from rig.wire.e2e import CounterMonitor, CounterStatus
 
 __all__ = [
@@ -69,6 +78,8 @@ __all__ = [
     "RIG_RX_IDS",
     "RIG_STATUS",
     "RIG_STATUS_ID",
+    "ROAD_PREVIEW",
+    "ROAD_PREVIEW_ID",
     "SENSOR_DATA",
     "SENSOR_DATA_ID",
     "VALVE_COMMAND",
@@ -85,8 +96,11 @@ __all__ = [
     "FaultReportCodec",
     "Frame",
     "LifecycleState",
+    "PreviewStatus",
     "RigStatus",
     "RigStatusCodec",
+    "RoadPreview",
+    "RoadPreviewCodec",
     "SensorData",
     "SensorDataCodec",
     "SensorStatus",
@@ -100,9 +114,10 @@ VALVE_COMMAND_ID: Final = K.VALVE_COMMAND_ID
 FAULT_REPORT_ID: Final = K.FAULT_REPORT_ID
 SENSOR_DATA_ID: Final = K.SENSOR_DATA_ID
 RIG_STATUS_ID: Final = K.RIG_STATUS_ID
+ROAD_PREVIEW_ID: Final = K.ROAD_PREVIEW_ID
 CONTROLLER_STATUS_ID: Final = K.CONTROLLER_STATUS_ID
 #: frames each role receives (receive filters of :func:`rig.bus.core.open_bus`)
-CONTROLLER_RX_IDS: Final = (SENSOR_DATA_ID, RIG_STATUS_ID)
+CONTROLLER_RX_IDS: Final = (SENSOR_DATA_ID, ROAD_PREVIEW_ID, RIG_STATUS_ID)
 RIG_RX_IDS: Final = (VALVE_COMMAND_ID, FAULT_REPORT_ID, CONTROLLER_STATUS_ID)
 
 

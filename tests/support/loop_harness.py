@@ -79,6 +79,13 @@ class FakeRuntime:
     def set_road(self, speed_mps: float, roughness_gd: float) -> None:
         self.road = (speed_mps, roughness_gd)
 
+    def use_preview_schedule(self, live: bool) -> None:
+        self.preview_schedule = bool(live)
+
+    def check_road_preview(self, preview: Any, reading_m: float, road_velocity: Any,
+                           start: int) -> bool:
+        return False
+
 
 class RigSide:
     """The rig's end of the virtual bus: sends SensorData / RigStatus, reads commands."""

@@ -21,10 +21,12 @@ from hil.sim.roads import make_road
 from rig.bus.core import make_tx_message
 from rig.wire.protocol import (
     RIG_STATUS,
+    ROAD_PREVIEW,
     SENSOR_DATA,
     VALVE_COMMAND,
     DecodeStatus,
     RigStatus,
+    RoadPreview,
     SensorData,
 )
 
@@ -84,6 +86,8 @@ class Harness:
             elif msg.arbitration_id == RIG_STATUS.frame_id:
                 r.rig = RigStatus()
                 r.status = RIG_STATUS.decode(msg.data, r.rig)
+            elif msg.arbitration_id == ROAD_PREVIEW.frame_id:
+                r.status = ROAD_PREVIEW.decode(msg.data, RoadPreview())
             self.rx.append(r)
 
     def sensor_frames(self) -> list[Rx]:
