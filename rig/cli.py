@@ -23,7 +23,7 @@ from controller.config import ConfigError, load_config
 from rig.argtypes import OneLineParser, bind_config, overwrite_problem
 from rig.blas_threads import one_blas_thread
 from rig.rt.kernel_cache import drop_stale_kernel_cache
-from rig.rt.stop_signals import StopSignals
+from rig.rt.stop_signals import StopRequested, StopSignals
 from rig.terminal import refuse
 
 #: subcommands that SIGTERM / SIGINT stop cleanly at any point (rig.rt.stop_signals): the
@@ -157,7 +157,7 @@ def _main(command: str | None, argv: list[str], stop: StopSignals | None) -> int
         return int(args._module.run(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except Exception as exc:
+    except (Exception, StopRequested) as exc:
         said = refusal(exc)
         if said is None:
             raise

@@ -35,8 +35,13 @@ log = logging.getLogger(__name__)
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
-class StopRequested(Exception):  # noqa: N818 - a request, not an error
-    """A stop signal arrived before the control loop ran (``signal_name``: SIGTERM...)."""
+class StopRequested(BaseException):
+    """A stop signal arrived before the control loop ran (``signal_name``: SIGTERM...).
+
+    A ``BaseException``, as ``KeyboardInterrupt`` is: raised asynchronously inside
+    :meth:`StopSignals.interruptible`, it may land in a library's ``except Exception``
+    (matplotlib's colormap set-up, imported with python-control by the design, turned
+    it into a ``ValueError``), which must not catch it."""
 
     def __init__(self, signal_name: str) -> None:
         super().__init__(f"stopped by {signal_name}")
