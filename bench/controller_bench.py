@@ -16,8 +16,8 @@ mass, spring rate, damping and tire stiffness, 568 models, the default law; its 
 runs one layer and
 copies that layer's rows for the tick record, docs/design.md §11; its kernel column is
 ``bank_step`` alone); and the road preview's per-tick prediction
-(``controller.road_preview.predicted_peak_m`` of ``deploy/preview.toml``'s horizon: 15
-look-ahead times up to 150 ms, called alone, not part of the step: docs/design.md §12;
+(``controller.road_preview.predicted_peak_m`` of the default horizon: 20 look-ahead
+times up to 200 ms, called alone, not part of the step: docs/design.md §12;
 its J column is the bank's layers, one predictor each).  The goal is a median
 below 10 us and p99.9 below 50 us for fuzzy J=3, and the 28-model moving bank within
 1.3x of fuzzy J=3.  ``python -m bench.controller_bench [--quick]`` prints the table.
@@ -100,8 +100,6 @@ def _time_case(rt: BankRuntime, data: np.ndarray) -> dict[str, float]:
     return {**_stats(times, kernel_ns), "filters_per_tick": updates / len(rows)}
 
 
-#: the road preview's settings timed (deploy/preview.toml's)
-PREVIEW = {"preview_horizon_s": 0.15, "preview_check_s": 0.01, "preview_trigger_m": 0.05}
 
 
 @nb.njit(cache=True)
@@ -118,7 +116,7 @@ def _preview_calls(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, lay
 def _time_preview(cfg: RigConfig, data: np.ndarray) -> dict[str, Any]:
     """The road preview's prediction per tick: one call of predicted_peak_m on the
     default bank's nominal layer, the road velocity the inputs were made with."""
-    pv = road_preview(cfg.replace(design=PREVIEW))
+    pv = road_preview(cfg)
     assert pv is not None
     layer = pv.rows.shape[0] // 2
     rng = np.random.default_rng(2)

@@ -351,7 +351,7 @@ class DesignConfig:
     schedule_release_s: float = _f(0.7, lo=0.0, hi=100.0,
                                    doc="travel schedule: time constant with which the usage "
                                        "envelope falls after a peak (it rises at once)")
-    preview_horizon_s: float = _f(0.0, lo=0.0, hi=1.0,
+    preview_horizon_s: float = _f(0.2, lo=0.0, hi=1.0,
                                   doc="road preview (travel schedule only): how far ahead "
                                       "the road velocity the rig will play is used to "
                                       "predict the LVDT reading; a predicted peak beyond "
@@ -359,7 +359,7 @@ class DesignConfig:
                                       "law before the excursion [s] (0 = off; the "
                                       "simulator and a rig that sends RoadPreview frames "
                                       "supply it: docs/design.md §12)")
-    preview_trigger_m: float = _f(0.06, lo=0.0, hi=1.0, lo_open=True,
+    preview_trigger_m: float = _f(0.055, lo=0.0, hi=1.0, lo_open=True,
                                   doc="road preview: predicted distance of the LVDT reading "
                                       "from the stops' centre that turns the schedule to "
                                       "the travel law")

@@ -53,6 +53,9 @@ def test_demo_short_run_json(tmp_path: Path) -> None:
         assert active["force_rms_n"] > 100.0
     assert active["bypass_open_fraction"] < 1.0
     assert summary["final_state"] == "STOPPING"
+    # the defaults take the emulated rig's road preview (RoadPreview frames, 0.25 s ahead)
+    assert summary["road_preview"]["state"] in ("live", "short", "filling")
+    assert 0.0 <= summary["road_preview"]["call_fraction"] < 0.5
     # the emulated rig ran in its own process and sent back its counters
     # a busy machine may stall either process long enough to lose sensor frames or miss
     # deadlines even with this patient configuration: those faults are the monitor doing

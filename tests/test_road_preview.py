@@ -6,7 +6,6 @@ course run on the nonlinear rig."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import control
 import numpy as np
@@ -19,7 +18,6 @@ from controller.config import (
     default_config,
     layer_config,
     layer_grid,
-    load_config,
 )
 from controller.plant import (
     linear_model,
@@ -56,8 +54,10 @@ def _reference_readings(layer: int, dx: np.ndarray, road_velocity: np.ndarray,
     return reading_m + (r - r[0])
 
 
-def test_off_by_default_and_shapes() -> None:
-    assert road_preview(default_config()) is None
+def test_shapes_and_off() -> None:
+    assert road_preview(default_config().replace(design={"preview_horizon_s": 0.0})) is None
+    on = road_preview(default_config())                 # on by default: 200 ms, 20 checks
+    assert on is not None and on.horizon_ticks == 200 and on.ticks.size == 20
     assert PV is not None
     assert PV.horizon_ticks == 150 and PV.ticks[0] == 10 and PV.ticks[-1] == 150
     layers = len(layer_grid(CFG))
@@ -160,27 +160,29 @@ def test_runtime_switches_the_schedule_for_a_live_preview() -> None:
     assert 0.0 < shares[0] < 1.0 and shares[1] == 1.0
 
 
-def test_course_run_with_the_preview_profile() -> None:
-    """deploy/preview.toml on the thesis course, road seed 7: the comfort set runs alone
-    except where the preview calls the travel law.  Against the comfort set alone (the
-    profile without a preview and with the reading's thresholds out of the way, the
-    stop-contact monitor degrading it) and against the default law: less absorbed power
-    than either, no slam, no fault, stop contact within passive's + 0.1 % of the run."""
-    cfg = load_config(Path(__file__).resolve().parents[1] / "deploy" / "preview.toml")
+def test_course_run_with_the_preview() -> None:
+    """The default law on the thesis course, road seed 7: with the road preview the
+    comfort set runs alone except where the preview calls the travel law.  Against the
+    comfort set alone (no preview, the reading's thresholds out of the way, the
+    stop-contact monitor degrading it) and against the schedule on the reading alone (no
+    preview, as on a rig that sends no RoadPreview): less absorbed power than either, no
+    slam, no fault, stop contact within passive's + 0.1 % of the run."""
+    cfg = default_config()
     seed = 7
     road = make_road("rough-course", 11.176, 60.0, cfg.sample_time_s, seed)
     passive = simulate(cfg, road, "passive", 0, seed=seed).metrics
     with_preview = simulate(cfg, road, "fuzzy", 0, seed=seed).metrics
-    without = simulate(cfg.replace(design={"preview_horizon_s": 0.0,
+    comfort = simulate(cfg.replace(design={"preview_horizon_s": 0.0,
                                            "schedule_start_m": 0.5, "schedule_full_m": 1.0}),
                        road, "fuzzy", 0, seed=seed).metrics
-    default = simulate(default_config(), road, "fuzzy", 0, seed=seed).metrics
+    reading = simulate(cfg.replace(design={"preview_horizon_s": 0.0}), road, "fuzzy", 0,
+                       seed=seed).metrics
     assert with_preview["n_faults"] == 0 and not with_preview["bump_stop_slam"]
     assert with_preview["bump_stop_time_s"] <= passive["bump_stop_time_s"] + 0.001 * 60.0
     assert 0.0 < with_preview["preview_call_fraction"] < 0.1
-    assert without["preview_call_fraction"] == 0.0
-    assert with_preview["absorbed_power"] < 0.7 * without["absorbed_power"]
-    assert with_preview["absorbed_power"] < 0.95 * default["absorbed_power"]
+    assert comfort["preview_call_fraction"] == reading["preview_call_fraction"] == 0.0
+    assert with_preview["absorbed_power"] < 0.7 * comfort["absorbed_power"]
+    assert with_preview["absorbed_power"] < 0.95 * reading["absorbed_power"]
 
 
 def test_simulator_calls_the_travel_law_on_a_nonfinite_prediction() -> None:
@@ -191,10 +193,10 @@ def test_simulator_calls_the_travel_law_on_a_nonfinite_prediction() -> None:
 
     from hil.sim.closed_loop import BankController
     from hil.sim.sensors import SensorReading
-    cfg = load_config(Path(__file__).resolve().parents[1] / "deploy" / "preview.toml")
+    cfg = default_config()
     flat = make_road("flat", 11.176, 1.0, cfg.sample_time_s)
     velocity = flat.velocity_mps.copy()
-    velocity[100:] = math.nan                # inside the first tick's 150 ms window
+    velocity[100:] = math.nan                # inside the first tick's window
     bad = dataclasses.replace(flat, velocity_mps=velocity)
     reading = SensorReading(0.0, 0.0, 0.0, 0)
     for road, calls, share in ((flat, 0, 1.0), (bad, 1, 0.0)):

@@ -13,12 +13,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controller.config import load_config
+from controller.config import default_config
 from rig.service.road_preview_stream import RoadPreviewStream
 from rig.wire.protocol import ROAD_PREVIEW_ID, PreviewStatus
 
 H = 150
-PROFILE = Path(__file__).resolve().parents[1] / "deploy" / "preview.toml"
 
 
 def _feed(stream: RoadPreviewStream, ticks: range, lead: int, skip: set[int] = frozenset(),
@@ -207,12 +206,12 @@ def _run(cfg: Any, seconds: float, faults: Any = None
 
 
 def test_loop_takes_the_emulated_rigs_preview() -> None:
-    """deploy/preview.toml against the emulated rig (emulator.road_preview_s 0.25 s): the
+    """The defaults against the emulated rig (emulator.road_preview_s 0.25 s): the
     preview goes live within the lead of the first frame and stays live, every live window
     is the road the rig plays next (to the frame's 1 mm/s), the schedule runs on the
     preview's thresholds, and the preview calls the travel law in a few per cent of the
     ticks, as in the simulator; no fault."""
-    cfg = load_config(PROFILE)
+    cfg = default_config()
     loop, notes, errors = _run(cfg, 8.0)
     st_ = loop.status()
     assert st_["lifecycle"] == "ACTIVE", st_
@@ -229,7 +228,7 @@ def test_loop_without_the_rigs_preview_runs_the_reading_schedule() -> None:
     RoadPreview frames are lost for 1 s: the preview is not live, the schedule runs on
     the reading's thresholds and nothing faults; after the loss it is live again, and
     the loss and the recovery are notes."""
-    cfg = load_config(PROFILE)
+    cfg = default_config()
     loop, _n, _e = _run(cfg.replace(emulator={"road_preview_s": 0.0}), 2.0)
     assert loop.status()["road_preview"] == "no_frame"
     assert loop.preview_calls == 0 and not loop.rt.preview_schedule
@@ -260,7 +259,7 @@ def test_a_run_with_the_rigs_preview_replays_bit_for_bit(tmp_path: Path) -> None
     from rig.recording.run_data import read_run
     from rig.replay.driver import replay_recording
 
-    cfg = load_config(PROFILE)
+    cfg = default_config()
     path = record_emulated_run(tmp_path / "preview.mcap", 1.5, cfg=cfg, seed=4,
                                lockstep_timing=True)
     res = replay_recording(path)

@@ -207,26 +207,25 @@ def test_command_handler_and_stop_event(design_path: Path) -> None:
 
 
 
-def test_preview_profile_says_what_its_schedule_runs_on(
-        caplog: pytest.LogCaptureFixture) -> None:
-    """deploy/preview.toml on a bus with no rig: the service says at start-up what the
-    schedule runs on with and without the rig's RoadPreview frames, and its status says
-    why the preview is not live; with a fixed weight set it warns that the preview is
-    unused."""
+def test_service_says_what_the_schedule_runs_on(caplog: pytest.LogCaptureFixture) -> None:
+    """The defaults (road preview on) on a bus with no rig: the service says at start-up
+    what the schedule runs on with and without the rig's RoadPreview frames, and its
+    status says why the preview is not live; with a fixed weight set it warns that the
+    preview is unused."""
     from controller.config import load_config
-    cfg = load_config(ROOT / "deploy" / "preview.toml")
+    cfg = load_config(None)
     opts = ServiceOptions(design_path=None, interface="virtual",
                           channel=f"svc-{uuid.uuid4().hex}", recording=False, telemetry=False,
                           realtime=None, install_signal_handlers=False, duration_s=0.05)
     with caplog.at_level("INFO", logger="rig.service.runner"):
         svc = Service(cfg, opts)
         assert svc.run() == 0
-    assert "road preview on (0.15 s ahead)" in caplog.text
+    assert "road preview on (0.2 s ahead)" in caplog.text
     assert svc.loop.status()["road_preview"] == "no_frame"
     caplog.clear()
     with caplog.at_level("WARNING", logger="rig.service.runner"):
         fixed = Service(cfg, dataclasses.replace(opts, weights=1,
                                                  channel=f"svc-{uuid.uuid4().hex}"))
         assert fixed.run() == 0
-    assert "design.preview_horizon_s = 0.15 s is unused: weight set 1" in caplog.text
+    assert "design.preview_horizon_s = 0.2 s is unused: weight set 1" in caplog.text
     assert fixed.loop.status()["road_preview"] == "off"

@@ -22,6 +22,7 @@ EXPECTED = {
     ("design", "spring_rate_scales"): [1.0],
     ("design", "damping_scales"): [1.0],
     ("design", "tire_stiffness_scales"): [1.0],
+    ("design", "preview_horizon_s"): 0.0,         # no road preview (§12)
 }
 
 

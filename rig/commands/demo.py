@@ -422,6 +422,9 @@ def run(args: argparse.Namespace) -> int:
         "ratios": {k: ratio(passive, active, k)[0] for k in RATIO_KEYS
                    if k in active and k in passive},
         "faults": faults, "rearms": state["rearms"],
+        "road_preview": {"state": loop.status()["road_preview"],
+                         "calls": loop.preview_calls,
+                         "call_fraction": loop.preview_calls / max(loop.tick_count, 1)},
         "excitation": loop.excitation_state if args.excite else None,
         "final_state": loop.lifecycle.state.name,
         "timing": loop.timing.summary(),
@@ -452,6 +455,10 @@ def run(args: argparse.Namespace) -> int:
               f"(loop {factor_text} real time; the host held "
               f"it back {ls.get('behind_s', 0.0):.2f} s in {ls.get('stalls', 0):.0f} stalls); "
               "the lateness and step-time rows are the lockstep clock's (0)", file=out)
+    pv = summary["road_preview"]
+    if pv["state"] != "off":
+        print(f"road preview: {pv['state']} at the end, the travel law called ahead in "
+              f"{100 * pv['call_fraction']:.1f} % of the ticks", file=out)
     for f in faults:
         print(fault_line(f), file=out)
     if active.get("bypass_open_fraction", 0.0) > 0.5:

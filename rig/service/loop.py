@@ -58,7 +58,7 @@ import can
 import numpy as np
 
 from controller.config import RigConfig
-from controller.road_preview import road_preview
+from controller.road_preview import predicted_peak_m, road_preview
 from controller.runtime.kernels import StepFlag
 from rig.operator_commands import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout, TickPacker
@@ -237,6 +237,10 @@ class ControlLoop:
         self.preview_stream = (None if self.road_preview is None
                                else RoadPreviewStream(self.road_preview.horizon_ticks))
         self.io.preview = self.preview_stream
+        if self.road_preview is not None:      # load the kernel now, not in a tick
+            pv = self.road_preview
+            predicted_peak_m(pv.rows, pv.ticks, pv.impulse, 0, np.zeros(4), 0.0, 0.0,
+                             self.preview_stream.ring, 0)   # type: ignore[union-attr]
         self.preview_live = False
         self.preview_calls = 0          # ticks in which the preview called the travel law
         self._requests: collections.deque[_Request] = collections.deque(maxlen=64)
