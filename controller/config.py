@@ -366,12 +366,13 @@ class DesignConfig:
     preview_check_s: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True,
                                 doc="road preview: spacing of the look-ahead times at which "
                                     "the prediction is checked, up to preview_horizon_s")
-    preview_schedule_start_m: float = _f(0.5, lo=0.0, hi=1.0,
+    preview_schedule_start_m: float = _f(0.05, lo=0.0, hi=1.0,
                                          doc="road preview: schedule_start_m while a road "
                                              "preview is live (schedule_start_m applies "
-                                             "without one); the default, beyond the travel, "
-                                             "leaves the call to the preview alone")
-    preview_schedule_full_m: float = _f(1.0, lo=0.0, hi=1.0, lo_open=True,
+                                             "without one): high, so the preview makes "
+                                             "the calls and the reading is a safety net "
+                                             "for an excursion the prediction under-reads")
+    preview_schedule_full_m: float = _f(0.08, lo=0.0, hi=1.0, lo_open=True,
                                         doc="road preview: schedule_full_m while a road "
                                             "preview is live (above preview_schedule_start_m)")
     stop_barrier: bool = _f(False, doc="end-stop barrier: a safety filter on the force "

@@ -136,7 +136,7 @@ def test_configuration_checks_name_the_key() -> None:
 def test_runtime_switches_the_schedule_for_a_live_preview() -> None:
     """use_preview_schedule swaps the schedule's thresholds (the envelope carries over):
     at 40 mm of usage the reading-only schedule (25 / 55 mm) gives the travel law part
-    of the force, the preview's (0.5 / 1.0 m) none; call_travel_law reaches the running
+    of the force, the preview's (50 / 80 mm) none; call_travel_law reaches the running
     schedule's full usage either way."""
     from controller.runtime.bank import BankRuntime
     from hil.sim.closed_loop import cached_design
