@@ -149,8 +149,12 @@ def test_a_live_window_is_always_the_true_road_ahead(lead: int, lost: list[int],
         if start >= 0:
             np.testing.assert_array_equal(s.ring[start:start + H],
                                           np.arange(k + 1, k + 1 + H) / 1000.0)
-    if not any(n - 1 - lead - H < j <= n - 1 for j in skip) and n - 1 - lead - H > 0:
+    # a lost frame of tick j is a hole at rig tick j + lead: the last window (ticks n ..
+    # n + H - 1) is live exactly when no hole lies at n or later
+    if not any(n - 1 - lead < j <= n - 1 for j in skip):
         assert s.window_start() >= 0
+    else:
+        assert s.window_start() == -1
 
 
 def test_bad_construction() -> None:

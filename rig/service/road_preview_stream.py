@@ -18,8 +18,9 @@ contiguous slice ``ring[start:start + horizon]`` and the prediction reads it in 
 The samples received form one run of consecutive rig ticks; a sample that does not
 follow the run (a lost or corrupt frame, a changed lead) starts a new one.  The window is
 *live* when the run covers it; otherwise the schedule runs on the reading alone and
-:attr:`lost_reason` says why.  Nothing here allocates after construction, and nothing
-raises on bad input: a frame that is not usable only ends the run.
+:meth:`RoadPreviewStream.why_not_live` says why.  Nothing here allocates after
+construction, and nothing raises on bad input: a frame that is not usable only ends the
+run.
 """
 
 from __future__ import annotations
@@ -59,7 +60,6 @@ class RoadPreviewStream:
         self.run_start = 0              # the run of consecutive samples: rig ticks
         self.run_end = -1               # run_start .. run_end (empty while end < start)
         self.lead = -1
-        self.frames = 0                 # RoadPreview frames taken
         self.breaks = 0                 # runs ended by a frame that did not follow
         self.lost_reason = "no_frame"   # why the run ended (or none began)
 
@@ -91,7 +91,6 @@ class RoadPreviewStream:
         if velocity_mps != velocity_mps:
             self._break("corrupt")
             return
-        self.frames += 1
         # the SensorData frame it names: up to 7 ahead of the latest accepted one (that
         # frame was lost or rejected), else up to 8 behind (a frame that came late)
         d = (sensor_counter - self._sensor_counter) & 15
