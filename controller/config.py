@@ -761,8 +761,10 @@ class CanConfig:
     channel: str = _f("vcan0")
     bitrate: int = _f(1_000_000, lo=10_000, hi=8_000_000)
     fd: bool = _f(False)
-    receive_buffer_bytes: int = _f(1 << 20, lo=0, hi=1 << 30,
-                                   doc="SocketCAN SO_RCVBUF request (0 = kernel default)")
+    receive_buffer_bytes: int = _f(1 << 21, lo=0, hi=1 << 30,
+                                   doc="SocketCAN SO_RCVBUF request (0 = kernel default); "
+                                       "2 MiB keeps about a second of the rig's frames "
+                                       "(SensorData and RoadPreview every tick)")
 
 
 @dataclass(frozen=True)
