@@ -375,6 +375,21 @@ class DesignConfig:
     preview_schedule_full_m: float = _f(0.08, lo=0.0, hi=1.0, lo_open=True,
                                         doc="road preview: schedule_full_m while a road "
                                             "preview is live (above preview_schedule_start_m)")
+    govern_comfort_set: bool = _f(True, doc="travel governor: the schedule's comfort set "
+                                            "run alone (weight_set = "
+                                            "schedule_weight_sets[0]) calls the travel law "
+                                            "ahead of a road-preview-predicted excursion "
+                                            "(preview_trigger_m) and blends to it near the "
+                                            "stops (governor_start_m / governor_full_m); "
+                                            "false: that set alone, as the thesis "
+                                            "(docs/design.md §12)")
+    governor_start_m: float = _f(0.06, lo=0.0, hi=1.0,
+                                 doc="travel governor: rattlespace usage (as "
+                                     "schedule_start_m) where the governed comfort set "
+                                     "begins to blend toward the travel law")
+    governor_full_m: float = _f(0.08, lo=0.0, hi=1.0, lo_open=True,
+                                doc="travel governor: usage at which the travel law has the "
+                                    "whole force (above governor_start_m)")
     stop_barrier: bool = _f(False, doc="end-stop barrier: a safety filter on the force "
                                        "reference that keeps the rattlespace short of the "
                                        "bump stops given the body's momentum and the "
@@ -995,6 +1010,9 @@ def _cross_checks(cfg: RigConfig) -> None:
         raise ConfigError("design.preview_schedule_full_m", d.preview_schedule_full_m,
                           f"above design.preview_schedule_start_m "
                           f"({d.preview_schedule_start_m:g})")
+    if d.governor_full_m <= d.governor_start_m:
+        raise ConfigError("design.governor_full_m", d.governor_full_m,
+                          f"above design.governor_start_m ({d.governor_start_m:g})")
     if d.preview_horizon_s > 0.0 and d.schedule_release_s == 0.0:
         raise ConfigError("design.preview_horizon_s", d.preview_horizon_s,
                           "0 while design.schedule_release_s is 0 (the preview holds the "

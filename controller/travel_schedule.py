@@ -19,8 +19,13 @@ gains are stabilising LQ gains of the same augmented plant; the blend moves slow
 against the closed-loop modes except on its rise (a change of gain, not of state).
 
 ``weight_set = 0`` selects the schedule; ``design.schedule_weight_sets`` names the
-comfort and the travel set.  This is the plain-Python statement of the law (tests);
-the runtime's numba kernel is ``controller.runtime.kernels.travel_comfort_share``.
+comfort and the travel set.  The comfort set selected alone runs, with
+``design.govern_comfort_set``, under the *travel governor*: the same machinery with the
+thresholds moved up to the stops (``design.governor_start_m`` / ``governor_full_m``), so
+the comfort law is untouched until the reading nears a stop or the road preview
+(``controller.road_preview``) predicts an excursion.  This is the plain-Python
+statement of the law (tests); the runtime's numba kernel is
+``controller.runtime.kernels.travel_comfort_share``.
 """
 
 from __future__ import annotations
@@ -53,15 +58,22 @@ class TravelSchedule:
                          self.release_decay])
 
 
-def travel_schedule(cfg: RigConfig, preview: bool = False) -> TravelSchedule:
+def travel_schedule(cfg: RigConfig, preview: bool = False,
+                    governor: bool = False) -> TravelSchedule:
     """The schedule of ``cfg`` (``design.schedule_*``, ``design.bump_stop_centre_lvdt_m``);
     with ``preview`` the one that runs while a road preview is live (its thresholds
-    ``design.preview_schedule_start_m`` / ``preview_schedule_full_m``)."""
+    ``design.preview_schedule_start_m`` / ``preview_schedule_full_m``); with
+    ``governor`` the travel governor's, which runs the comfort set alone until near the
+    stops (``design.governor_start_m`` / ``governor_full_m``, preview live or not)."""
     d = cfg.design
     tau = d.schedule_release_s
     decay = math.exp(-cfg.sample_time_s / tau) if tau > 0.0 else 0.0
-    start, full = ((d.preview_schedule_start_m, d.preview_schedule_full_m) if preview
-                   else (d.schedule_start_m, d.schedule_full_m))
+    if governor:
+        start, full = d.governor_start_m, d.governor_full_m
+    elif preview:
+        start, full = d.preview_schedule_start_m, d.preview_schedule_full_m
+    else:
+        start, full = d.schedule_start_m, d.schedule_full_m
     return TravelSchedule(centre_m=d.bump_stop_centre_lvdt_m, start_m=start, full_m=full,
                           release_decay=decay)
 

@@ -212,7 +212,9 @@ def add_weights_option(parser: argparse.ArgumentParser, default: int | None) -> 
     shown = "design.weight_set" if default is None else str(default)
     parser.add_argument("--weights", type=weight_set, default=default, metavar="N",
                         help=f"weight set, 1-based into design.weight_sets; 0 = the travel "
-                             f"schedule between comfort and travel sets (default: {shown})")
+                             f"schedule between comfort and travel sets; the comfort set "
+                             f"runs under the travel governor unless "
+                             f"design.govern_comfort_set is false (default: {shown})")
     parser.add_argument("--weight-set", dest="weights", type=weight_set,
                         help=argparse.SUPPRESS)
 

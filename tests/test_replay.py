@@ -166,14 +166,15 @@ def test_replay_bus_is_a_busabc_releasing_frames_by_tick(plain_recording: Path) 
 def _bank_alone(run: Any, design: Any, cfg: Any) -> np.ndarray:
     """Second implementation: BankRuntime stepped directly on the decoded sensor frames
     (one per tick, no resets in the plain recording), with the road preview of the
-    travel schedule taken from the RoadPreview frames by their lead (the i-th RoadPreview
-    holds the road velocity of rig tick i + lead; SensorData i is checked against the
-    road of ticks i + 1 .. i + H when all of them have come)."""
+    travel schedule (and of the governed comfort set) taken from the RoadPreview frames
+    by their lead (the i-th RoadPreview holds the road velocity of rig tick i + lead;
+    SensorData i is checked against the road of ticks i + 1 .. i + H when all of them
+    have come)."""
     from controller.road_preview import road_preview
     from rig.wire.protocol import ROAD_PREVIEW, ROAD_PREVIEW_ID, RoadPreview
 
     rt = BankRuntime(design, weight_set=cfg.design.weight_set, cfg=cfg)
-    pv = road_preview(cfg) if cfg.design.weight_set == 0 else None
+    pv = road_preview(cfg)     # any weight set: a fixed one never calls (rt decides)
     sd, rp = SensorData(), RoadPreview()
     ahead: dict[int, float] = {}
     i = previews = -1

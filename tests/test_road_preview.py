@@ -115,10 +115,17 @@ def test_travel_law_call_sets_the_travel_law_for_the_next_step() -> None:
     for _ in range(1500):                    # then the usual release (0.55 s here)
         rt.step(0.0, 0.0, 0.0)
     assert rt.comfort_share == 1.0
-    fixed = BankRuntime(design, weight_set=2, cfg=CFG)
+    fixed = BankRuntime(design, weight_set=1, cfg=CFG)     # the travel set, alone
     fixed.call_travel_law()
     fixed.step(0.0, 0.0, 0.0)
     assert fixed.schedule_usage_m == 0.0 and fixed.comfort_share == 0.0
+    ahead = np.full(PV.horizon_ticks, math.nan)    # a NaN prediction calls where it can
+    assert not fixed.check_road_preview(PV, 0.0, ahead, 0)
+    governed = BankRuntime(design, weight_set=2, cfg=CFG)  # weight set 2: governed
+    assert governed.check_road_preview(PV, 0.0, ahead, 0)
+    governed.step(0.0, 0.0, 0.0)
+    assert governed.comfort_share == 0.0
+    assert governed.schedule_usage_m == pytest.approx(CFG.design.governor_full_m)
 
 
 def test_configuration_checks_name_the_key() -> None:

@@ -228,4 +228,4 @@ def test_service_says_what_the_schedule_runs_on(caplog: pytest.LogCaptureFixture
                                                  channel=f"svc-{uuid.uuid4().hex}"))
         assert fixed.run() == 0
     assert "design.preview_horizon_s = 0.2 s is unused: weight set 1" in caplog.text
-    assert fixed.loop.status()["road_preview"] == "off"
+    assert fixed.loop.status()["road_preview"] == "unused"

@@ -159,8 +159,9 @@ def test_lead_keeps_weight_set_2_off_the_stops_on_the_thesis_course() -> None:
     pushes toward the stop (it cancels the damper) and the force loop needs ~20 ms to
     unload, so the distance law fades the force too late.  Road seed 1, 60 s, fuzzy: the
     distance law alone slams (> 10 mm into a stop; passive does not touch it), with the
-    default lead there is no slam, less time on the stops and no fault."""
-    base = default_config()
+    default lead there is no slam, less time on the stops and no fault.  Weight set 2
+    alone: the travel governor (§12) is off, the guard alone is measured."""
+    base = default_config().replace(design={"govern_comfort_set": False})
     road = make_road("rough-course", 11.176, 60.0, base.sample_time_s, 1)
     passive = simulate(base, road, "passive", seed=1).metrics
     runs = {lead: simulate(base.replace(design={"stop_guard_lead_s": lead}), road, "fuzzy", 2,

@@ -23,6 +23,7 @@ EXPECTED = {
     ("design", "damping_scales"): [1.0],
     ("design", "tire_stiffness_scales"): [1.0],
     ("design", "preview_horizon_s"): 0.0,         # no road preview (§12)
+    ("design", "govern_comfort_set"): False,      # weight set 2 alone, no governor
 }
 
 

@@ -73,10 +73,13 @@ def test_off_is_zero_and_a_nonfinite_reading_only_decays_the_envelope() -> None:
     assert 0.0 < fv[F_TS_ENV] <= env and 0.0 <= beta <= 1.0
 
 
-def _forces(weight_set: int, readings: np.ndarray) -> np.ndarray:
-    cfg = default_config()
+def _forces(weight_set: int, readings: np.ndarray, **design: object) -> np.ndarray:
+    cfg = default_config().replace(design=design) if design else default_config()
     rt = BankRuntime(cached_design(cfg), weight_set=weight_set, cfg=cfg)
     return np.array([rt.step(r, a, f) for r, a, f in readings])
+
+
+ALONE = {"govern_comfort_set": False}      # the comfort set alone, not governed
 
 
 def test_blend_end_points_are_the_two_weight_sets() -> None:
@@ -90,11 +93,47 @@ def test_blend_end_points_are_the_two_weight_sets() -> None:
     n = 400
     small = np.column_stack([0.01 * np.sin(np.arange(n) * 0.05), rng.normal(0, 0.5, n),
                              rng.normal(0, 50.0, n)])
-    np.testing.assert_allclose(_forces(0, small), _forces(comfort, small), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(_forces(0, small), _forces(comfort, small, **ALONE),
+                               rtol=1e-9, atol=1e-9)
     big = small.copy()
     big[:, 0] += 0.07            # well beyond schedule_full_m from the stops' centre
     np.testing.assert_allclose(_forces(0, big), _forces(travel, big), rtol=1e-9, atol=1e-9)
-    assert not np.allclose(_forces(comfort, big), _forces(travel, big))
+    assert not np.allclose(_forces(comfort, big, **ALONE), _forces(travel, big))
+
+
+def test_governed_comfort_set_is_untouched_until_near_the_stops() -> None:
+    """The comfort set selected alone runs under the travel governor: its own force while
+    the reading stays inside design.governor_start_m, the travel set's beyond
+    governor_full_m; the travel set and, with govern_comfort_set false, the comfort set
+    run alone."""
+    cfg = default_config()
+    comfort, travel = cfg.design.schedule_weight_sets
+    rng = np.random.default_rng(4)
+    n = 400
+    c = cfg.design.bump_stop_centre_lvdt_m
+    small = np.column_stack([c + 0.05 * np.sin(np.arange(n) * 0.05), rng.normal(0, 0.5, n),
+                             rng.normal(0, 50.0, n)])
+    assert cfg.design.schedule_start_m < 0.05 < cfg.design.governor_start_m
+    alone = _forces(comfort, small, **ALONE)
+    np.testing.assert_allclose(_forces(comfort, small), alone, rtol=1e-9, atol=1e-9)
+    assert not np.allclose(_forces(0, small), alone)     # the schedule has turned already
+    far = small.copy()
+    far[:, 0] = c + 0.005 * np.sin(np.arange(n) * 0.05) + cfg.design.governor_full_m + 0.006
+    np.testing.assert_allclose(_forces(comfort, far), _forces(travel, far), rtol=1e-9,
+                               atol=1e-9)
+    design = cached_design(cfg)
+    gov = BankRuntime(design, weight_set=comfort, cfg=cfg)
+    assert gov.governed and gov._fv[F_TS_ON] == 1.0
+    for live in (False, True):      # the governor's thresholds, preview live or not
+        gov.use_preview_schedule(live)
+        np.testing.assert_array_equal(gov._fv[F_TS:F_TS + SCHEDULE_SIZE],
+                                      travel_schedule(cfg, governor=True).as_array())
+    assert not BankRuntime(design, weight_set=travel, cfg=cfg).governed
+    off = default_config().replace(design=ALONE)
+    rt = BankRuntime(cached_design(off), weight_set=comfort, cfg=off)
+    assert not rt.governed and rt._fv[F_TS_ON] == 0.0
+    rt.set_weight_set(0)            # the operator selects the schedule: not governed
+    assert not rt.governed and rt._fv[F_TS_ON] == 1.0
 
 
 def test_configuration_checks_name_the_key() -> None:
@@ -102,6 +141,8 @@ def test_configuration_checks_name_the_key() -> None:
         default_config().replace(design={"weight_set": 0, "schedule_weight_sets": [3, 1]})
     with pytest.raises(ConfigError, match=r"design\.schedule_full_m"):
         default_config().replace(design={"schedule_start_m": 0.05, "schedule_full_m": 0.04})
+    with pytest.raises(ConfigError, match=r"design\.governor_full_m"):
+        default_config().replace(design={"governor_start_m": 0.08, "governor_full_m": 0.07})
     one = default_config().replace(design={"weight_set": 1, "weight_sets": [[1.0, 1e2, 1e-8, 1.0]]})
     rt = BankRuntime(cached_design(one), weight_set=1, cfg=one)
     with pytest.raises(ValueError, match="travel schedule"):
@@ -118,13 +159,15 @@ def test_course_run_keeps_off_the_stops_with_more_comfort_than_set_1(seed: int) 
     cfg = default_config().replace(design={"stop_guard_lead_s": 0.0})
     road = make_road("rough-course", 11.176, 60.0, cfg.sample_time_s, seed)
     res = {w: simulate(cfg, road, "fuzzy", w, seed=seed).metrics for w in (0, 1, 2)}
+    alone = simulate(cfg.replace(design=ALONE), road, "fuzzy", 2, seed=seed).metrics
     passive = simulate(cfg, road, "passive", 1, seed=seed).metrics
-    assert res[2]["bump_stop_slam"] and not passive["bump_stop_slam"]   # the case it is for
-    sched = res[0]
-    assert not sched["bump_stop_slam"] and sched["n_faults"] == 0
-    assert sched["bump_stop_time_s"] <= passive["bump_stop_time_s"] + 0.001 * 60.0
-    assert sched["absorbed_power"] < 0.8 * res[1]["absorbed_power"]
-    assert 0.0 < sched["schedule_comfort_share"] < 1.0
+    assert alone["bump_stop_slam"] and not passive["bump_stop_slam"]   # the case it is for
+    for law in (res[0], res[2]):    # the schedule, and weight set 2 under the governor
+        assert not law["bump_stop_slam"] and law["n_faults"] == 0
+        assert law["bump_stop_time_s"] <= passive["bump_stop_time_s"] + 0.001 * 60.0
+        assert law["absorbed_power"] < 0.8 * res[1]["absorbed_power"]
+        assert 0.0 < law["schedule_comfort_share"] < 1.0
+    assert res[2]["preview_call_fraction"] > 0.0 and alone["preview_call_fraction"] == 0.0
 
 
 def test_loop_records_and_publishes_the_comfort_share(armed: LoopHarness) -> None:

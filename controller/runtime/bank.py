@@ -1301,10 +1301,13 @@ class BankRuntime:
         self.weight_set = 1
         self._table_w = 0               # the packed table of the selected weight set
         # the travel schedule's thresholds without / with a live road preview (rows 0 / 1;
-        # use_preview_schedule switches; the reading alone runs row 0)
+        # use_preview_schedule switches; the reading alone runs row 0), and the travel
+        # governor's of the comfort set run alone (row 2, preview live or not)
         self._schedules = np.stack([travel_schedule(cfg_).as_array(),
-                                    travel_schedule(cfg_, preview=True).as_array()])
+                                    travel_schedule(cfg_, preview=True).as_array(),
+                                    travel_schedule(cfg_, governor=True).as_array()])
         self.preview_schedule = False
+        self.governed = False           # the comfort set runs under the travel governor
         self.blending = Blending(int(blending))
         self.set_road(cfg_.noise.nominal_speed_mps, cfg_.noise.nominal_roughness_gd)
         self.set_weight_set(weight_set)
@@ -1372,22 +1375,33 @@ class BankRuntime:
 
     def set_weight_set(self, weight_set: int) -> None:
         """Select the LQ weight set (1-based, as ``design.weight_set``); 0 = the travel
-        schedule between the two sets of ``design.schedule_weight_sets`` (§12)."""
+        schedule between the two sets of ``design.schedule_weight_sets`` (§12).  The
+        schedule's comfort set selected alone runs under the travel governor with
+        ``design.govern_comfort_set`` (:attr:`governed`): the schedule's machinery on the
+        governor's thresholds, the comfort law untouched until near the stops or a
+        predicted excursion (§12)."""
         w = int(weight_set)
         n = self.design.n_weight_sets
+        comfort, travel = self.cfg.design.schedule_weight_sets
+        schedule_ok = 1 <= comfort <= n and 1 <= travel <= n
+        governed = (self.cfg.design.govern_comfort_set and w == comfort and w != travel
+                    and schedule_ok)
         if w == 0:
-            comfort, travel = self.cfg.design.schedule_weight_sets
-            if not (1 <= comfort <= n and 1 <= travel <= n):
+            if not schedule_ok:
                 raise ValueError(f"weight_set 0 (travel schedule): design.schedule_weight_sets "
                                  f"{[comfort, travel]} not within the design's 1..{n}")
             table = travel - 1
+        elif governed:
+            table = travel - 1          # the travel law's slot; the comfort law's is set w
         elif 1 <= w <= n:
             table = w - 1
         else:
             raise ValueError(f"weight_set {weight_set!r}: allowed 0..{n} (0 = travel schedule)")
         self.weight_set = w
+        self.governed = governed
         self._table_w = table
-        self._fv[F_TS_ON] = 1.0 if w == 0 else 0.0
+        self._fv[F_TS_ON] = 1.0 if w == 0 or governed else 0.0
+        self.use_preview_schedule(self.preview_schedule)
         _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index, table)
 
     def set_road(self, speed_mps: float, roughness_gd: float) -> int:
@@ -1413,13 +1427,20 @@ class BankRuntime:
             self._iv[I_FLAGS] = _NONFINITE_INPUT
             return 0.0
 
+    @property
+    def takes_road_preview(self) -> bool:
+        """The law in use takes the road preview (:meth:`check_road_preview` may call
+        the travel law): the travel schedule or the governed comfort set."""
+        return bool(self._fv[F_TS_ON] != 0.0)
+
     def use_preview_schedule(self, live: bool) -> None:
         """Road preview (controller/road_preview.py): run the travel schedule on the
         thresholds for a live preview (``design.preview_schedule_*``, ``live``) or on the
         reading-only ones (``design.schedule_start_m`` / ``schedule_full_m``).  The usage
         envelope carries over.  Allocates nothing."""
         self.preview_schedule = bool(live)
-        self._fv[F_TS:F_TS + SCHEDULE_SIZE] = self._schedules[1 if live else 0]
+        row = 2 if self.governed else 1 if live else 0
+        self._fv[F_TS:F_TS + SCHEDULE_SIZE] = self._schedules[row]
 
     def check_road_preview(self, preview: RoadPreview, reading_m: float,
                            road_velocity: np.ndarray, start: int) -> bool:
@@ -1430,6 +1451,8 @@ class BankRuntime:
         (:meth:`call_travel_law`) when the predicted peak passes ``preview.trigger_m`` or
         is not finite.  True when it called.  Allocates nothing."""
         fv = self._fv
+        if fv[F_TS_ON] == 0.0:          # a fixed weight set: no travel law to call
+            return False
         peak = predicted_peak_m(preview.rows, preview.ticks, preview.impulse,
                                 int(self._iv[I_LAYER]), self.x_deviation, reading_m,
                                 fv[F_TS], road_velocity, start)

@@ -294,7 +294,7 @@ F_LWC = FV.slot()  # 1: the layers differ in damping (the layer distance counts 
 F_LWT = FV.slot()  # layers differ in tire stiffness: 1 / d log(wheel hop) / d log(tire), else 0
 F_ME = FV.slot(ME_SIZE)  # sprung-mass estimator: mass_estimator_parameters() (λ = 0: off)
 F_MES = FV.slot(ME_STATE_SIZE)  # sprung-mass estimator: state (controller/mass_estimator.py)
-F_TS_ON = FV.slot()  # travel schedule on (weight set 0; docs/design.md §12)
+F_TS_ON = FV.slot()  # travel schedule on (weight set 0, or the governed comfort set; §12)
 F_TS = FV.slot(SCHEDULE_SIZE)  # travel schedule: TravelSchedule.as_array() (travel_schedule.py)
 F_TS_ENV = FV.slot()  # travel schedule: usage envelope [m] (state)
 F_TS_BETA = FV.slot()  # travel schedule: the comfort law's share of the last tick (read-out)

@@ -163,7 +163,8 @@ class BankController:
         gd = road.roughness_gd if road.roughness_gd is not None else cfg.noise.nominal_roughness_gd
         self.rt.set_road(road.speed_mps, gd)
         # road preview (controller/road_preview.py): the simulator knows the road ahead
-        self.preview = cached_road_preview(cfg) if weight_set == 0 else None
+        # (a fixed weight set other than the governed comfort set never calls it)
+        self.preview = cached_road_preview(cfg)
         self.rt.use_preview_schedule(self.preview is not None)   # the preview is always live
         self._road_velocity = road.velocity_mps
         self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE

@@ -233,7 +233,9 @@ class ControlLoop:
                         self._on_output_error)
         #: road preview (controller/road_preview.py, design.preview_*): the predictor and
         #: the road ahead from the rig's RoadPreview frames; None when it is off
-        self.road_preview = road_preview(cfg) if self.weight_set == 0 else None
+        #: (built for every weight set: the operator may select the schedule or the
+        #: governed comfort set at run time)
+        self.road_preview = road_preview(cfg)
         self.preview_stream = (None if self.road_preview is None
                                else RoadPreviewStream(self.road_preview.horizon_ticks))
         self.io.preview = self.preview_stream
@@ -806,6 +808,7 @@ class ControlLoop:
             "blending": self.blending,
             "weight_set": self.weight_set,
             "road_preview": ("off" if self.preview_stream is None
+                             else "unused" if not self.rt.takes_road_preview
                              else self.preview_stream.why_not_live()),
             "preview_calls": self.preview_calls,
             "rx_frames": self.rx_frames,

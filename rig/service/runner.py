@@ -171,10 +171,19 @@ class Service:
                          "(schedule_start_m %g m, schedule_full_m %g m; docs/design.md §12)",
                          cfg.design.preview_horizon_s, cfg.design.schedule_start_m,
                          cfg.design.schedule_full_m)
+            elif cfg.design.govern_comfort_set \
+                    and weight_set == cfg.design.schedule_weight_sets[0]:
+                log.info("road preview on (%g s ahead): while the rig's RoadPreview frames "
+                         "are live the travel governor of weight set %d calls the travel "
+                         "law ahead of a predicted excursion; with or without them it "
+                         "blends to it from governor_start_m %g m (docs/design.md §12)",
+                         cfg.design.preview_horizon_s, weight_set,
+                         cfg.design.governor_start_m)
             else:
                 log.warning("design.preview_horizon_s = %g s is unused: weight set %d is "
-                            "a fixed law, only the travel schedule (weight set 0) takes a "
-                            "road preview", cfg.design.preview_horizon_s, weight_set)
+                            "a fixed law, only the travel schedule (weight set 0) and the "
+                            "governed comfort set take a road preview",
+                            cfg.design.preview_horizon_s, weight_set)
         warmup_ticks = round(cfg.safety.arm_warmup_s * cfg.design.sample_rate_hz)
         settings = LoopSettings(blending, weight_set, warmup_ticks, excite=opts.excite)
         if bus is None:

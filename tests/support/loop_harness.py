@@ -38,6 +38,7 @@ class FakeRuntime:
 
     def __init__(self, n_models: int = 3, gain: float = 1e4) -> None:
         self.gain = gain
+        self.weight_set = 1
         self.flags = 0
         self.q = np.full(n_models, 2.0)
         self.firing_weight = np.full(n_models, 1.0 / n_models)
@@ -78,6 +79,10 @@ class FakeRuntime:
 
     def set_road(self, speed_mps: float, roughness_gd: float) -> None:
         self.road = (speed_mps, roughness_gd)
+
+    @property
+    def takes_road_preview(self) -> bool:
+        return self.weight_set == 0
 
     def use_preview_schedule(self, live: bool) -> None:
         self.preview_schedule = bool(live)
