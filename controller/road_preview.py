@@ -114,6 +114,15 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
                        horizon_ticks=horizon, trigger_m=d.preview_trigger_m)
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _fold_peak(peak: float, r: float) -> float:
+    """max(peak, |r|), NaN when r is NaN."""
+    a = abs(r)
+    if a != a:                      # NaN: no prediction
+        return math.nan
+    return a if a > peak else peak
+
+
 @nb.njit(cache=True, nogil=True)
 def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, layer: int,
                      dx: np.ndarray, reading_m: float, centre_m: float,
@@ -123,22 +132,59 @@ def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, l
     from the state deviation ``dx`` (4,), the measured reading ``reading_m`` and the
     previewed road velocity [m/s] of this tick and the ones after,
     ``road_velocity[start:]`` (at least ``ticks[-1]`` samples; fewer: the missing ones
-    count as 0; no copy is made).  NaN in, NaN out."""
-    peak = abs(reading_m - centre_m)
+    count as 0; no copy is made).  NaN in, NaN out.
+
+    Each look-ahead tick's prediction is summed in one order (the state's part, then the
+    road's sample by sample from this tick on); four look-ahead ticks are summed side by
+    side over the samples they share, so the four sums do not wait on each other (about
+    a third less time than one after the other, the same bits)."""
+    base = reading_m - centre_m
+    peak = abs(base)
     if peak != peak:
         return math.nan
     nw = road_velocity.shape[0] - start
-    for p in range(ticks.shape[0]):
+    n_ticks = ticks.shape[0]
+    p = 0
+    while p + 4 <= n_ticks:
+        j0, j1, j2, j3 = ticks[p], ticks[p + 1], ticks[p + 2], ticks[p + 3]
+        a0 = a1 = a2 = a3 = base
+        for s in range(4):
+            d = dx[s]
+            a0 += rows[layer, p, s] * d
+            a1 += rows[layer, p + 1, s] * d
+            a2 += rows[layer, p + 2, s] * d
+            a3 += rows[layer, p + 3, s] * d
+        t0, t1, t2, t3 = min(j0, nw), min(j1, nw), min(j2, nw), min(j3, nw)
+        for i in range(t0):         # the samples all four share
+            v = road_velocity[start + i]
+            a0 += impulse[layer, j0 - 1 - i] * v
+            a1 += impulse[layer, j1 - 1 - i] * v
+            a2 += impulse[layer, j2 - 1 - i] * v
+            a3 += impulse[layer, j3 - 1 - i] * v
+        for i in range(t0, t1):
+            v = road_velocity[start + i]
+            a1 += impulse[layer, j1 - 1 - i] * v
+            a2 += impulse[layer, j2 - 1 - i] * v
+            a3 += impulse[layer, j3 - 1 - i] * v
+        for i in range(max(t0, t1), t2):
+            v = road_velocity[start + i]
+            a2 += impulse[layer, j2 - 1 - i] * v
+            a3 += impulse[layer, j3 - 1 - i] * v
+        for i in range(max(t0, t1, t2), t3):
+            a3 += impulse[layer, j3 - 1 - i] * road_velocity[start + i]
+        peak = _fold_peak(_fold_peak(_fold_peak(_fold_peak(peak, a0), a1), a2), a3)
+        if peak != peak:
+            return math.nan
+        p += 4
+    while p < n_ticks:              # the last 0-3 look-ahead ticks one by one
         j = ticks[p]
-        r = reading_m - centre_m
+        r = base
         for s in range(4):
             r += rows[layer, p, s] * dx[s]
-        top = min(j, nw)
-        for i in range(top):
+        for i in range(min(j, nw)):
             r += impulse[layer, j - 1 - i] * road_velocity[start + i]
-        a = abs(r)
-        if a != a:                  # NaN: no prediction
+        peak = _fold_peak(peak, r)
+        if peak != peak:
             return math.nan
-        if a > peak:
-            peak = a
+        p += 1
     return peak

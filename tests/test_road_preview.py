@@ -82,6 +82,41 @@ def test_peak_is_the_reference_prediction(layer: int, dx: list[float],
     assert got == pytest.approx(want, rel=1e-9, abs=1e-12)
 
 
+def _plain_peak(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, layer: int,
+                dx: np.ndarray, reading: float, centre: float, w: np.ndarray,
+                start: int) -> float:
+    """The kernel's sums one look-ahead tick after the other, in plain Python."""
+    peak = abs(reading - centre)
+    for p, j in enumerate(ticks):
+        r = reading - centre
+        for s in range(4):
+            r += float(rows[layer, p, s]) * float(dx[s])
+        for i in range(min(int(j), w.size - start)):
+            r += float(impulse[layer, j - 1 - i]) * float(w[start + i])
+        if math.isnan(r):
+            return math.nan
+        peak = max(peak, abs(r))
+    return peak
+
+
+@settings(max_examples=40, deadline=None)
+@given(layer=st.integers(0, len(layer_grid(CFG)) - 1), n_ticks=st.integers(1, 15),
+       window=st.integers(0, 160), seed=st.integers(0, 2**32 - 1))
+def test_kernel_sums_bit_for_bit_as_the_plain_sum(layer: int, n_ticks: int, window: int,
+                                                  seed: int) -> None:
+    """The kernel sums four look-ahead ticks side by side: the same bits as summing them
+    one after the other, for any number of look-ahead ticks and any window length."""
+    assert PV is not None
+    rng = np.random.default_rng(seed)
+    ticks = np.ascontiguousarray(PV.ticks[:n_ticks])
+    rows = np.ascontiguousarray(PV.rows[:, :n_ticks])
+    dx = rng.normal(0.0, 0.02, 4)
+    w = rng.normal(0.0, 0.5, window + 3)
+    reading = float(rng.normal(0.0, 0.02))
+    got = predicted_peak_m(rows, ticks, PV.impulse, layer, dx, reading, 0.001, w, 3)
+    assert got == _plain_peak(rows, ticks, PV.impulse, layer, dx, reading, 0.001, w, 3)
+
+
 def test_kernel_edges() -> None:
     assert PV is not None
     zeros = np.zeros(4)
