@@ -701,17 +701,22 @@ class ControlLoop:
 
     def _on_preview_change(self, live: bool, now_ns: int, tick: int) -> None:
         """The road preview became live or was lost (not a fault: without it the travel
-        schedule runs on the LVDT reading with design.schedule_start_m / schedule_full_m):
-        switch the schedule's thresholds, log and record a note that says why."""
+        schedule runs on the LVDT reading with design.schedule_start_m / schedule_full_m,
+        the governed comfort set on its net alone): switch the schedule's thresholds,
+        log and record a note that says why.  A law that takes no preview (the travel
+        set alone) only logs it at INFO."""
         self.preview_live = live
         self.rt.use_preview_schedule(live)
         why = self.preview_stream.why_not_live()    # type: ignore[union-attr]
-        if live:
+        if not self.rt.takes_road_preview:
+            log.info("road preview %s; weight set %d does not take it",
+                     "live" if live else f"not live ({why})", self.weight_set)
+        elif live:
             log.info("road preview live: the schedule calls the travel law ahead of a "
                      "predicted excursion")
         else:
-            log.warning("road preview not live (%s): the travel schedule runs on the LVDT "
-                        "reading alone", why)
+            log.warning("road preview not live (%s): the law runs on the LVDT reading "
+                        "alone", why)
         self._record_event(now_ns, tick, "note", {
             "road_preview": "live" if live else "lost", "why": why,
             "preview_calls": self.preview_calls})
