@@ -168,12 +168,12 @@ def test_bad_construction() -> None:
 
 
 # --------------------------------------------------------------- the loop and the rig
-def _run(cfg: Any, seconds: float, faults: Any = None
+def _run(cfg: Any, seconds: float, faults: Any = None, weight_set: int = 0
          ) -> tuple[Any, list[dict[str, Any]], list[float]]:
-    """The loop of ``cfg`` (travel schedule) against the emulated rig on the thesis
-    course (road seed 7), stepped in lockstep; armed at 0.1 s.  Returns (the loop, its
-    notes, the largest differences between a live window and the road the rig plays
-    next)."""
+    """The loop of ``cfg`` (the travel schedule, or ``weight_set``) against the emulated
+    rig on the thesis course (road seed 7), stepped in lockstep; armed at 0.1 s.  Returns
+    (the loop, its notes, the largest differences between a live window and the road the
+    rig plays next)."""
     from hil.node import RigNode
     from hil.sim.roads import make_road
     from rig.bus.core import open_bus, shutdown_all
@@ -188,7 +188,8 @@ def _run(cfg: Any, seconds: float, faults: Any = None
     node = RigNode(rig, cfg, road, faults, seed=7, record_ticks=16)
     clock = SteppedClock()
     loop = build_control_loop(cfg, design_for(cfg), ctl,
-                              LoopSettings(blending=0, weight_set=0, warmup_ticks=20),
+                              LoopSettings(blending=0, weight_set=weight_set,
+                                           warmup_ticks=20),
                               clock_ns=clock)
     notes: list[dict[str, Any]] = []
     loop._record_event = lambda _t, _k, kind, detail: notes.append(detail)
@@ -228,6 +229,25 @@ def test_loop_takes_the_emulated_rigs_preview() -> None:
     assert 0.0 < loop.preview_calls / n < 0.2
     assert loop.preview_stream.breaks == 0
     assert [n["road_preview"] for n in notes if "road_preview" in n] == ["live"]
+
+
+def test_loop_governs_weight_set_2_with_the_rigs_preview() -> None:
+    """Weight set 2 on the CAN path runs under the travel governor (docs/design.md §12):
+    the rig's preview goes live and calls the travel law in a few per cent of the ticks,
+    the bank runs the governor's thresholds; weight set 1 (the travel set) takes no
+    preview: the stream is live but unused and nothing is called.  No fault either way."""
+    cfg = default_config()
+    loop, _notes, errors = _run(cfg, 6.0, weight_set=2)
+    st_ = loop.status()
+    assert st_["lifecycle"] == "ACTIVE", st_
+    assert st_["road_preview"] == "live" and loop.rt.governed
+    assert errors and max(errors) <= 0.0005 + 1e-12
+    assert 0.0 < loop.preview_calls / loop.tick_count < 0.2
+    fixed, _notes, _errors = _run(cfg, 3.0, weight_set=1)
+    st1 = fixed.status()
+    assert st1["lifecycle"] == "ACTIVE", st1
+    assert st1["road_preview"] == "unused" and not fixed.rt.governed
+    assert fixed.preview_calls == 0 and fixed.preview_stream.window_start() >= 0
 
 
 def test_loop_without_the_rigs_preview_runs_the_reading_schedule() -> None:
