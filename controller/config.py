@@ -448,6 +448,12 @@ class DesignConfig:
                                   doc="ticks from the sensor sample to the valve that the "
                                       "'hydraulic' design assumes (CAN loop: 0 or 1)")
 
+    def governs(self, weight_set: int) -> bool:
+        """``weight_set`` runs under the travel governor (docs/design.md §12): it is the
+        schedule's comfort set, not also its travel set, and ``govern_comfort_set``."""
+        comfort, travel = self.schedule_weight_sets
+        return self.govern_comfort_set and weight_set == comfort and weight_set != travel
+
     def single_gain_weight_set(self, weight_set: int | None = None) -> int:
         """The weight set (1-based) whose one LQ gain stands for ``weight_set`` (default:
         ``self.weight_set``) where one gain is needed (a linear analysis): the set

@@ -211,7 +211,7 @@ def test_service_says_what_the_schedule_runs_on(caplog: pytest.LogCaptureFixture
     """The defaults (road preview on) on a bus with no rig: the service says at start-up
     what the schedule runs on with and without the rig's RoadPreview frames, and its
     status says why the preview is not live; with a fixed weight set it warns that the
-    preview is unused."""
+    preview is unused, and with the comfort set that the travel governor takes it."""
     from controller.config import load_config
     cfg = load_config(None)
     opts = ServiceOptions(design_path=None, interface="virtual",
@@ -229,3 +229,10 @@ def test_service_says_what_the_schedule_runs_on(caplog: pytest.LogCaptureFixture
         assert fixed.run() == 0
     assert "design.preview_horizon_s = 0.2 s is unused: weight set 1" in caplog.text
     assert fixed.loop.status()["road_preview"] == "unused"
+    caplog.clear()
+    with caplog.at_level("INFO", logger="rig.service.runner"):
+        governed = Service(cfg, dataclasses.replace(opts, weights=2,
+                                                    channel=f"svc-{uuid.uuid4().hex}"))
+        assert governed.run() == 0
+    assert "the travel governor of weight set 2" in caplog.text
+    assert governed.loop.status()["road_preview"] == "no_frame"

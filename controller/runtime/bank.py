@@ -1384,8 +1384,7 @@ class BankRuntime:
         n = self.design.n_weight_sets
         comfort, travel = self.cfg.design.schedule_weight_sets
         schedule_ok = 1 <= comfort <= n and 1 <= travel <= n
-        governed = (self.cfg.design.govern_comfort_set and w == comfort and w != travel
-                    and schedule_ok)
+        governed = self.cfg.design.governs(w) and schedule_ok
         if w == 0:
             if not schedule_ok:
                 raise ValueError(f"weight_set 0 (travel schedule): design.schedule_weight_sets "

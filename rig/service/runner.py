@@ -171,8 +171,7 @@ class Service:
                          "(schedule_start_m %g m, schedule_full_m %g m; docs/design.md §12)",
                          cfg.design.preview_horizon_s, cfg.design.schedule_start_m,
                          cfg.design.schedule_full_m)
-            elif cfg.design.govern_comfort_set \
-                    and weight_set == cfg.design.schedule_weight_sets[0]:
+            elif cfg.design.governs(weight_set):
                 log.info("road preview on (%g s ahead): while the rig's RoadPreview frames "
                          "are live the travel governor of weight set %d calls the travel "
                          "law ahead of a predicted excursion; with or without them it "
