@@ -32,16 +32,25 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from controller.arrays import FloatArray
 from controller.config import RigConfig
 
-__all__ = ["SCHEDULE_SIZE", "TravelSchedule", "comfort_share", "travel_schedule"]
+__all__ = ["SCHEDULE_SIZE", "THRESHOLDS", "Thresholds", "TravelSchedule", "comfort_share",
+           "travel_schedule"]
 
 #: length of :meth:`TravelSchedule.as_array` (the runtime's parameter slots)
 SCHEDULE_SIZE = 4
+
+#: which thresholds a schedule runs on: the reading's (``design.schedule_start_m`` /
+#: ``schedule_full_m``), a live road preview's (``design.preview_schedule_*``) or the
+#: travel governor's (``design.governor_*``); the runtime keeps one row per name, in
+#: this order
+Thresholds = Literal["reading", "preview", "governor"]
+THRESHOLDS: tuple[Thresholds, ...] = ("reading", "preview", "governor")
 
 
 @dataclass(frozen=True)
@@ -58,22 +67,23 @@ class TravelSchedule:
                          self.release_decay])
 
 
-def travel_schedule(cfg: RigConfig, preview: bool = False,
-                    governor: bool = False) -> TravelSchedule:
-    """The schedule of ``cfg`` (``design.schedule_*``, ``design.bump_stop_centre_lvdt_m``);
-    with ``preview`` the one that runs while a road preview is live (its thresholds
-    ``design.preview_schedule_start_m`` / ``preview_schedule_full_m``); with
-    ``governor`` the travel governor's, which runs the comfort set alone until near the
-    stops (``design.governor_start_m`` / ``governor_full_m``, preview live or not)."""
+def travel_schedule(cfg: RigConfig, thresholds: Thresholds = "reading") -> TravelSchedule:
+    """The schedule of ``cfg`` (``design.schedule_*``, ``design.bump_stop_centre_lvdt_m``)
+    on ``thresholds`` (:data:`THRESHOLDS`): ``"reading"`` the reading-driven one,
+    ``"preview"`` the one that runs while a road preview is live, ``"governor"`` the
+    travel governor's, which runs the comfort set alone until near the stops (preview
+    live or not).  ValueError for another name."""
     d = cfg.design
     tau = d.schedule_release_s
     decay = math.exp(-cfg.sample_time_s / tau) if tau > 0.0 else 0.0
-    if governor:
+    if thresholds == "governor":
         start, full = d.governor_start_m, d.governor_full_m
-    elif preview:
+    elif thresholds == "preview":
         start, full = d.preview_schedule_start_m, d.preview_schedule_full_m
-    else:
+    elif thresholds == "reading":
         start, full = d.schedule_start_m, d.schedule_full_m
+    else:
+        raise ValueError(f"schedule thresholds {thresholds!r}: allowed {list(THRESHOLDS)}")
     return TravelSchedule(centre_m=d.bump_stop_centre_lvdt_m, start_m=start, full_m=full,
                           release_decay=decay)
 

@@ -22,7 +22,7 @@ from controller.runtime.kernels import (
     FV_HEAD,
     travel_comfort_share,
 )
-from controller.travel_schedule import SCHEDULE_SIZE, comfort_share, travel_schedule
+from controller.travel_schedule import SCHEDULE_SIZE, THRESHOLDS, comfort_share, travel_schedule
 from hil.sim.closed_loop import cached_design, simulate
 from hil.sim.roads import make_road
 from rig.service.loop import TICK_RECORD_FIELDS
@@ -51,6 +51,20 @@ def test_kernel_is_the_plain_law(readings: list[float]) -> None:
     assert got == pytest.approx(_python_law(readings), abs=1e-12)
     assert all(0.0 <= b <= 1.0 for b in got)
     assert fv[F_TS_BETA] == got[-1]
+
+
+def test_thresholds_by_name() -> None:
+    d = default_config().design
+    want = {"reading": (d.schedule_start_m, d.schedule_full_m),
+            "preview": (d.preview_schedule_start_m, d.preview_schedule_full_m),
+            "governor": (d.governor_start_m, d.governor_full_m)}
+    assert set(THRESHOLDS) == set(want)
+    for name, (start, full) in want.items():
+        sch = travel_schedule(default_config(), name)
+        assert (sch.start_m, sch.full_m) == (start, full)
+    assert travel_schedule(default_config()) == travel_schedule(default_config(), "reading")
+    with pytest.raises(ValueError, match="schedule thresholds 'live'"):
+        travel_schedule(default_config(), "live")  # type: ignore[arg-type]
 
 
 def test_share_is_monotone_and_spans_the_band() -> None:
@@ -127,7 +141,7 @@ def test_governed_comfort_set_is_untouched_until_near_the_stops() -> None:
     for live in (False, True):      # the governor's thresholds, preview live or not
         gov.use_preview_schedule(live)
         np.testing.assert_array_equal(gov._fv[F_TS:F_TS + SCHEDULE_SIZE],
-                                      travel_schedule(cfg, governor=True).as_array())
+                                      travel_schedule(cfg, "governor").as_array())
     assert not BankRuntime(design, weight_set=travel, cfg=cfg).governed
     off = default_config().replace(design=ALONE)
     rt = BankRuntime(cached_design(off), weight_set=comfort, cfg=off)

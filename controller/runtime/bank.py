@@ -337,7 +337,7 @@ from controller.runtime.moving_bank import (
 from controller.stop_barrier import BARRIER_SIZE
 from controller.stop_barrier import stop_barrier as stop_barrier_parameters
 from controller.stop_contact import StopContactSettings, stop_contact_settings
-from controller.travel_schedule import SCHEDULE_SIZE, travel_schedule
+from controller.travel_schedule import SCHEDULE_SIZE, THRESHOLDS, travel_schedule
 from controller.wheel_hop import (
     WH_SIZE,
     WHS_HZ,
@@ -1300,12 +1300,11 @@ class BankRuntime:
         self.noise_index = design.noise_index(0, 0)
         self.weight_set = 1
         self._table_w = 0               # the packed table of the selected weight set
-        # the travel schedule's thresholds without / with a live road preview (rows 0 / 1;
-        # use_preview_schedule switches; the reading alone runs row 0), and the travel
-        # governor's of the comfort set run alone (row 2, preview live or not)
-        self._schedules = np.stack([travel_schedule(cfg_).as_array(),
-                                    travel_schedule(cfg_, preview=True).as_array(),
-                                    travel_schedule(cfg_, governor=True).as_array()])
+        # the schedule's parameters on each of its thresholds, one row per name of
+        # THRESHOLDS: the reading's, a live road preview's (use_preview_schedule
+        # switches between the two) and the travel governor's of the comfort set run
+        # alone (preview live or not)
+        self._schedules = np.stack([travel_schedule(cfg_, t).as_array() for t in THRESHOLDS])
         self.preview_schedule = False
         self.governed = False           # the comfort set runs under the travel governor
         self.blending = Blending(int(blending))
@@ -1438,8 +1437,8 @@ class BankRuntime:
         reading-only ones (``design.schedule_start_m`` / ``schedule_full_m``).  The usage
         envelope carries over.  Allocates nothing."""
         self.preview_schedule = bool(live)
-        row = 2 if self.governed else 1 if live else 0
-        self._fv[F_TS:F_TS + SCHEDULE_SIZE] = self._schedules[row]
+        which = "governor" if self.governed else "preview" if live else "reading"
+        self._fv[F_TS:F_TS + SCHEDULE_SIZE] = self._schedules[THRESHOLDS.index(which)]
 
     def check_road_preview(self, preview: RoadPreview, reading_m: float,
                            road_velocity: np.ndarray, start: int) -> bool:
