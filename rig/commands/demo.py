@@ -456,7 +456,9 @@ def run(args: argparse.Namespace) -> int:
               f"it back {ls.get('behind_s', 0.0):.2f} s in {ls.get('stalls', 0):.0f} stalls); "
               "the lateness and step-time rows are the lockstep clock's (0)", file=out)
     pv = summary["road_preview"]
-    if pv["state"] != "off":
+    if pv["state"] == "unused":
+        print("road preview: unused (the weight set in use takes none)", file=out)
+    elif pv["state"] != "off":
         print(f"road preview: {pv['state']} at the end, the travel law called ahead in "
               f"{100 * pv['call_fraction']:.1f} % of the ticks", file=out)
     for f in faults:
