@@ -25,9 +25,12 @@ that is not counted):
 Per case: wake-up lateness ("period jitter" of a loop on absolute deadlines) p50 / p99 /
 p99.9 / max, step time (wake-up to end of tick, CAN I/O included) p50 / p99 / max,
 periods late (woken > 500 us after the deadline, or skipped), faults; then the ratio of
-the p99s.  Micro-measurements explain the floor: the socket-pair bus's cost of one
-tick's frames (3 received + 1 sent) next to python-can's virtual bus, and the wake-up
-lateness of ``time.sleep`` with the default 50 us timer slack vs 1 ns.
+the p99s.  Micro-measurements explain the floor: one tick of the loop in a plain thread
+(back to back, and 0.8 ms apart as after the loop's sleep), with and without the road
+preview in alternating turns (what the RoadPreview frame and the prediction cost a
+tick, measured in the same run), the socket-pair bus's cost of one tick's frames (3
+received + 1 sent) next to python-can's virtual bus, and the wake-up lateness of
+``time.sleep`` with the default 50 us timer slack vs 1 ns.
 
 Service and emulated rig are set up by :class:`hil.harness.RigHarness`, as in ``rig
 demo``: two processes on a socket-pair wire, each with its own real-time set-up.  Timing
@@ -355,6 +358,26 @@ def tick_hot_and_cold(cfg: Any, design_path: str, n: int = 4000) -> dict[str, fl
     return out
 
 
+def tick_with_and_without_preview(cfg: Any, design_path: str, tmp: str, rounds: int = 3
+                                  ) -> tuple[dict[str, float], dict[str, float]]:
+    """:func:`tick_hot_and_cold` of ``cfg`` and of ``cfg`` without the road preview (no
+    RoadPreview frames from the rig, no prediction in the loop; the schedule then runs
+    on the reading), in ``rounds`` alternating turns, each figure the median of its
+    turns: what the preview costs a tick, measured in one run."""
+    from controller.artifact import save_design
+    from hil.sim.closed_loop import cached_design
+
+    off = cfg.replace(design={"preview_horizon_s": 0.0}, emulator={"road_preview_s": 0.0})
+    off_path = os.path.join(tmp, "design_no_preview.npz")
+    save_design(cached_design(off), off_path)
+    turns: tuple[list[dict[str, float]], list[dict[str, float]]] = ([], [])
+    for _ in range(rounds):
+        turns[0].append(tick_hot_and_cold(cfg, design_path))
+        turns[1].append(tick_hot_and_cold(off, off_path))
+    on, no = ({k: float(np.median([t[k] for t in ts])) for k in ts[0]} for ts in turns)
+    return on, no
+
+
 def bus_cost(kind: str, n: int = 5000) -> dict[str, float]:
     """us per tick of one tick's frames (3 received + 1 sent) on the socket-pair bus
     (``kind="socketpair"``, what the loop uses) or python-can's ``virtual`` bus."""
@@ -451,9 +474,9 @@ def measure(seconds: float, case_names: list[str], *, realtime: bool = True,
                     cfg, seconds / rounds, rec, tel, realtime, design_path,
                     switch_interval_s, cpus=cpus, foxglove=fox, client=client))
         cases = {name: _summarise(segs) for name, segs in segments.items()}
-        tick = tick_hot_and_cold(cfg, design_path)
+        tick, tick_off = tick_with_and_without_preview(cfg, design_path, tmp)
     micro = {"socketpair_bus": bus_cost("socketpair"), "virtual_bus": bus_cost("virtual"),
-             "tick": tick,
+             "tick": tick, "tick_no_preview": tick_off,
              "sleep_slack_50us": sleep_lateness(50_000),
              "sleep_slack_1ns": sleep_lateness(1)}
     ratios: dict[str, float] = {}
@@ -567,6 +590,16 @@ def format_report(res: dict[str, Any]) -> str:
     out.append(f"one tick in a plain thread: back to back p50 {tk['hot_p50_us']:.1f} / p99 "
                f"{tk['hot_p99_us']:.1f} us; 0.8 ms apart (cold caches) p50 "
                f"{tk['cold_p50_us']:.1f} / p99 {tk['cold_p99_us']:.1f} us")
+    no = res["micro"].get("tick_no_preview")
+    if no is not None:
+        out.append(f"  without the road preview (no RoadPreview frame, no prediction): back "
+                   f"to back p50 {no['hot_p50_us']:.1f} / p99 {no['hot_p99_us']:.1f} us, "
+                   f"cold p50 {no['cold_p50_us']:.1f} / p99 {no['cold_p99_us']:.1f} us; the "
+                   f"preview costs p50 +{tk['hot_p50_us'] - no['hot_p50_us']:.1f} us back "
+                   f"to back (x{_ratio(tk['hot_p50_us'], no['hot_p50_us']):.2f}), "
+                   f"+{tk['cold_p50_us'] - no['cold_p50_us']:.1f} us cold "
+                   f"(x{_ratio(tk['cold_p50_us'], no['cold_p50_us']):.2f}); medians of "
+                   f"alternating turns")
     for name in ("socketpair_bus", "virtual_bus"):
         vb = res["micro"][name]
         out.append(f"{name.replace('_', ' ')} per tick: {vb['tick_us']:.1f} us (3 recv "
