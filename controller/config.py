@@ -450,9 +450,11 @@ class DesignConfig:
 
     def governs(self, weight_set: int) -> bool:
         """``weight_set`` runs under the travel governor (docs/design.md §12): it is the
-        schedule's comfort set, not also its travel set, and ``govern_comfort_set``."""
+        schedule's comfort set, not also its travel set, the travel set is one of
+        ``weight_sets`` (the governor's fallback law), and ``govern_comfort_set``."""
         comfort, travel = self.schedule_weight_sets
-        return self.govern_comfort_set and weight_set == comfort and weight_set != travel
+        return (self.govern_comfort_set and weight_set == comfort and weight_set != travel
+                and travel <= len(self.weight_sets))
 
     def single_gain_weight_set(self, weight_set: int | None = None) -> int:
         """The weight set (1-based) whose one LQ gain stands for ``weight_set`` (default:

@@ -148,6 +148,11 @@ def test_governed_comfort_set_is_untouched_until_near_the_stops() -> None:
     assert not rt.governed and rt._fv[F_TS_ON] == 0.0
     rt.set_weight_set(0)            # the operator selects the schedule: not governed
     assert not rt.governed and rt._fv[F_TS_ON] == 1.0
+    # a travel set the design does not have: no governor, and the service's start-up
+    # message (DesignConfig.governs) says the same as the runtime
+    stray = default_config().replace(design={"schedule_weight_sets": [2, 3], "weight_set": 2})
+    assert not stray.design.governs(2)
+    assert not BankRuntime(design, weight_set=2, cfg=stray).governed
 
 
 def test_configuration_checks_name_the_key() -> None:

@@ -1434,8 +1434,10 @@ class BankRuntime:
     def use_preview_schedule(self, live: bool) -> None:
         """Road preview (controller/road_preview.py): run the travel schedule on the
         thresholds for a live preview (``design.preview_schedule_*``, ``live``) or on the
-        reading-only ones (``design.schedule_start_m`` / ``schedule_full_m``).  The usage
-        envelope carries over.  Allocates nothing."""
+        reading-only ones (``design.schedule_start_m`` / ``schedule_full_m``); the
+        governed comfort set (:attr:`governed`) keeps the governor's
+        (``design.governor_*``) either way.  The usage envelope carries over.  Allocates
+        nothing."""
         self.preview_schedule = bool(live)
         which = "governor" if self.governed else "preview" if live else "reading"
         self._fv[F_TS:F_TS + SCHEDULE_SIZE] = self._schedules[THRESHOLDS.index(which)]
