@@ -154,19 +154,39 @@ class SocketPairBus(can.BusABC):
         return self.socket.fileno()
 
     # ------------------------------------------------------------------ receive
-    def _read_one(self) -> can.Message | None:
-        """One pending frame, or None when the queue is empty (never blocks)."""
+    @property
+    def raw_capable(self) -> bool:
+        """Whether :meth:`recv_frame_into` reads what ``recv`` would: no software
+        receive filters (``rig.bus.raw``)."""
+        return self._filters is None
+
+    def recv_frame_into(self, buf: bytearray) -> int:
+        """The next pending frame copied into ``buf`` (SocketCAN's layout, at least
+        ``CANFD_MTU + 1`` bytes): its size, 16 or 72; 0 when the queue is empty.  Never
+        blocks; no filters applied.  A closed peer, a failed read or a datagram of
+        another size raises ``can.CanOperationError`` (``rig.bus.raw.RawFrameReader``)."""
         try:
-            n = self.socket.recv_into(self._buf)
+            n = self.socket.recv_into(buf)
         except BlockingIOError:
-            return None
+            return 0
         except OSError as exc:
             raise can.CanOperationError(f"{self.channel_info}: receive failed: {exc}",
                                         error_code=exc.errno) from exc
         if n == 0:
             raise can.CanOperationError(f"{self.channel_info}: the peer closed its end",
                                         error_code=errno.ECONNRESET)
+        if n != CAN_MTU and n != CANFD_MTU:
+            raise can.CanOperationError(f"{self.channel_info}: frame of {n} bytes: a CAN "
+                                        f"frame has {CAN_MTU} or {CANFD_MTU}",
+                                        error_code=errno.EMSGSIZE)
         self.received += 1
+        return n
+
+    def _read_one(self) -> can.Message | None:
+        """One pending frame, or None when the queue is empty (never blocks)."""
+        n = self.recv_frame_into(self._buf)
+        if n == 0:
+            return None
         if n == CAN_MTU:
             can_id, length, data = _CLASSIC.unpack_from(self._buf)
             if can_id <= _STD_MAX:      # a standard data frame: decode_frame's fast path
@@ -174,10 +194,7 @@ class SocketPairBus(can.BusABC):
                                    is_extended_id=False,
                                    data=data[:length] if length < 8 else data,
                                    channel=self.channel, is_rx=True, check=False)
-        try:
-            return decode_frame(self._view[:n], time.time(), self.channel)
-        except ValueError as exc:
-            raise can.CanOperationError(f"{self.channel_info}: {exc}") from exc
+        return decode_frame(self._view[:n], time.time(), self.channel)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """The next frame (that passes the filters), waiting up to ``timeout`` seconds

@@ -3,16 +3,20 @@ rig in, the valve command, fault report and heartbeat out.
 
 :meth:`RigIO.read` drains the bus and hands every SensorData / RigStatus to the fault
 monitor's checks (CRC, rolling counter, ranges, status bits); the last good values are
-held in attributes for the update.  The ``write_*`` methods encode into preallocated
-messages and send without blocking.  Receive and send errors are bus faults for the
-monitor and ``note`` events for the recording; nothing here raises for a bad frame and
-nothing allocates per frame in steady state.
+held in attributes for the update.  On a bus that hands over SocketCAN's frame layout
+(``rig.bus.raw``: the rig's SocketCAN, the emulated rig's socket pair) a frame is read
+into a preallocated buffer and decoded in place, with no ``can.Message``; any other bus
+is read with ``recv``, and both paths end in the same per-frame code.  The ``write_*``
+methods encode into preallocated messages and send without blocking.  Receive and send
+errors are bus faults for the monitor and ``note`` events for the recording; nothing
+here raises for a bad frame.
 
 Recording a frame costs the loop a ``struct.pack_into`` and a copy into the recorder's
 batch; it is not on the way from the sensor frame to the valve command.  The frames of a
 tick are noted in a preallocated log as they come and go (a received message by
-reference: a bus returns a new one per ``recv``; a sent one's bytes copied, since the
-preallocated message is encoded again) and handed to the recorder by
+reference: a bus returns a new one per ``recv``; the bytes of a frame read in place, and
+of a sent one, copied, since the buffer is read into and the preallocated message
+encoded again) and handed to the recorder by
 :meth:`RigIO.record_frames`, which the loop calls after the tick's frames are out and
 before any other item of the recording (an event, the tick record), so that the
 recording's items and their order are what they would be if each frame were recorded as
@@ -21,12 +25,15 @@ it came.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 from typing import Any
 
 import can
 
 from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
+from rig.bus.raw import FRAME_BUFFER_BYTES, raw_frame_reader
+from rig.bus.socketpair import CAN_MTU, decode_frame
 from rig.service.road_preview_stream import RoadPreviewStream
 from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
 from rig.service.seams import Recorder
@@ -57,6 +64,8 @@ _MAX_DATA = 64             # a CAN FD frame's bytes
 _OK = DecodeStatus.OK
 _OUT_OF_RANGE = DecodeStatus.OUT_OF_RANGE
 _NONE = FaultCode.NONE
+_RAW_HEAD = struct.Struct("=IB")     # struct can_frame: can_id (with its flags), len
+_STD_MAX = 0x7FF                    # a standard ID, no flag bit set
 
 #: ``note(t_ns, tick, detail)``: a ``note`` event for the recording
 Note = Callable[[int, int, dict[str, Any]], None]
@@ -84,6 +93,12 @@ class RigIO:
         self._sd = SensorData()
         self._rs = RigStatus()
         self._rp = RoadPreview()
+        # the Message-free receive path (rig.bus.raw), where the bus has one: the frame
+        # is read into _rx_buf and its data bytes are one of the views _rx_data[length]
+        self._raw = raw_frame_reader(bus)
+        self._rx_buf = bytearray(FRAME_BUFFER_BYTES)
+        self._rx_view = memoryview(self._rx_buf)
+        self._rx_data = [self._rx_view[8:8 + k] for k in range(9)]
         #: the road ahead from RoadPreview frames (set by the loop when the road preview
         #: is on; None: the frames are counted and recorded, not decoded)
         self.preview: RoadPreviewStream | None = None
@@ -93,6 +108,7 @@ class RigIO:
         self._log_t = [0] * FRAME_LOG_SLOTS
         self._log_tick = [0] * FRAME_LOG_SLOTS
         self._log_msg: list[can.Message | None] = [None] * FRAME_LOG_SLOTS
+        self._log_rx = [False] * FRAME_LOG_SLOTS
         self._log_id = [0] * FRAME_LOG_SLOTS
         self._log_dlc = [0] * FRAME_LOG_SLOTS
         self._log_data = [memoryview(bytearray(_MAX_DATA)) for _ in range(FRAME_LOG_SLOTS)]
@@ -118,66 +134,123 @@ class RigIO:
     # ------------------------------------------------------------------ read
     def read(self, now_ns: int, tick: int) -> None:
         """Drain the bus: decode and check every frame waiting (never blocks)."""
+        if self._raw is not None:
+            self._read_raw(now_ns, tick)
+            return
         bus = self.bus
-        mon = self.monitor
-        rec = self.recorder
-        sd, rs = self._sd, self._rs
         while True:
             try:
                 msg = bus.recv(0.0)
             except (can.CanError, OSError) as exc:
-                mon.bus_error(classify_bus_exception(exc), DETAIL_RECV)
-                self._note(now_ns, tick, bus_exception_note("recv", exc))
+                self._recv_failed(now_ns, tick, exc)
                 return
             if msg is None:
                 return
-            self.rx_frames += 1
-            if rec is not None:
-                n = self._log_n
-                if n == FRAME_LOG_SLOTS:
-                    self.record_frames()
-                    n = 0
-                self._log_t[n] = now_ns
-                self._log_tick[n] = tick
-                self._log_msg[n] = msg
-                self._log_n = n + 1
-            if msg.is_error_frame:
-                code = classify_error_frame(msg)
-                if code is not _NONE:
-                    mon.bus_error(code, msg.arbitration_id & 0xFF)
-                continue
-            fid = msg.arbitration_id
-            if fid == SENSOR_DATA_ID and not msg.is_extended_id:
-                st = SENSOR_DATA.decode(msg.data, sd)
-                if st is _OK:
-                    if mon.sensor_frame(True, sd.counter, sd.sensor_status, sd.rattlespace_m,
-                                        sd.load_cell_force_n, sd.sprung_accel_mps2):
-                        self.rattlespace_m = sd.rattlespace_m
-                        self.force_meas_n = sd.load_cell_force_n
-                        self.accel_mps2 = sd.sprung_accel_mps2
-                        self.sensor_counter = sd.counter
-                        if self.preview is not None:
-                            self.preview.sensor(sd.counter)
-                else:
-                    mon.sensor_frame(False, 0, 0, 0.0, 0.0, 0.0)
-            elif fid == ROAD_PREVIEW_ID and not msg.is_extended_id:
-                pv = self.preview
-                if pv is not None:
-                    rp = self._rp
-                    good = ROAD_PREVIEW.decode(msg.data, rp) is _OK
-                    pv.frame(good, rp.preview_status, rp.road_velocity_mps, rp.preview_lead,
-                             rp.preview_sensor_counter)
-            elif fid == RIG_STATUS_ID and not msg.is_extended_id:
-                st = RIG_STATUS.decode(msg.data, rs)
-                if st is _OK or st is _OUT_OF_RANGE:
-                    self.rig_status_seen = True
-                    self.rig_bypass_open = rs.bypass_open
-                    self.rig_watchdog_tripped = rs.watchdog_tripped
-                    self.rig_supply_ok = rs.supply_ok
-                    mon.rig_status(True, rs.counter, bool(rs.watchdog_tripped),
-                                   bool(rs.supply_ok))
-                else:
-                    mon.rig_status(False, 0, False, True)
+            self._message(msg, now_ns, tick)
+
+    def _read_raw(self, now_ns: int, tick: int) -> None:
+        """:meth:`read` on a bus with a :class:`rig.bus.raw.RawFrameReader`: a standard
+        classic data frame (every frame of the rig's protocol) is decoded from the
+        receive buffer in place; any other frame (error, extended, remote, CAN FD) is
+        made a ``can.Message`` and takes the Message path."""
+        assert self._raw is not None
+        recv_into = self._raw.recv_frame_into
+        buf = self._rx_buf
+        views = self._rx_data
+        rec = self.recorder
+        while True:
+            try:
+                n = recv_into(buf)
+            except (can.CanError, OSError) as exc:
+                self._recv_failed(now_ns, tick, exc)
+                return
+            if n == 0:
+                return
+            if n == CAN_MTU:
+                can_id, length = _RAW_HEAD.unpack_from(buf)
+                if can_id <= _STD_MAX:
+                    data = views[length if length < 8 else 8]
+                    self.rx_frames += 1
+                    if rec is not None:
+                        k = self._log_n
+                        if k == FRAME_LOG_SLOTS:
+                            self.record_frames()
+                            k = 0
+                        self._log_t[k] = now_ns
+                        self._log_tick[k] = tick
+                        self._log_msg[k] = None
+                        self._log_rx[k] = True
+                        self._log_id[k] = can_id
+                        dlc = len(data)
+                        self._log_dlc[k] = dlc
+                        self._log_data[k][:dlc] = data
+                        self._log_n = k + 1
+                    self._data_frame(can_id, data)
+                    continue
+            self._message(decode_frame(self._rx_view[:n]), now_ns, tick)
+
+    def _recv_failed(self, now_ns: int, tick: int, exc: BaseException) -> None:
+        self.monitor.bus_error(classify_bus_exception(exc), DETAIL_RECV)
+        self._note(now_ns, tick, bus_exception_note("recv", exc))
+
+    def _message(self, msg: can.Message, now_ns: int, tick: int) -> None:
+        """One received frame as a ``can.Message``: noted for the recording, an error
+        frame to the monitor, a standard data frame to :meth:`_data_frame`."""
+        self.rx_frames += 1
+        if self.recorder is not None:
+            n = self._log_n
+            if n == FRAME_LOG_SLOTS:
+                self.record_frames()
+                n = 0
+            self._log_t[n] = now_ns
+            self._log_tick[n] = tick
+            self._log_msg[n] = msg
+            self._log_n = n + 1
+        if msg.is_error_frame:
+            code = classify_error_frame(msg)
+            if code is not _NONE:
+                self.monitor.bus_error(code, msg.arbitration_id & 0xFF)
+            return
+        if not msg.is_extended_id:
+            self._data_frame(msg.arbitration_id, msg.data)
+
+    def _data_frame(self, fid: int, data: bytes | bytearray | memoryview) -> None:
+        """A standard-ID data frame's bytes: SensorData, RoadPreview and RigStatus are
+        decoded and checked, every other ID is ignored."""
+        mon = self.monitor
+        if fid == SENSOR_DATA_ID:
+            sd = self._sd
+            st = SENSOR_DATA.decode(data, sd)
+            if st is _OK:
+                if mon.sensor_frame(True, sd.counter, sd.sensor_status, sd.rattlespace_m,
+                                    sd.load_cell_force_n, sd.sprung_accel_mps2):
+                    self.rattlespace_m = sd.rattlespace_m
+                    self.force_meas_n = sd.load_cell_force_n
+                    self.accel_mps2 = sd.sprung_accel_mps2
+                    self.sensor_counter = sd.counter
+                    if self.preview is not None:
+                        self.preview.sensor(sd.counter)
+            else:
+                mon.sensor_frame(False, 0, 0, 0.0, 0.0, 0.0)
+        elif fid == ROAD_PREVIEW_ID:
+            pv = self.preview
+            if pv is not None:
+                rp = self._rp
+                good = ROAD_PREVIEW.decode(data, rp) is _OK
+                pv.frame(good, rp.preview_status, rp.road_velocity_mps, rp.preview_lead,
+                         rp.preview_sensor_counter)
+        elif fid == RIG_STATUS_ID:
+            rs = self._rs
+            st = RIG_STATUS.decode(data, rs)
+            if st is _OK or st is _OUT_OF_RANGE:
+                self.rig_status_seen = True
+                self.rig_bypass_open = rs.bypass_open
+                self.rig_watchdog_tripped = rs.watchdog_tripped
+                self.rig_supply_ok = rs.supply_ok
+                mon.rig_status(True, rs.counter, bool(rs.watchdog_tripped),
+                               bool(rs.supply_ok))
+            else:
+                mon.rig_status(False, 0, False, True)
 
     # ------------------------------------------------------------------ write
     def _send(self, msg: can.Message, now_ns: int, tick: int) -> bool:
@@ -200,6 +273,7 @@ class RigIO:
             self._log_t[n] = now_ns
             self._log_tick[n] = tick
             self._log_msg[n] = None
+            self._log_rx[n] = False
             self._log_id[n] = msg.arbitration_id
             self._log_dlc[n] = dlc
             self._log_data[n][:dlc] = data
@@ -227,7 +301,8 @@ class RigIO:
                                   msg.data, True, msg.is_error_frame, msg.is_extended_id)
                 else:
                     rec.can_frame(self._log_t[i], self._log_tick[i], self._log_id[i],
-                                  self._log_data[i][:self._log_dlc[i]], False)
+                                  self._log_data[i][:self._log_dlc[i]], self._log_rx[i],
+                                  False, False)
             except Exception as exc:
                 self._on_output_error(exc)
 

@@ -172,3 +172,65 @@ def test_error_frames_cross_vcan_between_processes(channel: str, children: Child
     log = tmp_path / "err.log"
     log.write_text(dump.output())
     assert [f.arbitration_id for f in read_candump_log(log)] == [0x20000000 | e for e in err_ids]
+
+
+def test_raw_reader_reads_what_recv_reads(channel: str) -> None:
+    """The loop's Message-free receive path (``rig.bus.raw``) on a real SocketCAN socket:
+    the same frames, flags and bytes as python-can's ``recv``, the kernel's receive
+    filters applied, and nothing pending reads as 0 without blocking."""
+    from rig.bus.core import ROLES, receive_filters
+    from rig.bus.raw import FRAME_BUFFER_BYTES, SocketcanRawReader, raw_frame_reader
+    from rig.bus.socketpair import decode_frame
+
+    frames = [
+        can.Message(arbitration_id=0x100, data=bytes(range(8)), is_extended_id=False),
+        can.Message(arbitration_id=0x101, data=b"\x01\x02", is_extended_id=False),
+        can.Message(arbitration_id=0x123, data=b"\xff", is_extended_id=False),
+        can.Message(arbitration_id=0x1ABCDE, data=b"\x05" * 8, is_extended_id=True),
+        can.Message(arbitration_id=0x200, is_remote_frame=True, dlc=8, is_extended_id=False),
+        can.Message(arbitration_id=0x040, is_error_frame=True, data=bytes(8),
+                    is_extended_id=False),
+    ]
+    role_ids = set(ROLES["controller"] or ())
+
+    def key(m: can.Message) -> tuple[object, ...]:
+        return (m.arbitration_id, m.is_extended_id, m.is_remote_frame, m.is_error_frame,
+                m.dlc, b"" if m.is_remote_frame else bytes(m.data))
+
+    buf = bytearray(FRAME_BUFFER_BYTES)
+
+    def drain(reader: SocketcanRawReader, count: int) -> list[tuple[object, ...]]:
+        got: list[tuple[object, ...]] = []
+        deadline = time.monotonic() + 5
+        while len(got) < count and time.monotonic() < deadline:
+            n = reader.recv_frame_into(buf)
+            if n == 0:
+                time.sleep(0.01)
+            else:
+                got.append(key(decode_frame(bytes(buf[:n]))))
+        return got
+
+    with can.Bus(interface="socketcan", channel=channel) as tx, \
+            can.Bus(interface="socketcan", channel=channel) as ref, \
+            can.Bus(interface="socketcan", channel=channel) as raw_bus, \
+            can.Bus(interface="socketcan", channel=channel,
+                    can_filters=receive_filters("controller")) as filtered:
+        reader, freader = raw_frame_reader(raw_bus), raw_frame_reader(filtered)
+        assert isinstance(reader, SocketcanRawReader)
+        assert isinstance(freader, SocketcanRawReader)
+        assert reader.recv_frame_into(buf) == 0
+        for msg in frames:
+            tx.send(msg)
+        want: list[can.Message] = []
+        deadline = time.monotonic() + 5
+        while len(want) < len(frames) and time.monotonic() < deadline:
+            got = ref.recv(timeout=0.5)
+            if got is not None:
+                want.append(got)
+        assert len(want) == len(frames)
+        assert drain(reader, len(frames)) == [key(m) for m in want]
+        expect = [key(m) for m in want if m.is_error_frame
+                  or (not m.is_extended_id and m.arbitration_id in role_ids)]
+        assert len(expect) == 4
+        assert drain(freader, len(expect)) == expect
+        assert freader.recv_frame_into(buf) == 0

@@ -64,21 +64,17 @@ class FrameDecoder:
     """
 
     def __init__(self) -> None:
-        self.valve_command = ValveCommand()
-        self.fault_report = FaultReport()
-        self.sensor_data = SensorData()
-        self.rig_status = RigStatus()
-        self.controller_status = ControllerStatus()
-        self.frames: dict[int, Frame] = {
-            VALVE_COMMAND_ID: self.valve_command,
-            FAULT_REPORT_ID: self.fault_report,
-            SENSOR_DATA_ID: self.sensor_data,
-            RIG_STATUS_ID: self.rig_status,
-            CONTROLLER_STATUS_ID: self.controller_status,
-        }
+        # every frame of the DBC (CODECS owns the list: a frame added there is decoded)
+        self.frames: dict[int, Frame] = {fid: codec.new() for fid, codec in CODECS.items()}
         self._dispatch: dict[int, tuple[Any, Frame]] = {
             fid: (CODECS[fid], frame) for fid, frame in self.frames.items()
         }
+        self.valve_command: ValveCommand = self.frames[VALVE_COMMAND_ID]  # type: ignore[assignment]
+        self.fault_report: FaultReport = self.frames[FAULT_REPORT_ID]  # type: ignore[assignment]
+        self.sensor_data: SensorData = self.frames[SENSOR_DATA_ID]  # type: ignore[assignment]
+        self.rig_status: RigStatus = self.frames[RIG_STATUS_ID]  # type: ignore[assignment]
+        self.controller_status: ControllerStatus = \
+            self.frames[CONTROLLER_STATUS_ID]  # type: ignore[assignment]
 
     def decode(self, frame_id: int, data: bytes | bytearray | memoryview,
                is_extended: bool = False) -> DecodeStatus:
