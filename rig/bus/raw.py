@@ -1,5 +1,5 @@
-"""Frames without a ``can.Message``: the control loop's receive path on buses that hand
-over SocketCAN's own frame layout.
+"""Frames without a ``can.Message``: the control loop's receive and send path on buses
+that take SocketCAN's own frame layout.
 
 python-can builds a new ``can.Message`` for every frame received, on every interface:
 about 1.2 µs a frame in the loop's thread, and an allocation per frame in a loop that
@@ -17,9 +17,15 @@ ID's top bits) into a buffer the loop owns offers :class:`RawFrameReader`, and
 The choice is made once, when the loop takes the bus: filters set on it later are not
 seen.
 
-Every other bus (python-can's virtual bus, a replay) has none, and the loop reads it
-through ``recv`` as before.  Only the frame's transport changes: what the loop does with
-a frame is the same on both paths (``rig.service.hardware.RigIO``).
+The send side is the same idea (:class:`RawFrameWriter`, :func:`raw_frame_writer`): the
+loop encodes its frame into a preallocated ``struct can_frame`` and hands over its bytes,
+where python-can's ``send`` would pack a new one from the Message (and, on SocketCAN,
+``select`` the socket first).  A frame that cannot go out without blocking is an error
+as it is for ``send(msg, 0.0)``: ``can.CanOperationError``.
+
+Every other bus (python-can's virtual bus, a replay) has neither, and the loop takes
+``recv`` and ``send`` as before.  Only the frame's transport changes: what the loop does
+with a frame is the same on both paths (``rig.service.hardware.RigIO``).
 """
 
 from __future__ import annotations
@@ -32,7 +38,8 @@ import can
 
 from rig.bus.socketpair import CAN_MTU, CANFD_MTU
 
-__all__ = ["FRAME_BUFFER_BYTES", "RawFrameReader", "SocketcanRawReader", "raw_frame_reader"]
+__all__ = ["FRAME_BUFFER_BYTES", "RawFrameReader", "RawFrameWriter", "SocketcanRawFrames",
+           "raw_frame_reader", "raw_frame_writer"]
 
 #: a receive buffer for :meth:`RawFrameReader.recv_frame_into`: a CAN FD frame and one
 #: byte more, so that a longer datagram shows as one (and is refused)
@@ -51,13 +58,36 @@ class RawFrameReader(Protocol):
         ...
 
 
-class SocketcanRawReader:
-    """:class:`RawFrameReader` on the raw CAN socket of python-can's ``SocketcanBus``
-    (``MSG_DONTWAIT``: the bus's socket itself stays as python-can set it up)."""
+class RawFrameWriter(Protocol):
+    """A bus's send side without ``can.Message``."""
+
+    def send_frame(self, frame: bytearray) -> None:
+        """Send one frame given in SocketCAN's layout (16 or 72 bytes, as the bus takes
+        them) without blocking.  A frame that cannot be sent raises
+        ``can.CanOperationError`` (with the OS errno as ``error_code`` where there is
+        one), as ``send(msg, 0.0)`` would."""
+        ...
+
+
+class SocketcanRawFrames:
+    """:class:`RawFrameReader` and :class:`RawFrameWriter` on the raw CAN socket of
+    python-can's ``SocketcanBus`` (``MSG_DONTWAIT``: the bus's socket itself stays as
+    python-can set it up)."""
 
     def __init__(self, sock: socket.socket, channel: Any = None) -> None:
         self._recv_into = sock.recv_into
+        self._send = sock.send
         self._channel = channel
+
+    def send_frame(self, frame: bytearray) -> None:
+        try:
+            sent = self._send(frame, socket.MSG_DONTWAIT)
+        except OSError as exc:          # EAGAIN / ENOBUFS: the transmit queue is full
+            raise can.CanOperationError(f"{self._channel}: failed to transmit: {exc}",
+                                        error_code=exc.errno) from exc
+        if sent != len(frame):
+            raise can.CanOperationError(f"{self._channel}: {sent} of {len(frame)} bytes "
+                                        "of a frame sent")
 
     def recv_frame_into(self, buf: bytearray) -> int:
         try:
@@ -80,6 +110,20 @@ def raw_frame_reader(bus: can.BusABC) -> RawFrameReader | None:
 
     if isinstance(bus, SocketPairBus):
         return bus if bus.raw_capable else None
+    return _socketcan(bus, need_kernel_filters=True)
+
+
+def raw_frame_writer(bus: can.BusABC) -> RawFrameWriter | None:
+    """The :class:`RawFrameWriter` of ``bus`` (classic frames), or None when it has none
+    (send with ``send``)."""
+    from rig.bus.socketpair import SocketPairBus
+
+    if isinstance(bus, SocketPairBus):
+        return bus
+    return _socketcan(bus, need_kernel_filters=False)
+
+
+def _socketcan(bus: can.BusABC, need_kernel_filters: bool) -> SocketcanRawFrames | None:
     try:
         from can.interfaces.socketcan import SocketcanBus
     except ImportError:         # pragma: no cover - python-can without its socketcan module
@@ -87,6 +131,7 @@ def raw_frame_reader(bus: can.BusABC) -> RawFrameReader | None:
     sock = getattr(bus, "socket", None)
     # python-can filters in software only where the kernel refused the filters
     kernel_filtered = bus._filters is None or getattr(bus, "_is_filtered", False)
-    if isinstance(bus, SocketcanBus) and isinstance(sock, socket.socket) and kernel_filtered:
-        return SocketcanRawReader(sock, bus.channel_info)
+    if (isinstance(bus, SocketcanBus) and isinstance(sock, socket.socket)
+            and (kernel_filtered or not need_kernel_filters)):
+        return SocketcanRawFrames(sock, bus.channel_info)
     return None

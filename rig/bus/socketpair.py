@@ -232,8 +232,15 @@ class SocketPairBus(can.BusABC):
             raise can.CanOperationError(f"{self.channel_info}: bus is shut down")
         if msg.is_fd and not self._fd_frames:
             raise can.CanOperationError(f"{self.channel_info}: CAN FD frame on a classic bus")
+        self.send_frame(encode_frame(msg))
+
+    def send_frame(self, frame: bytes | bytearray) -> None:
+        """Send one frame given in SocketCAN's layout (``rig.bus.raw.RawFrameWriter``),
+        as :meth:`send` does: never blocks, a full peer queue loses it (counted)."""
+        if self._closed:
+            raise can.CanOperationError(f"{self.channel_info}: bus is shut down")
         try:
-            self.socket.send(encode_frame(msg))
+            self.socket.send(frame)
         except BlockingIOError:
             self.overflows += 1
             return

@@ -7,7 +7,8 @@ held in attributes for the update.  On a bus that hands over SocketCAN's frame l
 (``rig.bus.raw``: the rig's SocketCAN, the emulated rig's socket pair) a frame is read
 into a preallocated buffer and decoded in place, with no ``can.Message``; any other bus
 is read with ``recv``, and both paths end in the same per-frame code.  The ``write_*``
-methods encode into preallocated messages and send without blocking.  Receive and send
+methods encode into preallocated frames (``struct can_frame`` on those buses, a
+``can.Message`` on others) and send without blocking.  Receive and send
 errors are bus faults for the monitor and ``note`` events for the recording; nothing
 here raises for a bad frame.
 
@@ -32,7 +33,7 @@ from typing import Any
 import can
 
 from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
-from rig.bus.raw import FRAME_BUFFER_BYTES, raw_frame_reader
+from rig.bus.raw import FRAME_BUFFER_BYTES, raw_frame_reader, raw_frame_writer
 from rig.bus.socketpair import CAN_MTU, decode_frame
 from rig.service.road_preview_stream import RoadPreviewStream
 from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
@@ -40,6 +41,7 @@ from rig.service.seams import Recorder
 from rig.wire.protocol import (
     CONTROLLER_STATUS,
     FAULT_REPORT,
+    FRAME_LENGTH,
     RIG_STATUS,
     RIG_STATUS_ID,
     ROAD_PREVIEW,
@@ -71,6 +73,23 @@ _STD_MAX = 0x7FF                    # a standard ID, no flag bit set
 Note = Callable[[int, int, dict[str, Any]], None]
 
 
+class _TxFrame:
+    """One frame the loop sends, preallocated and encoded in place every time: a
+    ``can.Message`` for ``bus.send``, or SocketCAN's ``struct can_frame`` for a
+    :class:`rig.bus.raw.RawFrameWriter` (``raw``).  ``data`` is where the encoder writes:
+    the Message's 8 data bytes, or the frame's."""
+
+    __slots__ = ("data", "frame", "frame_id", "msg")
+
+    def __init__(self, frame_id: int, raw: bool) -> None:
+        self.frame_id = frame_id
+        self.msg = make_tx_message(frame_id)
+        self.frame = bytearray(CAN_MTU)
+        _RAW_HEAD.pack_into(self.frame, 0, frame_id, FRAME_LENGTH)
+        self.data: bytearray | memoryview = (memoryview(self.frame)[8:8 + FRAME_LENGTH]
+                                             if raw else self.msg.data)
+
+
 def bus_exception_note(where: str, exc: BaseException) -> dict[str, Any]:
     """The ``note`` event detail of a failed recv / send (replay raises it again)."""
     return {"bus_exception": where, "type": type(exc).__name__, "error": str(exc),
@@ -87,9 +106,12 @@ class RigIO:
         self.recorder = recorder
         self._note = note
         self._on_output_error = on_output_error
-        self._valve_msg = make_tx_message(VALVE_COMMAND.frame_id)
-        self._fault_msg = make_tx_message(FAULT_REPORT.frame_id)
-        self._status_msg = make_tx_message(CONTROLLER_STATUS.frame_id)
+        # frames out: through a RawFrameWriter where the bus has one (rig.bus.raw)
+        self._raw_tx = raw_frame_writer(bus)
+        raw_tx = self._raw_tx is not None
+        self._valve_tx = _TxFrame(VALVE_COMMAND.frame_id, raw_tx)
+        self._fault_tx = _TxFrame(FAULT_REPORT.frame_id, raw_tx)
+        self._status_tx = _TxFrame(CONTROLLER_STATUS.frame_id, raw_tx)
         self._sd = SensorData()
         self._rs = RigStatus()
         self._rp = RoadPreview()
@@ -253,14 +275,17 @@ class RigIO:
                 mon.rig_status(False, 0, False, True)
 
     # ------------------------------------------------------------------ write
-    def _send(self, msg: can.Message, now_ns: int, tick: int) -> bool:
+    def _send(self, tx: _TxFrame, now_ns: int, tick: int) -> bool:
         try:
-            self.bus.send(msg, 0.0)
+            if self._raw_tx is not None:
+                self._raw_tx.send_frame(tx.frame)
+            else:
+                self.bus.send(tx.msg, 0.0)
         except (can.CanError, OSError) as exc:
             self.tx_errors += 1
             self.monitor.bus_error(classify_bus_exception(exc), DETAIL_SEND)
             self._note(now_ns, tick, {**bus_exception_note("send", exc),
-                                      "arbitration_id": msg.arbitration_id})
+                                      "arbitration_id": tx.frame_id})
             return False
         self.tx_frames += 1
         if self.recorder is not None:
@@ -268,13 +293,13 @@ class RigIO:
             if n == FRAME_LOG_SLOTS:
                 self.record_frames()
                 n = 0
-            data = msg.data
+            data = tx.data
             dlc = len(data)
             self._log_t[n] = now_ns
             self._log_tick[n] = tick
             self._log_msg[n] = None
             self._log_rx[n] = False
-            self._log_id[n] = msg.arbitration_id
+            self._log_id[n] = tx.frame_id
             self._log_dlc[n] = dlc
             self._log_data[n][:dlc] = data
             self._log_n = n + 1
@@ -309,29 +334,29 @@ class RigIO:
     def write_valve(self, now_ns: int, tick: int, enable: int, lifecycle: int, spool: float,
                     force_ref_n: float) -> bool:
         """ValveCommand (echoing the last good SensorData counter); False: not sent."""
-        msg = self._valve_msg
-        VALVE_COMMAND.encode(msg.data, self._tx_valve, enable, lifecycle, spool, force_ref_n,
+        tx = self._valve_tx
+        VALVE_COMMAND.encode(tx.data, self._tx_valve, enable, lifecycle, spool, force_ref_n,
                              self.sensor_counter)
         self._tx_valve += 1
-        return self._send(msg, now_ns, tick)
+        return self._send(tx, now_ns, tick)
 
     def write_fault_report(self, now_ns: int, tick: int, lifecycle: int, code: int,
                            fault_tick: int, detail: int) -> bool:
         """FaultReport (``fault_tick`` taken modulo 2**32 by the codec)."""
-        msg = self._fault_msg
-        FAULT_REPORT.encode(msg.data, self._tx_fault, lifecycle, code, max(fault_tick, 0),
+        tx = self._fault_tx
+        FAULT_REPORT.encode(tx.data, self._tx_fault, lifecycle, code, max(fault_tick, 0),
                             detail)
         self._tx_fault += 1
-        return self._send(msg, now_ns, tick)
+        return self._send(tx, now_ns, tick)
 
     def write_status(self, now_ns: int, tick: int, lifecycle: int, active_fault: int,
                      overruns: int, blending: int, weight_set: int,
                      jitter_p99_s: float) -> bool:
         """ControllerStatus heartbeat (``blending``: the controller's mode code, sent as
         the DBC's value, ``rig.wire_modes``)."""
-        msg = self._status_msg
-        CONTROLLER_STATUS.encode(msg.data, self._tx_status, lifecycle, active_fault,
+        tx = self._status_tx
+        CONTROLLER_STATUS.encode(tx.data, self._tx_status, lifecycle, active_fault,
                                  overruns & 0xFFFF, to_wire(blending), weight_set & 0xF,
                                  min(jitter_p99_s, 0.065535))
         self._tx_status += 1
-        return self._send(msg, now_ns, tick)
+        return self._send(tx, now_ns, tick)

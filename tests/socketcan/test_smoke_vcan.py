@@ -175,11 +175,16 @@ def test_error_frames_cross_vcan_between_processes(channel: str, children: Child
 
 
 def test_raw_reader_reads_what_recv_reads(channel: str) -> None:
-    """The loop's Message-free receive path (``rig.bus.raw``) on a real SocketCAN socket:
+    """The loop's Message-free frame paths (``rig.bus.raw``) on a real SocketCAN socket:
     the same frames, flags and bytes as python-can's ``recv``, the kernel's receive
     filters applied, and nothing pending reads as 0 without blocking."""
     from rig.bus.core import ROLES, receive_filters
-    from rig.bus.raw import FRAME_BUFFER_BYTES, SocketcanRawReader, raw_frame_reader
+    from rig.bus.raw import (
+        FRAME_BUFFER_BYTES,
+        SocketcanRawFrames,
+        raw_frame_reader,
+        raw_frame_writer,
+    )
     from rig.bus.socketpair import decode_frame
 
     frames = [
@@ -199,7 +204,7 @@ def test_raw_reader_reads_what_recv_reads(channel: str) -> None:
 
     buf = bytearray(FRAME_BUFFER_BYTES)
 
-    def drain(reader: SocketcanRawReader, count: int) -> list[tuple[object, ...]]:
+    def drain(reader: SocketcanRawFrames, count: int) -> list[tuple[object, ...]]:
         got: list[tuple[object, ...]] = []
         deadline = time.monotonic() + 5
         while len(got) < count and time.monotonic() < deadline:
@@ -216,8 +221,8 @@ def test_raw_reader_reads_what_recv_reads(channel: str) -> None:
             can.Bus(interface="socketcan", channel=channel,
                     can_filters=receive_filters("controller")) as filtered:
         reader, freader = raw_frame_reader(raw_bus), raw_frame_reader(filtered)
-        assert isinstance(reader, SocketcanRawReader)
-        assert isinstance(freader, SocketcanRawReader)
+        assert isinstance(reader, SocketcanRawFrames)
+        assert isinstance(freader, SocketcanRawFrames)
         assert reader.recv_frame_into(buf) == 0
         for msg in frames:
             tx.send(msg)
@@ -234,3 +239,13 @@ def test_raw_reader_reads_what_recv_reads(channel: str) -> None:
         assert len(expect) == 4
         assert drain(freader, len(expect)) == expect
         assert freader.recv_frame_into(buf) == 0
+        # and out: a struct can_frame as the loop sends it reaches python-can's recv
+        writer = raw_frame_writer(raw_bus)
+        assert isinstance(writer, SocketcanRawFrames)
+        frame = bytearray(16)
+        struct.pack_into("=IB", frame, 0, 0x123, 8)
+        frame[8:] = bytes(range(10, 18))
+        writer.send_frame(frame)
+        echo = ref.recv(timeout=2.0)
+        assert echo is not None
+        assert key(echo) == (0x123, False, False, False, 8, bytes(range(10, 18)))

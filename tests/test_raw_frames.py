@@ -1,10 +1,12 @@
-"""The loop's Message-free receive path (``rig.bus.raw``) against its Message path.
+"""The loop's Message-free frame paths (``rig.bus.raw``) against its Message paths.
 
 ``RigIO.read`` reads a bus that hands over SocketCAN's frame layout (the socket pair
-here; SocketCAN in tests/uml) into a buffer and decodes in place; any other bus through
-``recv``.  Whatever the frames, both must leave the same trace: the same calls to the
-fault monitor, the same frames for the recording, the same held values and road
-preview.  The Message path is the reference (python-can's virtual bus).
+here; SocketCAN in tests/socketcan) into a buffer and decodes in place; any other bus
+through ``recv``.  Whatever the frames, both must leave the same trace: the same calls to
+the fault monitor, the same frames for the recording, the same held values and road
+preview.  ``RigIO.write_*`` send a preallocated ``struct can_frame`` on such a bus, a
+``can.Message`` on others: the rig must receive the same frames.  The Message paths are
+the reference (python-can's virtual bus).
 """
 
 from __future__ import annotations
@@ -25,12 +27,15 @@ from rig.bus.socketpair import SocketPairBus, socketpair_wire
 from rig.service.hardware import FRAME_LOG_SLOTS, RigIO
 from rig.service.road_preview_stream import RoadPreviewStream
 from rig.wire.protocol import (
+    CONTROLLER_STATUS_ID,
+    FAULT_REPORT_ID,
     RIG_STATUS,
     RIG_STATUS_ID,
     ROAD_PREVIEW,
     ROAD_PREVIEW_ID,
     SENSOR_DATA,
     SENSOR_DATA_ID,
+    VALVE_COMMAND_ID,
 )
 
 
@@ -200,4 +205,77 @@ def test_a_datagram_of_another_size_is_a_bus_error(size: int) -> None:
         assert rec.frames == []
     finally:
         a.close()
+        ctl.shutdown()
+
+
+_writes = st.lists(st.one_of(
+    st.tuples(st.just("valve"), st.integers(0, 1), st.integers(0, 3),
+              st.floats(-1.5, 1.5), st.floats(-2e4, 2e4)),
+    st.tuples(st.just("fault"), st.integers(0, 3), st.integers(0, 40),
+              st.integers(-5, 2**33), st.integers(0, 255)),
+    st.tuples(st.just("status"), st.integers(0, 3), st.integers(0, 40),
+              st.integers(0, 2**17), st.integers(0, 3), st.integers(0, 20),
+              st.floats(0.0, 0.1)),
+), min_size=1, max_size=20)
+
+
+def _write(io: RigIO, k: int, w: tuple[Any, ...]) -> bool:
+    if w[0] == "valve":
+        return io.write_valve(k, k, *w[1:])
+    if w[0] == "fault":
+        return io.write_fault_report(k, k, *w[1:])
+    return io.write_status(k, k, *w[1:])
+
+
+@settings(max_examples=40, deadline=None)
+@given(writes=_writes)
+def test_raw_send_puts_the_frames_of_the_message_path_on_the_wire(
+        writes: list[tuple[Any, ...]]) -> None:
+    channel = f"raw-{uuid.uuid4().hex}"
+    v_ctl = open_bus(default_config().can, interface="virtual", channel=channel)
+    v_rig = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    a, b = socketpair_wire()
+    s_rig, s_ctl = SocketPairBus(a), SocketPairBus(b)
+    try:
+        ref, _, ref_rec = _io(v_ctl)
+        raw, _, raw_rec = _io(s_ctl)
+        assert ref._raw_tx is None and raw._raw_tx is s_ctl
+        for k, w in enumerate(writes):
+            assert _write(ref, k, w) and _write(raw, k, w)
+        ref.record_frames()
+        raw.record_frames()
+        assert raw_rec.frames == ref_rec.frames
+        assert {f[2] for f in ref_rec.frames} <= {VALVE_COMMAND_ID, FAULT_REPORT_ID,
+                                                  CONTROLLER_STATUS_ID}
+
+        def wire(bus: can.BusABC) -> list[tuple[int, bool, bool, bytes]]:
+            out = []
+            while (m := bus.recv(0.0)) is not None:
+                out.append((m.arbitration_id, m.is_extended_id, m.is_fd, bytes(m.data)))
+            return out
+
+        assert wire(s_rig) == wire(v_rig)
+        assert raw.tx_frames == ref.tx_frames == len(writes)
+    finally:
+        for bus in (v_ctl, v_rig, s_rig, s_ctl):
+            bus.shutdown()
+
+
+def test_raw_send_to_a_closed_peer_is_a_bus_error_and_a_note() -> None:
+    a, b = socketpair_wire()
+    ctl = SocketPairBus(b)
+    notes: list[dict[str, Any]] = []
+    mon, rec = TraceMonitor(), TraceRecorder()
+    io = RigIO(ctl, mon, rec, lambda t, k, d: notes.append(d),  # type: ignore[arg-type]
+               lambda e: None)
+    try:
+        a.close()
+        assert not io.write_valve(5, 5, 1, 2, 0.1, 10.0)
+        assert [c[0] for c in mon.calls] == ["bus_error"]
+        assert notes[0]["bus_exception"] == "send"
+        assert notes[0]["arbitration_id"] == VALVE_COMMAND_ID
+        assert io.tx_errors == 1 and io.tx_frames == 0
+        io.record_frames()
+        assert rec.frames == []
+    finally:
         ctl.shutdown()
