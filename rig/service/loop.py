@@ -517,7 +517,7 @@ class ControlLoop:
                             pv, io.rattlespace_m, stream.ring, start):  # type: ignore[union-attr]
                         self.preview_calls += 1
                 force_ref = rt.step(io.rattlespace_m, io.accel_mps2, io.force_meas_n)
-                flags = int(rt.flags)
+                flags = rt.flag_bits
                 if (flags ^ self.bank_flags) & _DEGRADED:
                     self._on_degraded_change(flags, now_ns, tick)
                 if (flags ^ self.bank_flags) & _STOP_BITS:

@@ -39,6 +39,8 @@ class Runtime(Protocol):
     @property
     def flags(self) -> Any: ...
     @property
+    def flag_bits(self) -> int: ...     # flags as a plain int (read every tick)
+    @property
     def running(self) -> RunningModels: ...
     xf: np.ndarray
     stop_contact_s: float       # stop-contact time in the monitor's window [s]

@@ -62,6 +62,10 @@ class FakeRuntime:
         self.output: float | None = None      # force the output when set
         self.inputs: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
+    @property
+    def flag_bits(self) -> int:
+        return int(self.flags)
+
     def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float:
         self.steps += 1
         self.inputs = (rattlespace_m, accel_mps2, force_meas_n)
