@@ -194,19 +194,7 @@ class RigIO:
                     data = views[length if length < 8 else 8]
                     self.rx_frames += 1
                     if rec is not None:
-                        k = self._log_n
-                        if k == FRAME_LOG_SLOTS:
-                            self.record_frames()
-                            k = 0
-                        self._log_t[k] = now_ns
-                        self._log_tick[k] = tick
-                        self._log_msg[k] = None
-                        self._log_rx[k] = True
-                        self._log_id[k] = can_id
-                        dlc = len(data)
-                        self._log_dlc[k] = dlc
-                        self._log_data[k][:dlc] = data
-                        self._log_n = k + 1
+                        self._log_bytes(self._log_slot(now_ns, tick), True, can_id, data)
                     self._data_frame(can_id, data)
                     continue
             self._message(decode_frame(self._rx_view[:n]), now_ns, tick)
@@ -220,14 +208,7 @@ class RigIO:
         frame to the monitor, a standard data frame to :meth:`_data_frame`."""
         self.rx_frames += 1
         if self.recorder is not None:
-            n = self._log_n
-            if n == FRAME_LOG_SLOTS:
-                self.record_frames()
-                n = 0
-            self._log_t[n] = now_ns
-            self._log_tick[n] = tick
-            self._log_msg[n] = msg
-            self._log_n = n + 1
+            self._log_msg[self._log_slot(now_ns, tick)] = msg
         if msg.is_error_frame:
             code = classify_error_frame(msg)
             if code is not _NONE:
@@ -289,21 +270,30 @@ class RigIO:
             return False
         self.tx_frames += 1
         if self.recorder is not None:
-            n = self._log_n
-            if n == FRAME_LOG_SLOTS:
-                self.record_frames()
-                n = 0
-            data = tx.data
-            dlc = len(data)
-            self._log_t[n] = now_ns
-            self._log_tick[n] = tick
-            self._log_msg[n] = None
-            self._log_rx[n] = False
-            self._log_id[n] = tx.frame_id
-            self._log_dlc[n] = dlc
-            self._log_data[n][:dlc] = data
-            self._log_n = n + 1
+            self._log_bytes(self._log_slot(now_ns, tick), False, tx.frame_id, tx.data)
         return True
+
+    def _log_slot(self, now_ns: int, tick: int) -> int:
+        """The frame log's next slot, for a frame at ``now_ns`` / ``tick`` (a full log
+        is handed to the recorder first)."""
+        n = self._log_n
+        if n == FRAME_LOG_SLOTS:
+            self.record_frames()
+            n = 0
+        self._log_t[n] = now_ns
+        self._log_tick[n] = tick
+        self._log_n = n + 1
+        return n
+
+    def _log_bytes(self, n: int, is_rx: bool, frame_id: int,
+                   data: bytearray | memoryview) -> None:
+        """Slot ``n`` holds a copy of a frame's bytes (a frame read in place or sent)."""
+        self._log_msg[n] = None
+        self._log_rx[n] = is_rx
+        self._log_id[n] = frame_id
+        dlc = len(data)
+        self._log_dlc[n] = dlc
+        self._log_data[n][:dlc] = data
 
     def record_frames(self) -> None:
         """Hand the frames noted since the last call to the recorder, in the order they
