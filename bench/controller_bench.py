@@ -103,13 +103,14 @@ def _time_case(rt: BankRuntime, data: np.ndarray) -> dict[str, float]:
 
 
 @nb.njit(cache=True)
-def _preview_calls(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, layer: int,
-                   dx: np.ndarray, data: np.ndarray, velocity: np.ndarray) -> float:
+def _preview_calls(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
+                   force_rows: np.ndarray, layer: int, dx: np.ndarray, data: np.ndarray,
+                   velocity: np.ndarray) -> float:
     """predicted_peak_m on every tick of ``data`` from a compiled loop (the kernel column)."""
     acc = 0.0
     for k in range(data.shape[0]):
-        acc += predicted_peak_m(rows, ticks, impulse, layer, dx, data[k, 0], 0.0,
-                                velocity, k)
+        acc += predicted_peak_m(rows, ticks, impulse, force_rows, layer, dx, data[k, 2],
+                                data[k, 0], 0.0, velocity, k)
     return acc
 
 
@@ -122,18 +123,18 @@ def _time_preview(cfg: RigConfig, data: np.ndarray) -> dict[str, Any]:
     rng = np.random.default_rng(2)
     velocity = rng.normal(0.0, 0.3, data.shape[0] + pv.horizon_ticks)
     dx = np.array([0.01, 0.002, 0.1, -0.3])
-    args = (pv.rows, pv.ticks, pv.impulse, layer, dx)
-    rows = [float(r) for r in data[:, 0]]
-    for k, r in enumerate(rows[: min(2000, len(rows))]):        # warm-up
-        predicted_peak_m(*args, r, 0.0, velocity, k)
+    args = (pv.rows, pv.ticks, pv.impulse, pv.force_rows, layer, dx)
+    rows = [(float(r), float(f)) for r, f in data[:, [0, 2]]]
+    for k, (r, f) in enumerate(rows[: min(2000, len(rows))]):        # warm-up
+        predicted_peak_m(*args, f, r, 0.0, velocity, k)
     times = np.empty(len(rows), dtype=np.int64)
     gc_was = gc.isenabled()
     gc.disable()
     try:
         pc = time.perf_counter_ns
-        for k, r in enumerate(rows):
+        for k, (r, f) in enumerate(rows):
             t0 = pc()
-            predicted_peak_m(*args, r, 0.0, velocity, k)
+            predicted_peak_m(*args, f, r, 0.0, velocity, k)
             times[k] = pc() - t0
     finally:
         if gc_was:

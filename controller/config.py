@@ -366,6 +366,11 @@ class DesignConfig:
     preview_check_s: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True,
                                 doc="road preview: spacing of the look-ahead times at which "
                                     "the prediction is checked, up to preview_horizon_s")
+    preview_force_decay_s: float = _f(0.0, lo=0.0, hi=10.0,
+                                      doc="road preview: the prediction adds the force the "
+                                          "load cell measures now, fading with this time "
+                                          "constant [s] (0 = the no-force prediction; "
+                                          "docs/design.md §12)")
     preview_schedule_start_m: float = _f(0.05, lo=0.0, hi=1.0,
                                          doc="road preview: schedule_start_m while a road "
                                              "preview is live (schedule_start_m applies "

@@ -22,10 +22,18 @@ previewed road velocity w'_k .. w'_{k+H-1}.  The predicted LVDT reading j ticks 
     r_pred(j) = r_meas + (c Phi^j - c) x_k + sum_{i<j} c Phi^{j-1-i} Gamma w'_{k+i}
 
 (the measured reading carries the LVDT zero and the stops' centre; the model supplies
-only the change).  The law's own force is left out on purpose: on the emulated rig the
-comfort law's force does not arrive as an ideal force would on a fast compression
-(force loop, valve flow), and a closed-loop prediction under-read every excursion
-measured, while the no-force one read them (docs/design.md §12).
+only the change).  The law's own future force is left out on purpose: on the emulated
+rig the comfort law's force does not arrive as an ideal force would on a fast
+compression (force loop, valve flow), and a closed-loop prediction under-read every
+excursion measured, while the no-force one read them (docs/design.md §12).  The force
+the actuator delivers *now* (the load cell's) may be added, fading with the time
+constant ``design.preview_force_decay_s`` (0 = left out)::
+
+    r_pred(j) += sum_{i<j} c Phi^{j-1-i} Gamma_u lam^i F_meas,   lam = exp(-T / tau)
+
+(``Gamma_u`` the force input of the same model, held over each tick): the force the
+body is already being pushed with, which the prediction without it reads as if it
+stopped at once.
 
 :func:`road_preview` designs the predictor offline into plain arrays;
 :func:`predicted_peak_m` is the per-tick kernel (numba, allocates nothing).
@@ -60,37 +68,50 @@ class RoadPreview:
     ``rows`` (L, P, 4): c Phi^j - c of layer l at the checked look-ahead ticks ``ticks``
     (P,), so that ``rows[l, p] @ dx`` is the state's part of the predicted change of the
     reading; ``impulse`` (L, H): c Phi^m Gamma, m = 0 .. H-1, the reading's response m
-    ticks after a tick of unit road velocity [m per (m/s)]; ``horizon_ticks`` H =
-    ``ticks[-1]``; ``trigger_m``: predicted distance from the stops' centre that calls
-    the travel law.  Layer l is the bank's (:func:`controller.config.layer_grid`: its
-    sprung mass, spring rate, damping and tire), so the prediction follows the layer the
-    bank runs.
+    ticks after a tick of unit road velocity [m per (m/s)]; ``force_rows`` (L, P): the
+    reading's change at ``ticks`` per newton of the load-cell force measured now, fading
+    with ``design.preview_force_decay_s`` [m/N] (zeros when that is 0: the no-force
+    prediction); ``horizon_ticks`` H = ``ticks[-1]``; ``trigger_m``: predicted distance
+    from the stops' centre that calls the travel law.  Layer l is the bank's
+    (:func:`controller.config.layer_grid`: its sprung mass, spring rate, damping and
+    tire), so the prediction follows the layer the bank runs.
     """
 
     rows: FloatArray
     ticks: NDArray[np.int64]
     impulse: FloatArray
+    force_rows: FloatArray
     horizon_ticks: int
     trigger_m: float
 
 
 def _layer_predictor(cfg: RigConfig, ticks: NDArray[np.int64], horizon: int
-                     ) -> tuple[FloatArray, FloatArray]:
-    """(rows (P, 4), impulse (H,)) of the no-force model of ``cfg``'s rig."""
+                     ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(rows (P, 4), impulse (H,), force_rows (P,)) of the model of ``cfg``'s rig."""
     x2 = static_tire_deflection_m(cfg)
     lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
                       tire_damping_ns_per_m(x2, cfg.tire))
-    phi, gamma = discretize_zoh(lm.A, lm.B1, cfg.sample_time_s)
+    dt = cfg.sample_time_s
+    phi, gamma = discretize_zoh(lm.A, lm.B1, dt)
+    _, gamma_u = discretize_zoh(lm.A, lm.B2, dt)
     c = lm.C_meas[0]                    # the LVDT row: x1 - x2
     impulse = np.zeros(horizon)
+    force_impulse = np.zeros(horizon)   # c Phi^m Gamma_u
     powers = np.zeros((horizon + 1, c.size))
     row = c.copy()
     for m in range(horizon + 1):
         powers[m] = row                 # c Phi^m
         if m < horizon:
             impulse[m] = row @ gamma
+            force_impulse[m] = row @ gamma_u
         row = row @ phi
-    return powers[ticks] - c[None, :], impulse
+    force_rows = np.zeros(ticks.size)
+    tau = cfg.design.preview_force_decay_s
+    if tau > 0.0:
+        fade = np.exp(-dt / tau) ** np.arange(horizon)     # the force of tick i: lam^i
+        for p, j in enumerate(ticks):
+            force_rows[p] = force_impulse[:j][::-1] @ fade[:j]
+    return powers[ticks] - c[None, :], impulse, force_rows
 
 
 def road_preview(cfg: RigConfig) -> RoadPreview | None:
@@ -109,8 +130,9 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
         ticks = np.append(ticks, np.int64(horizon))
     parts = [_layer_predictor(layer_config(cfg, *scales), ticks, horizon)
              for scales in layer_grid(cfg)]
-    return RoadPreview(rows=np.ascontiguousarray([r for r, _ in parts]), ticks=ticks,
-                       impulse=np.ascontiguousarray([h for _, h in parts]),
+    return RoadPreview(rows=np.ascontiguousarray([r for r, _, _ in parts]), ticks=ticks,
+                       impulse=np.ascontiguousarray([h for _, h, _ in parts]),
+                       force_rows=np.ascontiguousarray([f for _, _, f in parts]),
                        horizon_ticks=horizon, trigger_m=d.preview_trigger_m)
 
 
@@ -124,12 +146,14 @@ def _fold_peak(peak: float, r: float) -> float:
 
 
 @nb.njit(cache=True, nogil=True)
-def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, layer: int,
-                     dx: np.ndarray, reading_m: float, centre_m: float,
-                     road_velocity: np.ndarray, start: int) -> float:
+def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
+                     force_rows: np.ndarray, layer: int, dx: np.ndarray, force_n: float,
+                     reading_m: float, centre_m: float, road_velocity: np.ndarray,
+                     start: int) -> float:
     """The largest predicted distance of the LVDT reading from the stops' centre [m] over
     the checked look-ahead ticks (:class:`RoadPreview`) by the model of layer ``layer``,
-    from the state deviation ``dx`` (4,), the measured reading ``reading_m`` and the
+    from the state deviation ``dx`` (4,), the load-cell force ``force_n`` [N] (through
+    ``force_rows``; zeros leave it out), the measured reading ``reading_m`` and the
     previewed road velocity [m/s] of this tick and the ones after,
     ``road_velocity[start:]`` (at least ``ticks[-1]`` samples; fewer: the missing ones
     count as 0; no copy is made).  NaN in, NaN out.
@@ -147,7 +171,10 @@ def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, l
     p = 0
     while p + 4 <= n_ticks:
         j0, j1, j2, j3 = ticks[p], ticks[p + 1], ticks[p + 2], ticks[p + 3]
-        a0 = a1 = a2 = a3 = base
+        a0 = base + force_rows[layer, p] * force_n
+        a1 = base + force_rows[layer, p + 1] * force_n
+        a2 = base + force_rows[layer, p + 2] * force_n
+        a3 = base + force_rows[layer, p + 3] * force_n
         for s in range(4):
             d = dx[s]
             a0 += rows[layer, p, s] * d
@@ -178,7 +205,7 @@ def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, l
         p += 4
     while p < n_ticks:              # the last 0-3 look-ahead ticks one by one
         j = ticks[p]
-        r = base
+        r = base + force_rows[layer, p] * force_n
         for s in range(4):
             r += rows[layer, p, s] * dx[s]
         for i in range(min(j, nw)):

@@ -190,7 +190,8 @@ def _bank_alone(run: Any, design: Any, cfg: Any) -> np.ndarray:
                     live = not live
                     rt.use_preview_schedule(live)
                 if live:
-                    rt.check_road_preview(pv, sd.rattlespace_m, np.array(window), 0)
+                    rt.check_road_preview(pv, sd.rattlespace_m, sd.load_cell_force_n,
+                                          np.array(window), 0)
             out.append(rt.step(sd.rattlespace_m, sd.sprung_accel_mps2, sd.load_cell_force_n))
         elif fid == ROAD_PREVIEW_ID:
             assert ROAD_PREVIEW.decode(bytearray(data), rp) is DecodeStatus.OK

@@ -1,5 +1,6 @@
 """Road preview (controller/road_preview.py, docs/design.md §12): the predictor against
-python-control's discretisation and simulation of the same no-force quarter car, the
+python-control's discretisation and simulation of the same quarter car (without force,
+and with the load cell's force fading), the
 kernel's edge cases, the runtime's travel-law call, the configuration's checks, and a
 course run on the nonlinear rig."""
 
@@ -33,22 +34,31 @@ from hil.sim.roads import make_road
 PREVIEW = {"preview_horizon_s": 0.15, "preview_trigger_m": 0.06, "preview_check_s": 0.01}
 CFG = default_config().replace(design=PREVIEW)
 PV = road_preview(CFG)
+DECAY_S = 0.05
+CFG_F = default_config().replace(design={**PREVIEW, "preview_force_decay_s": DECAY_S})
+PV_F = road_preview(CFG_F)
 
 
 def _reference_readings(layer: int, dx: np.ndarray, road_velocity: np.ndarray,
-                        reading_m: float) -> np.ndarray:
-    """The LVDT reading over the horizon by python-control: the no-force model of the
-    bank layer's rig, zero-order-hold discretised by control.c2d and simulated by
-    control.forced_response from dx, the measured reading's offset added."""
+                        reading_m: float, force_n: float = 0.0,
+                        decay_s: float = 0.0) -> np.ndarray:
+    """The LVDT reading over the horizon by python-control: the model of the bank
+    layer's rig (road velocity and actuator force in), zero-order-hold discretised by
+    control.c2d and simulated by control.forced_response from dx with the force
+    ``force_n`` fading by exp(-t / decay_s) (none when decay_s is 0), the measured
+    reading's offset added."""
     cfg = layer_config(CFG, *layer_grid(CFG)[layer])
     x2 = static_tire_deflection_m(cfg)
     lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
                       tire_damping_ns_per_m(x2, cfg.tire))
-    sys_d = control.c2d(control.ss(lm.A, lm.B1[:, None], [[1.0, -1.0, 0.0, 0.0]], [[0.0]]),
+    sys_d = control.c2d(control.ss(lm.A, np.column_stack([lm.B1, lm.B2]),
+                                   [[1.0, -1.0, 0.0, 0.0]], [[0.0, 0.0]]),
                         cfg.sample_time_s, method="zoh")
     n = road_velocity.size
     t = np.arange(n + 1) * cfg.sample_time_s
-    u = np.append(road_velocity, 0.0)
+    force = (np.zeros(n + 1) if decay_s == 0.0
+             else force_n * np.exp(-t / decay_s))
+    u = np.vstack([np.append(road_velocity, 0.0), force])
     resp = control.forced_response(sys_d, T=t, U=u, X0=dx)
     r = np.asarray(resp.outputs).ravel()
     return reading_m + (r - r[0])
@@ -62,6 +72,7 @@ def test_shapes_and_off() -> None:
     assert PV.horizon_ticks == 150 and PV.ticks[0] == 10 and PV.ticks[-1] == 150
     layers = len(layer_grid(CFG))
     assert PV.rows.shape == (layers, 15, 4) and PV.impulse.shape == (layers, 150)
+    assert PV.force_rows.shape == (layers, 15)
     odd = road_preview(default_config().replace(design={"preview_horizon_s": 0.105}))
     assert odd is not None and odd.ticks[-1] == 105     # the horizon itself is checked
 
@@ -78,17 +89,42 @@ def test_peak_is_the_reference_prediction(layer: int, dx: list[float],
     w = np.array(velocity)
     ref = _reference_readings(layer, x, w, reading)
     want = max(abs(reading), *(abs(ref[j]) for j in PV.ticks))
-    got = predicted_peak_m(PV.rows, PV.ticks, PV.impulse, layer, x, reading, 0.0, w, 0)
+    got = predicted_peak_m(PV.rows, PV.ticks, PV.impulse, PV.force_rows, layer, x, 0.0,
+                           reading, 0.0, w, 0)
+    assert got == pytest.approx(want, rel=1e-9, abs=1e-12)
+    # design.preview_force_decay_s 0: the load cell's force is left out
+    assert not PV.force_rows.any()
+    assert predicted_peak_m(PV.rows, PV.ticks, PV.impulse, PV.force_rows, layer, x, 3e3,
+                            reading, 0.0, w, 0) == got
+
+
+@settings(max_examples=30, deadline=None)
+@given(layer=st.integers(0, len(layer_grid(CFG)) - 1),
+       dx=st.lists(st.floats(-0.05, 0.05), min_size=4, max_size=4),
+       velocity=st.lists(st.floats(-2.0, 2.0), min_size=150, max_size=150),
+       force=st.floats(-8e3, 8e3), reading=st.floats(-0.08, 0.08))
+def test_peak_with_the_fading_force_is_the_reference_prediction(
+        layer: int, dx: list[float], velocity: list[float], force: float,
+        reading: float) -> None:
+    """design.preview_force_decay_s > 0: the load cell's force, fading, as an input of
+    python-control's simulation of the same model."""
+    assert PV_F is not None
+    x = np.array([*dx[:2], 10.0 * dx[2], 10.0 * dx[3]])
+    w = np.array(velocity)
+    ref = _reference_readings(layer, x, w, reading, force, DECAY_S)
+    want = max(abs(reading), *(abs(ref[j]) for j in PV_F.ticks))
+    got = predicted_peak_m(PV_F.rows, PV_F.ticks, PV_F.impulse, PV_F.force_rows, layer, x,
+                           force, reading, 0.0, w, 0)
     assert got == pytest.approx(want, rel=1e-9, abs=1e-12)
 
 
-def _plain_peak(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray, layer: int,
-                dx: np.ndarray, reading: float, centre: float, w: np.ndarray,
-                start: int) -> float:
+def _plain_peak(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
+                force_rows: np.ndarray, layer: int, dx: np.ndarray, force: float,
+                reading: float, centre: float, w: np.ndarray, start: int) -> float:
     """The kernel's sums one look-ahead tick after the other, in plain Python."""
     peak = abs(reading - centre)
     for p, j in enumerate(ticks):
-        r = reading - centre
+        r = reading - centre + float(force_rows[layer, p]) * force
         for s in range(4):
             r += float(rows[layer, p, s]) * float(dx[s])
         for i in range(min(int(j), w.size - start)):
@@ -108,34 +144,51 @@ def test_kernel_sums_bit_for_bit_as_the_plain_sum(layer: int, n_ticks: int, wind
     one after the other, for any number of look-ahead ticks and any window length."""
     assert PV is not None
     rng = np.random.default_rng(seed)
-    ticks = np.ascontiguousarray(PV.ticks[:n_ticks])
-    rows = np.ascontiguousarray(PV.rows[:, :n_ticks])
+    assert PV_F is not None
+    ticks = np.ascontiguousarray(PV_F.ticks[:n_ticks])
+    rows = np.ascontiguousarray(PV_F.rows[:, :n_ticks])
+    force_rows = np.ascontiguousarray(PV_F.force_rows[:, :n_ticks])
     dx = rng.normal(0.0, 0.02, 4)
     w = rng.normal(0.0, 0.5, window + 3)
     reading = float(rng.normal(0.0, 0.02))
-    got = predicted_peak_m(rows, ticks, PV.impulse, layer, dx, reading, 0.001, w, 3)
-    assert got == _plain_peak(rows, ticks, PV.impulse, layer, dx, reading, 0.001, w, 3)
+    force = float(rng.normal(0.0, 2e3))
+    args = (rows, ticks, PV_F.impulse, force_rows, layer, dx, force, reading, 0.001, w, 3)
+    assert predicted_peak_m(*args) == _plain_peak(*args)
 
 
 def test_kernel_edges() -> None:
     assert PV is not None
     zeros = np.zeros(4)
     w = np.full(150, 0.3)
-    args = (PV.rows, PV.ticks, PV.impulse, len(layer_grid(CFG)) // 2)
+    layer = len(layer_grid(CFG)) // 2
+    args = (PV.rows, PV.ticks, PV.impulse, PV.force_rows, layer)
     # at rest on a flat road: the reading itself, measured from the stops' centre
-    assert predicted_peak_m(*args, zeros, 0.02, 0.005, np.zeros(150), 0) == pytest.approx(0.015)
+    assert predicted_peak_m(*args, zeros, 0.0, 0.02, 0.005, np.zeros(150),
+                            0) == pytest.approx(0.015)
     # a short window: the missing road counts as 0 (the end of a recorded road)
-    short = predicted_peak_m(*args, zeros, 0.0, 0.0, w[:20], 0)
-    padded = predicted_peak_m(*args, zeros, 0.0, 0.0, np.append(w[:20], np.zeros(130)), 0)
+    short = predicted_peak_m(*args, zeros, 0.0, 0.0, 0.0, w[:20], 0)
+    padded = predicted_peak_m(*args, zeros, 0.0, 0.0, 0.0, np.append(w[:20], np.zeros(130)),
+                              0)
     assert short == padded > 0.0
     # the window starts at ``start`` of the array, without a copy (the loop's ring)
-    assert predicted_peak_m(*args, zeros, 0.0, 0.0, np.append(np.full(7, 5.0), w[:20]),
+    assert predicted_peak_m(*args, zeros, 0.0, 0.0, 0.0, np.append(np.full(7, 5.0), w[:20]),
                             7) == short
     # a rising road compresses the suspension: the prediction grows with the velocity
-    assert predicted_peak_m(*args, zeros, 0.0, 0.0, 2.0 * w, 0) > short
+    assert predicted_peak_m(*args, zeros, 0.0, 0.0, 0.0, 2.0 * w, 0) > short
     for bad in ((np.full(4, math.nan), 0.0, w), (zeros, math.nan, w),
                 (zeros, 0.0, np.full(150, math.nan))):
-        assert math.isnan(predicted_peak_m(*args, bad[0], bad[1], 0.0, bad[2], 0))
+        assert math.isnan(predicted_peak_m(*args, bad[0], 0.0, bad[1], 0.0, bad[2], 0))
+    # the load cell's force: a force that extends the actuator (pushes the body up)
+    # opens the rattlespace (reading x1 - x2 < 0), more the longer it is held
+    assert PV_F is not None
+    args_f = (PV_F.rows, PV_F.ticks, PV_F.impulse, PV_F.force_rows, layer, zeros)
+    rest = predicted_peak_m(*args_f, 0.0, 0.0, 0.0, np.zeros(150), 0)
+    pushed = predicted_peak_m(*args_f, 2e3, 0.0, 0.0, np.zeros(150), 0)
+    assert rest == 0.0 < pushed
+    assert (PV_F.force_rows < 0.0).all()
+    held = road_preview(CFG.replace(design={"preview_force_decay_s": 10.0}))
+    assert held is not None and (held.force_rows < PV_F.force_rows).all()
+    assert math.isnan(predicted_peak_m(*args_f, math.nan, 0.0, 0.0, np.zeros(150), 0))
 
 
 def test_travel_law_call_sets_the_travel_law_for_the_next_step() -> None:
@@ -155,9 +208,9 @@ def test_travel_law_call_sets_the_travel_law_for_the_next_step() -> None:
     fixed.step(0.0, 0.0, 0.0)
     assert fixed.schedule_usage_m == 0.0 and fixed.comfort_share == 0.0
     ahead = np.full(PV.horizon_ticks, math.nan)    # a NaN prediction calls where it can
-    assert not fixed.check_road_preview(PV, 0.0, ahead, 0)
+    assert not fixed.check_road_preview(PV, 0.0, 0.0, ahead, 0)
     governed = BankRuntime(design, weight_set=2, cfg=CFG)  # weight set 2: governed
-    assert governed.check_road_preview(PV, 0.0, ahead, 0)
+    assert governed.check_road_preview(PV, 0.0, 0.0, ahead, 0)
     governed.step(0.0, 0.0, 0.0)
     assert governed.comfort_share == 0.0
     assert governed.schedule_usage_m == pytest.approx(CFG.design.governor_full_m)

@@ -1442,11 +1442,12 @@ class BankRuntime:
         which = "governor" if self.governed else "preview" if live else "reading"
         self._fv[F_TS:F_TS + SCHEDULE_SIZE] = self._schedules[THRESHOLDS.index(which)]
 
-    def check_road_preview(self, preview: RoadPreview, reading_m: float,
+    def check_road_preview(self, preview: RoadPreview, reading_m: float, force_meas_n: float,
                            road_velocity: np.ndarray, start: int) -> bool:
         """Road preview (controller/road_preview.py), before :meth:`step`: predict the
         LVDT reading over the preview's horizon by the running layer's model from this
-        estimate, the reading ``reading_m`` and the road velocity ahead
+        estimate, the reading ``reading_m``, the load-cell force ``force_meas_n`` [N]
+        (``preview.force_rows``) and the road velocity ahead
         ``road_velocity[start:]`` [m/s] (this tick's first), and call the travel law
         (:meth:`call_travel_law`) when the predicted peak passes ``preview.trigger_m`` or
         is not finite.  True when it called.  Allocates nothing."""
@@ -1454,8 +1455,8 @@ class BankRuntime:
         if fv[F_TS_ON] == 0.0:          # a fixed weight set: no travel law to call
             return False
         peak = predicted_peak_m(preview.rows, preview.ticks, preview.impulse,
-                                int(self._iv[I_LAYER]), self.x_deviation, reading_m,
-                                fv[F_TS], road_velocity, start)
+                                preview.force_rows, int(self._iv[I_LAYER]), self.x_deviation,
+                                force_meas_n, reading_m, fv[F_TS], road_velocity, start)
         if peak <= preview.trigger_m:
             return False
         self.call_travel_law()

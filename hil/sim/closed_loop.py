@@ -189,6 +189,7 @@ class BankController:
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
         pv = self.preview
         if pv is not None and self.rt.check_road_preview(pv, reading.rattlespace_m,
+                                                         reading.force_n,
                                                          self._road_velocity, self.ticks):
             self.preview_calls += 1
         u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))

@@ -241,8 +241,9 @@ class ControlLoop:
         self.io.preview = self.preview_stream
         if self.road_preview is not None:      # load the kernel now, not in a tick
             pv = self.road_preview
-            predicted_peak_m(pv.rows, pv.ticks, pv.impulse, 0, np.zeros(4), 0.0, 0.0,
-                             self.preview_stream.ring, 0)   # type: ignore[union-attr]
+            predicted_peak_m(pv.rows, pv.ticks, pv.impulse, pv.force_rows, 0, np.zeros(4),
+                             0.0, 0.0, 0.0, self.preview_stream.ring,  # type: ignore[union-attr]
+                             0)
         self.preview_live = False
         self.preview_calls = 0          # ticks in which the preview called the travel law
         self._requests: collections.deque[_Request] = collections.deque(maxlen=64)
@@ -514,7 +515,8 @@ class ControlLoop:
                     if (start >= 0) is not self.preview_live:
                         self._on_preview_change(start >= 0, now_ns, tick)
                     if start >= 0 and rt.check_road_preview(
-                            pv, io.rattlespace_m, stream.ring, start):  # type: ignore[union-attr]
+                            pv, io.rattlespace_m, io.force_meas_n,
+                            stream.ring, start):  # type: ignore[union-attr]
                         self.preview_calls += 1
                 force_ref = rt.step(io.rattlespace_m, io.accel_mps2, io.force_meas_n)
                 flags = rt.flag_bits

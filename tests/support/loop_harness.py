@@ -91,8 +91,8 @@ class FakeRuntime:
     def use_preview_schedule(self, live: bool) -> None:
         self.preview_schedule = bool(live)
 
-    def check_road_preview(self, preview: Any, reading_m: float, road_velocity: Any,
-                           start: int) -> bool:
+    def check_road_preview(self, preview: Any, reading_m: float, force_meas_n: float,
+                           road_velocity: Any, start: int) -> bool:
         return False
 
 
