@@ -1480,7 +1480,7 @@ class BankRuntime:
     # ------------------------------------------------------------------ read-outs
     @property
     def flags(self) -> StepFlag:
-        return StepFlag(int(self._iv[I_FLAGS]))
+        return StepFlag(self.flag_bits)
 
     @property
     def flag_bits(self) -> int:

@@ -193,7 +193,7 @@ class BankController:
                                                          self._road_velocity, self.ticks):
             self.preview_calls += 1
         u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
-        self.flags = flags = int(self.rt.flags)
+        self.flags = flags = self.rt.flag_bits
         self.ticks += 1
         self.comfort_share_sum += self.rt.comfort_share
         if flags & self._no_rule:

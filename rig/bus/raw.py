@@ -30,13 +30,12 @@ with a frame is the same on both paths (``rig.service.hardware.RigIO``).
 
 from __future__ import annotations
 
-import errno
 import socket
-from typing import Any, Protocol
+from typing import Protocol
 
 import can
 
-from rig.bus.socketpair import CAN_MTU, CANFD_MTU
+from rig.bus.socketpair import CANFD_MTU, check_frame_size
 
 __all__ = ["FRAME_BUFFER_BYTES", "RawFrameReader", "RawFrameWriter", "SocketcanRawFrames",
            "raw_frame_reader", "raw_frame_writer"]
@@ -74,7 +73,7 @@ class SocketcanRawFrames:
     python-can's ``SocketcanBus`` (``MSG_DONTWAIT``: the bus's socket itself stays as
     python-can set it up)."""
 
-    def __init__(self, sock: socket.socket, channel: Any = None) -> None:
+    def __init__(self, sock: socket.socket, channel: str) -> None:
         self._recv_into = sock.recv_into
         self._send = sock.send
         self._channel = channel
@@ -97,9 +96,7 @@ class SocketcanRawFrames:
         except OSError as exc:
             raise can.CanOperationError(f"{self._channel}: receive failed: {exc}",
                                         error_code=exc.errno) from exc
-        if n != CAN_MTU and n != CANFD_MTU:
-            raise can.CanOperationError(f"{self._channel}: frame of {n} bytes: a CAN frame "
-                                        f"has {CAN_MTU} or {CANFD_MTU}", error_code=errno.EMSGSIZE)
+        check_frame_size(n, self._channel)
         return n
 
 

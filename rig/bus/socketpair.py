@@ -42,8 +42,8 @@ from typing import Any, Final
 
 import can
 
-__all__ = ["CANFD_MTU", "CAN_MTU", "SocketPairBus", "decode_frame", "encode_frame",
-           "socketpair_wire"]
+__all__ = ["CANFD_MTU", "CAN_MTU", "CAN_SFF_MASK", "SocketPairBus", "check_frame_size",
+           "decode_frame", "encode_frame", "socketpair_wire"]
 
 CAN_MTU: Final = 16         # sizeof(struct can_frame)
 CANFD_MTU: Final = 72       # sizeof(struct canfd_frame)
@@ -57,7 +57,7 @@ CANFD_FDF: Final = 0x04     # set in every CAN FD frame by Linux since CAN XL
 _HEAD: Final = struct.Struct("=IBBBB")    # can_id, len, flags / pad, res0, len8_dlc / res1
 _FD_LENGTHS: Final = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 _CLASSIC: Final = struct.Struct("=IB3x8s")   # can_id, len, data (struct can_frame)
-_STD_MAX: Final = 0x7FF
+CAN_SFF_MASK: Final = 0x7FF   # a standard (11-bit) ID, no flag bit set
 
 
 
@@ -66,6 +66,14 @@ def socketpair_wire() -> tuple[socket.socket, socket.socket]:
     unless passed explicitly, e.g. ``subprocess.Popen(pass_fds=...)``)."""
     a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     return a, b
+
+
+def check_frame_size(n: int, where: str) -> None:
+    """Raise ``can.CanOperationError`` (EMSGSIZE) unless ``n`` bytes read from ``where``
+    are a CAN frame: ``CAN_MTU`` or ``CANFD_MTU``."""
+    if n != CAN_MTU and n != CANFD_MTU:
+        raise can.CanOperationError(f"{where}: frame of {n} bytes: a CAN frame has "
+                                    f"{CAN_MTU} or {CANFD_MTU}", error_code=errno.EMSGSIZE)
 
 
 def encode_frame(msg: can.Message) -> bytes:
@@ -94,7 +102,7 @@ def decode_frame(frame: bytes | bytearray | memoryview, timestamp: float = 0.0,
     size = len(frame)
     if size == CAN_MTU:
         can_id, length, data = _CLASSIC.unpack_from(frame)
-        if can_id <= _STD_MAX:      # the common case: a standard data frame
+        if can_id <= CAN_SFF_MASK:      # the common case: a standard data frame
             return can.Message(timestamp=timestamp, arbitration_id=can_id,
                                is_extended_id=False, data=data[:length] if length < 8 else data,
                                channel=channel, is_rx=True, check=False)
@@ -107,7 +115,7 @@ def decode_frame(frame: bytes | bytearray | memoryview, timestamp: float = 0.0,
     length = min(length, 64 if fd else 8)
     return can.Message(
         timestamp=timestamp, channel=channel,
-        arbitration_id=can_id & (CAN_EFF_MASK if extended else _STD_MAX),
+        arbitration_id=can_id & (CAN_EFF_MASK if extended else CAN_SFF_MASK),
         is_extended_id=extended, is_remote_frame=remote,
         is_error_frame=bool(can_id & CAN_ERR_FLAG), is_fd=fd,
         bitrate_switch=fd and bool(flags & CANFD_BRS),
@@ -175,10 +183,7 @@ class SocketPairBus(can.BusABC):
         if n == 0:
             raise can.CanOperationError(f"{self.channel_info}: the peer closed its end",
                                         error_code=errno.ECONNRESET)
-        if n != CAN_MTU and n != CANFD_MTU:
-            raise can.CanOperationError(f"{self.channel_info}: frame of {n} bytes: a CAN "
-                                        f"frame has {CAN_MTU} or {CANFD_MTU}",
-                                        error_code=errno.EMSGSIZE)
+        check_frame_size(n, self.channel_info)
         self.received += 1
         return n
 
@@ -189,7 +194,7 @@ class SocketPairBus(can.BusABC):
             return None
         if n == CAN_MTU:
             can_id, length, data = _CLASSIC.unpack_from(self._buf)
-            if can_id <= _STD_MAX:      # a standard data frame: decode_frame's fast path
+            if can_id <= CAN_SFF_MASK:      # a standard data frame: decode_frame's fast path
                 return can.Message(timestamp=time.time(), arbitration_id=can_id,
                                    is_extended_id=False,
                                    data=data[:length] if length < 8 else data,

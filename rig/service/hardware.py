@@ -34,7 +34,7 @@ import can
 
 from rig.bus.core import classify_bus_exception, classify_error_frame, errno_of, make_tx_message
 from rig.bus.raw import FRAME_BUFFER_BYTES, raw_frame_reader, raw_frame_writer
-from rig.bus.socketpair import CAN_MTU, decode_frame
+from rig.bus.socketpair import CAN_MTU, CAN_SFF_MASK, decode_frame, encode_frame
 from rig.service.road_preview_stream import RoadPreviewStream
 from rig.service.safety import DETAIL_RECV, DETAIL_SEND, FaultMonitor
 from rig.service.seams import Recorder
@@ -67,7 +67,6 @@ _OK = DecodeStatus.OK
 _OUT_OF_RANGE = DecodeStatus.OUT_OF_RANGE
 _NONE = FaultCode.NONE
 _RAW_HEAD = struct.Struct("=IB")     # struct can_frame: can_id (with its flags), len
-_STD_MAX = 0x7FF                    # a standard ID, no flag bit set
 
 #: ``note(t_ns, tick, detail)``: a ``note`` event for the recording
 Note = Callable[[int, int, dict[str, Any]], None]
@@ -84,8 +83,7 @@ class _TxFrame:
     def __init__(self, frame_id: int, raw: bool) -> None:
         self.frame_id = frame_id
         self.msg = make_tx_message(frame_id)
-        self.frame = bytearray(CAN_MTU)
-        _RAW_HEAD.pack_into(self.frame, 0, frame_id, FRAME_LENGTH)
+        self.frame = bytearray(encode_frame(self.msg))
         self.data: bytearray | memoryview = (memoryview(self.frame)[8:8 + FRAME_LENGTH]
                                              if raw else self.msg.data)
 
@@ -190,7 +188,7 @@ class RigIO:
                 return
             if n == CAN_MTU:
                 can_id, length = _RAW_HEAD.unpack_from(buf)
-                if can_id <= _STD_MAX:
+                if can_id <= CAN_SFF_MASK:
                     data = views[length if length < 8 else 8]
                     self.rx_frames += 1
                     if rec is not None:
