@@ -363,13 +363,24 @@ class DesignConfig:
                                   doc="road preview: predicted distance of the LVDT reading "
                                       "from the stops' centre that turns the schedule to "
                                       "the travel law")
+    preview_trigger_inner_m: float = _f(0.075, lo=0.0, hi=1.0,
+                                        doc="road preview: the trigger (as preview_trigger_m) "
+                                            "while the bank runs a layer inside its grid in "
+                                            "spring rate and damping, with the force of "
+                                            "preview_force_decay_s; a layer on that edge, "
+                                            "whose plant may lie beyond the models, and the "
+                                            "travel governor keep preview_trigger_m and the "
+                                            "no-force prediction (0 = preview_trigger_m on "
+                                            "every layer; docs/design.md §12)")
     preview_check_s: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True,
                                 doc="road preview: spacing of the look-ahead times at which "
                                     "the prediction is checked, up to preview_horizon_s")
-    preview_force_decay_s: float = _f(0.0, lo=0.0, hi=10.0,
+    preview_force_decay_s: float = _f(0.2, lo=0.0, hi=10.0,
                                       doc="road preview: the prediction adds the force the "
                                           "load cell measures now, fading with this time "
-                                          "constant [s] (0 = the no-force prediction; "
+                                          "constant [s], on the layers that take "
+                                          "preview_trigger_inner_m (every layer when that "
+                                          "is 0; 0 = the no-force prediction; "
                                           "docs/design.md §12)")
     preview_schedule_start_m: float = _f(0.05, lo=0.0, hi=1.0,
                                          doc="road preview: schedule_start_m while a road "

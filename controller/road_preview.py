@@ -35,6 +35,12 @@ constant ``design.preview_force_decay_s`` (0 = left out)::
 body is already being pushed with, which the prediction without it reads as if it
 stopped at once.
 
+How far to trust the prediction depends on the layer (:func:`layers_inside_grid`):
+inside the grid in spring rate and damping the force is added and the travel law is
+called beyond ``design.preview_trigger_inner_m``; on that edge, where the plant may lie
+beyond the models, the prediction is the no-force one and the trigger the lower
+``preview_trigger_m``, which the travel governor of weight set 2 keeps on every layer.
+
 :func:`road_preview` designs the predictor offline into plain arrays;
 :func:`predicted_peak_m` is the per-tick kernel (numba, allocates nothing).
 """
@@ -49,7 +55,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.arrays import FloatArray
-from controller.config import RigConfig, layer_config, layer_grid
+from controller.config import LAYER_KEYS, RigConfig, layer_config, layer_grid
 from controller.human_filter import discretize_zoh
 from controller.plant import (
     linear_model,
@@ -58,7 +64,8 @@ from controller.plant import (
     tire_secant_stiffness_n_per_m,
 )
 
-__all__ = ["RoadPreview", "predicted_peak_m", "road_preview"]
+__all__ = ["EDGE_KEYS", "RoadPreview", "layer_triggers_m", "layers_inside_grid",
+           "predicted_peak_m", "road_preview"]
 
 
 @dataclass(frozen=True)
@@ -70,9 +77,13 @@ class RoadPreview:
     reading; ``impulse`` (L, H): c Phi^m Gamma, m = 0 .. H-1, the reading's response m
     ticks after a tick of unit road velocity [m per (m/s)]; ``force_rows`` (L, P): the
     reading's change at ``ticks`` per newton of the load-cell force measured now, fading
-    with ``design.preview_force_decay_s`` [m/N] (zeros when that is 0: the no-force
-    prediction); ``horizon_ticks`` H = ``ticks[-1]``; ``trigger_m``: predicted distance
-    from the stops' centre that calls the travel law.  Layer l is the bank's
+    with ``design.preview_force_decay_s`` [m/N] (zeros when that is 0, and on an edge
+    layer under an inner trigger: the no-force prediction); ``horizon_ticks`` H =
+    ``ticks[-1]``; ``trigger_m`` (L,): predicted distance from the stops' centre that
+    calls the travel law while layer l runs (``design.preview_trigger_m`` on the grid's
+    edge, ``preview_trigger_inner_m`` inside it: :func:`layer_triggers_m`);
+    ``edge_trigger_m``: ``preview_trigger_m``, the travel governor's on every layer (with
+    the no-force prediction).  Layer l is the bank's
     (:func:`controller.config.layer_grid`: its sprung mass, spring rate, damping and
     tire), so the prediction follows the layer the bank runs.
     """
@@ -82,7 +93,8 @@ class RoadPreview:
     impulse: FloatArray
     force_rows: FloatArray
     horizon_ticks: int
-    trigger_m: float
+    trigger_m: FloatArray
+    edge_trigger_m: float
 
 
 def _layer_predictor(cfg: RigConfig, ticks: NDArray[np.int64], horizon: int
@@ -114,6 +126,40 @@ def _layer_predictor(cfg: RigConfig, ticks: NDArray[np.int64], horizon: int
     return powers[ticks] - c[None, :], impulse, force_rows
 
 
+#: the layer keys whose grid edge makes a layer an edge layer (:func:`layers_inside_grid`)
+EDGE_KEYS = ("spring_rate_scales", "damping_scales")
+
+
+def layers_inside_grid(cfg: RigConfig) -> NDArray[np.bool_]:
+    """Which layers of ``cfg``'s bank (L,), in the order of
+    :func:`controller.config.layer_grid`, lie inside its grid: in each of
+    :data:`EDGE_KEYS` with more than one scale, neither the smallest nor the largest.
+
+    The bank runs an edge layer when the plant is there *or beyond*, and in spring rate
+    and damping it cannot tell which: the sprung-mass estimator fits them with a prior at
+    the configured values (docs/design.md §10), so a plant beyond the grid reads as its
+    edge.  The sprung mass itself is measured (§10) and the tire by its wheel hop (§11):
+    a layer on their edge is a plant measured there, not a guess."""
+    grid = layer_grid(cfg)
+    axes = [(min(s), max(s)) for s in zip(*grid, strict=True)]
+    keys = [LAYER_KEYS.index(k) for k in EDGE_KEYS]
+    return np.array([not any(axes[i][0] < axes[i][1] and scales[i] in axes[i]
+                             for i in keys)
+                     for scales in grid], dtype=np.bool_)
+
+
+def layer_triggers_m(cfg: RigConfig) -> FloatArray:
+    """The road preview's trigger [m] of each layer of ``cfg``'s bank (L,):
+    ``design.preview_trigger_inner_m`` for a layer inside the grid
+    (:func:`layers_inside_grid`), ``design.preview_trigger_m`` on its edge, where the
+    plant may lie beyond the models and the prediction is least sure;
+    ``preview_trigger_m`` everywhere when the inner trigger is 0."""
+    d = cfg.design
+    if d.preview_trigger_inner_m <= 0.0:
+        return np.full(len(layer_grid(cfg)), d.preview_trigger_m)
+    return np.where(layers_inside_grid(cfg), d.preview_trigger_inner_m, d.preview_trigger_m)
+
+
 def road_preview(cfg: RigConfig) -> RoadPreview | None:
     """The predictor of ``cfg`` (``design.preview_*``) for every layer of its bank
     (:func:`controller.config.layer_grid`, :func:`controller.config.layer_config`), or
@@ -128,12 +174,16 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
     ticks = np.arange(step, horizon + 1, step, dtype=np.int64)
     if ticks.size == 0 or ticks[-1] != horizon:
         ticks = np.append(ticks, np.int64(horizon))
+    # with an inner trigger, a layer on the grid's edge keeps the no-force prediction
+    force_on = (layers_inside_grid(cfg)[:, None] if d.preview_trigger_inner_m > 0.0
+                else np.ones((1, 1), dtype=np.bool_))
     parts = [_layer_predictor(layer_config(cfg, *scales), ticks, horizon)
              for scales in layer_grid(cfg)]
     return RoadPreview(rows=np.ascontiguousarray([r for r, _, _ in parts]), ticks=ticks,
                        impulse=np.ascontiguousarray([h for _, h, _ in parts]),
-                       force_rows=np.ascontiguousarray([f for _, _, f in parts]),
-                       horizon_ticks=horizon, trigger_m=d.preview_trigger_m)
+                       force_rows=np.ascontiguousarray([f for _, _, f in parts]) * force_on,
+                       horizon_ticks=horizon, trigger_m=layer_triggers_m(cfg),
+                       edge_trigger_m=d.preview_trigger_m)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

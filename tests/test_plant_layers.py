@@ -6,7 +6,10 @@ for that rig.
 
 CFG is the configured rig with a one-layer bank (:func:`controller.config.one_layer`):
 "the bank designed for" a rig, and the one-layer bank, are that rig's one layer,
-whatever layers the built-in defaults have."""
+whatever layers the built-in defaults have.  Its road preview trusts every layer alike
+(``preview_trigger_inner_m`` = 0: one trigger, the force on every layer), so a layered
+bank and the bank designed for the rig differ only by their layers; the preview's
+caution on the grid's edge is tests/test_road_preview.py's."""
 
 from __future__ import annotations
 
@@ -20,7 +23,7 @@ from controller.runtime.mass_layers import layer_table
 from hil.sim.closed_loop import BankController, cached_design, run_closed_loop
 from hil.sim.roads import make_road
 
-CFG = one_layer(default_config())
+CFG = one_layer(default_config()).replace(design={"preview_trigger_inner_m": 0.0})
 V = CFG.vehicle
 DT = CFG.sample_time_s
 SETTLE_S = 8.0

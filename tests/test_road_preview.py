@@ -31,7 +31,9 @@ from controller.runtime.bank import BankRuntime
 from hil.sim.closed_loop import cached_design, simulate
 from hil.sim.roads import make_road
 
-PREVIEW = {"preview_horizon_s": 0.15, "preview_trigger_m": 0.06, "preview_check_s": 0.01}
+# one trigger and no force (the fading force on every layer with CFG_F)
+PREVIEW = {"preview_horizon_s": 0.15, "preview_trigger_m": 0.06, "preview_check_s": 0.01,
+           "preview_trigger_inner_m": 0.0, "preview_force_decay_s": 0.0}
 CFG = default_config().replace(design=PREVIEW)
 PV = road_preview(CFG)
 DECAY_S = 0.05
@@ -75,6 +77,67 @@ def test_shapes_and_off() -> None:
     assert PV.force_rows.shape == (layers, 15)
     odd = road_preview(default_config().replace(design={"preview_horizon_s": 0.105}))
     assert odd is not None and odd.ticks[-1] == 105     # the horizon itself is checked
+
+
+def test_layer_triggers_edge_and_inside() -> None:
+    """The trigger of a layer inside the grid in spring rate and damping is
+    preview_trigger_inner_m, with the force; on that edge (a scale the smallest or
+    largest of its key) preview_trigger_m without it; inner 0 keeps one trigger."""
+    one_trigger = default_config().replace(design={"preview_trigger_inner_m": 0.0})
+    pv0 = road_preview(one_trigger)
+    assert pv0 is not None and (pv0.trigger_m == 0.055).all() and pv0.edge_trigger_m == 0.055
+    assert (pv0.force_rows != 0.0).any(axis=1).all()     # the force on every layer
+    cfg = default_config().replace(design={"preview_trigger_inner_m": 0.075})
+    d = cfg.design
+    edge_keys = (d.spring_rate_scales, d.damping_scales)
+    pv = road_preview(cfg)
+    assert pv is not None and pv.edge_trigger_m == 0.055
+    for layer, scales in enumerate(layer_grid(cfg)):
+        inside = all(min(k) < v < max(k) or len(k) == 1
+                     for v, k in zip(scales[1:3], edge_keys, strict=True))
+        assert pv.trigger_m[layer] == (0.075 if inside else 0.055), scales
+        assert bool((pv.force_rows[layer] != 0.0).all()) == inside, scales
+        if inside:
+            np.testing.assert_array_equal(pv.force_rows[layer], pv0.force_rows[layer])
+    assert int((pv.trigger_m == 0.075).sum()) == (
+        len(d.sprung_mass_scales) * len(d.tire_stiffness_scales)) == 21
+    one = default_config().replace(design={     # one layer: inside (no edge to pass)
+        "preview_trigger_inner_m": 0.07, "sprung_mass_scales": [1.0],
+        "spring_rate_scales": [1.0], "damping_scales": [1.0], "tire_stiffness_scales": [1.0]})
+    assert road_preview(one).trigger_m.tolist() == [0.07]  # type: ignore[union-attr]
+
+
+def test_check_takes_the_running_layers_trigger() -> None:
+    """A predicted peak of 65 mm (a reading held there, no road, the estimate at rest)
+    calls the travel law under one 55 mm trigger; under a 75 mm inner trigger it does
+    not while the bank runs its nominal layer (inside the grid), once the layer is an
+    estimate (preview_trust_ticks after a reset: before, the edge's 55 mm); the governed
+    comfort set (weight set 2) keeps the 55 mm edge trigger."""
+    base = default_config()
+    centre = base.design.bump_stop_centre_lvdt_m
+    ahead = np.zeros(road_preview(base).horizon_ticks)   # type: ignore[union-attr]
+    calls = []
+    for inner in (0.0, 0.075):
+        cfg = base.replace(design={"preview_trigger_inner_m": inner})
+        pv = road_preview(cfg)
+        assert pv is not None
+        rt = BankRuntime(cached_design(cfg), weight_set=0, cfg=cfg)
+        assert layer_grid(cfg)[rt.mass_layer] == (1.0, 1.0, 1.0, 1.0)
+        assert rt.preview_trust_ticks > 1000
+        for _ in range(rt.preview_trust_ticks - 1):
+            rt.step(centre, 0.0, 0.0)
+        assert rt.check_road_preview(pv, centre + 0.065, 0.0, ahead, 0)   # not yet
+        rt.step(centre, 0.0, 0.0)
+        assert layer_grid(cfg)[rt.mass_layer] == (1.0, 1.0, 1.0, 1.0)
+        calls.append(rt.check_road_preview(pv, centre + 0.065, 0.0, ahead, 0))
+        rt.reset()                                           # a reset: not trusted again
+        assert rt.check_road_preview(pv, centre + 0.065, 0.0, ahead, 0)
+    assert calls == [True, False]
+    governed = BankRuntime(cached_design(cfg), weight_set=2, cfg=cfg)
+    assert governed.governed
+    for _ in range(governed.preview_trust_ticks):
+        governed.step(centre, 0.0, 0.0)
+    assert governed.check_road_preview(pv, centre + 0.065, 0.0, ahead, 0)
 
 
 @settings(max_examples=30, deadline=None)

@@ -73,6 +73,7 @@ from controller.mass_estimator import (
     ME_EST,
     ME_KEST,
     ME_NUPD,
+    ME_SETTLE,
     ME_SIZE,
     mass_estimator_parameters,
 )
@@ -1307,6 +1308,12 @@ class BankRuntime:
         self._schedules = np.stack([travel_schedule(cfg_, t).as_array() for t in THRESHOLDS])
         self.preview_schedule = False
         self.governed = False           # the comfort set runs under the travel governor
+        #: ticks after a reset before the road preview trusts the running layer (its
+        #: inner trigger and force, controller/road_preview.py): until then the layer is
+        #: the configured plant's, not yet an estimate; the sprung-mass estimator
+        #: settles, fills one window, and the layer scheduler dwells (docs/design.md §12)
+        self.preview_trust_ticks = int(fv[F_ME + ME_SETTLE]) + round(
+            (cfg_.design.mass_estimator_window_s + LAYER_DWELL_S) / dt)
         self.blending = Blending(int(blending))
         self.set_road(cfg_.noise.nominal_speed_mps, cfg_.noise.nominal_roughness_gd)
         self.set_weight_set(weight_set)
@@ -1449,15 +1456,25 @@ class BankRuntime:
         estimate, the reading ``reading_m``, the load-cell force ``force_meas_n`` [N]
         (``preview.force_rows``) and the road velocity ahead
         ``road_velocity[start:]`` [m/s] (this tick's first), and call the travel law
-        (:meth:`call_travel_law`) when the predicted peak passes ``preview.trigger_m`` or
-        is not finite.  True when it called.  Allocates nothing."""
+        (:meth:`call_travel_law`) when the predicted peak passes the running layer's
+        ``preview.trigger_m`` or is not finite; the governed comfort set (:attr:`governed`),
+        and any law in the first :attr:`preview_trust_ticks` after a reset, predicts
+        without the force and takes ``preview.edge_trigger_m``.
+        True when it called.  Allocates nothing."""
         fv = self._fv
         if fv[F_TS_ON] == 0.0:          # a fixed weight set: no travel law to call
             return False
+        layer = int(self._iv[I_LAYER])
+        if self.governed or self._iv[I_TICK] < self.preview_trust_ticks:
+            # the governed comfort set, or a layer not yet estimated: the edge's
+            # prediction (no force) and trigger
+            force_meas_n, trigger_m = 0.0, preview.edge_trigger_m
+        else:
+            trigger_m = preview.trigger_m[layer]
         peak = predicted_peak_m(preview.rows, preview.ticks, preview.impulse,
-                                preview.force_rows, int(self._iv[I_LAYER]), self.x_deviation,
+                                preview.force_rows, layer, self.x_deviation,
                                 force_meas_n, reading_m, fv[F_TS], road_velocity, start)
-        if peak <= preview.trigger_m:
+        if peak <= trigger_m:
             return False
         self.call_travel_law()
         return True
