@@ -56,6 +56,8 @@ def test_demo_short_run_json(tmp_path: Path) -> None:
     # the defaults take the emulated rig's road preview (RoadPreview frames, 0.25 s ahead)
     assert summary["road_preview"]["state"] in ("live", "short", "filling")
     assert 0.0 <= summary["road_preview"]["call_fraction"] < 0.5
+    # a 3 s run ends within the 4.8 s after the bank's reset: the edge's prediction
+    assert summary["road_preview"]["trust"] == "settling"
     # the emulated rig ran in its own process and sent back its counters
     # a busy machine may stall either process long enough to lose sensor frames or miss
     # deadlines even with this patient configuration: those faults are the monitor doing

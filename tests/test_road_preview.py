@@ -127,8 +127,10 @@ def test_check_takes_the_running_layers_trigger() -> None:
         for _ in range(rt.preview_trust_ticks - 1):
             rt.step(centre, 0.0, 0.0)
         assert rt.check_road_preview(pv, centre + 0.065, 0.0, ahead, 0)   # not yet
+        assert rt.preview_trust(pv) == "settling"
         rt.step(centre, 0.0, 0.0)
         assert layer_grid(cfg)[rt.mass_layer] == (1.0, 1.0, 1.0, 1.0)
+        assert rt.preview_trust(pv) == ("inside" if inner else "edge")
         calls.append(rt.check_road_preview(pv, centre + 0.065, 0.0, ahead, 0))
         rt.reset()                                           # a reset: not trusted again
         assert rt.check_road_preview(pv, centre + 0.065, 0.0, ahead, 0)
@@ -138,6 +140,9 @@ def test_check_takes_the_running_layers_trigger() -> None:
     for _ in range(governed.preview_trust_ticks):
         governed.step(centre, 0.0, 0.0)
     assert governed.check_road_preview(pv, centre + 0.065, 0.0, ahead, 0)
+    assert governed.preview_trust(pv) == "governor"
+    fixed = BankRuntime(cached_design(cfg), weight_set=1, cfg=cfg)
+    assert fixed.preview_trust(pv) == "unused"
 
 
 @settings(max_examples=30, deadline=None)

@@ -222,6 +222,7 @@ def test_service_says_what_the_schedule_runs_on(caplog: pytest.LogCaptureFixture
         assert svc.run() == 0
     assert "road preview on (0.2 s ahead)" in caplog.text
     assert svc.loop.status()["road_preview"] == "no_frame"
+    assert svc.loop.status()["preview_trust"] == "settling"     # 0.05 s after the reset
     caplog.clear()
     with caplog.at_level("WARNING", logger="rig.service.runner"):
         fixed = Service(cfg, dataclasses.replace(opts, weights=1,
@@ -229,6 +230,7 @@ def test_service_says_what_the_schedule_runs_on(caplog: pytest.LogCaptureFixture
         assert fixed.run() == 0
     assert "design.preview_horizon_s = 0.2 s is unused: weight set 1" in caplog.text
     assert fixed.loop.status()["road_preview"] == "unused"
+    assert fixed.loop.status()["preview_trust"] == "unused"
     caplog.clear()
     with caplog.at_level("INFO", logger="rig.service.runner"):
         governed = Service(cfg, dataclasses.replace(opts, weights=2,
@@ -236,3 +238,4 @@ def test_service_says_what_the_schedule_runs_on(caplog: pytest.LogCaptureFixture
         assert governed.run() == 0
     assert "the travel governor of weight set 2" in caplog.text
     assert governed.loop.status()["road_preview"] == "no_frame"
+    assert governed.loop.status()["preview_trust"] == "governor"

@@ -1479,6 +1479,23 @@ class BankRuntime:
         self.call_travel_law()
         return True
 
+    def preview_trust(self, preview: RoadPreview) -> str:
+        """How far :meth:`check_road_preview` trusts its prediction on this tick:
+        ``"inside"`` (the running layer lies inside the grid: the force and the inner
+        trigger, ``preview.trigger_m`` above ``edge_trigger_m``), ``"edge"`` (the running
+        layer takes the edge's trigger: on the grid's edge, or every layer without an
+        inner trigger), ``"settling"`` (within
+        :attr:`preview_trust_ticks` of a reset), ``"governor"`` (the governed comfort
+        set), ``"unused"`` (a fixed weight set takes no preview)."""
+        if self._fv[F_TS_ON] == 0.0:
+            return "unused"
+        if self.governed:
+            return "governor"
+        if self._iv[I_TICK] < self.preview_trust_ticks:
+            return "settling"
+        inside = preview.trigger_m[int(self._iv[I_LAYER])] != preview.edge_trigger_m
+        return "inside" if inside else "edge"
+
     def call_travel_law(self) -> None:
         """Road preview (controller/road_preview.py): raise the travel schedule's usage
         envelope so that the next step finds it at the running schedule's full-travel

@@ -412,6 +412,7 @@ def run(args: argparse.Namespace) -> int:
     armed_at = state["armed_at"] if state["armed_at"] >= 0 else n_done
     passive = _half_metrics(cfg, rig_trace, 0, min(arm_tick, n_done), late, step)
     active = _half_metrics(cfg, rig_trace, min(armed_at, n_done), n_done, late, step)
+    end_status = loop.status()
     summary: dict[str, Any] = {
         "timing_mode": timing, "timing_reason": why,
         "wall_s": wall_s, "lockstep": result.lockstep or None,
@@ -422,7 +423,8 @@ def run(args: argparse.Namespace) -> int:
         "ratios": {k: ratio(passive, active, k)[0] for k in RATIO_KEYS
                    if k in active and k in passive},
         "faults": faults, "rearms": state["rearms"],
-        "road_preview": {"state": loop.status()["road_preview"],
+        "road_preview": {"state": end_status["road_preview"],
+                         "trust": end_status["preview_trust"],
                          "calls": loop.preview_calls,
                          "call_fraction": loop.preview_calls / max(loop.tick_count, 1)},
         "excitation": loop.excitation_state if args.excite else None,
@@ -459,8 +461,8 @@ def run(args: argparse.Namespace) -> int:
     if pv["state"] == "unused":
         print("road preview: unused (the weight set in use takes none)", file=out)
     elif pv["state"] != "off":
-        print(f"road preview: {pv['state']} at the end, the travel law called ahead in "
-              f"{100 * pv['call_fraction']:.1f} % of the ticks", file=out)
+        print(f"road preview: {pv['state']} at the end (trust: {pv['trust']}), the travel "
+              f"law called ahead in {100 * pv['call_fraction']:.1f} % of the ticks", file=out)
     for f in faults:
         print(fault_line(f), file=out)
     if active.get("bypass_open_fraction", 0.0) > 0.5:

@@ -818,6 +818,9 @@ class ControlLoop:
                              else "unused" if not self.rt.takes_road_preview
                              else self.preview_stream.why_not_live()),
             "preview_calls": self.preview_calls,
+            # how far the prediction is trusted now (BankRuntime.preview_trust)
+            "preview_trust": ("off" if self.road_preview is None
+                              else self.rt.preview_trust(self.road_preview)),
             "rx_frames": self.rx_frames,
             "tx_frames": self.tx_frames,
             "tx_errors": self.tx_errors,

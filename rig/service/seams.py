@@ -68,6 +68,7 @@ class Runtime(Protocol):
     def use_preview_schedule(self, live: bool) -> None: ...
     def check_road_preview(self, preview: Any, reading_m: float, force_meas_n: float,
                            road_velocity: np.ndarray, start: int) -> bool: ...
+    def preview_trust(self, preview: Any) -> str: ...   # how far the prediction is trusted
 
 
 class ForceLoop(Protocol):

@@ -95,6 +95,9 @@ class FakeRuntime:
                            road_velocity: Any, start: int) -> bool:
         return False
 
+    def preview_trust(self, preview: Any) -> str:
+        return "inside" if self.takes_road_preview else "unused"
+
 
 class RigSide:
     """The rig's end of the virtual bus: sends SensorData / RigStatus, reads commands."""
