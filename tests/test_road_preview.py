@@ -28,6 +28,7 @@ from controller.plant import (
 )
 from controller.road_preview import predicted_peak_m, road_preview
 from controller.runtime.bank import BankRuntime
+from controller.runtime.kernels import I_PVCALL
 from hil.sim.closed_loop import cached_design, simulate
 from hil.sim.roads import make_road
 
@@ -143,6 +144,44 @@ def test_check_takes_the_running_layers_trigger() -> None:
     assert governed.preview_trust(pv) == "governor"
     fixed = BankRuntime(cached_design(cfg), weight_set=1, cfg=cfg)
     assert fixed.preview_trust(pv) == "unused"
+
+
+@pytest.mark.parametrize("weight_set", [0, 1, 2])
+def test_step_previewed_is_the_check_then_the_step(weight_set: int) -> None:
+    """BankRuntime.step_previewed (the loop's one compiled call with a live preview)
+    gives the force, the call and the state of check_road_preview then step, to the
+    bit: the travel schedule (weight set 0) through the trust time and a reset, a fixed
+    weight set, and the governed comfort set; readings near the stops so that the
+    check calls the travel law on some ticks and not on others."""
+    cfg = default_config()
+    pv = road_preview(cfg)
+    assert pv is not None
+    n = 5200                                # past the trust time (4801 ticks)
+    road = make_road("rough-course", 11.176, n / 1000 + 0.3, cfg.sample_time_s, seed=1)
+    ride = simulate(cfg, road, "passive", 1, seed=1).traces      # the passive rig's sensors
+    reading, accel = ride["meas_rattlespace_m"], ride["meas_accel_mps2"]
+    force = 400.0 * np.sin(2 * np.pi * 0.7 * ride["time_s"])   # a load cell's reading
+    ring = np.ascontiguousarray(np.append(np.diff(ride["road_height_m"]) / cfg.sample_time_s,
+                                          np.zeros(pv.horizon_ticks + 1)))
+    apart = BankRuntime(cached_design(cfg), weight_set=weight_set, cfg=cfg)
+    fused = BankRuntime(cached_design(cfg), weight_set=weight_set, cfg=cfg)
+    calls = 0
+    for k in range(n):
+        if k == n - 100:                        # a reset: the edge's prediction again
+            apart.reset()
+            fused.reset()
+        called = apart.check_road_preview(pv, reading[k], force[k], ring, k)
+        u_apart = apart.step(reading[k], accel[k], force[k])
+        u_fused = fused.step_previewed(pv, reading[k], accel[k], force[k], ring, k)
+        assert (u_fused, fused.preview_called) == (u_apart, called), k
+        calls += called
+    np.testing.assert_array_equal(fused._fv, apart._fv)
+    same = np.arange(fused._iv.size) != I_PVCALL     # the fused call's own read-out
+    np.testing.assert_array_equal(fused._iv[same], apart._iv[same])
+    if weight_set == 1:
+        assert calls == 0                       # a fixed weight set takes no preview
+    else:
+        assert 0 < calls < n - 500, calls
 
 
 @settings(max_examples=30, deadline=None)

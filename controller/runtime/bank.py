@@ -230,6 +230,7 @@ from controller.runtime.kernels import (
     I_PROBE,
     I_PROBE_CNT,
     I_PROBE_PTR,
+    I_PVCALL,
     I_QGRID,
     I_RECOMP,
     I_RH_OFF,
@@ -375,8 +376,19 @@ _SIG_TICK = nb.float64(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, 
                        nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1],
                        nb.float64, nb.float64, nb.float64, nb.float64[:, ::1],
                        nb.boolean[::1], nb.int64[::1])
+#: :data:`_SIG_TICK` and the road preview (:func:`bank_tick_preview`): the predictor's
+#: ``rows`` (L, P, 4), ``ticks`` (P,), ``impulse`` (L, H), ``force_rows`` (L, P),
+#: ``trigger_m`` (L,), ``edge_trigger_m``, the tick the running layer is trusted from,
+#: the road velocity ring and the window's start in it
+_SIG_TICK_PREVIEW = nb.float64(*_SIG_TICK.args, nb.float64[:, :, ::1], nb.int64[::1],
+                               nb.float64[:, ::1], nb.float64[:, ::1], nb.float64[::1],
+                               nb.float64, nb.int64, nb.float64[::1], nb.int64)
 _SIG_CFG = nb.void(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
                    nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1], nb.int64)
+
+
+#: :attr:`BankRuntime._trusted_from_tick` of the governed comfort set: no tick
+_NEVER_TRUSTED = 2 ** 62
 
 
 # ============================================================================ kernels
@@ -761,6 +773,79 @@ def bank_tick(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     return u
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def raise_travel_envelope(fv: np.ndarray) -> None:
+    """Call the travel law (:meth:`BankRuntime.call_travel_law`): raise the travel
+    schedule's usage envelope so that the next step finds it at the running schedule's
+    full-travel usage at least.  No effect when the schedule is off."""
+    if fv[F_TS_ON] == 0.0:
+        return
+    full = fv[F_TS + 1] + 1.0 / fv[F_TS + 2]
+    decay = fv[F_TS + 3]
+    target = full / decay if decay > 0.0 else full     # the step decays it once first
+    if not fv[F_TS_ENV] >= target:
+        fv[F_TS_ENV] = target
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _preview_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.ndarray,
+                   impulse: np.ndarray, force_rows: np.ndarray, trigger_m: np.ndarray,
+                   edge_trigger_m: float, trusted_from_tick: int, reading_m: float,
+                   force_meas_n: float, road_velocity: np.ndarray, start: int) -> bool:
+    """:meth:`BankRuntime.check_road_preview` on the packed state: predict the reading
+    by the running layer's model and call the travel law when the peak passes the
+    layer's trigger (before ``trusted_from_tick``: the edge's prediction, no force, and
+    trigger) or is not finite.  A layer the predictor does not have calls it too."""
+    if fv[F_TS_ON] == 0.0:          # a fixed weight set: no travel law to call
+        return False
+    layer = iv[I_LAYER]
+    if layer >= rows.shape[0] or layer >= trigger_m.shape[0]:
+        raise_travel_envelope(fv)
+        return True
+    if iv[I_TICK] < trusted_from_tick:
+        force_meas_n = 0.0
+        trigger = edge_trigger_m
+    else:
+        trigger = trigger_m[layer]
+    peak = predicted_peak_m(rows, ticks, impulse, force_rows, layer, fv[F_XDEV:F_XDEV + 4],
+                            force_meas_n, reading_m, fv[F_TS], road_velocity, start)
+    if peak <= trigger:
+        return False
+    raise_travel_envelope(fv)
+    return True
+
+
+@nb.njit(cache=True, nogil=True)
+def road_preview_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.ndarray,
+                       impulse: np.ndarray, force_rows: np.ndarray, trigger_m: np.ndarray,
+                       edge_trigger_m: float, trusted_from_tick: int, reading_m: float,
+                       force_meas_n: float, road_velocity: np.ndarray, start: int) -> bool:
+    """:func:`_preview_check` alone (:meth:`BankRuntime.check_road_preview`)."""
+    return _preview_check(fv, iv, rows, ticks, impulse, force_rows, trigger_m,
+                          edge_trigger_m, trusted_from_tick, reading_m, force_meas_n,
+                          road_velocity, start)
+
+
+@nb.njit(_SIG_TICK_PREVIEW, cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]
+def bank_tick_preview(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+                      fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, rattlespace_m: float,
+                      accel_mps2: float, force_meas_n: float, run_st: np.ndarray,
+                      run_active: np.ndarray, run_models: np.ndarray, rows: np.ndarray,
+                      ticks: np.ndarray, impulse: np.ndarray, force_rows: np.ndarray,
+                      trigger_m: np.ndarray, edge_trigger_m: float, trusted_from_tick: int,
+                      road_velocity: np.ndarray, start: int) -> float:
+    """The road preview's check (:func:`_preview_check`: ``iv[I_PVCALL]`` 1 when it
+    called the travel law), then :func:`bank_tick`, in one call: what
+    :meth:`BankRuntime.check_road_preview` and :meth:`BankRuntime.step` do one after
+    the other, to the bit.  Allocation-free, never raises."""
+    called = _preview_check(fv, iv, rows, ticks, impulse, force_rows, trigger_m,
+                            edge_trigger_m, trusted_from_tick, rattlespace_m, force_meas_n,
+                            road_velocity, start)
+    iv[I_PVCALL] = 1 if called else 0
+    return bank_tick(mat, vec, st, active, fv, iv, nbr, rattlespace_m, accel_mps2,
+                     force_meas_n, run_st, run_active, run_models)
+
+
 @nb.njit(nogil=True)          # compiled on first use only (bench and tests)
 def bank_steps(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
                fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, data: np.ndarray) -> float:
@@ -889,6 +974,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     iv[I_LSINCE] = 0
     iv[I_LCAND] = -1
     iv[I_NLAYERSW] = 0
+    iv[I_PVCALL] = 0
     iv[I_CENTRE] = iv[I_SINGLE]
     bank_configure(mat, vec, st, active, fv, iv, nbr, blend)
     n = 0
@@ -1361,6 +1447,11 @@ class BankRuntime:
                 bank_step(self._mat, self._vec, st, act, fv, iv, self._nbr, 0.0, 0.0, 0.0)
             bank_tick(self._mat, self._vec, st, act, fv, iv, self._nbr, math.nan, 0.0, 0.0,
                       self._st_run.copy(), self._active_run.copy(), self._models_run.copy())
+            bank_tick_preview(self._mat, self._vec, st, act, fv, iv, self._nbr, 0.0, 0.0, 0.0,
+                              self._st_run.copy(), self._active_run.copy(),
+                              self._models_run.copy(), np.zeros((1, 1, 4)),
+                              np.ones(1, dtype=np.int64), np.zeros((1, 1)), np.zeros((1, 1)),
+                              np.zeros(1), 0.0, 0, np.zeros(1), 0)
         _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index,
                 self._table_w)
 
@@ -1404,6 +1495,9 @@ class BankRuntime:
             raise ValueError(f"weight_set {weight_set!r}: allowed 0..{n} (0 = travel schedule)")
         self.weight_set = w
         self.governed = governed
+        # the road preview trusts the running layer from this tick after a reset on;
+        # never under the travel governor (check_road_preview)
+        self._trusted_from_tick = _NEVER_TRUSTED if governed else self.preview_trust_ticks
         self._table_w = table
         self._fv[F_TS_ON] = 1.0 if w == 0 or governed else 0.0
         self.use_preview_schedule(self.preview_schedule)
@@ -1460,24 +1554,37 @@ class BankRuntime:
         ``preview.trigger_m`` or is not finite; the governed comfort set (:attr:`governed`),
         and any law in the first :attr:`preview_trust_ticks` after a reset, predicts
         without the force and takes ``preview.edge_trigger_m``.
-        True when it called.  Allocates nothing."""
-        fv = self._fv
-        if fv[F_TS_ON] == 0.0:          # a fixed weight set: no travel law to call
-            return False
-        layer = int(self._iv[I_LAYER])
-        if self.governed or self._iv[I_TICK] < self.preview_trust_ticks:
-            # the governed comfort set, or a layer not yet estimated: the edge's
-            # prediction (no force) and trigger
-            force_meas_n, trigger_m = 0.0, preview.edge_trigger_m
-        else:
-            trigger_m = preview.trigger_m[layer]
-        peak = predicted_peak_m(preview.rows, preview.ticks, preview.impulse,
-                                preview.force_rows, layer, self.x_deviation,
-                                force_meas_n, reading_m, fv[F_TS], road_velocity, start)
-        if peak <= trigger_m:
-            return False
-        self.call_travel_law()
-        return True
+        True when it called.  Allocates nothing.  :meth:`step_previewed` does this and
+        :meth:`step` in one call."""
+        return bool(road_preview_check(
+            self._fv, self._iv, preview.rows, preview.ticks, preview.impulse,
+            preview.force_rows, preview.trigger_m, preview.edge_trigger_m,
+            self._trusted_from_tick, reading_m, force_meas_n, road_velocity, start))
+
+    def step_previewed(self, preview: RoadPreview, rattlespace_m: float, accel_mps2: float,
+                       force_meas_n: float, road_velocity: np.ndarray, start: int) -> float:
+        """:meth:`check_road_preview` (on the reading ``rattlespace_m``) then
+        :meth:`step`, to the bit, in one compiled call (the loop's tick with a live
+        preview: one call costs a tick less than two); :attr:`preview_called` says
+        whether the check called the travel law.  ``preview``'s arrays are C-contiguous
+        (as :func:`controller.road_preview.road_preview` builds them), ``road_velocity``
+        a C-contiguous float64 array.  Never raises."""
+        try:
+            return bank_tick_preview(
+                self._mat, self._vec, self._st, self._active, self._fv, self._iv,
+                self._nbr, rattlespace_m, accel_mps2, force_meas_n, self._st_run,
+                self._active_run, self._models_run, preview.rows, preview.ticks,
+                preview.impulse, preview.force_rows, preview.trigger_m,
+                preview.edge_trigger_m, self._trusted_from_tick, road_velocity, start)
+        except (TypeError, ValueError, OverflowError):
+            self._iv[I_PVCALL] = 0
+            self._iv[I_FLAGS] = _NONFINITE_INPUT
+            return 0.0
+
+    @property
+    def preview_called(self) -> bool:
+        """The last :meth:`step_previewed` called the travel law."""
+        return bool(self._iv[I_PVCALL])
 
     def preview_trust(self, preview: RoadPreview) -> str:
         """How far :meth:`check_road_preview` trusts its prediction on this tick:
@@ -1502,14 +1609,7 @@ class BankRuntime:
         usage (``design.preview_schedule_full_m`` under :meth:`use_preview_schedule`) at least:
         the travel law has the whole force, then the schedule's usual release follows.
         No effect when the schedule is off (a fixed weight set).  Allocates nothing."""
-        fv = self._fv
-        if fv[F_TS_ON] == 0.0:
-            return
-        full = fv[F_TS + 1] + 1.0 / fv[F_TS + 2]
-        decay = fv[F_TS + 3]
-        target = full / decay if decay > 0.0 else full     # the step decays it once first
-        if not fv[F_TS_ENV] >= target:
-            fv[F_TS_ENV] = target
+        raise_travel_envelope(self._fv)
 
     # ------------------------------------------------------------------ read-outs
     @property

@@ -379,6 +379,8 @@ I_LAYER = IV.slot()  # layer the bank runs (state)
 I_LCAND = IV.slot()  # layer the estimate prefers to the running one (state)
 I_LSINCE = IV.slot()  # ticks I_LCAND has been preferred in a row (state)
 I_NLAYERSW = IV.slot()  # layer changes since reset (state)
+# --- iv: road preview (controller/road_preview.py)
+I_PVCALL = IV.slot()  # 1: the road preview called the travel law in the last previewed tick (state)
 IV_ACT = IV.size  # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
 IV_HEAD = IV.size  # iv has IV_HEAD + J entries
 

@@ -58,7 +58,7 @@ import can
 import numpy as np
 
 from controller.config import RigConfig
-from controller.road_preview import predicted_peak_m, road_preview
+from controller.road_preview import road_preview
 from controller.runtime.kernels import StepFlag
 from rig.operator_commands import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout, TickPacker
@@ -239,11 +239,6 @@ class ControlLoop:
         self.preview_stream = (None if self.road_preview is None
                                else RoadPreviewStream(self.road_preview.horizon_ticks))
         self.io.preview = self.preview_stream
-        if self.road_preview is not None:      # load the kernel now, not in a tick
-            pv = self.road_preview
-            predicted_peak_m(pv.rows, pv.ticks, pv.impulse, pv.force_rows, 0, np.zeros(4),
-                             0.0, 0.0, 0.0, self.preview_stream.ring,  # type: ignore[union-attr]
-                             0)
         self.preview_live = False
         self.preview_calls = 0          # ticks in which the preview called the travel law
         self._requests: collections.deque[_Request] = collections.deque(maxlen=64)
@@ -509,16 +504,20 @@ class ControlLoop:
             if mon.sensor_seen:
                 rt = self.rt
                 pv = self.road_preview
+                start = -1
                 if pv is not None:
-                    stream = self.preview_stream
-                    start = stream.window_start()     # type: ignore[union-attr]
+                    start = self.preview_stream.window_start()  # type: ignore[union-attr]
                     if (start >= 0) is not self.preview_live:
                         self._on_preview_change(start >= 0, now_ns, tick)
-                    if start >= 0 and rt.check_road_preview(
-                            pv, io.rattlespace_m, io.force_meas_n,
-                            stream.ring, start):  # type: ignore[union-attr]
+                if start >= 0:
+                    # the preview's check and the step in one compiled call
+                    force_ref = rt.step_previewed(
+                        pv, io.rattlespace_m, io.accel_mps2, io.force_meas_n,
+                        self.preview_stream.ring, start)  # type: ignore[union-attr]
+                    if rt.preview_called:
                         self.preview_calls += 1
-                force_ref = rt.step(io.rattlespace_m, io.accel_mps2, io.force_meas_n)
+                else:
+                    force_ref = rt.step(io.rattlespace_m, io.accel_mps2, io.force_meas_n)
                 flags = rt.flag_bits
                 if (flags ^ self.bank_flags) & _DEGRADED:
                     self._on_degraded_change(flags, now_ns, tick)

@@ -68,6 +68,11 @@ class Runtime(Protocol):
     def use_preview_schedule(self, live: bool) -> None: ...
     def check_road_preview(self, preview: Any, reading_m: float, force_meas_n: float,
                            road_velocity: np.ndarray, start: int) -> bool: ...
+    def step_previewed(self, preview: Any, rattlespace_m: float, accel_mps2: float,
+                       force_meas_n: float, road_velocity: np.ndarray, start: int
+                       ) -> float: ...              # check_road_preview, then step
+    @property
+    def preview_called(self) -> bool: ...           # ... and its check called the law
     def preview_trust(self, preview: Any) -> str: ...   # how far the prediction is trusted
 
 

@@ -57,6 +57,7 @@ class FakeRuntime:
         self.damping_est_ns_per_m = 1650.0
         self.wheel_hop_hz = 9.49                # the configured rig's passive wheel hop
         self.tire_stiffness_est = 1.0
+        self.preview_called = False
         self.steps = 0
         self.resets = 0
         self.output: float | None = None      # force the output when set
@@ -97,6 +98,12 @@ class FakeRuntime:
 
     def preview_trust(self, preview: Any) -> str:
         return "inside" if self.takes_road_preview else "unused"
+
+    def step_previewed(self, preview: Any, rattlespace_m: float, accel_mps2: float,
+                       force_meas_n: float, road_velocity: Any, start: int) -> float:
+        self.preview_called = self.check_road_preview(preview, rattlespace_m, force_meas_n,
+                                                      road_velocity, start)
+        return self.step(rattlespace_m, accel_mps2, force_meas_n)
 
 
 class RigSide:
