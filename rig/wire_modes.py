@@ -21,11 +21,17 @@ TO_WIRE: Final = MappingProxyType({
     Blending.LQG: WireBlending.LQG,
 })
 _FROM_WIRE: Final = MappingProxyType({w: b for b, w in TO_WIRE.items()})
+#: :data:`TO_WIRE` as plain ints, for the loop's heartbeat (an enum built per call costs
+#: the heartbeat tick microseconds with cold caches)
+_TO_WIRE_CODE: Final = MappingProxyType({int(b): int(w) for b, w in TO_WIRE.items()})
 
 
 def to_wire(blending: Blending | int) -> int:
     """The controller's mode (or its code) -> the wire value (ValueError if unknown)."""
-    return int(TO_WIRE[Blending(int(blending))])
+    code = _TO_WIRE_CODE.get(blending)      # a Blending hashes as its int code
+    if code is None:
+        return int(TO_WIRE[Blending(int(blending))])    # ValueError: no such mode
+    return code
 
 
 def from_wire(value: int) -> Blending:

@@ -279,7 +279,10 @@ def test_blending_wire_map_is_complete_and_one_to_one() -> None:
     assert set(BANK_MODES.values()) == set(ModeBlending)
     for mode in ModeBlending:
         assert from_wire(to_wire(mode)) is mode
+        assert to_wire(int(mode)) == to_wire(mode) == int(TO_WIRE[mode])   # the code too
         assert TO_WIRE[mode].name == mode.name   # same meaning, spelled alike
+    with pytest.raises(ValueError):
+        to_wire(max(ModeBlending) + 1)
     dbc: Any = cantools.database.load_file(str(DBC_PATH))
     choices = dbc.get_message_by_name("ControllerStatus").get_signal_by_name("Blending").choices
     assert {int(v) for v in choices} == {int(w) for w in WireBlending}
