@@ -25,21 +25,93 @@ integrator under saturation and give recovery without overshoot from wind-up.
 A non-finite reference, force or rattlespace returns 0.0 (valve centred), sets
 ``flags = StepFlag.NONFINITE_INPUT`` and leaves the integrator and the filter untouched;
 the step never raises.  ``reset()`` clears the integrator and the rate filter.
+
+The step is one numba call (:func:`pi_force_step`) on a parameter and a state array;
+``tests/support/reference_force_loop.py`` keeps the plain-Python statement it matches
+to the bit.
 """
 
 from __future__ import annotations
 
 import math
 
+import numba as nb
+import numpy as np
+
 from controller.actuator import FlowFeedforward, flow_feedforward
 from controller.config import ForceLoopConfig, RigConfig
 from controller.runtime.kernels import StepFlag
 
-__all__ = ["PIForceLoop"]
+__all__ = ["PIForceLoop", "pi_force_step"]
 
-# built once: StepFlag(...) goes through the enum machinery (~1 us) on every call
-_NO_FLAGS = StepFlag(0)
-_NONFINITE_INPUT = StepFlag.NONFINITE_INPUT
+# parameter slots of pi_force_step
+_P_KP, _P_KI, _P_LIM, _P_LIMF, _P_DT, _P_FF, _P_B, _P_A, _P_C, _P_STALL, _P_FLOOR = range(11)
+_P_SIZE = 11
+# state slots: integral I [N s], rate filter state w (NaN: no reading yet), error [N],
+# s_ff, saturated (0 / 1), flags (StepFlag bits)
+_S_I, _S_W, _S_E, _S_FF, _S_SAT, _S_FLAGS = range(6)
+_S_SIZE = 6
+_NONFINITE_INPUT = float(StepFlag.NONFINITE_INPUT)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _max(a: float, b: float) -> float:
+    """Python's ``max(a, b)``: a unless b is larger."""
+    return b if b > a else a
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _min(a: float, b: float) -> float:
+    """Python's ``min(a, b)``: a unless b is smaller."""
+    return b if b < a else a
+
+
+@nb.njit(nb.float64(nb.float64[::1], nb.float64[::1], nb.float64, nb.float64, nb.float64),
+         cache=True, nogil=True)
+def pi_force_step(p: np.ndarray, s: np.ndarray, force_ref_n: float, force_meas_n: float,
+                  rattlespace_m: float) -> float:
+    """One tick of the force loop (module docstring) on the parameters ``p`` and the
+    state ``s`` (:class:`PIForceLoop`'s slots): the spool command.  Allocation-free,
+    never raises."""
+    if not (math.isfinite(force_ref_n) and math.isfinite(force_meas_n)
+            and math.isfinite(rattlespace_m)):
+        s[_S_FLAGS] = _NONFINITE_INPUT
+        return 0.0
+    s[_S_FLAGS] = 0.0
+    ff = 0.0
+    if p[_P_FF] != 0.0:
+        # FlowFeedforward.step: the rate filter (started at rest) and the sqrt law
+        b = p[_P_B]
+        w = s[_S_W]
+        if math.isnan(w):
+            w = -b * rattlespace_m
+        rho = w + b * rattlespace_m
+        s[_S_W] = (1.0 - p[_P_A]) * rho - b * rattlespace_m
+        v = -rho
+        c = p[_P_C]
+        if v != 0.0 and c != 0.0:
+            sgn = 1.0 if v > 0.0 else -1.0
+            drop = _max(1.0 - sgn * force_meas_n / p[_P_STALL], p[_P_FLOOR])
+            ff = c * v / math.sqrt(drop)
+    s[_S_FF] = ff
+    lim_f = p[_P_LIMF]
+    ref = _min(_max(force_ref_n, -lim_f), lim_f)
+    e = ref - force_meas_n
+    s[_S_E] = e
+    lim = p[_P_LIM]
+    kp = p[_P_KP]
+    ki = p[_P_KI]
+    trial_i = s[_S_I] + e * p[_P_DT]
+    unclipped = kp * e + ki * trial_i + ff
+    winding_up = (unclipped > lim and e > 0.0) or (unclipped < -lim and e < 0.0)
+    if not winding_up:
+        s[_S_I] = trial_i
+    if ki > 0.0:  # the integral term alone never exceeds the valve authority
+        i_max = lim / ki
+        s[_S_I] = _min(_max(s[_S_I], -i_max), i_max)
+    out = kp * e + ki * s[_S_I] + ff
+    s[_S_SAT] = 1.0 if abs(out) > lim else 0.0
+    return _min(_max(out, -lim), lim)
 
 
 class PIForceLoop:
@@ -60,12 +132,20 @@ class PIForceLoop:
         self.force_limit_n = float(cfg.force_limit_n)
         self.dt_s = float(dt_s)
         self.feedforward = feedforward
-        self.integral_ns = 0.0          # I [N s]
-        self.flags = _NO_FLAGS
-        self.saturated = False          # last output was clipped
-        self.error_n = 0.0
-        self.feedforward_spool = 0.0    # s_ff of the last tick
-        self.rate_state_mps = math.nan  # w of the rate filter; NaN = no reading yet
+        p = np.zeros(_P_SIZE)
+        p[_P_KP], p[_P_KI] = self.kp_per_n, self.ki_per_ns
+        p[_P_LIM], p[_P_LIMF], p[_P_DT] = self.output_limit, self.force_limit_n, self.dt_s
+        if feedforward is not None:
+            p[_P_FF] = 1.0
+            p[_P_B] = feedforward.rate_input_gain_per_s
+            p[_P_A] = feedforward.rate_filter_coeff
+            p[_P_C] = feedforward.gain_s_per_m
+            p[_P_STALL] = feedforward.stall_force_n
+            p[_P_FLOOR] = feedforward.min_pressure_drop_fraction
+        self._p = p
+        self._s = np.zeros(_S_SIZE)
+        self.reset()
+        pi_force_step(p, self._s.copy(), 0.0, 0.0, 0.0)     # loaded now, not in a tick
 
     @classmethod
     def from_config(cls, cfg: RigConfig) -> PIForceLoop:
@@ -75,42 +155,40 @@ class PIForceLoop:
 
     def reset(self) -> None:
         """Clear the integrator, the rate filter and the flags."""
-        self.integral_ns = 0.0
-        self.flags = _NO_FLAGS
-        self.saturated = False
-        self.error_n = 0.0
-        self.feedforward_spool = 0.0
-        self.rate_state_mps = math.nan
+        self._s[:] = 0.0
+        self._s[_S_W] = math.nan
 
     def step(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float) -> float:
         """One tick: the spool command in [-output_limit, output_limit]."""
-        if not (math.isfinite(force_ref_n) and math.isfinite(force_meas_n)
-                and math.isfinite(rattlespace_m)):
-            self.flags = _NONFINITE_INPUT
-            return 0.0
-        self.flags = _NO_FLAGS
-        ff = 0.0
-        fwd = self.feedforward
-        if fwd is not None:
-            w = self.rate_state_mps
-            if math.isnan(w):
-                w = fwd.initial_state(rattlespace_m)
-            ff, self.rate_state_mps = fwd.step(w, rattlespace_m, force_meas_n)
-        self.feedforward_spool = ff
-        lim_f = self.force_limit_n
-        ref = min(max(force_ref_n, -lim_f), lim_f)
-        e = ref - force_meas_n
-        self.error_n = e
-        lim = self.output_limit
-        kp, ki = self.kp_per_n, self.ki_per_ns
-        trial_i = self.integral_ns + e * self.dt_s
-        unclipped = kp * e + ki * trial_i + ff
-        winding_up = (unclipped > lim and e > 0.0) or (unclipped < -lim and e < 0.0)
-        if not winding_up:
-            self.integral_ns = trial_i
-        if ki > 0.0:  # the integral term alone never exceeds the valve authority
-            i_max = lim / ki
-            self.integral_ns = min(max(self.integral_ns, -i_max), i_max)
-        out = kp * e + ki * self.integral_ns + ff
-        self.saturated = abs(out) > lim
-        return min(max(out, -lim), lim)
+        return pi_force_step(self._p, self._s, force_ref_n, force_meas_n, rattlespace_m)
+
+    # ------------------------------------------------------------------ read-outs
+    @property
+    def integral_ns(self) -> float:
+        """I [N s]."""
+        return float(self._s[_S_I])
+
+    @property
+    def rate_state_mps(self) -> float:
+        """w of the rate filter; NaN = no reading yet."""
+        return float(self._s[_S_W])
+
+    @property
+    def error_n(self) -> float:
+        """The force error of the last tick [N]."""
+        return float(self._s[_S_E])
+
+    @property
+    def feedforward_spool(self) -> float:
+        """s_ff of the last tick."""
+        return float(self._s[_S_FF])
+
+    @property
+    def saturated(self) -> bool:
+        """The last output was clipped."""
+        return bool(self._s[_S_SAT])
+
+    @property
+    def flags(self) -> StepFlag:
+        """NONFINITE_INPUT when the last tick's inputs were not finite."""
+        return StepFlag(int(self._s[_S_FLAGS]))
