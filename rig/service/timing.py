@@ -6,7 +6,8 @@ Two quantities per tick, both in integer nanoseconds:
   minus the tick's deadline, i.e. how late the tick started;
 - **step time**: wake-up to the end of the tick's work (including CAN I/O).
 
-Each is kept twice, in preallocated numpy buffers: a ring of the last ``ring_size``
+Each is kept twice, in preallocated buffers (``array.array``, written per tick, with numpy
+views of the same memory for the statistics): a ring of the last ``ring_size``
 samples (recent behaviour, exact percentiles) and a whole-run histogram with 1 us bins
 up to ``hist_max_us`` (overflow in the last bin; the exact maximum is kept aside).
 :meth:`TimingStats.start_tick` / :meth:`TimingStats.end_tick` are O(1) and allocate
@@ -18,6 +19,7 @@ which works in a preallocated buffer.
 from __future__ import annotations
 
 import math
+from array import array
 
 import numpy as np
 
@@ -51,13 +53,20 @@ class TimingStats:
         self.miss_threshold_ns = int(miss_threshold_ns)
         self.ring_size = int(ring_size)
         self.hist_max_us = int(hist_max_us)
-        self.lateness_ring = np.zeros(ring_size, dtype=np.int64)
-        self.step_ring = np.zeros(ring_size, dtype=np.int64)
-        self.lateness_hist = np.zeros(hist_max_us + 1, dtype=np.int64)
-        self.step_hist = np.zeros(hist_max_us + 1, dtype=np.int64)
+        # the hot path writes the Python arrays (a fraction of numpy's cost per element);
+        # the numpy attributes are views of the same memory, for the statistics
+        self._lat = array("q", bytes(8 * ring_size))
+        self._stp = array("q", bytes(8 * ring_size))
+        self._lat_hist = array("q", bytes(8 * (hist_max_us + 1)))
+        self._stp_hist = array("q", bytes(8 * (hist_max_us + 1)))
+        self._skip = array("q", bytes(8 * RECENT_TICKS))
+        self.lateness_ring = np.frombuffer(self._lat, dtype=np.int64)
+        self.step_ring = np.frombuffer(self._stp, dtype=np.int64)
+        self.lateness_hist = np.frombuffer(self._lat_hist, dtype=np.int64)
+        self.step_hist = np.frombuffer(self._stp_hist, dtype=np.int64)
         self._cum = np.zeros(hist_max_us + 1, dtype=np.int64)
         #: deadlines skipped after each of the last RECENT_TICKS ticks (index: tick % size)
-        self.recent_skipped = np.zeros(RECENT_TICKS, dtype=np.int64)
+        self.recent_skipped = np.frombuffer(self._skip, dtype=np.int64)
         self.reset()
 
     def reset(self) -> None:
@@ -80,10 +89,10 @@ class TimingStats:
     def start_tick(self, lateness_ns: int) -> None:
         """Record the lateness of the tick that starts now.  O(1)."""
         i = self._index
-        self.lateness_ring[i] = lateness_ns
+        self._lat[i] = lateness_ns
         b = lateness_ns // 1000
         top = self.hist_max_us
-        self.lateness_hist[0 if b < 0 else (b if b < top else top)] += 1
+        self._lat_hist[0 if b < 0 else (b if b < top else top)] += 1
         if lateness_ns > self.max_lateness_ns:
             self.max_lateness_ns = lateness_ns
         if lateness_ns > self.overrun_threshold_ns:
@@ -93,18 +102,18 @@ class TimingStats:
             self.overrun_streak = 0
         if lateness_ns > self.miss_threshold_ns:
             self.misses += 1
-        self.recent_skipped[self.count % RECENT_TICKS] = 0
+        self._skip[self.count % RECENT_TICKS] = 0
         self.count += 1
 
     def end_tick(self, step_ns: int) -> None:
         """Record the step time of the tick started by :meth:`start_tick`.  O(1)."""
         self._ended += 1
         i = self._index
-        self.step_ring[i] = step_ns
+        self._stp[i] = step_ns
         self._index = i + 1 if i + 1 < self.ring_size else 0
         b = step_ns // 1000
         top = self.hist_max_us
-        self.step_hist[0 if b < 0 else (b if b < top else top)] += 1
+        self._stp_hist[0 if b < 0 else (b if b < top else top)] += 1
         if step_ns > self.max_step_ns:
             self.max_step_ns = step_ns
 
