@@ -41,6 +41,7 @@ import numpy as np
 from controller.actuator import FlowFeedforward, flow_feedforward
 from controller.config import ForceLoopConfig, RigConfig
 from controller.runtime.kernels import StepFlag
+from controller.runtime.layout import SlotValue
 
 __all__ = ["PIForceLoop", "pi_force_step"]
 
@@ -163,32 +164,10 @@ class PIForceLoop:
         return pi_force_step(self._p, self._s, force_ref_n, force_meas_n, rattlespace_m)
 
     # ------------------------------------------------------------------ read-outs
-    @property
-    def integral_ns(self) -> float:
-        """I [N s]."""
-        return float(self._s[_S_I])
-
-    @property
-    def rate_state_mps(self) -> float:
-        """w of the rate filter; NaN = no reading yet."""
-        return float(self._s[_S_W])
-
-    @property
-    def error_n(self) -> float:
-        """The force error of the last tick [N]."""
-        return float(self._s[_S_E])
-
-    @property
-    def feedforward_spool(self) -> float:
-        """s_ff of the last tick."""
-        return float(self._s[_S_FF])
-
-    @property
-    def saturated(self) -> bool:
-        """The last output was clipped."""
-        return bool(self._s[_S_SAT])
-
-    @property
-    def flags(self) -> StepFlag:
-        """NONFINITE_INPUT when the last tick's inputs were not finite."""
-        return StepFlag(int(self._s[_S_FLAGS]))
+    integral_ns = SlotValue("_s", _S_I, float, "I [N s].")
+    rate_state_mps = SlotValue("_s", _S_W, float, "w of the rate filter; NaN = no reading yet.")
+    error_n = SlotValue("_s", _S_E, float, "The force error of the last tick [N].")
+    feedforward_spool = SlotValue("_s", _S_FF, float, "s_ff of the last tick.")
+    saturated = SlotValue("_s", _S_SAT, bool, "The last output was clipped.")
+    flags = SlotValue("_s", _S_FLAGS, lambda v: StepFlag(int(v)),
+                      "NONFINITE_INPUT when the last tick's inputs were not finite.")
