@@ -889,8 +889,11 @@ def test_status_and_commands_are_rate_limited(port: int,
         assert r.tp.status()["status_refused"] == 18
         assert not [rec for rec in caplog.records if rec.name.startswith("rig")], \
             [rec.getMessage() for rec in caplog.records]
-        # built on the publisher thread, never on a Zenoh thread per query
-        assert calls and set(calls) == {"rig-telemetry"}
+        # built on the publisher thread, never on a Zenoh thread per query (the answers
+        # above may all come from the build before the provider was wrapped: wait for
+        # the next refresh, every 0.2 s)
+        assert wait_for(lambda: bool(calls))
+        assert set(calls) == {"rig-telemetry"}
         got = [query(s2, "rig/cmd/arm") for _ in range(5)]
         assert [g[0][0] for g in got] == [True, True, False, False, False]
         assert got[-1][0][1]["error"] == "rate limited: too many commands"
