@@ -382,6 +382,28 @@ class DesignConfig:
                                           "preview_trigger_inner_m (every layer when that "
                                           "is 0; 0 = the no-force prediction; "
                                           "docs/design.md §12)")
+    preview_stop_clamp_m: float = _f(0.08, lo=0.0, hi=1.0,
+                                     doc="road preview: when the no-force prediction of "
+                                         "the LVDT reading (the running layer's model) "
+                                         "reaches this distance from the stops' centre "
+                                         "within preview_clamp_horizon_s, the force toward "
+                                         "that stop is clipped to 0, for every law and "
+                                         "weight set, so the actuator never drives the "
+                                         "body into a stop the unloaded rig is about to "
+                                         "reach [m] (0 = off; docs/design.md §12)")
+    preview_clamp_horizon_s: float = _f(0.05, lo=0.0, hi=1.0, lo_open=True,
+                                        doc="road preview: how far ahead the stop clamp "
+                                            "(preview_stop_clamp_m) looks, at the "
+                                            "preview_check_s look-ahead times up to it "
+                                            "(at least the first), up to "
+                                            "preview_horizon_s and 255 ticks [s]")
+    preview_clamp_trust_m: float = _f(0.03, lo=0.0, hi=1.0, lo_open=True,
+                                      doc="road preview: the stop clamp acts only while its "
+                                          "own predictions come true: the RMS error of the "
+                                          "no-force prediction at its last look-ahead time "
+                                          "against the reading that came (exponential "
+                                          "window of 0.2 s) below this [m]; a bank on a "
+                                          "layer far from its plant predicts metres")
     preview_schedule_start_m: float = _f(0.05, lo=0.0, hi=1.0,
                                          doc="road preview: schedule_start_m while a road "
                                              "preview is live (schedule_start_m applies "
@@ -1041,6 +1063,13 @@ def _cross_checks(cfg: RigConfig) -> None:
         raise ConfigError("design.preview_horizon_s", d.preview_horizon_s,
                           "0 while design.schedule_release_s is 0 (the preview holds the "
                           "travel law through the schedule's release)")
+    if round(d.preview_clamp_horizon_s * d.sample_rate_hz) > 255:
+        raise ConfigError("design.preview_clamp_horizon_s", d.preview_clamp_horizon_s,
+                          f"at most 255 ticks ({255 / d.sample_rate_hz:g} s at "
+                          "design.sample_rate_hz)")
+    if 0.0 < d.preview_horizon_s < d.preview_clamp_horizon_s:
+        raise ConfigError("design.preview_clamp_horizon_s", d.preview_clamp_horizon_s,
+                          f"at most design.preview_horizon_s ({d.preview_horizon_s:g})")
     if 0.0 < d.preview_horizon_s < d.preview_check_s:
         raise ConfigError("design.preview_check_s", d.preview_check_s,
                           f"at most design.preview_horizon_s ({d.preview_horizon_s:g})")

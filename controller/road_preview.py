@@ -64,8 +64,8 @@ from controller.plant import (
     tire_secant_stiffness_n_per_m,
 )
 
-__all__ = ["EDGE_KEYS", "RoadPreview", "layer_triggers_m", "layers_inside_grid",
-           "predicted_peak_m", "road_preview"]
+__all__ = ["CLAMP_TRUST_WINDOW_S", "EDGE_KEYS", "RoadPreview", "layer_triggers_m",
+           "layers_inside_grid", "predicted_extremes_m", "predicted_peak_m", "road_preview"]
 
 
 @dataclass(frozen=True)
@@ -83,7 +83,10 @@ class RoadPreview:
     calls the travel law while layer l runs (``design.preview_trigger_m`` on the grid's
     edge, ``preview_trigger_inner_m`` inside it: :func:`layer_triggers_m`);
     ``edge_trigger_m``: ``preview_trigger_m``, the travel governor's on every layer (with
-    the no-force prediction).  Layer l is the bank's
+    the no-force prediction); ``clamp_m``: ``design.preview_stop_clamp_m``, the
+    predicted distance from the stops' centre at which the stop clamp clips the force
+    toward that stop, over the first ``clamp_points`` look-ahead ticks (the ones within
+    ``design.preview_clamp_horizon_s``; 0: the clamp is off).  Layer l is the bank's
     (:func:`controller.config.layer_grid`: its sprung mass, spring rate, damping and
     tire), so the prediction follows the layer the bank runs.
     """
@@ -95,6 +98,8 @@ class RoadPreview:
     horizon_ticks: int
     trigger_m: FloatArray
     edge_trigger_m: float
+    clamp_m: float = 0.0
+    clamp_points: int = 0
 
 
 def _layer_predictor(cfg: RigConfig, ticks: NDArray[np.int64], horizon: int
@@ -183,7 +188,10 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
                        impulse=np.ascontiguousarray([h for _, h, _ in parts]),
                        force_rows=np.ascontiguousarray([f for _, _, f in parts]) * force_on,
                        horizon_ticks=horizon, trigger_m=layer_triggers_m(cfg),
-                       edge_trigger_m=d.preview_trigger_m)
+                       edge_trigger_m=d.preview_trigger_m, clamp_m=d.preview_stop_clamp_m,
+                       clamp_points=(max(1, int(np.sum(ticks <= round(
+                           d.preview_clamp_horizon_s / dt))))
+                           if d.preview_stop_clamp_m > 0.0 else 0))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -193,6 +201,47 @@ def _fold_peak(peak: float, r: float) -> float:
     if a != a:                      # NaN: no prediction
         return math.nan
     return a if a > peak else peak
+
+
+#: the stop clamp's window for the RMS error of its own predictions [s]
+#: (``design.preview_clamp_trust_m``)
+CLAMP_TRUST_WINDOW_S = 0.2
+
+
+@nb.njit(cache=True, nogil=True)
+def predicted_extremes_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
+                         layer: int, dx: np.ndarray, reading_m: float, centre_m: float,
+                         road_velocity: np.ndarray, start: int,
+                         points: int) -> tuple[float, float, float]:
+    """The stop clamp's prediction (``design.preview_stop_clamp_m``): the highest and
+    lowest no-force prediction of the LVDT reading about the stops' centre [m]
+    (compression positive) over now and the first ``points`` (at least 1) checked
+    look-ahead ticks (:class:`RoadPreview`), and the prediction at the last of them, by
+    the model of layer ``layer`` from the state deviation ``dx`` (4,), the measured
+    reading ``reading_m`` and the previewed road velocity ``road_velocity[start:]``
+    [m/s] (fewer samples than a look-ahead tick needs: the missing ones count as 0).
+    All three NaN when any prediction is NaN."""
+    base = reading_m - centre_m
+    if base != base:
+        return math.nan, math.nan, math.nan
+    hi = base
+    lo = base
+    r = base
+    nw = road_velocity.shape[0] - start
+    for p in range(min(points, ticks.shape[0])):
+        j = ticks[p]
+        r = base
+        for s in range(4):
+            r += rows[layer, p, s] * dx[s]
+        for i in range(min(j, nw)):
+            r += impulse[layer, j - 1 - i] * road_velocity[start + i]
+        if r != r:
+            return math.nan, math.nan, math.nan
+        if r > hi:
+            hi = r
+        elif r < lo:
+            lo = r
+    return hi, lo, r
 
 
 @nb.njit(cache=True, nogil=True)

@@ -327,7 +327,13 @@ def test_configuration_checks_name_the_key() -> None:
     with pytest.raises(ConfigError, match=r"design\.preview_horizon_s"):
         default_config().replace(design={"preview_horizon_s": 0.1, "schedule_release_s": 0.0})
     with pytest.raises(ConfigError, match=r"design\.preview_check_s"):
-        default_config().replace(design={"preview_horizon_s": 0.01, "preview_check_s": 0.02})
+        default_config().replace(design={"preview_horizon_s": 0.01, "preview_check_s": 0.02,
+                                         "preview_clamp_horizon_s": 0.01})
+    with pytest.raises(ConfigError, match=r"design\.preview_clamp_horizon_s"):
+        default_config().replace(design={"preview_clamp_horizon_s": 0.3})   # > horizon
+    with pytest.raises(ConfigError, match=r"design\.preview_clamp_horizon_s"):
+        default_config().replace(design={"preview_horizon_s": 1.0,
+                                         "preview_clamp_horizon_s": 0.3})  # > 255 ticks
     with pytest.raises(ConfigError, match=r"design\.preview_trigger_m"):
         default_config().replace(design={"preview_trigger_m": 0.0})
     with pytest.raises(ConfigError, match=r"design\.preview_schedule_full_m"):

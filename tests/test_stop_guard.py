@@ -134,11 +134,13 @@ def test_guard_keeps_a_soft_spring_plant_off_the_stops() -> None:
     compression stop -- over 1.5 s on the stop and a slam (> 10 mm in) without the guard.
     With it the stop contact is a fraction of that and there is no slam (passive: no
     contact at all).  The stop-contact monitor only reports here (with its degrade the
-    unguarded run's contact falls to 0.13 s as well: docs/design.md §9.8): the guard alone
-    is measured.  The bank has one layer, designed for the nominal spring only (the
-    mismatch is the point): a bank with spring-rate layers (0.7 x among them) does not
-    drift into the stop even unguarded."""
-    base = one_layer(default_config().replace(safety={"stop_contact_degrade": False}))
+    unguarded run's contact falls to 0.13 s as well: docs/design.md §9.8), and the road
+    preview's stop clamp is off (§12: with it the unguarded run does not slam either):
+    the guard alone is measured.  The bank has one layer, designed for the nominal
+    spring only (the mismatch is the point): a bank with spring-rate layers (0.7 x among
+    them) does not drift into the stop even unguarded."""
+    base = one_layer(default_config().replace(safety={"stop_contact_degrade": False},
+                                              design={"preview_stop_clamp_m": 0.0}))
     prm = PlantParams(ride_height_offset_m=0.0,
                       suspension_stiffness_n_per_m=0.75 * base.vehicle.suspension_stiffness_n_per_m)
     road = make_road("rough-course", 11.176, 20.0, base.sample_time_s, 1)
@@ -160,8 +162,10 @@ def test_lead_keeps_weight_set_2_off_the_stops_on_the_thesis_course() -> None:
     unload, so the distance law fades the force too late.  Road seed 1, 60 s, fuzzy: the
     distance law alone slams (> 10 mm into a stop; passive does not touch it), with the
     default lead there is no slam, less time on the stops and no fault.  Weight set 2
-    alone: the travel governor (§12) is off, the guard alone is measured."""
-    base = default_config().replace(design={"govern_comfort_set": False})
+    alone: the travel governor (§12) and the road preview's stop clamp are off, the
+    guard alone is measured."""
+    base = default_config().replace(design={"govern_comfort_set": False,
+                                            "preview_stop_clamp_m": 0.0})
     road = make_road("rough-course", 11.176, 60.0, base.sample_time_s, 1)
     passive = simulate(base, road, "passive", seed=1).metrics
     runs = {lead: simulate(base.replace(design={"stop_guard_lead_s": lead}), road, "fuzzy", 2,

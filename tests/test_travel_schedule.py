@@ -172,10 +172,11 @@ def test_configuration_checks_name_the_key() -> None:
 def test_course_run_keeps_off_the_stops_with_more_comfort_than_set_1(seed: int) -> None:
     """Thesis course, a road seed on which weight set 2 slams the stops and passive does
     not: the schedule does not slam, spends at most passive's time + 0.1 % of the run on
-    the stops, and absorbs less power than weight set 1.  The guard's rate lead (§9.6),
-    which keeps weight set 2 off the stops on this seed too, is off: the schedule alone
-    is measured."""
-    cfg = default_config().replace(design={"stop_guard_lead_s": 0.0})
+    the stops, and absorbs less power than weight set 1.  The guard's rate lead (§9.6)
+    and the road preview's stop clamp (§12), each of which keeps weight set 2 off the
+    stops on this seed too, are off: the schedule alone is measured."""
+    cfg = default_config().replace(design={"stop_guard_lead_s": 0.0,
+                                           "preview_stop_clamp_m": 0.0})
     road = make_road("rough-course", 11.176, 60.0, cfg.sample_time_s, seed)
     res = {w: simulate(cfg, road, "fuzzy", w, seed=seed).metrics for w in (0, 1, 2)}
     alone = simulate(cfg.replace(design=ALONE), road, "fuzzy", 2, seed=seed).metrics

@@ -81,7 +81,12 @@ from controller.monitor import MonitorSettings, monitor_settings
 from controller.plant import static_tire_deflection_m
 from controller.ride_height import ride_height_settings
 from controller.road_noise import nearest_noise_entry
-from controller.road_preview import RoadPreview, predicted_peak_m
+from controller.road_preview import (
+    CLAMP_TRUST_WINDOW_S,
+    RoadPreview,
+    predicted_extremes_m,
+    predicted_peak_m,
+)
 from controller.runtime.bayes import bayes_update, log_likelihood_constant
 from controller.runtime.kernels import (
     F_ALPHA,
@@ -130,6 +135,12 @@ from controller.runtime.kernels import (
     F_OUT,
     F_PEND,
     F_PFLOOR,
+    F_PVC_AIRW,
+    F_PVC_ALPHA,
+    F_PVC_FOR,
+    F_PVC_MS,
+    F_PVC_PRED,
+    F_PVC_TRUST2,
     F_QUANT,
     F_QW_ALPHA,
     F_RECENTRE,
@@ -231,6 +242,8 @@ from controller.runtime.kernels import (
     I_PROBE_CNT,
     I_PROBE_PTR,
     I_PVCALL,
+    I_PVCLAMP,
+    I_PVCLAMP_TICKS,
     I_QGRID,
     I_RECOMP,
     I_RH_OFF,
@@ -269,6 +282,7 @@ from controller.runtime.kernels import (
     MEAS_DIM,
     MODE_AIR,
     MODE_GROUND,
+    PVC_RING,
     Q_MAX,
     QS_INIT,
     S_BA,
@@ -382,10 +396,15 @@ _SIG_TICK = nb.float64(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, 
 #: the road velocity ring and the window's start in it
 _SIG_TICK_PREVIEW = nb.float64(*_SIG_TICK.args, nb.float64[:, :, ::1], nb.int64[::1],
                                nb.float64[:, ::1], nb.float64[:, ::1], nb.float64[::1],
-                               nb.float64, nb.int64, nb.float64[::1], nb.int64)
+                               nb.float64, nb.int64, nb.float64, nb.int64,
+                               nb.float64[::1], nb.int64)
 _SIG_CFG = nb.void(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
                    nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1], nb.int64)
 
+
+#: the stop clamp predicts with the on-ground model only while the airborne model's
+#: weight in the blend is at most this (:func:`_clamp_check`)
+CLAMP_AIRBORNE_WEIGHT = 0.01
 
 #: :attr:`BankRuntime._trusted_from_tick` of the governed comfort set: no tick
 _NEVER_TRUSTED = 2 ** 62
@@ -682,12 +701,25 @@ def _human_filter(fv: np.ndarray, xf0: float, xf1: float, accel_mps2: float) -> 
     return _NONFINITE_STATE
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def preview_clamp(iv: np.ndarray, side: int, out: float) -> float:
+    """The stop clamp on the force reference ``out`` [N] (> 0 extends, i.e. pushes away
+    from the compression stop): 0 where it pushes toward a stop ``side``
+    (:func:`_clamp_check`'s bits) names, counted in ``iv[I_PVCLAMP_TICKS]``."""
+    if ((side & 1) and out < 0.0) or ((side & 2) and out > 0.0):
+        iv[I_PVCLAMP_TICKS] += 1
+        return 0.0
+    return out
+
+
 @nb.njit(_SIG_STEP, cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]
 def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
               fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, rattlespace_m: float,
               accel_mps2: float, force_meas_n: float) -> float:
     """One tick of the bank (see the module docstring).  Allocation-free (compiled without
     the numba runtime), never raises."""
+    clamp_side = iv[I_PVCLAMP]      # the road preview's stop clamp, for this step only
+    iv[I_PVCLAMP] = 0
     if not (math.isfinite(rattlespace_m) and math.isfinite(accel_mps2)
             and math.isfinite(force_meas_n)):
         iv[I_FLAGS] = _NONFINITE_INPUT
@@ -736,6 +768,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     wflags, best, total, qmin = _blend_weights(st, fv, iv, nact, blend)
     flags |= wflags
     out, wsum = _blend_estimates(mat, st, fv, iv, nact, best, total)
+    air = iv[I_AIR]
+    fv[F_PVC_AIRW] = st[air, S_W] if air >= 0 else 0.0
     if flags & _NONFINITE_STATE:
         _restart_nonfinite(mat, st, fv, iv, nact, wsum)
     # ---- estimator monitor (docs/design.md §9), human-body filter, guard, spool model
@@ -745,6 +779,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     flags |= _human_filter(fv, xf0, xf1, accel_mps2)
     out = stop_guard(fv, iv, out * (fv[F_AUTH] * fv[F_SC_AUTH]), rattlespace_m)
     out = stop_barrier(fv, iv, out, rattlespace_m)
+    if clamp_side != 0:
+        out = preview_clamp(iv, clamp_side, out)
     if not math.isfinite(out):
         out = 0.0
         flags |= _NONFINITE_STATE
@@ -788,14 +824,70 @@ def raise_travel_envelope(fv: np.ndarray) -> None:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _clamp_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.ndarray,
+                 impulse: np.ndarray, clamp_m: float, clamp_points: int, reading_m: float,
+                 road_velocity: np.ndarray, start: int) -> None:
+    """The stop clamp's prediction (``design.preview_stop_clamp_m``): set
+    ``iv[I_PVCLAMP]`` for the next step, bit 0 when the no-force prediction of the
+    reading reaches ``clamp_m`` toward the compression stop within the first
+    ``clamp_points`` look-ahead ticks, bit 1 toward the rebound stop (both when it is
+    not finite), 0 (no clamp) while the prediction is not trusted or the clamp is off.
+
+    Trusted: the running mean of the squared error of the prediction at the last of
+    those ticks, against the reading that came (``F_PVC_MS``, the predictions kept in a
+    ring by the tick they are for), is below ``F_PVC_TRUST2``.  A bank on a layer far
+    from its plant (before its estimator has moved it) drifts by metres there and is
+    not trusted; on its plant the error is that of the law's own force, a few mm.  Nor
+    while the airborne model has more than :data:`CLAMP_AIRBORNE_WEIGHT` of the blend
+    (a wheel that may be leaving the road: the deviation from the on-ground equilibria
+    then carries the airborne model's, and the on-ground prediction runs to metres)."""
+    if clamp_points <= 0:
+        iv[I_PVCLAMP] = 0
+        return
+    layer = iv[I_LAYER]
+    if layer >= rows.shape[0]:
+        iv[I_PVCLAMP] = 0
+        return
+    centre = fv[F_TS]
+    tick = iv[I_TICK]
+    slot = tick % PVC_RING
+    if fv[F_PVC_FOR + slot] == tick:    # the prediction made for this tick: its error
+        e = reading_m - centre - fv[F_PVC_PRED + slot]
+        e2 = e * e
+        if not e2 < 1.0:                # NaN or a metre off: as a metre
+            e2 = 1.0
+        fv[F_PVC_MS] += fv[F_PVC_ALPHA] * (e2 - fv[F_PVC_MS])
+    hi, lo, last = predicted_extremes_m(rows, ticks, impulse, layer,
+                                        fv[F_XDEV:F_XDEV + 4], reading_m, centre,
+                                        road_velocity, start, clamp_points)
+    ahead = tick + ticks[min(clamp_points, ticks.shape[0]) - 1]
+    slot = ahead % PVC_RING
+    fv[F_PVC_PRED + slot] = last
+    fv[F_PVC_FOR + slot] = ahead
+    if not (fv[F_PVC_MS] < fv[F_PVC_TRUST2] and fv[F_PVC_AIRW] <= CLAMP_AIRBORNE_WEIGHT):
+        iv[I_PVCLAMP] = 0
+        return
+    side = 0
+    if not hi < clamp_m:            # NaN too
+        side |= 1
+    if not lo > -clamp_m:
+        side |= 2
+    iv[I_PVCLAMP] = side
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _preview_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.ndarray,
                    impulse: np.ndarray, force_rows: np.ndarray, trigger_m: np.ndarray,
-                   edge_trigger_m: float, trusted_from_tick: int, reading_m: float,
-                   force_meas_n: float, road_velocity: np.ndarray, start: int) -> bool:
-    """:meth:`BankRuntime.check_road_preview` on the packed state: predict the reading
-    by the running layer's model and call the travel law when the peak passes the
-    layer's trigger (before ``trusted_from_tick``: the edge's prediction, no force, and
-    trigger) or is not finite.  A layer the predictor does not have calls it too."""
+                   edge_trigger_m: float, trusted_from_tick: int, clamp_m: float,
+                   clamp_points: int, reading_m: float, force_meas_n: float,
+                   road_velocity: np.ndarray, start: int) -> bool:
+    """:meth:`BankRuntime.check_road_preview` on the packed state: the stop clamp's
+    prediction for the next step (:func:`_clamp_check`, every law); then predict the
+    reading by the running layer's model and call the travel law when the peak passes
+    the layer's trigger (before ``trusted_from_tick``: the edge's prediction, no force,
+    and trigger) or is not finite.  A layer the predictor does not have calls it too."""
+    _clamp_check(fv, iv, rows, ticks, impulse, clamp_m, clamp_points, reading_m,
+                 road_velocity, start)
     if fv[F_TS_ON] == 0.0:          # a fixed weight set: no travel law to call
         return False
     layer = iv[I_LAYER]
@@ -818,12 +910,13 @@ def _preview_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.n
 @nb.njit(cache=True, nogil=True)
 def road_preview_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.ndarray,
                        impulse: np.ndarray, force_rows: np.ndarray, trigger_m: np.ndarray,
-                       edge_trigger_m: float, trusted_from_tick: int, reading_m: float,
-                       force_meas_n: float, road_velocity: np.ndarray, start: int) -> bool:
+                       edge_trigger_m: float, trusted_from_tick: int, clamp_m: float,
+                       clamp_points: int, reading_m: float, force_meas_n: float,
+                       road_velocity: np.ndarray, start: int) -> bool:
     """:func:`_preview_check` alone (:meth:`BankRuntime.check_road_preview`)."""
     return _preview_check(fv, iv, rows, ticks, impulse, force_rows, trigger_m,
-                          edge_trigger_m, trusted_from_tick, reading_m, force_meas_n,
-                          road_velocity, start)
+                          edge_trigger_m, trusted_from_tick, clamp_m, clamp_points,
+                          reading_m, force_meas_n, road_velocity, start)
 
 
 @nb.njit(_SIG_TICK_PREVIEW, cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]
@@ -833,14 +926,15 @@ def bank_tick_preview(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: 
                       run_active: np.ndarray, run_models: np.ndarray, rows: np.ndarray,
                       ticks: np.ndarray, impulse: np.ndarray, force_rows: np.ndarray,
                       trigger_m: np.ndarray, edge_trigger_m: float, trusted_from_tick: int,
-                      road_velocity: np.ndarray, start: int) -> float:
+                      clamp_m: float, clamp_points: int, road_velocity: np.ndarray,
+                      start: int) -> float:
     """The road preview's check (:func:`_preview_check`: ``iv[I_PVCALL]`` 1 when it
     called the travel law), then :func:`bank_tick`, in one call: what
     :meth:`BankRuntime.check_road_preview` and :meth:`BankRuntime.step` do one after
     the other, to the bit.  Allocation-free, never raises."""
     called = _preview_check(fv, iv, rows, ticks, impulse, force_rows, trigger_m,
-                            edge_trigger_m, trusted_from_tick, rattlespace_m, force_meas_n,
-                            road_velocity, start)
+                            edge_trigger_m, trusted_from_tick, clamp_m, clamp_points,
+                            rattlespace_m, force_meas_n, road_velocity, start)
     iv[I_PVCALL] = 1 if called else 0
     return bank_tick(mat, vec, st, active, fv, iv, nbr, rattlespace_m, accel_mps2,
                      force_meas_n, run_st, run_active, run_models)
@@ -975,6 +1069,11 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     iv[I_LCAND] = -1
     iv[I_NLAYERSW] = 0
     iv[I_PVCALL] = 0
+    iv[I_PVCLAMP] = 0
+    iv[I_PVCLAMP_TICKS] = 0
+    fv[F_PVC_MS] = 4.0 * fv[F_PVC_TRUST2]     # not trusted until predictions come true
+    for i in range(PVC_RING):
+        fv[F_PVC_FOR + i] = -1.0
     iv[I_CENTRE] = iv[I_SINGLE]
     bank_configure(mat, vec, st, active, fv, iv, nbr, blend)
     n = 0
@@ -1204,6 +1303,8 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_LWC] = float(np.unique(layers[:, 2]).size > 1)
     fv[F_LWT] = _tire_weight(cfg) if np.unique(_layer_tires(design)).size > 1 else 0.0
     fv[F_TS:F_TS + SCHEDULE_SIZE] = travel_schedule(cfg).as_array()
+    fv[F_PVC_ALPHA] = 1.0 - math.exp(-dt / CLAMP_TRUST_WINDOW_S)
+    fv[F_PVC_TRUST2] = cfg.design.preview_clamp_trust_m ** 2
     fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
         cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()
     aw = cfg.design.accel_mean_window_s
@@ -1451,7 +1552,7 @@ class BankRuntime:
                               self._st_run.copy(), self._active_run.copy(),
                               self._models_run.copy(), np.zeros((1, 1, 4)),
                               np.ones(1, dtype=np.int64), np.zeros((1, 1)), np.zeros((1, 1)),
-                              np.zeros(1), 0.0, 0, np.zeros(1), 0)
+                              np.zeros(1), 0.0, 0, 0.08, 1, np.zeros(1), 0)
         _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index,
                 self._table_w)
 
@@ -1553,13 +1654,17 @@ class BankRuntime:
         (:meth:`call_travel_law`) when the predicted peak passes the running layer's
         ``preview.trigger_m`` or is not finite; the governed comfort set (:attr:`governed`),
         and any law in the first :attr:`preview_trust_ticks` after a reset, predicts
-        without the force and takes ``preview.edge_trigger_m``.
+        without the force and takes ``preview.edge_trigger_m``.  For every law, also the
+        stop clamp of the next :meth:`step` (``preview.clamp_m``: the force toward a stop
+        the no-force prediction reaches within ``preview.clamp_points`` look-ahead ticks
+        is clipped to 0, counted in ``counters()["preview_clamp_ticks"]``).
         True when it called.  Allocates nothing.  :meth:`step_previewed` does this and
         :meth:`step` in one call."""
         return bool(road_preview_check(
             self._fv, self._iv, preview.rows, preview.ticks, preview.impulse,
             preview.force_rows, preview.trigger_m, preview.edge_trigger_m,
-            self._trusted_from_tick, reading_m, force_meas_n, road_velocity, start))
+            self._trusted_from_tick, preview.clamp_m, preview.clamp_points, reading_m,
+            force_meas_n, road_velocity, start))
 
     def step_previewed(self, preview: RoadPreview, rattlespace_m: float, accel_mps2: float,
                        force_meas_n: float, road_velocity: np.ndarray, start: int) -> float:
@@ -1575,7 +1680,8 @@ class BankRuntime:
                 self._nbr, rattlespace_m, accel_mps2, force_meas_n, self._st_run,
                 self._active_run, self._models_run, preview.rows, preview.ticks,
                 preview.impulse, preview.force_rows, preview.trigger_m,
-                preview.edge_trigger_m, self._trusted_from_tick, road_velocity, start)
+                preview.edge_trigger_m, self._trusted_from_tick, preview.clamp_m,
+                preview.clamp_points, road_velocity, start)
         except (TypeError, ValueError, OverflowError):
             self._iv[I_PVCALL] = 0
             self._iv[I_FLAGS] = _NONFINITE_INPUT
@@ -1632,6 +1738,10 @@ class BankRuntime:
         return bool(self._iv[I_MODE] == MODE_AIR)
 
     centre = SlotValue("_iv", I_CENTRE, int, "Moving bank: centre of the running subset.")
+    preview_clamp_ticks = SlotValue(
+        "_iv", I_PVCLAMP_TICKS, int,
+        "Ticks since reset in which the road preview's stop clamp clipped the force toward "
+        "a stop (design.preview_stop_clamp_m; counters()['preview_clamp_ticks']).")
 
     residual_threshold = SlotValue(
         "_fv", F_THRESH, float,
@@ -1759,6 +1869,7 @@ class BankRuntime:
                 "unusable_ticks": int(iv[I_MON_BAD]),
                 "load_liftoffs": int(iv[I_NLIFT_LOAD]),
                 "stop_barrier_ticks": int(iv[I_SB_TICKS]),
+                "preview_clamp_ticks": int(iv[I_PVCLAMP_TICKS]),
                 "stop_guard_ticks": int(iv[I_GUARD_TICKS]),
                 "stop_guard_lead_ticks": int(iv[I_GUARD_LEAD_TICKS]),
                 "stop_contact_ticks": int(iv[I_SC_TICKS]),

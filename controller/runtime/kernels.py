@@ -150,6 +150,7 @@ MEAS_DIM = 2            # m, measurement dimension [rattlespace_abs, accel]
 Q_MAX = 1.0e12          # likelihood quotients are clamped here (keeps smoothing finite)
 QS_INIT = float(MEAS_DIM)   # smoothed q starts at E[q] of a matched filter
 
+PVC_RING = 256  # the stop clamp's ring of predictions: its look-ahead is below this [ticks]
 MAX_DELAY = MAX_COMPUTE_DELAY_TICKS  # pending spool commands kept (design.compute_delay_ticks)
 
 # The packed buffers, slot by slot (controller/runtime/layout.py assigns the offsets in
@@ -300,6 +301,13 @@ F_TS_ENV = FV.slot()  # travel schedule: usage envelope [m] (state)
 F_TS_BETA = FV.slot()  # travel schedule: the comfort law's share of the last tick (read-out)
 F_WH = FV.slot(WH_SIZE)  # wheel-hop tracker: wheel_hop_tracker_parameters() (WH_ON = 0: off)
 F_WHS = FV.slot(WH_STATE_SIZE)  # wheel-hop tracker: state (controller/wheel_hop.py)
+# --- fv: the road preview's stop clamp (controller/road_preview.py, docs/design.md §12)
+F_PVC_ALPHA = FV.slot()  # weight of a new squared prediction error per tick
+F_PVC_TRUST2 = FV.slot()  # the clamp acts while F_PVC_MS is below this [m^2]
+F_PVC_MS = FV.slot()  # mean-square error of the clamp's last look-ahead prediction [m^2] (state)
+F_PVC_AIRW = FV.slot()  # the airborne model's weight in the last step's blend (read-out)
+F_PVC_PRED = FV.slot(PVC_RING)  # prediction of the reading for tick t, at t % PVC_RING (state)
+F_PVC_FOR = FV.slot(PVC_RING)  # the tick that slot predicts (state; -1: none)
 FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
@@ -381,6 +389,8 @@ I_LSINCE = IV.slot()  # ticks I_LCAND has been preferred in a row (state)
 I_NLAYERSW = IV.slot()  # layer changes since reset (state)
 # --- iv: road preview (controller/road_preview.py)
 I_PVCALL = IV.slot()  # 1: the road preview called the travel law in the last previewed tick (state)
+I_PVCLAMP = IV.slot()  # stop clamp for the next step: bit 0 compression, bit 1 rebound (state)
+I_PVCLAMP_TICKS = IV.slot()  # ticks in which the stop clamp clipped the force since reset (state)
 IV_ACT = IV.size  # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
 IV_HEAD = IV.size  # iv has IV_HEAD + J entries
 

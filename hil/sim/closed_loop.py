@@ -229,7 +229,8 @@ class BankController:
         and the fraction of ticks stop-degraded (the plant's own time on the stops is
         ``bump_stop_time_s``), the travel schedule's mean comfort share (§12; 0 when
         the schedule is off), the fraction of ticks in which the road preview called
-        the travel law (controller/road_preview.py; 0 when it is off), and the
+        the travel law (controller/road_preview.py; 0 when it is off) and in which its
+        stop clamp clipped the force toward a stop (§12), and the
         ride-height monitor's (§9.9): the largest |ride
         height| [m], the time off centre [s] and when it first found the body off centre
         [s of the run; -1 never]."""
@@ -248,6 +249,7 @@ class BankController:
                 "stop_degraded_fraction": c["stop_degraded_ticks"] / n if n else 0.0,
                 "schedule_comfort_share": self.comfort_share_sum / n if n else 0.0,
                 "preview_call_fraction": self.preview_calls / n if n else 0.0,
+                "preview_clamp_fraction": c["preview_clamp_ticks"] / n if n else 0.0,
                 "ride_height_max_m": self.ride_height_max_m,
                 "ride_height_off_centre_s": self.off_centre_ticks * dt,
                 "ride_height_first_off_centre_s": (self.off_centre_first_tick * dt

@@ -426,7 +426,8 @@ def run(args: argparse.Namespace) -> int:
         "road_preview": {"state": end_status["road_preview"],
                          "trust": end_status["preview_trust"],
                          "calls": loop.preview_calls,
-                         "call_fraction": loop.preview_calls / max(loop.tick_count, 1)},
+                         "call_fraction": loop.preview_calls / max(loop.tick_count, 1),
+                         "clamps": end_status["preview_clamps"]},
         "excitation": loop.excitation_state if args.excite else None,
         "final_state": loop.lifecycle.state.name,
         "timing": loop.timing.summary(),
@@ -459,10 +460,12 @@ def run(args: argparse.Namespace) -> int:
               "the lateness and step-time rows are the lockstep clock's (0)", file=out)
     pv = summary["road_preview"]
     if pv["state"] == "unused":
-        print("road preview: unused (the weight set in use takes none)", file=out)
+        print("road preview: the weight set in use calls no travel law; the stop clamp "
+              f"clipped the force toward a stop in {pv['clamps']} ticks", file=out)
     elif pv["state"] != "off":
         print(f"road preview: {pv['state']} at the end (trust: {pv['trust']}), the travel "
-              f"law called ahead in {100 * pv['call_fraction']:.1f} % of the ticks", file=out)
+              f"law called ahead in {100 * pv['call_fraction']:.1f} % of the ticks, the "
+              f"stop clamp clipped the force in {pv['clamps']}", file=out)
     for f in faults:
         print(fault_line(f), file=out)
     if active.get("bypass_open_fraction", 0.0) > 0.5:

@@ -817,6 +817,8 @@ class ControlLoop:
                              else "unused" if not self.rt.takes_road_preview
                              else self.preview_stream.why_not_live()),
             "preview_calls": self.preview_calls,
+            # ticks in which the preview's stop clamp clipped the force toward a stop
+            "preview_clamps": self.rt.preview_clamp_ticks,
             # how far the prediction is trusted now (BankRuntime.preview_trust)
             "preview_trust": ("off" if self.road_preview is None
                               else self.rt.preview_trust(self.road_preview)),

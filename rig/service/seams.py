@@ -73,6 +73,8 @@ class Runtime(Protocol):
                        ) -> float: ...              # check_road_preview, then step
     @property
     def preview_called(self) -> bool: ...           # ... and its check called the law
+    @property
+    def preview_clamp_ticks(self) -> int: ...       # ticks the stop clamp clipped the force
     def preview_trust(self, preview: Any) -> str: ...   # how far the prediction is trusted
 
 

@@ -58,6 +58,7 @@ class FakeRuntime:
         self.wheel_hop_hz = 9.49                # the configured rig's passive wheel hop
         self.tire_stiffness_est = 1.0
         self.preview_called = False
+        self.preview_clamp_ticks = 0
         self.steps = 0
         self.resets = 0
         self.output: float | None = None      # force the output when set
