@@ -41,8 +41,16 @@ called beyond ``design.preview_trigger_inner_m``; on that edge, where the plant 
 beyond the models, the prediction is the no-force one and the trigger the lower
 ``preview_trigger_m``, which the travel governor of weight set 2 keeps on every layer.
 
+The same predictor, without force and over the first ``design.preview_clamp_horizon_s``
+(50 ms), drives the stop clamp (:func:`predicted_extremes_m`): where it reaches a stop
+(``design.preview_stop_clamp_m``), the step clips its force toward that stop to 0, for
+every law, while the clamp's own 50 ms predictions have come true
+(``preview_clamp_trust_m``) and the wheel is on the road
+(``controller.runtime.bank._clamp_check``; docs/design.md §12, "The stop clamp").
+
 :func:`road_preview` designs the predictor offline into plain arrays;
-:func:`predicted_peak_m` is the per-tick kernel (numba, allocates nothing).
+:func:`predicted_peak_m` and :func:`predicted_extremes_m` are the per-tick kernels (numba,
+allocate nothing).
 """
 
 from __future__ import annotations
