@@ -155,6 +155,9 @@ def _long_int_key(text: str) -> tuple[str, int]:
 #: largest ``design.compute_delay_ticks``: the runtime keeps this many pending spool
 #: commands in its buffers (controller.runtime.kernels)
 MAX_COMPUTE_DELAY_TICKS = 4
+#: the road preview's stop clamp looks at most this far ahead [ticks] (its ring of
+#: predictions in the runtime, controller.runtime.kernels.PVC_RING, holds one more)
+MAX_CLAMP_LOOKAHEAD_TICKS = 255
 
 
 class ConfigError(ValueError):
@@ -1063,10 +1066,19 @@ def _cross_checks(cfg: RigConfig) -> None:
         raise ConfigError("design.preview_horizon_s", d.preview_horizon_s,
                           "0 while design.schedule_release_s is 0 (the preview holds the "
                           "travel law through the schedule's release)")
-    if round(d.preview_clamp_horizon_s * d.sample_rate_hz) > 255:
+    if round(d.preview_clamp_horizon_s * d.sample_rate_hz) > MAX_CLAMP_LOOKAHEAD_TICKS:
         raise ConfigError("design.preview_clamp_horizon_s", d.preview_clamp_horizon_s,
-                          f"at most 255 ticks ({255 / d.sample_rate_hz:g} s at "
+                          f"at most {MAX_CLAMP_LOOKAHEAD_TICKS} ticks "
+                          f"({MAX_CLAMP_LOOKAHEAD_TICKS / d.sample_rate_hz:g} s at "
                           "design.sample_rate_hz)")
+    if (d.preview_horizon_s > 0.0 and d.preview_stop_clamp_m > 0.0
+            and round(d.preview_check_s * d.sample_rate_hz) > MAX_CLAMP_LOOKAHEAD_TICKS):
+        # the clamp takes at least the first checked look-ahead tick
+        raise ConfigError("design.preview_check_s", d.preview_check_s,
+                          f"at most {MAX_CLAMP_LOOKAHEAD_TICKS} ticks "
+                          f"({MAX_CLAMP_LOOKAHEAD_TICKS / d.sample_rate_hz:g} s) while "
+                          "design.preview_stop_clamp_m is on (the clamp looks at least "
+                          "one check ahead)")
     if 0.0 < d.preview_horizon_s < d.preview_clamp_horizon_s:
         raise ConfigError("design.preview_clamp_horizon_s", d.preview_clamp_horizon_s,
                           f"at most design.preview_horizon_s ({d.preview_horizon_s:g})")

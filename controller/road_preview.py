@@ -173,6 +173,15 @@ def layer_triggers_m(cfg: RigConfig) -> FloatArray:
     return np.where(layers_inside_grid(cfg), d.preview_trigger_inner_m, d.preview_trigger_m)
 
 
+def _clamp_points(cfg: RigConfig, ticks: NDArray[np.int64]) -> int:
+    """How many of the checked look-ahead ``ticks`` the stop clamp takes: those within
+    ``design.preview_clamp_horizon_s``, at least the first; 0 when the clamp is off."""
+    d = cfg.design
+    if d.preview_stop_clamp_m <= 0.0:
+        return 0
+    return max(1, int(np.sum(ticks <= round(d.preview_clamp_horizon_s / cfg.sample_time_s))))
+
+
 def road_preview(cfg: RigConfig) -> RoadPreview | None:
     """The predictor of ``cfg`` (``design.preview_*``) for every layer of its bank
     (:func:`controller.config.layer_grid`, :func:`controller.config.layer_config`), or
@@ -197,9 +206,7 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
                        force_rows=np.ascontiguousarray([f for _, _, f in parts]) * force_on,
                        horizon_ticks=horizon, trigger_m=layer_triggers_m(cfg),
                        edge_trigger_m=d.preview_trigger_m, clamp_m=d.preview_stop_clamp_m,
-                       clamp_points=(max(1, int(np.sum(ticks <= round(
-                           d.preview_clamp_horizon_s / dt))))
-                           if d.preview_stop_clamp_m > 0.0 else 0))
+                       clamp_points=_clamp_points(cfg, ticks))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -209,6 +216,20 @@ def _fold_peak(peak: float, r: float) -> float:
     if a != a:                      # NaN: no prediction
         return math.nan
     return a if a > peak else peak
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _reading_at(rows: np.ndarray, impulse: np.ndarray, layer: int, p: int, j: int,
+                dx: np.ndarray, r: float, road_velocity: np.ndarray, start: int,
+                nw: int) -> float:
+    """The predicted reading at look-ahead tick ``j`` (checked point ``p``) by layer
+    ``layer``: ``r`` (the reading's part already summed) plus the state's part, then the
+    road's sample by sample from this tick on (``nw`` samples there)."""
+    for s in range(4):
+        r += rows[layer, p, s] * dx[s]
+    for i in range(min(j, nw)):
+        r += impulse[layer, j - 1 - i] * road_velocity[start + i]
+    return r
 
 
 #: the stop clamp's window for the RMS error of its own predictions [s]
@@ -237,12 +258,8 @@ def predicted_extremes_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarra
     r = base
     nw = road_velocity.shape[0] - start
     for p in range(min(points, ticks.shape[0])):
-        j = ticks[p]
-        r = base
-        for s in range(4):
-            r += rows[layer, p, s] * dx[s]
-        for i in range(min(j, nw)):
-            r += impulse[layer, j - 1 - i] * road_velocity[start + i]
+        r = _reading_at(rows, impulse, layer, p, ticks[p], dx, base, road_velocity, start,
+                        nw)
         if r != r:
             return math.nan, math.nan, math.nan
         if r > hi:
@@ -311,12 +328,8 @@ def predicted_peak_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
             return math.nan
         p += 4
     while p < n_ticks:              # the last 0-3 look-ahead ticks one by one
-        j = ticks[p]
-        r = base + force_rows[layer, p] * force_n
-        for s in range(4):
-            r += rows[layer, p, s] * dx[s]
-        for i in range(min(j, nw)):
-            r += impulse[layer, j - 1 - i] * road_velocity[start + i]
+        r = _reading_at(rows, impulse, layer, p, ticks[p], dx,
+                        base + force_rows[layer, p] * force_n, road_velocity, start, nw)
         peak = _fold_peak(peak, r)
         if peak != peak:
             return math.nan

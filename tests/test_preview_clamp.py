@@ -66,6 +66,11 @@ def test_the_clamp_looks_50_ms_ahead_by_default() -> None:
     assert short is not None and short.clamp_points == 1     # at least the first check
     with pytest.raises(ConfigError, match=r"design\.preview_clamp_trust_m"):
         CFG.replace(design={"preview_clamp_trust_m": 0.0})
+    # the clamp looks at least one check ahead: a check spacing beyond its ring is refused
+    wide = {"preview_horizon_s": 0.5, "preview_check_s": 0.3}
+    with pytest.raises(ConfigError, match=r"design\.preview_check_s"):
+        CFG.replace(design=wide)
+    assert CFG.replace(design={**wide, "preview_stop_clamp_m": 0.0}).design.preview_check_s == 0.3
 
 
 @settings(max_examples=25, deadline=None)

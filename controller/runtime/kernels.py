@@ -35,7 +35,7 @@ from enum import IntFlag
 import numba as nb
 import numpy as np
 
-from controller.config import MAX_COMPUTE_DELAY_TICKS
+from controller.config import MAX_CLAMP_LOOKAHEAD_TICKS, MAX_COMPUTE_DELAY_TICKS
 from controller.mass_estimator import (
     ME_APREV,
     ME_BV,
@@ -150,7 +150,7 @@ MEAS_DIM = 2            # m, measurement dimension [rattlespace_abs, accel]
 Q_MAX = 1.0e12          # likelihood quotients are clamped here (keeps smoothing finite)
 QS_INIT = float(MEAS_DIM)   # smoothed q starts at E[q] of a matched filter
 
-PVC_RING = 256  # the stop clamp's ring of predictions: its look-ahead is below this [ticks]
+PVC_RING = MAX_CLAMP_LOOKAHEAD_TICKS + 1  # the stop clamp's ring of predictions [ticks]
 MAX_DELAY = MAX_COMPUTE_DELAY_TICKS  # pending spool commands kept (design.compute_delay_ticks)
 
 # The packed buffers, slot by slot (controller/runtime/layout.py assigns the offsets in
