@@ -50,6 +50,7 @@ from __future__ import annotations
 import functools
 import math
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -88,6 +89,7 @@ from controller.road_preview import (
     predicted_peak_m,
 )
 from controller.runtime.bayes import bayes_update, log_likelihood_constant
+from controller.runtime.compiled import direct_call
 from controller.runtime.kernels import (
     F_ALPHA,
     F_AMEAN,
@@ -1517,6 +1519,16 @@ class BankRuntime:
         #: the running layer's models (the tick record's columns)
         self.running = (RunningModels(self._st_run, self._active_run, self._models_run) if w
                         else RunningModels(self._st, self._active, rows))
+        # the step's compiled functions without numba's per-call dispatch
+        # (controller/runtime/compiled.py): these arrays are the runtime's own, checked
+        # here, and never replaced; the preview's are checked when they change
+        own = (self._mat, self._vec, self._st, self._active, self._fv, self._iv, self._nbr,
+               0.0, 0.0, 0.0)
+        self._step_call: Callable[..., float] = direct_call(bank_step, own)
+        run = (self._st_run, self._active_run, self._models_run)
+        self._tick_call: Callable[..., float] = direct_call(bank_tick, (*own, *run))
+        self._tick_preview_call: Callable[..., float] = bank_tick_preview
+        self._preview_bound: tuple[RoadPreview, np.ndarray] | None = None
         self._warm_up()
         self.reset()
 
@@ -1615,14 +1627,19 @@ class BankRuntime:
     # ------------------------------------------------------------------ the tick
     def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float:
         """One controller tick: the actuator force reference [N].  Never raises."""
+        # Python floats take the entry point, any other input the dispatcher (which
+        # converts other numbers and refuses the rest: controller/runtime/compiled.py)
+        exact = (type(rattlespace_m) is float and type(accel_mps2) is float
+                 and type(force_meas_n) is float)
         try:
             if self._gather:    # a layered bank: the step copies the running layer too
-                return bank_tick(self._mat, self._vec, self._st, self._active, self._fv,
-                                 self._iv, self._nbr, rattlespace_m, accel_mps2,
-                                 force_meas_n, self._st_run, self._active_run,
-                                 self._models_run)
-            return bank_step(self._mat, self._vec, self._st, self._active, self._fv,
-                             self._iv, self._nbr, rattlespace_m, accel_mps2, force_meas_n)
+                return (self._tick_call if exact else bank_tick)(
+                    self._mat, self._vec, self._st, self._active, self._fv, self._iv,
+                    self._nbr, rattlespace_m, accel_mps2, force_meas_n, self._st_run,
+                    self._active_run, self._models_run)
+            return (self._step_call if exact else bank_step)(
+                self._mat, self._vec, self._st, self._active, self._fv, self._iv, self._nbr,
+                rattlespace_m, accel_mps2, force_meas_n)
         except (TypeError, ValueError, OverflowError):
             self._iv[I_FLAGS] = _NONFINITE_INPUT
             return 0.0
@@ -1674,8 +1691,13 @@ class BankRuntime:
         whether the check called the travel law.  ``preview``'s arrays are C-contiguous
         (as :func:`controller.road_preview.road_preview` builds them), ``road_velocity``
         a C-contiguous float64 array.  Never raises."""
+        bound = self._preview_bound
+        if bound is None or bound[0] is not preview or bound[1] is not road_velocity:
+            self._bind_preview(preview, road_velocity)
+        exact = (type(rattlespace_m) is float and type(accel_mps2) is float
+                 and type(force_meas_n) is float and type(start) is int)
         try:
-            return bank_tick_preview(
+            return (self._tick_preview_call if exact else bank_tick_preview)(
                 self._mat, self._vec, self._st, self._active, self._fv, self._iv,
                 self._nbr, rattlespace_m, accel_mps2, force_meas_n, self._st_run,
                 self._active_run, self._models_run, preview.rows, preview.ticks,
@@ -1686,6 +1708,19 @@ class BankRuntime:
             self._iv[I_PVCALL] = 0
             self._iv[I_FLAGS] = _NONFINITE_INPUT
             return 0.0
+
+    def _bind_preview(self, preview: RoadPreview, road_velocity: np.ndarray) -> None:
+        """:meth:`step_previewed` on a preview or a road-velocity array it has not
+        seen: the compiled step without numba's dispatch when their arrays are of the
+        signature's types (checked once here, kept while they are the same objects),
+        else through the dispatcher (which refuses them: a flagged tick)."""
+        args = (self._mat, self._vec, self._st, self._active, self._fv, self._iv,
+                self._nbr, 0.0, 0.0, 0.0, self._st_run, self._active_run, self._models_run,
+                preview.rows, preview.ticks, preview.impulse, preview.force_rows,
+                preview.trigger_m, preview.edge_trigger_m, self._trusted_from_tick,
+                preview.clamp_m, preview.clamp_points, road_velocity, 0)
+        self._tick_preview_call = direct_call(bank_tick_preview, args)
+        self._preview_bound = (preview, road_velocity)
 
     @property
     def preview_called(self) -> bool:

@@ -34,12 +34,14 @@ to the bit.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numba as nb
 import numpy as np
 
 from controller.actuator import FlowFeedforward, flow_feedforward
 from controller.config import ForceLoopConfig, RigConfig
+from controller.runtime.compiled import direct_call
 from controller.runtime.kernels import StepFlag
 from controller.runtime.layout import SlotValue
 
@@ -147,6 +149,10 @@ class PIForceLoop:
         self._s = np.zeros(_S_SIZE)
         self.reset()
         pi_force_step(p, self._s.copy(), 0.0, 0.0, 0.0)     # loaded now, not in a tick
+        # without numba's per-call dispatch (controller/runtime/compiled.py): the two
+        # arrays are this object's own, checked here, and never replaced
+        self._call: Callable[..., float] = direct_call(pi_force_step,
+                                                       (p, self._s, 0.0, 0.0, 0.0))
 
     @classmethod
     def from_config(cls, cfg: RigConfig) -> PIForceLoop:
@@ -161,6 +167,11 @@ class PIForceLoop:
 
     def step(self, force_ref_n: float, force_meas_n: float, rattlespace_m: float) -> float:
         """One tick: the spool command in [-output_limit, output_limit]."""
+        # Python floats take the entry point, any other input the dispatcher
+        # (controller/runtime/compiled.py)
+        if (type(force_ref_n) is float and type(force_meas_n) is float
+                and type(rattlespace_m) is float):
+            return self._call(self._p, self._s, force_ref_n, force_meas_n, rattlespace_m)
         return pi_force_step(self._p, self._s, force_ref_n, force_meas_n, rattlespace_m)
 
     # ------------------------------------------------------------------ read-outs
