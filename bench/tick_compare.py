@@ -14,7 +14,9 @@ With ``--loop SECONDS`` a turn is the loop bench instead (:func:`bench.loop_benc
 of the cases ``bare`` and ``rec+tel``, ``SECONDS`` each: the service's real-time loop
 against the emulated rig in its own process, without the bench's micro-measurements):
 the step time p50 / p99 of each case (wake-up to end of tick), its periods late and its
-faults (a fault is the host stalling the loop past the sensor timeout, either tree);
+faults, then turn by turn the faults' names with the turn's largest lateness (a fault
+in a turn whose lateness reached milliseconds is the host stalling the loop past the
+sensor timeout, either tree);
 ``--cpu N`` pins the loop to CPU N as ``deploy/rig.service`` does (the bench's ``--cpu``:
 the emulated rig and the service's helpers then run on the other CPUs).
 
@@ -69,13 +71,16 @@ lb.bus_cost = lambda *a, **k: {}
 lb.sleep_lateness = lambda *a, **k: {}
 cpu = int(sys.argv[3]) if sys.argv[3] else None
 res = lb.measure(float(sys.argv[1]), sys.argv[2].split(","), cpu=cpu)
-out = {}
+out, names = {}, {}
 for case, c in res["cases"].items():
     for f in ("step_p50_us", "step_p99_us", "periods_late_pct"):
         out[case + " " + f] = c[f]
+    out[case + " lateness_max_us"] = c.get("lateness_max_us", float("nan"))
     faults = c.get("faults", 0)
     out[case + " faults"] = len(faults) if isinstance(faults, list) else faults
+    names[case] = [str(f) for f in faults] if isinstance(faults, list) else []
 print("TURN " + json.dumps(out))
+print("FAULTS " + json.dumps(names))
 """
 
 
@@ -95,20 +100,44 @@ def export_tree(rev: str, dest: Path) -> str:
 
 
 def turn(tree: Path, ticks: int, loop_s: float = 0.0, cpu: int | None = None
-         ) -> dict[str, float]:
+         ) -> tuple[dict[str, float], dict[str, list[str]]]:
     """One turn of ``tick_hot_and_cold`` (or with ``loop_s``, of the loop bench, its loop
-    pinned to ``cpu`` when given) in a fresh process in ``tree``."""
+    pinned to ``cpu`` when given) in a fresh process in ``tree``: its figures, and for a
+    loop turn the names of the faults each case latched (the tick turn has none)."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     args = ([_LOOP_TURN, str(loop_s), ",".join(LOOP_CASES), "" if cpu is None else str(cpu)]
             if loop_s > 0
             else [_TURN, str(ticks)])
     res = subprocess.run([sys.executable, "-c", *args], cwd=tree, env=env,
                          capture_output=True, text=True, check=False)
+    figures: dict[str, float] | None = None
+    faults: dict[str, list[str]] = {}
     for line in res.stdout.splitlines():
         if line.startswith("TURN "):
-            return {k: float(v) for k, v in json.loads(line[5:]).items()}
-    tail = (res.stderr.strip().splitlines() or ["no output"])[-1]
-    raise RuntimeError(f"tick_compare: the turn in {tree} failed: {tail}")
+            figures = {k: float(v) for k, v in json.loads(line[5:]).items()}
+        elif line.startswith("FAULTS "):
+            faults = {k: [str(f) for f in v] for k, v in json.loads(line[7:]).items()}
+    if figures is None:
+        tail = (res.stderr.strip().splitlines() or ["no output"])[-1]
+        raise RuntimeError(f"tick_compare: the turn in {tree} failed: {tail}")
+    return figures, faults
+
+
+def fault_lines(turns: dict[str, list[tuple[dict[str, float], dict[str, list[str]]]]],
+                commit: str) -> list[str]:
+    """Per case and tree, turn by turn: the faults latched (by name, "-" for none) and
+    the largest lateness [us] -- a fault with a lateness of milliseconds in that turn
+    is the host stalling the loop past the sensor timeout, not the tree's tick."""
+    lines = []
+    for case in LOOP_CASES:
+        for who, label in (("this", "this tree"), ("rev", commit[:10])):
+            cells = []
+            for figures, faults in turns[who]:
+                names = faults.get(case, [])
+                late = figures.get(f"{case} lateness_max_us", float("nan"))
+                cells.append(f"{'+'.join(names) or '-'} ({late:.0f})")
+            lines.append(f"{case} faults (lateness max [us]), {label}: " + ", ".join(cells))
+    return lines
 
 
 def compare(rev: str, rounds: int, ticks: int, loop_s: float = 0.0,
@@ -120,11 +149,12 @@ def compare(rev: str, rounds: int, ticks: int, loop_s: float = 0.0,
     with tempfile.TemporaryDirectory(prefix=".tick-compare-", dir=ROOT.parent) as tmp:
         old = Path(tmp) / "tree"
         commit = export_tree(rev, old)
-        turns: dict[str, list[dict[str, float]]] = {"this": [], "rev": []}
+        turns: dict[str, list[tuple[dict[str, float], dict[str, list[str]]]]] = {
+            "this": [], "rev": []}
         for _ in range(rounds):
             turns["rev"].append(turn(old, ticks, loop_s, cpu))
             turns["this"].append(turn(ROOT, ticks, loop_s, cpu))
-    med = {k: {f: float(np.median([t[f] for t in ts])) for f in figures}
+    med = {k: {f: float(np.median([t[f] for t, _ in ts])) for f in figures}
            for k, ts in turns.items()}
     pinned = "" if cpu is None else f", the loop on CPU {cpu} (its helpers off it)"
     what = (f"loop bench (service against the emulated rig, real-time{pinned}), {loop_s:g} s "
@@ -140,8 +170,10 @@ def compare(rev: str, rounds: int, ticks: int, loop_s: float = 0.0,
     if loop_s > 0:
         lines.append("per turn (this tree / REV): " + "; ".join(
             f"{f}: " + ", ".join(f"{t[f]:.1f}/{r[f]:.1f}"
-                                 for t, r in zip(turns["this"], turns["rev"], strict=True))
+                                 for (t, _), (r, _) in zip(turns["this"], turns["rev"],
+                                                           strict=True))
             for f in figures if f.endswith("_us")))
+        lines.extend(fault_lines(turns, commit))
     return "\n".join(lines)
 
 
