@@ -14,9 +14,9 @@ With ``--loop SECONDS`` a turn is the loop bench instead (:func:`bench.loop_benc
 of the cases ``bare`` and ``rec+tel``, ``SECONDS`` each: the service's real-time loop
 against the emulated rig in its own process, without the bench's micro-measurements):
 the step time p50 / p99 of each case (wake-up to end of tick), its periods late and its
-faults, then turn by turn the faults' names with the turn's largest lateness (a fault
-in a turn whose lateness reached milliseconds is the host stalling the loop past the
-sensor timeout, either tree);
+faults, then turn by turn the faults' names with the turn's largest lateness of the
+loop and of the emulated rig (a fault in a turn where either reached milliseconds is
+the host stalling that process past the sensor timeout, either tree);
 ``--cpu N`` pins the loop to CPU N as ``deploy/rig.service`` does (the bench's ``--cpu``:
 the emulated rig and the service's helpers then run on the other CPUs).
 
@@ -76,6 +76,7 @@ for case, c in res["cases"].items():
     for f in ("step_p50_us", "step_p99_us", "periods_late_pct"):
         out[case + " " + f] = c[f]
     out[case + " lateness_max_us"] = c.get("lateness_max_us", float("nan"))
+    out[case + " rig_lateness_max_us"] = c.get("rig_max_lateness_us", float("nan"))
     faults = c.get("faults", 0)
     out[case + " faults"] = len(faults) if isinstance(faults, list) else faults
     names[case] = [str(f) for f in faults] if isinstance(faults, list) else []
@@ -125,18 +126,22 @@ def turn(tree: Path, ticks: int, loop_s: float = 0.0, cpu: int | None = None
 
 def fault_lines(turns: dict[str, list[tuple[dict[str, float], dict[str, list[str]]]]],
                 commit: str) -> list[str]:
-    """Per case and tree, turn by turn: the faults latched (by name, "-" for none) and
-    the largest lateness [us] -- a fault with a lateness of milliseconds in that turn
-    is the host stalling the loop past the sensor timeout, not the tree's tick."""
+    """Per case and tree, turn by turn: the faults latched (by name, "-" for none), the
+    loop's largest lateness and the emulated rig's [us] -- a SENSOR_STALE in a turn
+    where either reached milliseconds is the host stalling that process past the sensor
+    timeout (2 ticks), not the tree's tick."""
+    nan = float("nan")
     lines = []
     for case in LOOP_CASES:
         for who, label in (("this", "this tree"), ("rev", commit[:10])):
             cells = []
             for figures, faults in turns[who]:
                 names = faults.get(case, [])
-                late = figures.get(f"{case} lateness_max_us", float("nan"))
-                cells.append(f"{'+'.join(names) or '-'} ({late:.0f})")
-            lines.append(f"{case} faults (lateness max [us]), {label}: " + ", ".join(cells))
+                late = figures.get(f"{case} lateness_max_us", nan)
+                rig = figures.get(f"{case} rig_lateness_max_us", nan)
+                cells.append(f"{'+'.join(names) or '-'} ({late:.0f} / {rig:.0f})")
+            lines.append(f"{case} faults (lateness max of the loop / the rig [us]), {label}: "
+                         + ", ".join(cells))
     return lines
 
 

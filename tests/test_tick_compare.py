@@ -17,7 +17,8 @@ def _loop_turn(p50: float, faults: list[str], late_us: float
     for case in tc.LOOP_CASES:
         figures |= {f"{case} step_p50_us": p50, f"{case} step_p99_us": 2 * p50,
                     f"{case} periods_late_pct": 0.05, f"{case} faults": float(len(faults)),
-                    f"{case} lateness_max_us": late_us}
+                    f"{case} lateness_max_us": late_us,
+                    f"{case} rig_lateness_max_us": late_us / 2}
     return figures, {"bare": [], "rec+tel": faults}
 
 
@@ -33,11 +34,12 @@ def test_loop_table_has_medians_ratios_and_the_faults_by_turn(
     out = tc.compare("HEAD", 3, 3000, loop_s=15.0, cpu=1).splitlines()
     row = next(line for line in out if line.startswith("bare step_p50_us"))
     assert row.split()[-3:] == ["55.0", "45.0", "1.22"]
-    assert "rec+tel faults (lateness max [us]), this tree: - (900), SENSOR_STALE (8100), " \
-           "- (700)" in out
-    assert "rec+tel faults (lateness max [us]), abcdef0123: - (800), - (1200), " \
-           "SENSOR_STALE+OVERRUN (9400)" in out
-    assert "bare faults (lateness max [us]), this tree: - (900), - (8100), - (700)" in out
+    head = "faults (lateness max of the loop / the rig [us])"
+    assert f"rec+tel {head}, this tree: - (900 / 450), SENSOR_STALE (8100 / 4050), " \
+           "- (700 / 350)" in out
+    assert f"rec+tel {head}, abcdef0123: - (800 / 400), - (1200 / 600), " \
+           "SENSOR_STALE+OVERRUN (9400 / 4700)" in out
+    assert f"bare {head}, this tree: - (900 / 450), - (8100 / 4050), - (700 / 350)" in out
 
 
 def test_a_turn_without_figures_is_a_one_line_error(tmp_path: Path) -> None:
