@@ -22,6 +22,7 @@ from rig.wire.protocol import (
     SensorData,
     ValveCommand,
 )
+from tests.support.bench_module import load_bench_module
 from tests.support.crc import crc8_bitwise, with_crc
 from tests.support.crc import ref_encode as cantools_encode
 from tests.support.frames import FrameDecoder
@@ -244,13 +245,7 @@ def test_full_scale_spool_is_in_range() -> None:
 
 
 def test_codec_bench_runs_quick() -> None:
-    import importlib.util
-
-    path = Path(__file__).parents[1] / "bench" / "codec_bench.py"
-    spec = importlib.util.spec_from_file_location("codec_bench", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_bench_module("codec_bench")
     rows = mod.run(quick=True)
     assert len(rows) == 2 * len(CODECS)
     assert all(r["ours_us"] > 0 and r["cantools_us"] > 0 for r in rows)

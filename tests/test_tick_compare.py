@@ -4,24 +4,13 @@ each turn's largest lateness."""
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
+from tests.support.bench_module import load_bench_module
 
-def _load() -> ModuleType:
-    """bench/tick_compare.py by path (tests import nothing from bench/: test_layout)."""
-    path = Path(__file__).parents[1] / "bench" / "tick_compare.py"
-    spec = importlib.util.spec_from_file_location("tick_compare", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-tc = _load()
+tc = load_bench_module("tick_compare")
 
 
 def _loop_turn(p50: float, faults: list[str], late_us: float

@@ -1,8 +1,9 @@
 """A numba function called without numba's per-call dispatch.
 
 A call through a numba dispatcher first works out the numba type of every argument and
-looks the compiled version up by them: about 0.1 µs an array argument, 1-1.5 µs of the
-loop's ~3 µs previewed step with its 14 arrays (``python -m bench controller``).  A
+looks the compiled version up by them: about 0.1 µs an array argument; the previewed
+step with its 14 arrays took 5.1 µs a call back to back through the dispatcher, 3.8 µs
+through the entry point (docs/design.md §12).  A
 function compiled for one explicit signature has one compiled version, whose entry
 point (``dispatcher.overloads[signature].entry_point``) takes the same arguments and
 skips that look-up.  It does not check the arguments' types: an array of another
