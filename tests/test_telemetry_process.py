@@ -12,6 +12,7 @@ from typing import Any
 
 from controller.config import default_config
 from rig.recording.run_data import read_run
+from tests.support.processes import sigterm_and_wait
 from tests.support.stepped_service import SteppedService
 from tests.support.zenoh_client import client_session, free_port, query, wait_for
 
@@ -111,7 +112,9 @@ def test_demo_under_never_reading_clients_and_a_status_flood(tmp_path: Path) -> 
     status queries at about 1,000/s: the run latches no fault and runs every tick, the
     flood is refused by the rate limits (counted in the status the process answers), the
     log holds no line a client wrote.  Counts, never timing (lockstep: the loop's
-    results do not depend on the machine's load)."""
+    results do not depend on the machine's load); the demo is long and ended by SIGTERM
+    once the status has been read, so a slow host cannot end it before the flood does
+    (8 s of lockstep once ran out under load)."""
     import contextlib
     import json
     import subprocess
@@ -131,7 +134,8 @@ def test_demo_under_never_reading_clients_and_a_status_flood(tmp_path: Path) -> 
     root = Path(__file__).resolve().parents[1]
     proc = subprocess.Popen(
         [sys.executable, "-m", "rig.cli", "demo", "-q", "--json", "--no-record",
-         "--no-realtime", "--timing", "lockstep", "--duration", "8", "--config", str(conf)],
+         "--no-realtime", "--timing", "lockstep", "--duration", "600", "--config",
+         str(conf)],
         cwd=root, env={**os.environ, "PYTHONPATH": str(root)}, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
     clients: list[ClientConnection] = []
@@ -181,7 +185,7 @@ def test_demo_under_never_reading_clients_and_a_status_flood(tmp_path: Path) -> 
             assert wait_for(other_peer_status, 30)
         finally:
             s2.close()
-        out, err = proc.communicate(timeout=180)
+        out, err = sigterm_and_wait(proc, 180)
     finally:
         stack.close()
         if proc.poll() is None:
@@ -190,7 +194,7 @@ def test_demo_under_never_reading_clients_and_a_status_flood(tmp_path: Path) -> 
     assert proc.returncode == 0, err[-3000:]
     summary = json.loads(out)
     assert summary["faults"] == [], summary["faults"]
-    assert summary["timing"]["ticks"] >= 8 * 1000 * 0.9
+    assert summary["stopped_by"] == "SIGTERM" and summary["timing"]["ticks"] > 0
     # the flood was rate limited: the refused queries ended without a reply
     assert refused > replies["ok"] > 0 and replies["err"] == 0, replies
     tel = status["telemetry"]
