@@ -386,14 +386,16 @@ class DesignConfig:
                                           "is 0; 0 = the no-force prediction; "
                                           "docs/design.md §12)")
     preview_stop_clamp_m: float = _f(0.08, lo=0.0, hi=1.0,
-                                     doc="road preview: when the no-force prediction of "
-                                         "the LVDT reading (the running layer's model) "
-                                         "reaches this distance from the stops' centre "
-                                         "within preview_clamp_horizon_s, the force toward "
-                                         "that stop is clipped to 0, for every law and "
-                                         "weight set, so the actuator never drives the "
-                                         "body into a stop the unloaded rig is about to "
-                                         "reach [m] (0 = off; docs/design.md §12)")
+                                     doc="stop clamp: the force is bounded so that the "
+                                         "prediction of the LVDT reading (the running "
+                                         "layer's model, the force held) stays within this "
+                                         "distance from the stops' centre over "
+                                         "preview_clamp_horizon_s, for every law and "
+                                         "weight set: a push toward a stop is limited, "
+                                         "and where the no-force prediction reaches the "
+                                         "stop the force brakes away from it "
+                                         "(preview_clamp_brake) [m] (0 = off; "
+                                         "docs/design.md §12)")
     preview_clamp_horizon_s: float = _f(0.05, lo=0.0, hi=1.0, lo_open=True,
                                         doc="road preview: how far ahead the stop clamp "
                                             "(preview_stop_clamp_m) looks, at the "
@@ -407,6 +409,20 @@ class DesignConfig:
                                           "against the reading that came (exponential "
                                           "window of 0.2 s) below this [m]; a bank on a "
                                           "layer far from its plant predicts metres")
+    preview_clamp_brake: bool = _f(True,
+                                   doc="stop clamp: where its no-force prediction reaches a "
+                                       "stop, the force brakes away from it by as much as "
+                                       "brings the prediction back within "
+                                       "preview_stop_clamp_m, up to the barrier's braking "
+                                       "force (stop_barrier_force_fraction; the barrier "
+                                       "itself may be off); false: the force toward that "
+                                       "stop is clipped to 0 and no more (docs/design.md §12)")
+    stop_clamp_road_at_rest: bool = _f(True,
+                                       doc="the stop clamp (preview_stop_clamp_m) acts "
+                                           "without a live road preview too, predicting "
+                                           "with the road at rest: the body's and the "
+                                           "wheel's momentum alone (needs "
+                                           "preview_horizon_s > 0 for its predictor)")
     preview_schedule_start_m: float = _f(0.05, lo=0.0, hi=1.0,
                                          doc="road preview: schedule_start_m while a road "
                                              "preview is live (schedule_start_m applies "

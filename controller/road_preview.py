@@ -42,11 +42,18 @@ beyond the models, the prediction is the no-force one and the trigger the lower
 ``preview_trigger_m``, which the travel governor of weight set 2 keeps on every layer.
 
 The same predictor, without force and over the first ``design.preview_clamp_horizon_s``
-(50 ms), drives the stop clamp (:func:`predicted_extremes_m`): where it reaches a stop
-(``design.preview_stop_clamp_m``), the step clips its force toward that stop to 0, for
-every law, while the clamp's own 50 ms predictions have come true
-(``preview_clamp_trust_m``) and the wheel is on the road
-(``controller.runtime.bank._clamp_check``; docs/design.md §12, "The stop clamp").
+(50 ms), drives the stop clamp (:func:`clamp_force_bounds_n`), for every law, while the
+clamp's own 50 ms predictions have come true (``preview_clamp_trust_m``) and the wheel is
+on the road (``controller.runtime.bank._clamp_check``; docs/design.md §12, "The stop
+clamp").  It bounds the force so that the predicted reading stays within
+``design.preview_stop_clamp_m`` of the stops' centre: with ``brake_rows`` the reading's
+response to a force held from the next tick on (arriving through a first-order lag of
+half the reaction time ``design.stop_barrier_lag_s``), the force toward a stop is at most
+what keeps each look-ahead prediction inside, and where the no-force prediction already
+reaches the stop the force is at least what brings it back inside, up to the barrier's
+braking force (``design.preview_clamp_brake``, ``stop_barrier_force_fraction``; off: the
+force toward that stop is clipped to 0 and no more).  Without a live preview the road is
+taken at rest (the state's momentum alone: ``design.stop_clamp_road_at_rest``).
 
 :func:`road_preview` designs the predictor offline into plain arrays;
 :func:`predicted_peak_m` and :func:`predicted_extremes_m` are the per-tick kernels (numba,
@@ -72,8 +79,8 @@ from controller.plant import (
     tire_secant_stiffness_n_per_m,
 )
 
-__all__ = ["CLAMP_TRUST_WINDOW_S", "EDGE_KEYS", "RoadPreview", "layer_triggers_m",
-           "layers_inside_grid", "predicted_extremes_m", "predicted_peak_m", "road_preview"]
+__all__ = ["CLAMP_TRUST_WINDOW_S", "EDGE_KEYS", "RoadPreview", "clamp_force_bounds_n",
+           "layer_triggers_m", "layers_inside_grid", "predicted_peak_m", "road_preview"]
 
 
 @dataclass(frozen=True)
@@ -86,7 +93,10 @@ class RoadPreview:
     ticks after a tick of unit road velocity [m per (m/s)]; ``force_rows`` (L, P): the
     reading's change at ``ticks`` per newton of the load-cell force measured now, fading
     with ``design.preview_force_decay_s`` [m/N] (zeros when that is 0, and on an edge
-    layer under an inner trigger: the no-force prediction); ``horizon_ticks`` H =
+    layer under an inner trigger: the no-force prediction); ``brake_rows`` (L, P): the
+    reading's change at ``ticks`` per newton of force reference held from the next tick
+    on, delivered from 0 through a first-order lag of half ``design.stop_barrier_lag_s``
+    (the force loop's rise; the stop clamp's force bound) [m/N]; ``horizon_ticks`` H =
     ``ticks[-1]``; ``trigger_m`` (L,): predicted distance from the stops' centre that
     calls the travel law while layer l runs (``design.preview_trigger_m`` on the grid's
     edge, ``preview_trigger_inner_m`` inside it: :func:`layer_triggers_m`);
@@ -103,6 +113,7 @@ class RoadPreview:
     ticks: NDArray[np.int64]
     impulse: FloatArray
     force_rows: FloatArray
+    brake_rows: FloatArray
     horizon_ticks: int
     trigger_m: FloatArray
     edge_trigger_m: float
@@ -111,8 +122,9 @@ class RoadPreview:
 
 
 def _layer_predictor(cfg: RigConfig, ticks: NDArray[np.int64], horizon: int
-                     ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """(rows (P, 4), impulse (H,), force_rows (P,)) of the model of ``cfg``'s rig."""
+                     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """(rows (P, 4), impulse (H,), force_rows (P,), brake_rows (P,)) of the model of
+    ``cfg``'s rig."""
     x2 = static_tire_deflection_m(cfg)
     lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
                       tire_damping_ns_per_m(x2, cfg.tire))
@@ -136,7 +148,11 @@ def _layer_predictor(cfg: RigConfig, ticks: NDArray[np.int64], horizon: int
         fade = np.exp(-dt / tau) ** np.arange(horizon)     # the force of tick i: lam^i
         for p, j in enumerate(ticks):
             force_rows[p] = force_impulse[:j][::-1] @ fade[:j]
-    return powers[ticks] - c[None, :], impulse, force_rows
+    # a force reference held from the next tick on, delivered through the force loop's lag
+    lag = 0.5 * cfg.design.stop_barrier_lag_s
+    delivered = 1.0 - np.exp(-dt * np.arange(1, horizon + 1) / lag)
+    brake_rows = np.array([force_impulse[:j][::-1] @ delivered[:j] for j in ticks])
+    return powers[ticks] - c[None, :], impulse, force_rows, brake_rows
 
 
 #: the layer keys whose grid edge makes a layer an edge layer (:func:`layers_inside_grid`)
@@ -201,9 +217,10 @@ def road_preview(cfg: RigConfig) -> RoadPreview | None:
                 else np.ones((1, 1), dtype=np.bool_))
     parts = [_layer_predictor(layer_config(cfg, *scales), ticks, horizon)
              for scales in layer_grid(cfg)]
-    return RoadPreview(rows=np.ascontiguousarray([r for r, _, _ in parts]), ticks=ticks,
-                       impulse=np.ascontiguousarray([h for _, h, _ in parts]),
-                       force_rows=np.ascontiguousarray([f for _, _, f in parts]) * force_on,
+    return RoadPreview(rows=np.ascontiguousarray([p[0] for p in parts]), ticks=ticks,
+                       impulse=np.ascontiguousarray([p[1] for p in parts]),
+                       force_rows=np.ascontiguousarray([p[2] for p in parts]) * force_on,
+                       brake_rows=np.ascontiguousarray([p[3] for p in parts]),
                        horizon_ticks=horizon, trigger_m=layer_triggers_m(cfg),
                        edge_trigger_m=d.preview_trigger_m, clamp_m=d.preview_stop_clamp_m,
                        clamp_points=_clamp_points(cfg, ticks))
@@ -238,35 +255,47 @@ CLAMP_TRUST_WINDOW_S = 0.2
 
 
 @nb.njit(cache=True, nogil=True)
-def predicted_extremes_m(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
-                         layer: int, dx: np.ndarray, reading_m: float, centre_m: float,
-                         road_velocity: np.ndarray, start: int,
-                         points: int) -> tuple[float, float, float]:
-    """The stop clamp's prediction (``design.preview_stop_clamp_m``): the highest and
-    lowest no-force prediction of the LVDT reading about the stops' centre [m]
-    (compression positive) over now and the first ``points`` (at least 1) checked
-    look-ahead ticks (:class:`RoadPreview`), and the prediction at the last of them, by
-    the model of layer ``layer`` from the state deviation ``dx`` (4,), the measured
-    reading ``reading_m`` and the previewed road velocity ``road_velocity[start:]``
-    [m/s] (fewer samples than a look-ahead tick needs: the missing ones count as 0).
-    All three NaN when any prediction is NaN."""
+def clamp_force_bounds_n(rows: np.ndarray, ticks: np.ndarray, impulse: np.ndarray,
+                         brake_rows: np.ndarray, layer: int, dx: np.ndarray,
+                         reading_m: float, centre_m: float, road_velocity: np.ndarray,
+                         start: int, points: int, clamp_m: float,
+                         brake_n: float) -> tuple[float, float, float]:
+    """The stop clamp's force bounds (``design.preview_stop_clamp_m``): (least force,
+    greatest force [N] (> 0 extends, away from the compression stop), the no-force
+    prediction at the last look-ahead tick [m]).  The no-force prediction r_p of the LVDT
+    reading about the stops' centre (compression positive) at the first ``points`` (at
+    least 1) checked look-ahead ticks (:class:`RoadPreview`), by the model of layer
+    ``layer`` from the state deviation ``dx`` (4,), the measured reading ``reading_m``
+    and the previewed road velocity ``road_velocity[start:]`` [m/s] (fewer samples than a
+    look-ahead tick needs: the missing ones count as 0), plus F g_p for a force reference
+    F held from the next tick on (``brake_rows``: g_p < 0), stays within ``clamp_m`` at
+    every point for F within the bounds: the least force is max_p (r_p - clamp_m) / |g_p|,
+    at most ``brake_n``, the
+    greatest -max_p (-clamp_m - r_p) / |g_p|, at least -``brake_n`` (-inf / +inf: no
+    point bounds it).  Where the no-force prediction reaches a stop the bound asks for
+    braking away from it, up to ``brake_n`` (0: refuse to push toward it); elsewhere it
+    only limits the push toward the stop.  A NaN prediction gives (0, 0, NaN)."""
     base = reading_m - centre_m
     if base != base:
-        return math.nan, math.nan, math.nan
-    hi = base
-    lo = base
+        return 0.0, 0.0, math.nan
+    need_c = -math.inf              # least extension force the compression stop asks
+    need_r = -math.inf              # least force toward compression the rebound stop asks
     r = base
     nw = road_velocity.shape[0] - start
     for p in range(min(points, ticks.shape[0])):
         r = _reading_at(rows, impulse, layer, p, ticks[p], dx, base, road_velocity, start,
                         nw)
         if r != r:
-            return math.nan, math.nan, math.nan
-        if r > hi:
-            hi = r
-        elif r < lo:
-            lo = r
-    return hi, lo, r
+            return 0.0, 0.0, math.nan
+        g = -brake_rows[layer, p]
+        if g > 0.0:
+            c = (r - clamp_m) / g
+            if c > need_c:
+                need_c = c
+            c = (-clamp_m - r) / g
+            if c > need_r:
+                need_r = c
+    return min(need_c, brake_n), -min(need_r, brake_n), r
 
 
 @nb.njit(cache=True, nogil=True)

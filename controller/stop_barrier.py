@@ -44,8 +44,8 @@ import numpy as np
 from controller.arrays import FloatArray
 from controller.config import RigConfig
 
-__all__ = ["BARRIER_SIZE", "StopBarrier", "barrier_force", "force_bound_toward_stop",
-           "stop_barrier"]
+__all__ = ["BARRIER_SIZE", "StopBarrier", "barrier_force", "braking_force_n",
+           "force_bound_toward_stop", "stop_barrier"]
 
 #: length of :meth:`StopBarrier.as_array` (the runtime's parameter slots)
 BARRIER_SIZE = 9
@@ -76,6 +76,14 @@ class StopBarrier:
                          self.rate_filter_coeff, self.passive_uncertainty])
 
 
+def braking_force_n(cfg: RigConfig, stall_force_n: float, force_limit_n: float) -> float:
+    """The actuator force a braking law counts on [N]: ``design.stop_barrier_force_fraction``
+    of the stall force A Ps ``stall_force_n`` (the valve loses force when the piston
+    moves), at most the force loop's ``force_limit_n``.  The barrier's and the stop
+    clamp's (``design.preview_clamp_brake``)."""
+    return cfg.design.stop_barrier_force_fraction * min(stall_force_n, force_limit_n)
+
+
 def stop_barrier(cfg: RigConfig, stall_force_n: float, force_limit_n: float) -> StopBarrier:
     """The barrier of ``cfg`` (``design.stop_barrier*``, the vehicle's M, K, C) for an
     actuator of stall force A Ps ``stall_force_n`` behind a force loop clipping the
@@ -83,7 +91,7 @@ def stop_barrier(cfg: RigConfig, stall_force_n: float, force_limit_n: float) -> 
     d, v = cfg.design, cfg.vehicle
     if not d.stop_barrier:
         return StopBarrier(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    braking = d.stop_barrier_force_fraction * min(stall_force_n, force_limit_n)
+    braking = braking_force_n(cfg, stall_force_n, force_limit_n)
     corner = 2.0 * math.pi * d.stop_barrier_rate_lowpass_hz     # [rad/s]
     coeff = 1.0 - math.exp(-corner * cfg.sample_time_s)
     return StopBarrier(mass_kg=v.sprung_mass_kg, stiffness_n_per_m=v.suspension_stiffness_n_per_m,

@@ -28,7 +28,7 @@ from controller.runtime.bank import (
 )
 from controller.runtime.kernels import MEAS_DIM, QS_INIT
 from hil.sim.closed_loop import cached_design
-from tests.support.reference_bank import ReferenceBank
+from tests.support.reference_bank import ReferenceBank, kernel_cfg
 from tests.support.trajectories import SMOOTH_GD, SMOOTH_SPEED, smooth_road_config, trajectory
 
 
@@ -93,7 +93,7 @@ def _run_pair(design: Design, cfg: RigConfig, mode: Blending, meas: dict[str, np
               ) -> tuple[BankRuntime, ReferenceBank]:
     """The kernel and the reference bank side by side (``bank_cfg``: run-time settings
     other than the design's)."""
-    rt = BankRuntime(design, blending=mode, cfg=bank_cfg)
+    rt = BankRuntime(design, blending=mode, cfg=kernel_cfg(design, bank_cfg))
     ref = ReferenceBank(design, blending=mode, cfg=bank_cfg)
     rng = np.random.default_rng(junk_seed)
     n = meas["accel"].size
@@ -148,7 +148,7 @@ def test_kernel_matches_reference_with_the_end_stop_guard_acting(mode: Blending)
     cfg = one_layer(smooth_road_config(stop_guard_m=0.08))
     design = design_bank(cfg)
     meas = trajectory(cfg, 1200, seed=9, force_std=1500.0)
-    rt = BankRuntime(design, blending=mode, cfg=cfg)
+    rt = BankRuntime(design, blending=mode, cfg=kernel_cfg(design, cfg))
     ref = ReferenceBank(design, blending=mode, cfg=cfg)
     partial = 0
     for k in range(1200):
@@ -161,7 +161,8 @@ def test_kernel_matches_reference_with_the_end_stop_guard_acting(mode: Blending)
 def test_kernel_matches_reference_across_mode_switches(one_layer_design: Design,
                                                        one_layer_cfg: RigConfig) -> None:
     meas = trajectory(one_layer_cfg, 800, seed=8)
-    rt, ref = BankRuntime(one_layer_design), ReferenceBank(one_layer_design)
+    rt = BankRuntime(one_layer_design, cfg=kernel_cfg(one_layer_design))
+    ref = ReferenceBank(one_layer_design)
     order = [Blending.BAYES, Blending.LQG, Blending.MOVING, Blending.FUZZY]
     for k in range(800):
         if k % 200 == 199:
@@ -314,7 +315,8 @@ def test_moving_set_after_touch_down_has_a_probability_distribution(
     probabilities summed to 2/3.  The set now restarts uniform; the numba bank and the
     plain-numpy reference agree tick by tick (on a bank of one layer, as the reference
     has; the property above checks the default bank)."""
-    rt = BankRuntime(one_layer_design, blending=Blending.MOVING, cfg=one_layer_cfg)
+    rt = BankRuntime(one_layer_design, blending=Blending.MOVING,
+                     cfg=kernel_cfg(one_layer_design, one_layer_cfg))
     ref = ReferenceBank(one_layer_design, blending=Blending.MOVING, cfg=one_layer_cfg)
     rt.reset()
     landed = False

@@ -1,10 +1,13 @@
 """The road preview's stop clamp (``design.preview_stop_clamp_m``, docs/design.md §12):
-its prediction against python-control's simulation of the same quarter car, the clip
-(only a force toward a stop the prediction reaches), the trust in its own predictions
-and the airborne gate, and runs on the nonlinear rig: the single bump that every law
-slammed is now no worse than passive, and a bank on the wrong layer does not clamp."""
+its force bounds against python-control's simulation of the same quarter car (with the
+bound force, the prediction stays inside the clamp distance), the clip, the trust in its
+own predictions and the airborne gate, and runs on the nonlinear rig: the single bump
+that every law slammed is now no worse than passive, with or without a live preview,
+and a bank on the wrong layer does not clamp."""
 
 from __future__ import annotations
+
+import math
 
 import control
 import numpy as np
@@ -19,10 +22,14 @@ from controller.plant import (
     tire_damping_ns_per_m,
     tire_secant_stiffness_n_per_m,
 )
-from controller.road_preview import predicted_extremes_m, road_preview
+from controller.road_preview import clamp_force_bounds_n, road_preview
 from controller.runtime.bank import CLAMP_AIRBORNE_WEIGHT, BankRuntime, preview_clamp
 from controller.runtime.kernels import (
+    F_AUTH,
     F_PVC_AIRW,
+    F_PVC_BRAKE,
+    F_PVC_FMAX,
+    F_PVC_FMIN,
     F_PVC_MS,
     F_PVC_TRUST2,
     F_TS,
@@ -40,19 +47,26 @@ assert PV is not None
 CENTRE = CFG.design.bump_stop_centre_lvdt_m
 
 
-def _reference(layer: int, dx: np.ndarray, road_velocity: np.ndarray) -> np.ndarray:
-    """The change of the LVDT reading over the horizon without force, by python-control:
-    the layer's rig zero-order-hold discretised (control.c2d) and simulated
-    (control.forced_response) from the deviation dx."""
+def _reference(layer: int, dx: np.ndarray, road_velocity: np.ndarray,
+               force_n: float = 0.0) -> np.ndarray:
+    """The change of the LVDT reading over the horizon, by python-control: the layer's
+    rig zero-order-hold discretised (control.c2d) and simulated (control.forced_response)
+    from the deviation dx, with the road velocity and a force reference ``force_n``
+    held from the next tick on, delivered through a first-order lag of half
+    ``design.stop_barrier_lag_s``."""
     cfg = layer_config(CFG, *layer_grid(CFG)[layer])
     x2 = static_tire_deflection_m(cfg)
     lm = linear_model(cfg.vehicle, tire_secant_stiffness_n_per_m(x2, cfg.tire),
                       tire_damping_ns_per_m(x2, cfg.tire))
-    sys_d = control.c2d(control.ss(lm.A, lm.B1, [[1.0, -1.0, 0.0, 0.0]], [[0.0]]),
-                        cfg.sample_time_s, method="zoh")
+    sys_d = control.c2d(control.ss(lm.A, np.column_stack([lm.B1, lm.B2]), [[1.0, -1.0, 0.0, 0.0]],
+                                   [[0.0, 0.0]]), cfg.sample_time_s, method="zoh")
     n = road_velocity.size
-    resp = control.forced_response(sys_d, T=np.arange(n + 1) * cfg.sample_time_s,
-                                   U=np.append(road_velocity, 0.0), X0=dx)
+    dt = cfg.sample_time_s
+    delivered = force_n * (1.0 - np.exp(-dt * np.arange(1, n + 2)
+                                        / (0.5 * cfg.design.stop_barrier_lag_s)))
+    resp = control.forced_response(sys_d, T=np.arange(n + 1) * dt,
+                                   U=np.vstack([np.append(road_velocity, 0.0), delivered]),
+                                   X0=dx)
     r = np.asarray(resp.outputs).ravel()
     return r - r[0]
 
@@ -77,76 +91,112 @@ def test_the_clamp_looks_50_ms_ahead_by_default() -> None:
 @given(layer=st.integers(0, len(layer_grid(CFG)) - 1),
        dx=st.lists(st.floats(-0.02, 0.02), min_size=4, max_size=4),
        velocity=st.lists(st.floats(-1.0, 1.0), min_size=1, max_size=8),
-       reading=st.floats(-0.07, 0.07), points=st.integers(1, 8))
-def test_extremes_are_the_highest_and_lowest_no_force_reading(
+       reading=st.floats(-0.07, 0.07), points=st.integers(1, 8),
+       brake_n=st.sampled_from([0.0, 2000.0, 8000.0]))
+def test_the_bound_force_keeps_the_prediction_inside(
         layer: int, dx: list[float], velocity: list[float], reading: float,
-        points: int) -> None:
-    """hi / lo over now and the first ``points`` look-ahead ticks, and the reading at
-    the last of them, as python-control simulates the layer's rig from dx with the
-    road velocity ahead (held piecewise over the horizon)."""
+        points: int, brake_n: float) -> None:
+    """With the least (greatest) force of the bounds held, python-control's simulation of
+    the layer's rig from dx with the road velocity ahead stays within the clamp distance
+    of the compression (rebound) stop at every look-ahead tick checked, and touches it
+    at one, unless the bound is the braking limit (then the prediction beyond reaches
+    no further than the no-force one) or no tick bounds it (the no-force prediction
+    then never reaches the stop); the last value is the no-force prediction."""
     assert PV is not None
     w = np.repeat(np.asarray(velocity), -(-PV.horizon_ticks // len(velocity)))
     w = np.ascontiguousarray(w[:PV.horizon_ticks])
     x = np.asarray(dx)
-    hi, lo, last = predicted_extremes_m(PV.rows, PV.ticks, PV.impulse, layer, x,
-                                        CENTRE + reading, CENTRE, w, 0, points)
-    change = _reference(layer, x, w)
-    at = reading + change[PV.ticks[:min(points, PV.ticks.size)]]
-    assert hi == pytest.approx(max(reading, at.max()), abs=1e-9)
-    assert lo == pytest.approx(min(reading, at.min()), abs=1e-9)
-    assert last == pytest.approx(at[-1], abs=1e-9)
+    clamp = PV.clamp_m
+    f_min, f_max, last = clamp_force_bounds_n(PV.rows, PV.ticks, PV.impulse, PV.brake_rows,
+                                              layer, x, CENTRE + reading, CENTRE, w, 0,
+                                              points, clamp, brake_n)
+    at = PV.ticks[:min(points, PV.ticks.size)]
+    free = reading + _reference(layer, x, w)[at]
+    assert last == pytest.approx(free[-1], abs=1e-9)
+    assert f_min <= brake_n and f_max >= -brake_n
+    for bound, sign in ((f_min, 1.0), (f_max, -1.0)):
+        if math.isinf(bound):
+            assert sign * bound < 0 and (sign * free < clamp).all()
+            continue
+        held = reading + _reference(layer, x, w, bound)[at]
+        if sign * bound < brake_n:
+            assert (sign * held <= clamp + 1e-9).all()
+            assert (sign * held).max() == pytest.approx(clamp, abs=1e-9)
+        else:                               # braking limited: as far as it gets
+            assert (sign * held <= sign * free + 1e-12).all()
 
 
-def test_nan_in_nan_out() -> None:
+def test_nan_in_zero_force_out() -> None:
     assert PV is not None
     w = np.zeros(PV.horizon_ticks)
-    out = predicted_extremes_m(PV.rows, PV.ticks, PV.impulse, 0, np.zeros(4), np.nan,
-                               CENTRE, w, 0, PV.clamp_points)
-    assert all(np.isnan(out))
+    f_min, f_max, last = clamp_force_bounds_n(PV.rows, PV.ticks, PV.impulse, PV.brake_rows,
+                                              0, np.zeros(4), np.nan, CENTRE, w, 0,
+                                              PV.clamp_points, PV.clamp_m, 4000.0)
+    assert (f_min, f_max) == (0.0, 0.0) and np.isnan(last)
 
 
-@pytest.mark.parametrize(("side", "force", "clipped"), [
-    (0, -500.0, False), (0, 500.0, False),
-    (1, -500.0, True), (1, 500.0, False),        # compression stop: F < 0 pushes toward it
-    (2, 500.0, True), (2, -500.0, False),        # rebound stop: F > 0 extends toward it
-    (3, 500.0, True), (3, -500.0, True), (1, 0.0, False)])
-def test_clip_only_toward_the_stop_named(side: int, force: float, clipped: bool) -> None:
+@pytest.mark.parametrize(("bounds", "force", "out"), [
+    ((-math.inf, math.inf), -500.0, -500.0),
+    ((0.0, math.inf), -500.0, 0.0), ((0.0, math.inf), 500.0, 500.0),
+    ((1500.0, math.inf), 500.0, 1500.0),            # braking from the compression stop
+    ((-300.0, math.inf), -500.0, -300.0),            # a push toward it, limited
+    ((-math.inf, 0.0), 500.0, 0.0), ((-math.inf, -800.0), -500.0, -800.0),
+    ((100.0, -100.0), 500.0, 0.0), ((0.0, math.inf), 0.0, 0.0)])
+def test_clip_to_the_bounds(bounds: tuple[float, float], force: float, out: float) -> None:
+    fv = np.zeros(F_PVC_FMAX + 1)
+    fv[F_PVC_FMIN], fv[F_PVC_FMAX] = bounds
     iv = np.zeros(I_PVCLAMP_TICKS + 1, dtype=np.int64)
-    out = preview_clamp(iv, side, force)
-    assert out == (0.0 if clipped else force)
-    assert iv[I_PVCLAMP_TICKS] == int(clipped)
+    assert preview_clamp(fv, iv, force) == out
+    assert iv[I_PVCLAMP_TICKS] == int(out != force)
 
 
 def _checked(rt: BankRuntime, reading_m: float, trusted: bool = True,
-             airborne_weight: float = 0.0) -> int:
-    """The clamp's side bits after a check at a held reading (road at rest)."""
+             airborne_weight: float = 0.0) -> tuple[float, float] | None:
+    """The clamp's force bounds after a check at a held reading (road at rest), None
+    when it does not act."""
     assert PV is not None
     rt._fv[F_PVC_MS] = 0.0 if trusted else 4.0 * rt._fv[F_PVC_TRUST2]
     rt._fv[F_PVC_AIRW] = airborne_weight
     rt.check_road_preview(PV, reading_m, 0.0, np.zeros(PV.horizon_ticks), 0)
-    return int(rt._iv[I_PVCLAMP])
+    if not rt._iv[I_PVCLAMP]:
+        return None
+    return float(rt._fv[F_PVC_FMIN]), float(rt._fv[F_PVC_FMAX])
 
 
 @pytest.mark.parametrize("weight_set", [0, 1, 2])
-def test_check_names_the_stop_the_prediction_reaches(weight_set: int) -> None:
-    """A reading held 85 mm toward a stop (the estimate at rest, no road) reaches the
-    80 mm clamp: that stop, for every weight set; 40 mm reaches neither; untrusted, or
-    with the airborne model in the blend, no clamp; the step after the check clips only
-    a force toward that stop and clears the bits."""
+def test_check_bounds_the_force_toward_the_stop_the_prediction_reaches(
+        weight_set: int) -> None:
+    """A reading held 85 mm toward a stop (the estimate at rest, no road) is beyond the
+    80 mm clamp: braking away from that stop up to the barrier's braking force
+    (``preview_clamp_brake``; off: no push toward it), for every weight set; 40 mm only
+    limits the push toward either stop; untrusted, or with the airborne model in the
+    blend, no clamp; the step after the check is within the bounds and clears them."""
     rt = BankRuntime(cached_design(CFG), weight_set=weight_set, cfg=CFG)
     centre = float(rt._fv[F_TS])
     assert centre == CENTRE
-    assert _checked(rt, centre + 0.085) == 1
-    assert _checked(rt, centre - 0.085) == 2
-    assert _checked(rt, centre + 0.04) == 0
-    assert _checked(rt, centre + 0.085, trusted=False) == 0
-    assert _checked(rt, centre + 0.085, airborne_weight=2 * CLAMP_AIRBORNE_WEIGHT) == 0
-    assert _checked(rt, centre + 0.085, airborne_weight=CLAMP_AIRBORNE_WEIGHT) == 1
+    brake = float(rt._fv[F_PVC_BRAKE])
+    assert brake == 4000.0                          # half the 8 kN force limit
+    limit = CFG.force_loop.force_limit_n
+    lo, hi = _checked(rt, centre + 0.085) or (math.nan, math.nan)
+    assert lo == brake and hi > limit              # the far stop bounds nothing
+    lo, hi = _checked(rt, centre - 0.085) or (math.nan, math.nan)
+    assert hi == -brake and lo < -limit
+    rt._fv[F_AUTH] = 0.25                           # a degrading estimator brakes less
+    assert (_checked(rt, centre + 0.085) or (math.nan,))[0] == 0.25 * brake
+    rt._fv[F_AUTH] = 1.0
+    no_brake = CFG.replace(design={"preview_clamp_brake": False})
+    rt_nb = BankRuntime(cached_design(no_brake), weight_set=weight_set, cfg=no_brake)
+    assert (_checked(rt_nb, centre + 0.085) or (math.nan,))[0] == 0.0
+    lo, hi = _checked(rt, centre + 0.04) or (math.nan, math.nan)
+    assert -limit < lo < -1000.0 and hi > limit     # a push toward the near stop, limited
+    assert _checked(rt, centre + 0.085, trusted=False) is None
+    assert _checked(rt, centre + 0.085, airborne_weight=2 * CLAMP_AIRBORNE_WEIGHT) is None
+    assert _checked(rt, centre + 0.085, airborne_weight=CLAMP_AIRBORNE_WEIGHT) is not None
     for reading, sign in ((centre + 0.085, -1.0), (centre - 0.085, 1.0)):
         before = rt.preview_clamp_ticks
         _checked(rt, reading)
         u = rt.step(reading, 0.0, 0.0)
-        assert sign * u <= 0.0                  # never toward the stop named
+        assert sign * u <= -brake               # braking away from the stop
         assert rt.preview_clamp_ticks - before in (0, 1)
         assert rt._iv[I_PVCLAMP] == 0           # for that step only
     off = CFG.replace(design={"preview_stop_clamp_m": 0.0})

@@ -85,8 +85,9 @@ from controller.road_noise import nearest_noise_entry
 from controller.road_preview import (
     CLAMP_TRUST_WINDOW_S,
     RoadPreview,
-    predicted_extremes_m,
+    clamp_force_bounds_n,
     predicted_peak_m,
+    road_preview,
 )
 from controller.runtime.bayes import bayes_update, log_likelihood_constant
 from controller.runtime.compiled import direct_call
@@ -139,6 +140,9 @@ from controller.runtime.kernels import (
     F_PFLOOR,
     F_PVC_AIRW,
     F_PVC_ALPHA,
+    F_PVC_BRAKE,
+    F_PVC_FMAX,
+    F_PVC_FMIN,
     F_PVC_FOR,
     F_PVC_MS,
     F_PVC_PRED,
@@ -244,6 +248,7 @@ from controller.runtime.kernels import (
     I_PROBE_CNT,
     I_PROBE_PTR,
     I_PVCALL,
+    I_PVCHECKED,
     I_PVCLAMP,
     I_PVCLAMP_TICKS,
     I_QGRID,
@@ -352,7 +357,7 @@ from controller.runtime.moving_bank import (
     supervise,
     tire_load_update,
 )
-from controller.stop_barrier import BARRIER_SIZE
+from controller.stop_barrier import BARRIER_SIZE, braking_force_n
 from controller.stop_barrier import stop_barrier as stop_barrier_parameters
 from controller.stop_contact import StopContactSettings, stop_contact_settings
 from controller.travel_schedule import SCHEDULE_SIZE, THRESHOLDS, travel_schedule
@@ -394,11 +399,20 @@ _SIG_TICK = nb.float64(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, 
                        nb.boolean[::1], nb.int64[::1])
 #: :data:`_SIG_TICK` and the road preview (:func:`bank_tick_preview`): the predictor's
 #: ``rows`` (L, P, 4), ``ticks`` (P,), ``impulse`` (L, H), ``force_rows`` (L, P),
+#: ``brake_rows`` (L, P),
 #: ``trigger_m`` (L,), ``edge_trigger_m``, the tick the running layer is trusted from,
 #: the road velocity ring and the window's start in it
 _SIG_TICK_PREVIEW = nb.float64(*_SIG_TICK.args, nb.float64[:, :, ::1], nb.int64[::1],
-                               nb.float64[:, ::1], nb.float64[:, ::1], nb.float64[::1],
+                               nb.float64[:, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
+                               nb.float64[::1],
                                nb.float64, nb.int64, nb.float64, nb.int64,
+                               nb.float64[::1], nb.int64)
+#: :data:`_SIG_TICK` and the stop clamp with the road at rest (:func:`bank_tick_at_rest`):
+#: the predictor's ``rows``, ``ticks``, ``impulse``, ``brake_rows``, the clamp's distance
+#: and points, and a road velocity array with the window's start in it (no samples: the
+#: road at rest)
+_SIG_TICK_AT_REST = nb.float64(*_SIG_TICK.args, nb.float64[:, :, ::1], nb.int64[::1],
+                               nb.float64[:, ::1], nb.float64[:, ::1], nb.float64, nb.int64,
                                nb.float64[::1], nb.int64)
 _SIG_CFG = nb.void(nb.float64[:, :, ::1], nb.float64[:, ::1], nb.float64[:, ::1],
                    nb.boolean[::1], nb.float64[::1], nb.int64[::1], nb.int64[:, ::1], nb.int64)
@@ -704,14 +718,17 @@ def _human_filter(fv: np.ndarray, xf0: float, xf1: float, accel_mps2: float) -> 
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def preview_clamp(iv: np.ndarray, side: int, out: float) -> float:
+def preview_clamp(fv: np.ndarray, iv: np.ndarray, out: float) -> float:
     """The stop clamp on the force reference ``out`` [N] (> 0 extends, i.e. pushes away
-    from the compression stop): 0 where it pushes toward a stop ``side``
-    (:func:`_clamp_check`'s bits) names, counted in ``iv[I_PVCLAMP_TICKS]``."""
-    if ((side & 1) and out < 0.0) or ((side & 2) and out > 0.0):
+    from the compression stop): clipped to the bounds :func:`_clamp_check` left in
+    ``fv[F_PVC_FMIN]`` / ``fv[F_PVC_FMAX]`` (0 when they cross), a change counted in
+    ``iv[I_PVCLAMP_TICKS]``."""
+    lo = fv[F_PVC_FMIN]
+    hi = fv[F_PVC_FMAX]
+    clipped = min(max(out, lo), hi) if lo <= hi else 0.0
+    if clipped != out:
         iv[I_PVCLAMP_TICKS] += 1
-        return 0.0
-    return out
+    return clipped
 
 
 @nb.njit(_SIG_STEP, cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]
@@ -720,8 +737,9 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
               accel_mps2: float, force_meas_n: float) -> float:
     """One tick of the bank (see the module docstring).  Allocation-free (compiled without
     the numba runtime), never raises."""
-    clamp_side = iv[I_PVCLAMP]      # the road preview's stop clamp, for this step only
+    clamp_on = iv[I_PVCLAMP]        # the stop clamp's bounds, for this step only
     iv[I_PVCLAMP] = 0
+    iv[I_PVCHECKED] = 0
     if not (math.isfinite(rattlespace_m) and math.isfinite(accel_mps2)
             and math.isfinite(force_meas_n)):
         iv[I_FLAGS] = _NONFINITE_INPUT
@@ -781,8 +799,8 @@ def bank_step(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarr
     flags |= _human_filter(fv, xf0, xf1, accel_mps2)
     out = stop_guard(fv, iv, out * (fv[F_AUTH] * fv[F_SC_AUTH]), rattlespace_m)
     out = stop_barrier(fv, iv, out, rattlespace_m)
-    if clamp_side != 0:
-        out = preview_clamp(iv, clamp_side, out)
+    if clamp_on != 0:
+        out = preview_clamp(fv, iv, out)
     if not math.isfinite(out):
         out = 0.0
         flags |= _NONFINITE_STATE
@@ -827,13 +845,15 @@ def raise_travel_envelope(fv: np.ndarray) -> None:
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _clamp_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.ndarray,
-                 impulse: np.ndarray, clamp_m: float, clamp_points: int, reading_m: float,
-                 road_velocity: np.ndarray, start: int) -> None:
-    """The stop clamp's prediction (``design.preview_stop_clamp_m``): set
-    ``iv[I_PVCLAMP]`` for the next step, bit 0 when the no-force prediction of the
-    reading reaches ``clamp_m`` toward the compression stop within the first
-    ``clamp_points`` look-ahead ticks, bit 1 toward the rebound stop (both when it is
-    not finite), 0 (no clamp) while the prediction is not trusted or the clamp is off.
+                 impulse: np.ndarray, brake_rows: np.ndarray, clamp_m: float,
+                 clamp_points: int, reading_m: float, road_velocity: np.ndarray,
+                 start: int) -> None:
+    """The stop clamp's prediction (``design.preview_stop_clamp_m``): the force bounds of
+    :func:`controller.road_preview.clamp_force_bounds_n` over the first ``clamp_points``
+    look-ahead ticks, up to ``fv[F_PVC_BRAKE]`` of braking times the estimator monitor's
+    authority (a degraded estimate brakes no more than it drives), in ``fv[F_PVC_FMIN]`` /
+    ``fv[F_PVC_FMAX]`` for the next step and ``iv[I_PVCLAMP]`` 1; 0 (no clamp) while
+    the prediction is not trusted or the clamp is off.
 
     Trusted: the running mean of the squared error of the prediction at the last of
     those ticks, against the reading that came (``F_PVC_MS``, the predictions kept in a
@@ -843,6 +863,7 @@ def _clamp_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.nda
     while the airborne model has more than :data:`CLAMP_AIRBORNE_WEIGHT` of the blend
     (a wheel that may be leaving the road: the deviation from the on-ground equilibria
     then carries the airborne model's, and the on-ground prediction runs to metres)."""
+    iv[I_PVCHECKED] = 1
     if clamp_points <= 0:
         iv[I_PVCLAMP] = 0
         return
@@ -859,9 +880,10 @@ def _clamp_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.nda
         if not e2 < 1.0:                # NaN or a metre off: as a metre
             e2 = 1.0
         fv[F_PVC_MS] += fv[F_PVC_ALPHA] * (e2 - fv[F_PVC_MS])
-    hi, lo, last = predicted_extremes_m(rows, ticks, impulse, layer,
-                                        fv[F_XDEV:F_XDEV + 4], reading_m, centre,
-                                        road_velocity, start, clamp_points)
+    f_min, f_max, last = clamp_force_bounds_n(rows, ticks, impulse, brake_rows, layer,
+                                              fv[F_XDEV:F_XDEV + 4], reading_m, centre,
+                                              road_velocity, start, clamp_points, clamp_m,
+                                              fv[F_PVC_BRAKE] * fv[F_AUTH])
     ahead = tick + ticks[min(clamp_points, ticks.shape[0]) - 1]
     slot = ahead % PVC_RING
     fv[F_PVC_PRED + slot] = last
@@ -869,27 +891,24 @@ def _clamp_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.nda
     if not (fv[F_PVC_MS] < fv[F_PVC_TRUST2] and fv[F_PVC_AIRW] <= CLAMP_AIRBORNE_WEIGHT):
         iv[I_PVCLAMP] = 0
         return
-    side = 0
-    if not hi < clamp_m:            # NaN too
-        side |= 1
-    if not lo > -clamp_m:
-        side |= 2
-    iv[I_PVCLAMP] = side
+    fv[F_PVC_FMIN] = f_min
+    fv[F_PVC_FMAX] = f_max
+    iv[I_PVCLAMP] = 1
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _preview_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.ndarray,
-                   impulse: np.ndarray, force_rows: np.ndarray, trigger_m: np.ndarray,
-                   edge_trigger_m: float, trusted_from_tick: int, clamp_m: float,
-                   clamp_points: int, reading_m: float, force_meas_n: float,
+                   impulse: np.ndarray, force_rows: np.ndarray, brake_rows: np.ndarray,
+                   trigger_m: np.ndarray, edge_trigger_m: float, trusted_from_tick: int,
+                   clamp_m: float, clamp_points: int, reading_m: float, force_meas_n: float,
                    road_velocity: np.ndarray, start: int) -> bool:
     """:meth:`BankRuntime.check_road_preview` on the packed state: the stop clamp's
     prediction for the next step (:func:`_clamp_check`, every law); then predict the
     reading by the running layer's model and call the travel law when the peak passes
     the layer's trigger (before ``trusted_from_tick``: the edge's prediction, no force,
     and trigger) or is not finite.  A layer the predictor does not have calls it too."""
-    _clamp_check(fv, iv, rows, ticks, impulse, clamp_m, clamp_points, reading_m,
-                 road_velocity, start)
+    _clamp_check(fv, iv, rows, ticks, impulse, brake_rows, clamp_m, clamp_points,
+                 reading_m, road_velocity, start)
     if fv[F_TS_ON] == 0.0:          # a fixed weight set: no travel law to call
         return False
     layer = iv[I_LAYER]
@@ -911,12 +930,12 @@ def _preview_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.n
 
 @nb.njit(cache=True, nogil=True)
 def road_preview_check(fv: np.ndarray, iv: np.ndarray, rows: np.ndarray, ticks: np.ndarray,
-                       impulse: np.ndarray, force_rows: np.ndarray, trigger_m: np.ndarray,
-                       edge_trigger_m: float, trusted_from_tick: int, clamp_m: float,
-                       clamp_points: int, reading_m: float, force_meas_n: float,
-                       road_velocity: np.ndarray, start: int) -> bool:
+                       impulse: np.ndarray, force_rows: np.ndarray, brake_rows: np.ndarray,
+                       trigger_m: np.ndarray, edge_trigger_m: float, trusted_from_tick: int,
+                       clamp_m: float, clamp_points: int, reading_m: float,
+                       force_meas_n: float, road_velocity: np.ndarray, start: int) -> bool:
     """:func:`_preview_check` alone (:meth:`BankRuntime.check_road_preview`)."""
-    return _preview_check(fv, iv, rows, ticks, impulse, force_rows, trigger_m,
+    return _preview_check(fv, iv, rows, ticks, impulse, force_rows, brake_rows, trigger_m,
                           edge_trigger_m, trusted_from_tick, clamp_m, clamp_points,
                           reading_m, force_meas_n, road_velocity, start)
 
@@ -927,17 +946,38 @@ def bank_tick_preview(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: 
                       accel_mps2: float, force_meas_n: float, run_st: np.ndarray,
                       run_active: np.ndarray, run_models: np.ndarray, rows: np.ndarray,
                       ticks: np.ndarray, impulse: np.ndarray, force_rows: np.ndarray,
-                      trigger_m: np.ndarray, edge_trigger_m: float, trusted_from_tick: int,
-                      clamp_m: float, clamp_points: int, road_velocity: np.ndarray,
-                      start: int) -> float:
+                      brake_rows: np.ndarray, trigger_m: np.ndarray, edge_trigger_m: float,
+                      trusted_from_tick: int, clamp_m: float, clamp_points: int,
+                      road_velocity: np.ndarray, start: int) -> float:
     """The road preview's check (:func:`_preview_check`: ``iv[I_PVCALL]`` 1 when it
     called the travel law), then :func:`bank_tick`, in one call: what
     :meth:`BankRuntime.check_road_preview` and :meth:`BankRuntime.step` do one after
     the other, to the bit.  Allocation-free, never raises."""
-    called = _preview_check(fv, iv, rows, ticks, impulse, force_rows, trigger_m,
-                            edge_trigger_m, trusted_from_tick, clamp_m, clamp_points,
+    called = _preview_check(fv, iv, rows, ticks, impulse, force_rows, brake_rows,
+                            trigger_m, edge_trigger_m, trusted_from_tick, clamp_m, clamp_points,
                             rattlespace_m, force_meas_n, road_velocity, start)
     iv[I_PVCALL] = 1 if called else 0
+    return bank_tick(mat, vec, st, active, fv, iv, nbr, rattlespace_m, accel_mps2,
+                     force_meas_n, run_st, run_active, run_models)
+
+
+@nb.njit(_SIG_TICK_AT_REST, cache=True, nogil=True, _nrt=False)  # type: ignore[call-overload]
+def bank_tick_at_rest(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndarray,
+                      fv: np.ndarray, iv: np.ndarray, nbr: np.ndarray, rattlespace_m: float,
+                      accel_mps2: float, force_meas_n: float, run_st: np.ndarray,
+                      run_active: np.ndarray, run_models: np.ndarray, rows: np.ndarray,
+                      ticks: np.ndarray, impulse: np.ndarray, brake_rows: np.ndarray,
+                      clamp_m: float, clamp_points: int, no_road: np.ndarray,
+                      start: int) -> float:
+    """The stop clamp's prediction with the road at rest (:func:`_clamp_check` on
+    ``no_road[start:]``, no samples: the state's momentum alone;
+    ``design.stop_clamp_road_at_rest``), then :func:`bank_tick`: the tick without a live
+    road preview (none when a preview's check made it for this tick already:
+    :meth:`BankRuntime.check_road_preview` then :meth:`BankRuntime.step`).
+    Allocation-free, never raises."""
+    if iv[I_PVCHECKED] == 0:
+        _clamp_check(fv, iv, rows, ticks, impulse, brake_rows, clamp_m, clamp_points,
+                     rattlespace_m, no_road, start)
     return bank_tick(mat, vec, st, active, fv, iv, nbr, rattlespace_m, accel_mps2,
                      force_meas_n, run_st, run_active, run_models)
 
@@ -1072,6 +1112,7 @@ def bank_reset(mat: np.ndarray, vec: np.ndarray, st: np.ndarray, active: np.ndar
     iv[I_NLAYERSW] = 0
     iv[I_PVCALL] = 0
     iv[I_PVCLAMP] = 0
+    iv[I_PVCHECKED] = 0
     iv[I_PVCLAMP_TICKS] = 0
     fv[F_PVC_MS] = 4.0 * fv[F_PVC_TRUST2]     # not trusted until predictions come true
     for i in range(PVC_RING):
@@ -1309,6 +1350,8 @@ def _float_parameters(design: Design, cfg: RigConfig, mon: MonitorSettings, t: _
     fv[F_PVC_TRUST2] = cfg.design.preview_clamp_trust_m ** 2
     fv[F_SB:F_SB + BARRIER_SIZE] = stop_barrier_parameters(
         cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM])).as_array()
+    fv[F_PVC_BRAKE] = (braking_force_n(cfg, float(fv[F_FFSTALL]), float(fv[F_SFLIM]))
+                       if cfg.design.preview_clamp_brake else 0.0)
     aw = cfg.design.accel_mean_window_s
     fv[F_AMEAN_ALPHA] = 1.0 - math.exp(-dt / aw) if aw > 0.0 else 0.0
     fw = cfg.fuzzy.window_s
@@ -1529,6 +1572,18 @@ class BankRuntime:
         self._tick_call: Callable[..., float] = direct_call(bank_tick, (*own, *run))
         self._tick_preview_call: Callable[..., float] = bank_tick_preview
         self._preview_bound: tuple[RoadPreview, np.ndarray] | None = None
+        # the stop clamp without a live preview: the road at rest
+        # (design.stop_clamp_road_at_rest; the preview's predictor, no road velocity)
+        self._no_road = np.zeros(0)
+        pv = road_preview(cfg_) if cfg_.design.stop_clamp_road_at_rest else None
+        self._at_rest = pv if pv is not None and pv.clamp_points > 0 else None
+        self._at_rest_call: Callable[..., float] = bank_tick_at_rest
+        if self._at_rest is not None:
+            a = self._at_rest
+            self._at_rest_args = (a.rows, a.ticks, a.impulse, a.brake_rows, a.clamp_m,
+                                  a.clamp_points, self._no_road, 0)
+            self._at_rest_call = direct_call(bank_tick_at_rest,
+                                             (*own, *run, *self._at_rest_args))
         self._warm_up()
         self.reset()
 
@@ -1564,7 +1619,12 @@ class BankRuntime:
                               self._st_run.copy(), self._active_run.copy(),
                               self._models_run.copy(), np.zeros((1, 1, 4)),
                               np.ones(1, dtype=np.int64), np.zeros((1, 1)), np.zeros((1, 1)),
-                              np.zeros(1), 0.0, 0, 0.08, 1, np.zeros(1), 0)
+                              np.zeros((1, 1)), np.zeros(1), 0.0, 0, 0.08, 1, np.zeros(1), 0)
+            bank_tick_at_rest(self._mat, self._vec, st, act, fv, iv, self._nbr, 0.0, 0.0, 0.0,
+                              self._st_run.copy(), self._active_run.copy(),
+                              self._models_run.copy(), np.zeros((1, 1, 4)),
+                              np.ones(1, dtype=np.int64), np.zeros((1, 1)),
+                              np.zeros((1, 1)), 0.08, 1, self._no_road, 0)
         _select(self._mat, self._vec, self._all_mat, self._all_vec, self.noise_index,
                 self._table_w)
 
@@ -1632,6 +1692,11 @@ class BankRuntime:
         exact = (type(rattlespace_m) is float and type(accel_mps2) is float
                  and type(force_meas_n) is float)
         try:
+            if self._at_rest is not None:   # the stop clamp with the road at rest
+                return (self._at_rest_call if exact else bank_tick_at_rest)(
+                    self._mat, self._vec, self._st, self._active, self._fv, self._iv,
+                    self._nbr, rattlespace_m, accel_mps2, force_meas_n, self._st_run,
+                    self._active_run, self._models_run, *self._at_rest_args)
             if self._gather:    # a layered bank: the step copies the running layer too
                 return (self._tick_call if exact else bank_tick)(
                     self._mat, self._vec, self._st, self._active, self._fv, self._iv,
@@ -1679,7 +1744,7 @@ class BankRuntime:
         :meth:`step` in one call."""
         return bool(road_preview_check(
             self._fv, self._iv, preview.rows, preview.ticks, preview.impulse,
-            preview.force_rows, preview.trigger_m, preview.edge_trigger_m,
+            preview.force_rows, preview.brake_rows, preview.trigger_m, preview.edge_trigger_m,
             self._trusted_from_tick, preview.clamp_m, preview.clamp_points, reading_m,
             force_meas_n, road_velocity, start))
 
@@ -1701,7 +1766,7 @@ class BankRuntime:
                 self._mat, self._vec, self._st, self._active, self._fv, self._iv,
                 self._nbr, rattlespace_m, accel_mps2, force_meas_n, self._st_run,
                 self._active_run, self._models_run, preview.rows, preview.ticks,
-                preview.impulse, preview.force_rows, preview.trigger_m,
+                preview.impulse, preview.force_rows, preview.brake_rows, preview.trigger_m,
                 preview.edge_trigger_m, self._trusted_from_tick, preview.clamp_m,
                 preview.clamp_points, road_velocity, start)
         except (TypeError, ValueError, OverflowError):
@@ -1717,8 +1782,8 @@ class BankRuntime:
         args = (self._mat, self._vec, self._st, self._active, self._fv, self._iv,
                 self._nbr, 0.0, 0.0, 0.0, self._st_run, self._active_run, self._models_run,
                 preview.rows, preview.ticks, preview.impulse, preview.force_rows,
-                preview.trigger_m, preview.edge_trigger_m, self._trusted_from_tick,
-                preview.clamp_m, preview.clamp_points, road_velocity, 0)
+                preview.brake_rows, preview.trigger_m, preview.edge_trigger_m,
+                self._trusted_from_tick, preview.clamp_m, preview.clamp_points, road_velocity, 0)
         self._tick_preview_call = direct_call(bank_tick_preview, args)
         self._preview_bound = (preview, road_velocity)
 

@@ -308,6 +308,9 @@ F_PVC_MS = FV.slot()  # mean-square error of the clamp's last look-ahead predict
 F_PVC_AIRW = FV.slot()  # the airborne model's weight in the last step's blend (read-out)
 F_PVC_PRED = FV.slot(PVC_RING)  # prediction of the reading for tick t, at t % PVC_RING (state)
 F_PVC_FOR = FV.slot(PVC_RING)  # the tick that slot predicts (state; -1: none)
+F_PVC_BRAKE = FV.slot()  # the clamp's largest braking force [N] (design.preview_clamp_brake)
+F_PVC_FMIN = FV.slot()  # the clamp's least force for the next step [N] (state)
+F_PVC_FMAX = FV.slot()  # the clamp's greatest force for the next step [N] (state)
 FV_HEAD = FV.size  # the fuzzy table starts here
 
 # --- iv: parameters
@@ -389,7 +392,8 @@ I_LSINCE = IV.slot()  # ticks I_LCAND has been preferred in a row (state)
 I_NLAYERSW = IV.slot()  # layer changes since reset (state)
 # --- iv: road preview (controller/road_preview.py)
 I_PVCALL = IV.slot()  # 1: the road preview called the travel law in the last previewed tick (state)
-I_PVCLAMP = IV.slot()  # stop clamp for the next step: bit 0 compression, bit 1 rebound (state)
+I_PVCLAMP = IV.slot()  # stop clamp for the next step: 1 = F_PVC_FMIN/FMAX bound it (state)
+I_PVCHECKED = IV.slot()  # the stop clamp checked for the next step (state; the step clears it)
 I_PVCLAMP_TICKS = IV.slot()  # ticks in which the stop clamp clipped the force since reset (state)
 IV_ACT = IV.size  # iv[IV_ACT : IV_ACT + I_NACT]: the running filters, ascending
 IV_HEAD = IV.size  # iv has IV_HEAD + J entries

@@ -188,11 +188,14 @@ class BankController:
 
     def step(self, reading: SensorReading, plant: RigPlant) -> float:
         pv = self.preview
-        if pv is not None and self.rt.check_road_preview(pv, reading.rattlespace_m,
-                                                         reading.force_n,
-                                                         self._road_velocity, self.ticks):
-            self.preview_calls += 1
-        u = float(self.rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
+        rt = self.rt
+        if pv is not None:      # the preview's check and the step in one call, as the loop
+            u = float(rt.step_previewed(pv, reading.rattlespace_m, reading.accel_mps2,
+                                        reading.force_n, self._road_velocity, self.ticks))
+            if rt.preview_called:
+                self.preview_calls += 1
+        else:
+            u = float(rt.step(reading.rattlespace_m, reading.accel_mps2, reading.force_n))
         self.flags = flags = self.rt.flag_bits
         self.ticks += 1
         self.comfort_share_sum += self.rt.comfort_share

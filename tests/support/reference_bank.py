@@ -61,6 +61,18 @@ def bayes_update_numpy(p_prev: FloatArray, q: FloatArray,
     return np.asarray(p / np.sum(p), dtype=np.float64)
 
 
+def kernel_cfg(design: Design, cfg: RigConfig | None = None) -> RigConfig:
+    """The configuration for the numba bank run beside :class:`ReferenceBank` (``cfg``, or
+    the design's): the stop clamp with the road at rest off
+    (``design.stop_clamp_road_at_rest``), which the reference does not have; the clamp
+    is checked against python-control and on the nonlinear rig in
+    tests/test_preview_clamp.py."""
+    from controller.runtime.bank import config_of
+
+    base = cfg if cfg is not None else config_of(design)
+    return base.replace(design={"stop_clamp_road_at_rest": False})
+
+
 class ReferenceBank:
     """Same constructor and ``step`` contract as :class:`controller.runtime.bank.BankRuntime`."""
 
