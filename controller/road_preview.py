@@ -56,7 +56,7 @@ force toward that stop is clipped to 0 and no more).  Without a live preview the
 taken at rest (the state's momentum alone: ``design.stop_clamp_road_at_rest``).
 
 :func:`road_preview` designs the predictor offline into plain arrays;
-:func:`predicted_peak_m` and :func:`predicted_extremes_m` are the per-tick kernels (numba,
+:func:`predicted_peak_m` and :func:`clamp_force_bounds_n` are the per-tick kernels (numba,
 allocate nothing).
 """
 

@@ -1573,7 +1573,10 @@ class BankRuntime:
         self._tick_preview_call: Callable[..., float] = bank_tick_preview
         self._preview_bound: tuple[RoadPreview, np.ndarray] | None = None
         # the stop clamp without a live preview: the road at rest
-        # (design.stop_clamp_road_at_rest; the preview's predictor, no road velocity)
+        # (design.stop_clamp_road_at_rest; the preview's predictor, no road velocity;
+        # the window's start makes it 21 arguments: a call of exactly 20 left 200 B on
+        # the Python heap per tick, up to ~400 kB, until gc.collect() (tracemalloc,
+        # tests/test_bank.py::test_no_allocation_per_tick); 21 leave nothing)
         self._no_road = np.zeros(0)
         pv = road_preview(cfg_) if cfg_.design.stop_clamp_road_at_rest else None
         self._at_rest = pv if pv is not None and pv.clamp_points > 0 else None
@@ -1686,7 +1689,10 @@ class BankRuntime:
 
     # ------------------------------------------------------------------ the tick
     def step(self, rattlespace_m: float, accel_mps2: float, force_meas_n: float) -> float:
-        """One controller tick: the actuator force reference [N].  Never raises."""
+        """One controller tick: the actuator force reference [N].  With
+        ``design.stop_clamp_road_at_rest`` (and a predictor: ``preview_horizon_s`` > 0) the
+        stop clamp first predicts with the road at rest, unless :meth:`check_road_preview`
+        ran for this tick.  Never raises."""
         # Python floats take the entry point, any other input the dispatcher (which
         # converts other numbers and refuses the rest: controller/runtime/compiled.py)
         exact = (type(rattlespace_m) is float and type(accel_mps2) is float
@@ -1737,9 +1743,11 @@ class BankRuntime:
         ``preview.trigger_m`` or is not finite; the governed comfort set (:attr:`governed`),
         and any law in the first :attr:`preview_trust_ticks` after a reset, predicts
         without the force and takes ``preview.edge_trigger_m``.  For every law, also the
-        stop clamp of the next :meth:`step` (``preview.clamp_m``: the force toward a stop
-        the no-force prediction reaches within ``preview.clamp_points`` look-ahead ticks
-        is clipped to 0, counted in ``counters()["preview_clamp_ticks"]``).
+        stop clamp of the next :meth:`step` on the previewed road (``preview.clamp_m``:
+        the force bounds that keep the prediction over ``preview.clamp_points``
+        look-ahead ticks inside it, :func:`_clamp_check`; a change counted in
+        ``counters()["preview_clamp_ticks"]``), which that step then does not redo with
+        the road at rest.
         True when it called.  Allocates nothing.  :meth:`step_previewed` does this and
         :meth:`step` in one call."""
         return bool(road_preview_check(
