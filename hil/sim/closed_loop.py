@@ -163,8 +163,10 @@ class BankController:
         gd = road.roughness_gd if road.roughness_gd is not None else cfg.noise.nominal_roughness_gd
         self.rt.set_road(road.speed_mps, gd)
         # road preview (controller/road_preview.py): the simulator knows the road ahead
-        # (a fixed weight set other than the governed comfort set never calls it)
-        self.preview = cached_road_preview(cfg)
+        # (a fixed weight set other than the governed comfort set never calls it), unless
+        # the emulated rig sends none ([emulator] road_preview_s = 0): then the bank's
+        # step runs without it, as the loop's does
+        self.preview = cached_road_preview(cfg) if cfg.emulator.road_preview_s > 0 else None
         self.rt.use_preview_schedule(self.preview is not None)   # the preview is always live
         self._road_velocity = road.velocity_mps
         self._mask = int(StepFlag.NONFINITE_INPUT | StepFlag.NONFINITE_STATE
