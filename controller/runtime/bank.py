@@ -85,9 +85,9 @@ from controller.road_noise import nearest_noise_entry
 from controller.road_preview import (
     CLAMP_TRUST_WINDOW_S,
     RoadPreview,
+    cached_road_preview,
     clamp_force_bounds_n,
     predicted_peak_m,
-    road_preview,
 )
 from controller.runtime.bayes import bayes_update, log_likelihood_constant
 from controller.runtime.compiled import direct_call
@@ -1578,7 +1578,7 @@ class BankRuntime:
         # the Python heap per tick, up to ~400 kB, until gc.collect() (tracemalloc,
         # tests/test_bank.py::test_no_allocation_per_tick); 21 leave nothing)
         self._no_road = np.zeros(0)
-        pv = road_preview(cfg_) if cfg_.design.stop_clamp_road_at_rest else None
+        pv = cached_road_preview(cfg_) if cfg_.design.stop_clamp_road_at_rest else None
         self._at_rest = pv if pv is not None and pv.clamp_points > 0 else None
         self._at_rest_call: Callable[..., float] = bank_tick_at_rest
         if self._at_rest is not None:

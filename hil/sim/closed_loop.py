@@ -39,17 +39,17 @@ import functools
 import math
 import operator
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from controller.arrays import FloatArray
 from controller.config import RigConfig, design_config_hash
+from controller.memo import memoised
 from controller.metrics import compute_metrics
 from controller.modes import BANK_MODES, CONTROLLER_MODES
-from controller.road_preview import RoadPreview, road_preview
+from controller.road_preview import cached_road_preview
 from hil.sim.plant import PlantParams, RigPlant
 from hil.sim.roads import Road
 from hil.sim.sensors import SensorReading, SensorSuite
@@ -104,21 +104,7 @@ class SimResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-T = TypeVar("T")
-
 _DESIGNS: dict[str, Design] = {}
-_PREVIEWS: dict[str, RoadPreview | None] = {}
-#: configurations each of those memos keeps (the oldest goes first)
-MEMO_SIZE = 8
-
-
-def _memoised(store: dict[str, T], key: str, make: Callable[[], T]) -> T:
-    """``store[key]``, made by ``make()`` the first time; at most MEMO_SIZE kept."""
-    if key not in store:
-        if len(store) >= MEMO_SIZE:
-            store.pop(next(iter(store)))
-        store[key] = make()
-    return store[key]
 
 
 @functools.lru_cache(maxsize=8)
@@ -135,14 +121,7 @@ def cached_design(cfg: RigConfig) -> Design:
     in e.g. the emulated plant share one design; across processes by the on-disk design
     cache (:mod:`rig.design_cache`)."""
     from rig.design_cache import design_for
-    return _memoised(_DESIGNS, design_config_hash(cfg), lambda: design_for(cfg))
-
-
-def cached_road_preview(cfg: RigConfig) -> RoadPreview | None:
-    """``road_preview(cfg)`` (one predictor per bank layer, ~60 ms for the default bank),
-    memoised in this process like :func:`cached_design`: every run of a batch on one
-    configuration shares it."""
-    return _memoised(_PREVIEWS, design_config_hash(cfg), lambda: road_preview(cfg))
+    return memoised(_DESIGNS, design_config_hash(cfg), lambda: design_for(cfg))
 
 
 class BankController:

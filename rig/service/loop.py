@@ -58,7 +58,7 @@ import can
 import numpy as np
 
 from controller.config import RigConfig
-from controller.road_preview import road_preview
+from controller.road_preview import cached_road_preview
 from controller.runtime.kernels import StepFlag
 from rig.operator_commands import OPERATOR_COMMANDS
 from rig.recording.codec import TickLayout, TickPacker
@@ -235,7 +235,7 @@ class ControlLoop:
         #: the road ahead from the rig's RoadPreview frames; None when it is off
         #: (built for every weight set: the operator may select the schedule or the
         #: governed comfort set at run time)
-        self.road_preview = road_preview(cfg)
+        self.road_preview = cached_road_preview(cfg)
         self.preview_stream = (None if self.road_preview is None
                                else RoadPreviewStream(self.road_preview.horizon_ticks))
         self.io.preview = self.preview_stream
