@@ -26,7 +26,7 @@ from controller.plant import (
     tire_damping_ns_per_m,
     tire_secant_stiffness_n_per_m,
 )
-from controller.road_preview import predicted_peak_m, road_preview
+from controller.road_preview import cached_road_preview, predicted_peak_m, road_preview
 from controller.runtime.bank import BankRuntime
 from controller.runtime.kernels import I_PVCALL
 from hil.sim.closed_loop import cached_design, simulate
@@ -412,3 +412,18 @@ def test_simulator_calls_the_travel_law_on_a_nonfinite_prediction() -> None:
         ctrl.step(reading, None)  # type: ignore[arg-type]   # the plant is not read
         assert ctrl.preview_calls == calls
         assert ctrl.rt.comfort_share == share
+
+
+def test_one_predictor_per_configuration_is_shared() -> None:
+    """The runtime's road-at-rest clamp and every other user of one configuration take
+    the same predictor object (built once per process), equal to a fresh one; another
+    design configuration gets its own."""
+    shared = cached_road_preview(CFG)
+    assert shared is not None and cached_road_preview(CFG) is shared
+    fresh = road_preview(CFG)
+    assert fresh is not None
+    np.testing.assert_array_equal(shared.brake_rows, fresh.brake_rows)
+    np.testing.assert_array_equal(shared.rows, fresh.rows)
+    assert BankRuntime(cached_design(CFG), cfg=CFG)._at_rest is shared
+    other = cached_road_preview(CFG_F)
+    assert other is not None and other is not shared
